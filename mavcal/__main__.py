@@ -1,0 +1,5 @@
+import sys
+
+from mavcal.cli import main
+
+sys.exit(main())

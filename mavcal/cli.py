@@ -1,0 +1,84 @@
+"""The ``mavcal`` command line.
+
+Each subcommand lives in its own module under :mod:`mavcal.commands` and exposes
+``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``. This module only
+dispatches, configures logging and maps :class:`mavcal.errors.MavcalError` to one-line
+messages and exit codes; it never shows a traceback for bad input.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from typing import List, Optional
+
+from mavcal import __version__
+from mavcal.errors import MavcalError
+
+# subcommand name -> module under mavcal.commands
+COMMANDS = {
+    "simulate": "simulate",
+    "segments": "segments",
+    "calibrate": "calibrate",
+    "apply": "apply",
+    "restore": "restore",
+    "capture": "capture",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that exits with code 2 and a one-line message on usage errors."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.print_usage(sys.stderr)
+        self.exit(2, f"mavcal: error: {message}\n")
+
+
+def _load(name: str):
+    try:
+        return importlib.import_module(f"mavcal.commands.{COMMANDS[name]}")
+    except ModuleNotFoundError as exc:  # a subcommand not built yet
+        if exc.name and exc.name.startswith("mavcal.commands"):
+            return None
+        raise
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot.")
+    parser.add_argument("--version", action="version", version=f"mavcal {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    for name in COMMANDS:
+        mod = _load(name)
+        if mod is None:
+            continue
+        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help(sys.stderr)
+        return 2
+    level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="mavcal: %(levelname)s: %(message)s")
+    try:
+        return int(args._run(args) or 0)
+    except MavcalError as exc:
+        print(f"mavcal: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("mavcal: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

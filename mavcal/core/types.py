@@ -1,0 +1,174 @@
+"""Result types of the estimator. Frozen, built in one step, arrays read-only.
+
+Model (paper Eq. ``sensor_reading_model``): the mean reading of still interval i is
+
+    mu_a[i] = K_a R_i g + b_a,     g = [0, 0, -1]
+    mu_m[i] = K_m R_i h + b_m,     h = [1, 0, h_z]
+
+in the units of the input readings (m/s^2, mGauss, ...). The gravity and field are
+normalised (g_z = -1, h_x = 1), so the gains carry the field magnitudes. ``K_a`` is upper
+triangular (it fixes the frame in which the orientations R_i are expressed); ``K_m`` is a
+full matrix that contains the accelerometer-to-magnetometer rotation (and a mirroring
+when det K_m < 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional, Tuple
+
+import numpy as np
+
+
+def _frozen(a: np.ndarray | None) -> np.ndarray | None:
+    if a is None:
+        return None
+    a = np.array(a, dtype=float, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def _arr_eq(a, b) -> bool:
+    if a is None or b is None:
+        return a is b
+    return np.array_equal(a, b)
+
+
+@dataclass(frozen=True, eq=False)
+class SensorModel:
+    """Affine model of one sensor: reading = gain @ nominal + bias + noise.
+
+    Attributes
+    ----------
+    gain : (3, 3) array
+        K_s. For the reference accelerometer upper triangular.
+    bias : (3,) array
+        b_s, in the units of the readings.
+    noise_cov : (3, 3) array
+        Sigma_s, covariance of one reading.
+    kind : "accel" or "mag"
+    """
+
+    gain: np.ndarray
+    bias: np.ndarray
+    noise_cov: np.ndarray
+    kind: str = "accel"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "gain", _frozen(self.gain))
+        object.__setattr__(self, "bias", _frozen(self.bias))
+        object.__setattr__(self, "noise_cov", _frozen(self.noise_cov))
+
+    def nominal(self, readings: np.ndarray) -> np.ndarray:
+        """Invert the model: K^-1 (v - b) for readings of shape (..., 3)."""
+        v = np.asarray(readings, dtype=float) - self.bias
+        return np.linalg.solve(self.gain, v.reshape(-1, 3).T).T.reshape(v.shape)
+
+    def predict(self, nominal: np.ndarray) -> np.ndarray:
+        """Forward model without noise: K v* + b for nominal values (..., 3)."""
+        return np.asarray(nominal, dtype=float) @ self.gain.T + self.bias
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, SensorModel):
+            return NotImplemented
+        return (self.kind == other.kind and _arr_eq(self.gain, other.gain)
+                and _arr_eq(self.bias, other.bias) and _arr_eq(self.noise_cov, other.noise_cov))
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Result of :func:`mavcal.calibrate`.
+
+    Attributes
+    ----------
+    accel, mag : SensorModel
+    gravity : (3,) array, always [0, 0, -1]
+    field : (3,) array, [1, 0, h_z]
+    orientations : (N, 3, 3) array
+        R_i such that mean accel reading = accel.gain @ R_i @ gravity + accel.bias.
+    cost : float
+        J' (paper Eq. ``partial_cost``) at the returned parameters, with the noise
+        covariances in ``noise_cov``.
+    iterations : int
+        Block-coordinate iterations of the paper's algorithm (Sec. VII) plus joint
+        refinement iterations.
+    converged : bool
+    message : str
+    method : str
+        "ncdr", "ncar", "fcar" or "dcar".
+    model : str
+        The model actually fitted (see :mod:`mavcal.core.models`), e.g. "full".
+    model_reason : str
+        Why that model was chosen, in words.
+    param_names : tuple of str
+        Names of the global parameters, in the order of ``param_cov``.
+    param_cov : (P, P) array or None
+        Covariance of the global parameters (orientations marginalised), from the
+        Gauss-Newton approximation of the Fisher information at the optimum.
+    n_accel, n_mag : (N,) int arrays
+        Delta_a[i], Delta_m[i]: samples per interval.
+    block_iterations, refine_iterations : int
+    """
+
+    accel: SensorModel
+    mag: SensorModel
+    gravity: np.ndarray
+    field: np.ndarray
+    orientations: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    message: str
+    method: str = "ncar"
+    model: str = "full"
+    model_reason: str = ""
+    param_names: Tuple[str, ...] = ()
+    param_cov: Optional[np.ndarray] = None
+    n_accel: Optional[np.ndarray] = None
+    n_mag: Optional[np.ndarray] = None
+    block_iterations: int = 0
+    refine_iterations: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):
+            object.__setattr__(self, name, _frozen(getattr(self, name)))
+        object.__setattr__(self, "param_names", tuple(self.param_names))
+
+    @property
+    def n_intervals(self) -> int:
+        return int(self.orientations.shape[0])
+
+    @property
+    def h_z(self) -> float:
+        return float(self.field[2])
+
+    @property
+    def inclination_deg(self) -> float:
+        """Dip angle of the estimated field below the horizontal plane (positive down).
+
+        The normalised frame has gravity along -z of the inertial frame (specific force
+        of a still vehicle points up), so "down" is +z and inclination = atan2(h_z, h_x).
+        """
+        return float(np.degrees(np.arctan2(self.field[2], self.field[0])))
+
+    def sample_parameters(self, n: int, rng: np.random.Generator | None = None):
+        """Draw ``n`` parameter sets from the Gaussian approximation of the posterior.
+
+        Returns a list of dicts with keys ``K_a``, ``b_a``, ``K_m``, ``b_m``, ``h`` (field).
+        Used to propagate the estimation uncertainty into derived quantities (heading and
+        tilt errors of the ArduPilot parameters, for instance).
+        """
+        from mavcal.core.uncertainty import sample_parameters
+
+        return sample_parameters(self, n, rng)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Calibration):
+            return NotImplemented
+        return (self.accel == other.accel and self.mag == other.mag
+                and _arr_eq(self.field, other.field)
+                and _arr_eq(self.orientations, other.orientations)
+                and self.cost == other.cost and self.model == other.model)
+
+    __hash__ = None  # type: ignore[assignment]

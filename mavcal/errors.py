@@ -1,0 +1,97 @@
+"""Exception hierarchy of mavcal.
+
+Every error a user can provoke with bad input is a :class:`MavcalError`. Each class
+carries the process exit code the CLI uses for it, so the CLI maps exceptions to exit
+codes in one place and the library never prints.
+
+Exit codes (CLI contract):
+
+==  =========================================================
+0   success
+2   usage error (bad command line, bad option value)
+3   unreadable source, no IMU data, device that does not answer
+4   calibration rejected by the gates, or too little/unusable data
+5   parameter write failed and the vehicle was restored
+6   parameter write failed and the restore failed too
+==  =========================================================
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+
+class MavcalError(Exception):
+    """Base class of every mavcal error. ``exit_code`` is what the CLI returns."""
+
+    exit_code: int = 1
+
+
+class UsageError(MavcalError, ValueError):
+    """The caller asked for something that does not make sense (bad option, bad value)."""
+
+    exit_code = 2
+
+
+class SourceError(MavcalError):
+    """A log or device cannot be read: missing, empty, corrupt, no IMU data, no answer."""
+
+    exit_code = 3
+
+
+class LinkError(SourceError):
+    """A live MAVLink device could not be reached or stopped answering."""
+
+
+class InsufficientDataError(MavcalError):
+    """The data cannot identify the calibration (too few intervals, poor coverage)."""
+
+    exit_code = 4
+
+
+class SegmentationError(InsufficientDataError):
+    """Still-interval detection found too few usable intervals."""
+
+
+class EstimationError(MavcalError, ValueError):
+    """The inputs to the estimator are unusable (NaN, wrong shape, degenerate geometry)."""
+
+    exit_code = 4
+
+
+class ParameterMappingError(MavcalError):
+    """A calibration cannot be expressed as ArduPilot parameters (e.g. mirrored compass)."""
+
+    exit_code = 4
+
+
+class GateError(MavcalError):
+    """The calibration failed a quality gate and was not written (use --force to override)."""
+
+    exit_code = 4
+
+
+class ParamWriteError(MavcalError):
+    """Writing parameters failed; every value already written was restored and verified."""
+
+    exit_code = 5
+
+    def __init__(self, message: str, report: object | None = None) -> None:
+        super().__init__(message)
+        self.report = report
+
+
+class RestoreFailedError(ParamWriteError):
+    """Writing failed and restoring the previous values failed as well.
+
+    ``in_doubt`` lists the parameter names whose value on the vehicle is unknown.
+    """
+
+    exit_code = 6
+
+    def __init__(self, message: str, in_doubt: Sequence[str] = (), report: object | None = None) -> None:
+        super().__init__(message, report)
+        self.in_doubt = list(in_doubt)
+
+
+class CalibrationWarning(UserWarning):
+    """A result that is usable but suspicious (poor coverage, large uncertainty...)."""
