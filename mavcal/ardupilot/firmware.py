@@ -1,0 +1,448 @@
+"""How ArduPilot applies its sensor calibration, forward and inverse (pure numpy).
+
+Compass (``AP_Compass_Backend::rotate_field`` then ``correct_field``), per sample::
+
+    b         = R_mount @ s                      # body frame after orientation
+    corrected = M @ (k * (b + OFS)) + motor_ofs
+
+``R_mount`` is ``COMPASS_ORIENTn`` for an external compass and ``AHRS_ORIENTATION`` for an
+internal one; ``k = COMPASS_SCALEn`` only when it lies in [1/1.5, 1.5], else 1; ``M`` is the
+symmetric DIA/ODI matrix, skipped entirely (ODI included) when DIA is all zero;
+``motor_ofs`` is the motor compensation the firmware added (logged as MAG.MOX/MOY/MOZ).
+The inverse gives the body-frame field after orientation::
+
+    b = (1/k) * M^-1 @ (corrected - motor_ofs) - OFS
+
+Accelerometer (``AP_InertialSensor_Backend::_rotate_and_correct_accel``), per sample::
+
+    body = R_A @ (S * (u - OFS))        # u: board-frame raw, S = INS_ACCSCAL, R_A = AHRS_ORIENTATION
+    u    = (R_A.T @ body) / S + OFS
+
+While an accelerometer calibration runs the firmware skips the offsets and scale but still
+applies ``R_A`` (``calibrating=True`` below).
+
+Only :mod:`mavcal.ardupilot` knows parameter names; the ``*_param_names`` functions are
+the single place that spells them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Tuple
+
+import numpy as np
+
+from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, rotation_matrix
+
+__all__ = [
+    "GRAVITY_MSS",
+    "COMPASS_MIN_SCALE",
+    "COMPASS_MAX_SCALE",
+    "MAX_COMPASSES",
+    "MAX_IMUS",
+    "compass_param_names",
+    "accel_param_names",
+    "board_param_names",
+    "CompassCal",
+    "AccelCal",
+    "soft_iron_matrix",
+    "effective_scale",
+    "apply_compass",
+    "undo_compass",
+    "apply_accel",
+    "undo_accel",
+    "compass_cal_from_params",
+    "accel_cal_from_params",
+    "custom_rotation_angles",
+    "compass_param_values",
+    "accel_param_values",
+]
+
+GRAVITY_MSS = 9.80665
+COMPASS_MIN_SCALE = 1.0 / 1.5
+COMPASS_MAX_SCALE = 1.5
+MAX_COMPASSES = 3
+MAX_IMUS = 5
+_XYZ = ("X", "Y", "Z")
+
+
+# --------------------------------------------------------------------------- names
+
+def compass_param_names(instance: int) -> Dict[str, object]:
+    """Parameter names of compass ``instance`` (0-based priority/state slot).
+
+    Returns
+    -------
+    dict with keys ``ofs``, ``dia``, ``odi``, ``mot`` (tuples of 3 names, X/Y/Z),
+    ``scale``, ``orient``, ``external``, ``dev_id``, ``prio_id``, ``use`` (single names).
+
+    Examples
+    --------
+    >>> compass_param_names(1)["ofs"]
+    ('COMPASS_OFS2_X', 'COMPASS_OFS2_Y', 'COMPASS_OFS2_Z')
+    """
+    k = int(instance)
+    if not 0 <= k < MAX_COMPASSES:
+        raise ValueError(f"compass instance must be 0..{MAX_COMPASSES - 1}, got {instance}")
+    s = "" if k == 0 else str(k + 1)
+    return {
+        "ofs": tuple(f"COMPASS_OFS{s}_{a}" for a in _XYZ),
+        "dia": tuple(f"COMPASS_DIA{s}_{a}" for a in _XYZ),
+        "odi": tuple(f"COMPASS_ODI{s}_{a}" for a in _XYZ),
+        "mot": tuple(f"COMPASS_MOT{s}_{a}" for a in _XYZ),
+        "scale": f"COMPASS_SCALE{s}",
+        "orient": f"COMPASS_ORIENT{s}",
+        "external": "COMPASS_EXTERNAL" if k == 0 else f"COMPASS_EXTERN{k + 1}",
+        "dev_id": f"COMPASS_DEV_ID{s}",
+        "prio_id": f"COMPASS_PRIO{k + 1}_ID",
+        "use": f"COMPASS_USE{s}",
+    }
+
+
+def accel_param_names(instance: int) -> Dict[str, object]:
+    """Parameter names of accelerometer ``instance`` (0-based IMU index).
+
+    Returns
+    -------
+    dict with keys ``ofs``, ``scale`` (tuples of 3 names) and ``id``.
+
+    Examples
+    --------
+    >>> accel_param_names(0)["ofs"][0], accel_param_names(2)["scale"][1], accel_param_names(3)["ofs"][2]
+    ('INS_ACCOFFS_X', 'INS_ACC3SCAL_Y', 'INS4_ACCOFFS_Z')
+    """
+    i = int(instance)
+    if not 0 <= i < MAX_IMUS:
+        raise ValueError(f"accel instance must be 0..{MAX_IMUS - 1}, got {instance}")
+    if i == 0:
+        ofs, scal, ident = "INS_ACCOFFS", "INS_ACCSCAL", "INS_ACC_ID"
+    elif i < 3:
+        ofs, scal, ident = f"INS_ACC{i + 1}OFFS", f"INS_ACC{i + 1}SCAL", f"INS_ACC{i + 1}_ID"
+    else:
+        ofs, scal, ident = f"INS{i + 1}_ACCOFFS", f"INS{i + 1}_ACCSCAL", f"INS{i + 1}_ACC_ID"
+    return {
+        "ofs": tuple(f"{ofs}_{a}" for a in _XYZ),
+        "scale": tuple(f"{scal}_{a}" for a in _XYZ),
+        "id": ident,
+    }
+
+
+def board_param_names() -> Dict[str, object]:
+    """Vehicle-wide names: ``orientation`` (AHRS_ORIENTATION), ``custom1``/``custom2``
+    (CUST_ROTn_ROLL/PIT/YAW), ``trim`` (AHRS_TRIM_X/Y/Z), ``motct`` (COMPASS_MOTCT)."""
+    return {
+        "orientation": "AHRS_ORIENTATION",
+        "custom1": ("CUST_ROT1_ROLL", "CUST_ROT1_PIT", "CUST_ROT1_YAW"),
+        "custom2": ("CUST_ROT2_ROLL", "CUST_ROT2_PIT", "CUST_ROT2_YAW"),
+        "trim": ("AHRS_TRIM_X", "AHRS_TRIM_Y", "AHRS_TRIM_Z"),
+        "motct": "COMPASS_MOTCT",
+    }
+
+
+# --------------------------------------------------------------------------- models
+
+def _vec3(v, name: str) -> Tuple[float, float, float]:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (3,):
+        raise ValueError(f"{name} must have 3 elements, got shape {np.shape(v)}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _mount(orient: int, custom: Optional[Tuple[float, float, float]]) -> np.ndarray:
+    return rotation_matrix(orient, custom if int(orient) in (CUSTOM_1, CUSTOM_2) else None)
+
+
+@dataclass(frozen=True)
+class CompassCal:
+    """The calibration a compass applies (one parameter set, one priority slot).
+
+    Attributes
+    ----------
+    ofs_mgauss : (3,) COMPASS_OFSn, body frame after orientation, *added* to the field.
+    dia, odi : (3,) COMPASS_DIAn / COMPASS_ODIn (soft-iron matrix; DIA all zero = off).
+    scale : COMPASS_SCALEn (used only in [1/1.5, 1.5]; 0 = not set).
+    orient : rotation enum applied to the sensor before the correction: COMPASS_ORIENTn
+        for an external compass, AHRS_ORIENTATION for an internal one.
+    external : bool or None (unknown).
+    custom_deg : (roll, pitch, yaw) of the custom rotation if ``orient`` is 101/102.
+    mot : (3,) COMPASS_MOTn, informative (the logged motor offset is used to undo it).
+    """
+
+    ofs_mgauss: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dia: Tuple[float, float, float] = (1.0, 1.0, 1.0)
+    odi: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+    orient: int = 0
+    external: Optional[bool] = None
+    custom_deg: Optional[Tuple[float, float, float]] = None
+    mot: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        for n in ("ofs_mgauss", "dia", "odi", "mot"):
+            object.__setattr__(self, n, _vec3(getattr(self, n), n))
+        object.__setattr__(self, "scale", float(self.scale))
+        object.__setattr__(self, "orient", int(round(float(self.orient))))
+        if self.custom_deg is not None:
+            object.__setattr__(self, "custom_deg", _vec3(self.custom_deg, "custom_deg"))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 3) soft-iron matrix M as the firmware uses it (identity when DIA = 0)."""
+        return soft_iron_matrix(self.dia, self.odi)
+
+    @property
+    def k(self) -> float:
+        """Effective scale factor (1 when COMPASS_SCALE is outside its valid window)."""
+        return effective_scale(self.scale)
+
+    @property
+    def mount_matrix(self) -> np.ndarray:
+        """(3, 3) R_mount for ``orient``."""
+        return _mount(self.orient, self.custom_deg)
+
+
+@dataclass(frozen=True)
+class AccelCal:
+    """The calibration an accelerometer applies.
+
+    Attributes
+    ----------
+    ofs_mps2 : (3,) INS_ACCnOFFS, board frame, *subtracted*.
+    scale : (3,) INS_ACCnSCAL, board frame, multiplied per axis.
+    board_orient : AHRS_ORIENTATION (rotation enum) applied after offsets and scale.
+    custom_deg : custom rotation angles if ``board_orient`` is 101/102.
+    """
+
+    ofs_mps2: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: Tuple[float, float, float] = (1.0, 1.0, 1.0)
+    board_orient: int = 0
+    custom_deg: Optional[Tuple[float, float, float]] = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ofs_mps2", _vec3(self.ofs_mps2, "ofs_mps2"))
+        object.__setattr__(self, "scale", _vec3(self.scale, "scale"))
+        object.__setattr__(self, "board_orient", int(round(float(self.board_orient))))
+        if self.custom_deg is not None:
+            object.__setattr__(self, "custom_deg", _vec3(self.custom_deg, "custom_deg"))
+
+    @property
+    def board_matrix(self) -> np.ndarray:
+        """(3, 3) R_A for ``board_orient``."""
+        return _mount(self.board_orient, self.custom_deg)
+
+
+def soft_iron_matrix(dia, odi) -> np.ndarray:
+    """Symmetric ``[[DX, OX, OY], [OX, DY, OZ], [OY, OZ, DZ]]``; identity if DIA is all zero
+    (the firmware then skips the matrix, ODI included)."""
+    d = np.asarray(dia, dtype=float)
+    o = np.asarray(odi, dtype=float)
+    if not np.any(d != 0.0):
+        return np.eye(3)
+    return np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+
+
+def effective_scale(scale: float) -> float:
+    """COMPASS_SCALE as applied: itself within [1/1.5, 1.5], else 1 (0 means "not set")."""
+    s = float(scale)
+    # the firmware compares float32 values; 1/1.5 rounds the same way in both
+    s32 = float(np.float32(s))
+    if float(np.float32(COMPASS_MIN_SCALE)) <= s32 <= COMPASS_MAX_SCALE:
+        return s
+    return 1.0
+
+
+def _rows(v) -> np.ndarray:
+    a = np.asarray(v, dtype=float)
+    if a.shape[-1] != 3:
+        raise ValueError(f"vectors must have a last dimension of 3, got shape {a.shape}")
+    return a
+
+
+def apply_compass(cal: CompassCal, raw_mgauss, motor_ofs_mgauss=None, sensor_frame: bool = True) -> np.ndarray:
+    """Forward model: what the firmware reports for a raw compass reading.
+
+    Parameters
+    ----------
+    cal : CompassCal
+    raw_mgauss : (..., 3) array
+        Raw field in mGauss: in the sensor frame (``sensor_frame=True``; ``R_mount`` is
+        applied) or already in the body frame after orientation (``sensor_frame=False``).
+    motor_ofs_mgauss : (..., 3) array, optional
+        Motor compensation added after the matrix.
+
+    Returns
+    -------
+    (..., 3) array, corrected field in mGauss, body frame.
+    """
+    b = _rows(raw_mgauss)
+    if sensor_frame:
+        b = b @ cal.mount_matrix.T
+    c = cal.k * (b + np.asarray(cal.ofs_mgauss)) @ cal.matrix.T
+    if motor_ofs_mgauss is not None:
+        c = c + _rows(motor_ofs_mgauss)
+    return c
+
+
+def undo_compass(cal: CompassCal, corrected_mgauss, motor_ofs_mgauss=None, sensor_frame: bool = False) -> np.ndarray:
+    """Inverse model: ``b = (1/k) M^-1 (corrected - motor_ofs) - OFS``.
+
+    Parameters
+    ----------
+    cal : CompassCal
+    corrected_mgauss : (..., 3) array, the reported field (mGauss).
+    motor_ofs_mgauss : (..., 3) array, optional, the motor offset the firmware added.
+    sensor_frame : bool
+        False (default): return the body-frame field after orientation (the frame of the
+        offsets). True: also undo ``R_mount`` (the sensor's own axes).
+
+    Returns
+    -------
+    (..., 3) array, raw field in mGauss.
+    """
+    c = _rows(corrected_mgauss)
+    if motor_ofs_mgauss is not None:
+        c = c - _rows(motor_ofs_mgauss)
+    b = np.linalg.solve(cal.matrix, c.reshape(-1, 3).T).T.reshape(c.shape) / cal.k
+    b = b - np.asarray(cal.ofs_mgauss)
+    if sensor_frame:
+        b = b @ cal.mount_matrix
+    return b
+
+
+def apply_accel(cal: AccelCal, raw_mps2, calibrating: bool = False) -> np.ndarray:
+    """Forward model: ``R_A (S * (u - OFS))``; with ``calibrating`` only ``R_A u``.
+
+    Parameters
+    ----------
+    raw_mps2 : (..., 3) array, board-frame raw acceleration in m/s^2.
+
+    Returns
+    -------
+    (..., 3) array, body-frame corrected acceleration in m/s^2.
+    """
+    u = _rows(raw_mps2)
+    if not calibrating:
+        u = (u - np.asarray(cal.ofs_mps2)) * np.asarray(cal.scale)
+    return u @ cal.board_matrix.T
+
+
+def undo_accel(cal: AccelCal, corrected_mps2, calibrating: bool = False) -> np.ndarray:
+    """Inverse model: ``u = (R_A^T a) / S + OFS`` (board frame, m/s^2).
+
+    With ``calibrating=True`` (an accel calibration was running, the firmware skipped the
+    offsets and scale) only ``R_A`` is undone. A zero scale element (an unused IMU slot)
+    gives NaN for that axis.
+    """
+    u = _rows(corrected_mps2) @ cal.board_matrix
+    if calibrating:
+        return u
+    s = np.asarray(cal.scale)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(s != 0.0, u / np.where(s != 0.0, s, 1.0), np.nan)
+    return u + np.asarray(cal.ofs_mps2)
+
+
+# --------------------------------------------------------------------------- from params
+
+def custom_rotation_angles(params: Mapping[str, float], orient: int) -> Optional[Tuple[float, float, float]]:
+    """CUST_ROTn_ROLL/PIT/YAW (degrees) for ``orient`` 101/102, None otherwise or if missing."""
+    o = int(round(float(orient)))
+    if o not in (CUSTOM_1, CUSTOM_2):
+        return None
+    names = board_param_names()["custom1" if o == CUSTOM_1 else "custom2"]
+    if not all(n in params for n in names):
+        return None
+    return tuple(float(params[n]) for n in names)  # type: ignore[return-value]
+
+
+def _get3(params: Mapping[str, float], names, default) -> Tuple[Tuple[float, float, float], List[str]]:
+    out, missing = [], []
+    for n, d in zip(names, default):
+        if n in params and params[n] is not None and np.isfinite(params[n]):
+            out.append(float(params[n]))
+        else:
+            out.append(float(d))
+            missing.append(n)
+    return (out[0], out[1], out[2]), missing
+
+
+def compass_cal_from_params(params: Mapping[str, float], instance: int,
+                            missing: Optional[List[str]] = None) -> CompassCal:
+    """Build the :class:`CompassCal` of compass ``instance`` from a name -> value mapping.
+
+    Missing parameters take the firmware defaults (OFS 0, DIA 1, ODI 0, SCALE 1, ORIENT 0,
+    AHRS_ORIENTATION 0); their names are appended to ``missing`` if a list is given. The
+    mounting rotation is COMPASS_ORIENTn for an external compass (COMPASS_EXTERNn != 0) and
+    AHRS_ORIENTATION for an internal one; when COMPASS_EXTERNn is missing the compass is
+    taken as external if COMPASS_ORIENTn != 0, else internal.
+    """
+    names = compass_param_names(instance)
+    miss: List[str] = []
+    ofs, m = _get3(params, names["ofs"], (0.0, 0.0, 0.0)); miss += m
+    dia, m = _get3(params, names["dia"], (1.0, 1.0, 1.0)); miss += m
+    odi, m = _get3(params, names["odi"], (0.0, 0.0, 0.0)); miss += m
+    mot, _ = _get3(params, names["mot"], (0.0, 0.0, 0.0))
+    scale = params.get(names["scale"])
+    if scale is None:
+        miss.append(names["scale"])
+        scale = 1.0
+    ext_v = params.get(names["external"])
+    orient_v = params.get(names["orient"])
+    board = params.get(board_param_names()["orientation"])
+    if ext_v is None:
+        external = None
+        is_ext = orient_v is not None and int(round(orient_v)) != 0
+    else:
+        external = bool(int(round(ext_v)) != 0)
+        is_ext = external
+    if is_ext:
+        orient = int(round(orient_v)) if orient_v is not None else 0
+    else:
+        orient = int(round(board)) if board is not None else 0
+    if missing is not None:
+        missing.extend(miss)
+    return CompassCal(ofs_mgauss=ofs, dia=dia, odi=odi, scale=float(scale), orient=orient,
+                      external=external, custom_deg=custom_rotation_angles(params, orient), mot=mot)
+
+
+def accel_cal_from_params(params: Mapping[str, float], instance: int,
+                          missing: Optional[List[str]] = None) -> AccelCal:
+    """Build the :class:`AccelCal` of IMU ``instance`` from a name -> value mapping.
+
+    Missing parameters take the defaults (OFFS 0, SCAL 1, AHRS_ORIENTATION 0) and are
+    appended to ``missing`` if given.
+    """
+    names = accel_param_names(instance)
+    miss: List[str] = []
+    ofs, m = _get3(params, names["ofs"], (0.0, 0.0, 0.0)); miss += m
+    scale, m = _get3(params, names["scale"], (1.0, 1.0, 1.0)); miss += m
+    bn = board_param_names()["orientation"]
+    board = params.get(bn)
+    if board is None:
+        miss.append(bn)
+        board = 0
+    if missing is not None:
+        missing.extend(miss)
+    return AccelCal(ofs_mps2=ofs, scale=scale, board_orient=int(round(board)),
+                    custom_deg=custom_rotation_angles(params, int(round(board))))
+
+
+def compass_param_values(cal: CompassCal, instance: int) -> Dict[str, float]:
+    """Inverse of :func:`compass_cal_from_params` for the calibration values (OFS, DIA, ODI,
+    SCALE): name -> value. ORIENT/EXTERNAL are not included (they are configuration)."""
+    names = compass_param_names(instance)
+    out: Dict[str, float] = {}
+    for key, vals in (("ofs", cal.ofs_mgauss), ("dia", cal.dia), ("odi", cal.odi)):
+        for n, v in zip(names[key], vals):  # type: ignore[arg-type]
+            out[n] = float(v)
+    out[names["scale"]] = float(cal.scale)  # type: ignore[index]
+    return out
+
+
+def accel_param_values(cal: AccelCal, instance: int) -> Dict[str, float]:
+    """name -> value of INS_ACCnOFFS/SCAL for ``cal``."""
+    names = accel_param_names(instance)
+    out: Dict[str, float] = {}
+    for key, vals in (("ofs", cal.ofs_mps2), ("scale", cal.scale)):
+        for n, v in zip(names[key], vals):  # type: ignore[arg-type]
+            out[n] = float(v)
+    return out
