@@ -109,6 +109,8 @@ class Calibration:
     n_accel, n_mag : (N,) int arrays
         Delta_a[i], Delta_m[i]: samples per interval.
     block_iterations, refine_iterations : int
+    dof : int
+        Degrees of freedom of J' (3N - global parameters); J'/dof ~ 1 for a good fit.
     """
 
     accel: SensorModel
@@ -129,6 +131,7 @@ class Calibration:
     n_mag: Optional[np.ndarray] = None
     block_iterations: int = 0
     refine_iterations: int = 0
+    dof: int = 0
 
     def __post_init__(self) -> None:
         for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):

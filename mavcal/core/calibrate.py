@@ -1,0 +1,452 @@
+"""The calibration driver: :func:`calibrate`, :func:`estimate_orientations`,
+:func:`reconstruction_error`.
+
+Pipeline of :func:`calibrate` (paper section in brackets):
+
+1. sample means and generalised-Bessel covariances [IV, Eqs. ``mu_hat``,
+   ``covariance_initial_estimation``];
+2. initial estimate [VI]: ellipsoid fits, scale, bias, Cholesky gains, the random-restart
+   search for the accel-to-magnetometer rotation and h_z, normalisation g_z = -1, h_x = 1,
+   orientations from the eigenvector of B_i;
+3. block steps [VII] in one of the paper's four variants until J_{k-1} - J_k < gamma:
+   ``ncdr`` (no covariance refit, direct rotations), ``ncar`` (no covariance refit,
+   approximated rotations until the cost rises, then direct), ``fcar`` / ``dcar`` (full /
+   diagonal covariance refit, approximated rotations);
+4. beyond the paper: a joint Levenberg-Marquardt refinement of all parameters to the exact
+   optimum of the cost, with the parameter covariance (:mod:`mavcal.core.refine`);
+5. model selection: when the intervals cannot identify the full model, or Wald tests on
+   the full fit show that a simpler model explains the data as well, a reduced model
+   (:mod:`mavcal.core.models`) is fitted and ``Calibration.model_reason`` says why.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+from scipy.stats import chi2
+
+from mavcal.core import steps
+from mavcal.core.initial import (
+    G_UNIT,
+    approximate_rotations,
+    fit_ellipsoid,
+    fit_sphere,
+    search_rotation_hz,
+    sensor_weight,
+)
+from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
+from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, refit_covariances
+from mavcal.core.stats import IntervalStats, interval_stats
+from mavcal.core.types import Calibration, SensorModel
+from mavcal.errors import EstimationError, InsufficientDataError
+
+log = logging.getLogger(__name__)
+
+METHODS = ("ncdr", "ncar", "fcar", "dcar")
+WALD_ALPHA = 0.01  # a simpler model is accepted when its Wald test has p > 1 %
+COPLANAR_LIMIT = 0.02  # smallest/largest singular value of the centred accel means
+
+
+def _check_geometry(a: IntervalStats, m: IntervalStats) -> None:
+    """Refuse orientations that cannot identify an ellipsoid (all about one axis)."""
+    for stats, what in ((a, "gravity"), (m, "magnetic field")):
+        c = stats.mu - stats.mu.mean(axis=0)
+        sv = np.linalg.svd(c, compute_uv=False)
+        if sv[0] <= 0:
+            raise EstimationError(f"the {what} reading is the same in every interval (constant data); "
+                                  "hold the vehicle still in different orientations")
+        if sv[-1] / sv[0] < COPLANAR_LIMIT:
+            raise EstimationError(
+                f"the intervals do not span orientations: the {what} directions lie in one plane "
+                f"(spread ratio {sv[-1] / sv[0]:.3g}), as when every pose is a rotation about one axis; "
+                "add poses tilted about another axis (nose up/down and rolled left/right)")
+
+
+def _stats(accel_sets, mag_sets, noise_floor) -> Tuple[IntervalStats, IntervalStats]:
+    nf_a, nf_m = (noise_floor if isinstance(noise_floor, (tuple, list)) else (noise_floor, noise_floor))
+    a = interval_stats(accel_sets, "accel_sets", noise_floor=nf_a)
+    m = interval_stats(mag_sets, "mag_sets", noise_floor=nf_m)
+    if a.mu.shape[0] != m.mu.shape[0]:
+        raise EstimationError(f"accel_sets has {a.mu.shape[0]} intervals but mag_sets has {m.mu.shape[0]}; "
+                              "give both sensors' readings for the same still intervals")
+    return a, m
+
+
+# --- initial estimates ---------------------------------------------------------------------
+
+def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, *,
+                  accel_form: str = "upper", restarts: int = 24) -> steps.State:
+    """Sec. VI: closed-form gains and biases, the R/h_z search, the orientation approximation."""
+    N = a.mu.shape[0]
+    ea = fit_ellipsoid(a.mu) if (N >= 9 and accel_form == "upper") else fit_sphere(a.mu)
+    em = fit_ellipsoid(m.mu) if N >= 9 else fit_sphere(m.mu)
+    z_a = np.linalg.solve(ea.K, (a.mu - ea.b).T).T
+    z_m = np.linalg.solve(em.K, (m.mu - em.b).T).T
+    R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
+    h_z = float(np.clip(h_z, -0.999999, 0.999999))
+    h_x = np.sqrt(1.0 - h_z * h_z)
+    K_a = ea.K
+    K_m = em.K @ R * h_x
+    h = np.array([1.0, 0.0, h_z / h_x])
+    st = steps.State(K_a=K_a, b_a=ea.b, K_m=K_m, b_m=em.b, h_z=float(h[2]), R=np.zeros((N, 3, 3)),
+                     Sigma_a=a.sigma_hat, Sigma_m=m.sigma_hat)
+    return steps.rotations_approx(st, a, m)
+
+
+def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method: str, tol: float,
+                    max_iter: int, handoff_rate: Optional[float] = None) -> Tuple[steps.State, int, str]:
+    """Sec. VII: iterate rotation, bias/field, gain (and covariance) steps until J_{k-1} - J_k < tol.
+
+    With ``handoff_rate`` (used when the joint refinement follows), the steps also stop once
+    they converge linearly slower than that rate (J_{k-1} - J_k > rate (J_{k-2} - J_{k-1})):
+    from there Levenberg-Marquardt reaches the optimum in a few iterations, where the block
+    steps would need hundreds. Returns (state, iterations, how): how is "gamma", "handoff"
+    or "limit".
+    """
+    refit = method in ("fcar", "dcar")
+    cost = steps.complete_cost if refit else steps.partial_cost
+    approx = method != "ncdr"
+    J_prev = cost(st, a, m)
+    dJ_prev = np.inf
+    for k in range(1, max_iter + 1):
+        st = steps.rotations_approx(st, a, m) if approx else steps.rotations_direct(st, a, m)
+        st = steps.bias_field_step(st, a, m)
+        st = steps.gain_step(st, a, m)
+        if refit:
+            st = steps.covariance_step(st, a, m, diagonal=(method == "dcar"))
+        J = cost(st, a, m)
+        if not np.isfinite(J):
+            raise EstimationError("the block steps diverged (non-finite cost); the data may not fit the "
+                                  "linear sensor model (sensor saturation, magnetic disturbance?)")
+        dJ = J_prev - J
+        if approx and J > J_prev:
+            approx = False  # the approximation stopped helping: direct minimisation from now on
+            if handoff_rate is not None:
+                return st, k, "handoff"
+        elif dJ < tol:
+            return st, k, "gamma"
+        elif handoff_rate is not None and k >= 3 and dJ > handoff_rate * dJ_prev:
+            return st, k, "handoff"
+        J_prev, dJ_prev = J, max(dJ, 0.0)
+    return st, max_iter, "limit"
+
+
+# --- joint refinement per model ------------------------------------------------------------
+
+def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
+    return [Term("accel", FORMS[spec.accel_form], a.mu, a.n, Sa),
+            Term("mag", FORMS[spec.mag_form], m.mu, m.n, Sm)]
+
+
+def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats, method: str,
+            tol: float) -> Tuple[RefineResult, np.ndarray, np.ndarray]:
+    """LM to the exact optimum; for fcar/dcar alternate with the ML covariance refit."""
+    Sa, Sm = st.Sigma_a, st.Sigma_m
+    fa, fm = FORMS[spec.accel_form], FORMS[spec.mag_form]
+    p = JointParams((fa.project(st.K_a), fm.project(st.K_m)), (st.b_a, st.b_m), st.h_z, st.R)
+    refit = method in ("fcar", "dcar")
+    total_it = 0
+    for _ in range(50 if refit else 1):
+        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        res = prob.solve(p)
+        total_it += res.iterations
+        p = res.params
+        if not refit:
+            break
+        Sa_new, Sm_new = refit_covariances(prob, p, [a.scatter, m.scatter], diagonal=(method == "dcar"))
+        stn = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+        J_old = steps.complete_cost(stn, a, m)
+        J_new = steps.complete_cost(replace(stn, Sigma_a=Sa_new, Sigma_m=Sm_new), a, m)
+        Sa, Sm = Sa_new, Sm_new
+        if J_old - J_new < 1e-3 * tol:
+            break
+    if refit:  # final covariance of the parameters at the final Sigma
+        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        res = prob.solve(p)
+        total_it += res.iterations
+    res = RefineResult(res.params, res.cost, total_it, res.converged, res.cov, res.names, res.dof)
+    return res, Sa, Sm
+
+
+def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> Tuple[float, int, float]:
+    """Wald statistic of linear constraints sum_k c_k theta_k = 0 on the global parameters."""
+    idx = {n: i for i, n in enumerate(res.names)}
+    C = np.zeros((len(constraints), len(res.names)))
+    for r, con in enumerate(constraints):
+        for name, coef in con.items():
+            C[r, idx[name]] = coef
+    prob_theta = np.concatenate([np.ravel(x) for x in _theta_by_names(res)])
+    v = C @ prob_theta
+    V = C @ (res.cov * scale) @ C.T
+    try:
+        W = float(v @ np.linalg.solve(V, v))
+    except np.linalg.LinAlgError:
+        return np.inf, len(constraints), 0.0
+    return W, len(constraints), float(chi2.sf(W, len(constraints)))
+
+
+def _theta_by_names(res: RefineResult):
+    """Global parameter vector in ``res.names`` order (recomputed from the structured params)."""
+    vals = []
+    p = res.params
+    for name in res.names:
+        if name == "h_z":
+            vals.append(p.h_z)
+            continue
+        sym, lab = name.split("[")
+        lab = lab.rstrip("]")
+        k = 0 if sym.startswith(("K_a", "b_a")) else 1
+        if sym.startswith("K"):
+            vals.append(p.gains[k][int(lab[0]) - 1, int(lab[1]) - 1])
+        else:
+            vals.append(p.biases[k]["xyz".index(lab)])
+    return [np.array(vals)]
+
+
+# constraints that turn each model of MODEL_CHAIN into the next (on the *full* parameterisation)
+_REDUCTIONS = {
+    "diag-accel": [{"K_a[12]": 1}, {"K_a[13]": 1}, {"K_a[23]": 1}],
+    "ardupilot": [{"K_m[12]": 1, "K_m[21]": -1}, {"K_m[13]": 1, "K_m[31]": -1}, {"K_m[23]": 1, "K_m[32]": -1}],
+    "offsets-scales": [{"K_m[12]": 1}, {"K_m[13]": 1}, {"K_m[23]": 1}],
+}
+_REDUCTIONS_FROM_SYM = {"offsets-scales": [{"K_m[12]": 1}, {"K_m[13]": 1}, {"K_m[23]": 1}]}
+
+
+def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start=None, refine=True):
+    """Fit one model: the paper's algorithm for ``full``, a reduced start + LM otherwise."""
+    block_it, block_conv = 0, True
+    if start is not None:
+        st = start
+    elif spec.name == "full":
+        st = initial_state(a, m, rng, restarts=restarts)
+        st, block_it, how = run_block_steps(st, a, m, method, tol, max_iter,
+                                            handoff_rate=0.5 if refine else None)
+        block_conv = how != "limit"
+        if not refine:
+            return st, block_it, block_conv
+    else:
+        st = initial_state(a, m, rng, accel_form=spec.accel_form, restarts=restarts)
+        if method == "ncdr":
+            st = steps.rotations_direct(st, a, m)
+    res, Sa, Sm = _refine(spec, st, a, m, method, tol)
+    return res, Sa, Sm, block_it, block_conv
+
+
+def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: Optional[int] = None,
+              model: str = "auto", max_iter: int = 1000, restarts: int = 24,
+              noise_floor=None, refine: bool = True) -> Calibration:
+    """Joint maximum-likelihood calibration of an accelerometer and a magnetometer.
+
+    Parameters
+    ----------
+    accel_sets, mag_sets : sequences of N arrays of shape (n_i, 3)
+        Readings of each still interval (the two sensors may have different counts).
+    method : {"ncar", "ncdr", "fcar", "dcar"}
+        The paper's variant of the block steps (Sec. VIII): NCAR is the paper's best.
+    tol : float
+        The paper's stop condition gamma: the block steps stop when J_{k-1} - J_k < tol.
+    seed : int, optional
+        Seed of the random restarts of the initial rotation search.
+    model : {"auto", "full", "diag-accel", "ardupilot", "offsets-scales"}
+        "auto" fits the most general model the data identify and reduces it when Wald
+        tests show a simpler model explains the data as well.
+    noise_floor : float or (float, float), optional
+        Lower bound on the noise standard deviation per sensor (e.g. quantisation step /
+        sqrt(12) for integer telemetry).
+    refine : bool
+        True (default): hand over from the block steps to the joint refinement, which
+        reaches the exact optimum. False: the paper's algorithm alone (full model only),
+        stopping exactly by J_{k-1} - J_k < tol; used to reproduce the paper's experiments.
+
+    Returns
+    -------
+    Calibration
+        Gains, biases and noise covariances of both sensors, the normalised fields, the
+        orientations, J' at the optimum, iteration counts, the fitted model and the reason
+        it was chosen, and the covariance of the global parameters.
+
+    Raises
+    ------
+    EstimationError
+        NaN/inf, wrong shapes, intervals with fewer than 2 samples, constant data,
+        orientations that do not span (all about one axis).
+    InsufficientDataError
+        Fewer intervals than the requested (or any) model can identify.
+    """
+    method = str(method).lower()
+    if method not in METHODS:
+        raise EstimationError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
+        raise EstimationError(f"tol (the stop condition gamma) must be a positive number; got {tol!r}")
+    if model != "auto" and model not in MODELS:
+        raise EstimationError(f"model must be 'auto' or one of {', '.join(MODELS)}; got {model!r}")
+    a, m = _stats(accel_sets, mag_sets, noise_floor)
+    N = a.mu.shape[0]
+    rng = np.random.default_rng(seed)
+
+    if model == "auto":
+        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
+        if not allowed:
+            raise InsufficientDataError(
+                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
+                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
+                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
+        spec = allowed[0]
+        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
+                  if spec.name == "full" else
+                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
+                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
+    else:
+        spec = MODELS[model]
+        if N < spec.min_intervals:
+            raise InsufficientDataError(
+                f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
+                f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
+                "choose a simpler model")
+        reason = f"model {spec.name} requested"
+    _check_geometry(a, m)
+
+    if not refine:
+        if spec.name != "full":
+            raise EstimationError("refine=False runs the paper's algorithm, which fits the full model only; "
+                                  f"{N} intervals call for the {spec.name} model")
+        st, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, refine=False)
+        prob = JointProblem(_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
+        p = JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R)
+        r, Jg, Jr = prob.jacobians(p)
+        res = RefineResult(p, float(np.sum(r * r)), 0, True, prob.covariance(Jg, Jr), prob.names,
+                           3 * N - prob.P)
+        Sa, Sm = st.Sigma_a, st.Sigma_m
+        model = "full"  # no model selection on the paper's path
+    else:
+        res, Sa, Sm, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
+
+    if model == "auto" and res.cov is not None:
+        chain = MODEL_CHAIN[MODEL_CHAIN.index(spec.name):]
+        scale = max(1.0, res.cost / max(res.dof, 1))
+        chosen, tests = spec, []
+        cons: list = []
+        for nxt in chain[1:]:
+            extra = _REDUCTIONS[nxt] if spec.mag_form == "full" or nxt != "offsets-scales" else _REDUCTIONS_FROM_SYM[nxt]
+            if spec.accel_form == "diag" and nxt == "diag-accel":
+                continue
+            if spec.mag_form == "sym" and nxt == "ardupilot":
+                continue
+            cons = cons + extra
+            W, k, pval = _wald(res, cons, scale)
+            tests.append(f"{nxt}: Wald chi2={W:.3g} on {k} dof, p={pval:.3g}")
+            if pval > WALD_ALPHA:
+                chosen = MODELS[nxt]
+            else:
+                break
+        if chosen is not spec:
+            p = res.params
+            start = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+            res2, Sa, Sm, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
+            reason += (f"; the simpler {chosen.name} model explains the data as well "
+                       f"({'; '.join(tests)}), so it was used")
+            res = replace(res2, iterations=res.iterations + res2.iterations)
+            spec = chosen
+        elif tests:
+            reason += f"; simpler models are rejected ({tests[0]})"
+
+    p = res.params
+    dof = res.dof
+    scale = max(1.0, res.cost / dof) if dof > 0 else 1.0
+    cov = None if res.cov is None else res.cov * scale
+    converged = bool(block_conv and res.converged)
+    msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
+           f"{res.iterations} joint refinement iterations"
+           + ("" if converged else " (block steps hit the iteration limit)" if not block_conv else
+              " (refinement did not reach its tolerance)"))
+    if dof > 0 and res.cost / dof > 4.0:
+        msg += (f"; chi2/dof = {res.cost / dof:.3g}: the readings scatter more than the noise explains "
+                "(motion in the intervals or magnetic disturbance?)")
+    log.info(msg)
+    return Calibration(
+        accel=SensorModel(p.gains[0], p.biases[0], Sa, "accel"),
+        mag=SensorModel(p.gains[1], p.biases[1], Sm, "mag"),
+        gravity=G_UNIT.copy(), field=np.array([1.0, 0.0, p.h_z]), orientations=p.R,
+        cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
+        method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
+        n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
+        dof=int(dof))
+
+
+# --- orientations of new data, reconstruction error -----------------------------------------
+
+def _means(sets, name: str) -> Tuple[np.ndarray, np.ndarray]:
+    seq = list(sets)
+    if not seq:
+        raise EstimationError(f"{name} is empty")
+    mus, ns = [], []
+    for i, s in enumerate(seq):
+        x = np.asarray(s, dtype=float)
+        if x.ndim == 1:
+            x = x[None]
+        if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
+            raise EstimationError(f"{name}[{i}] must have shape (n_i, 3), got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise EstimationError(f"{name}[{i}] contains NaN/inf readings")
+        mus.append(x.mean(axis=0))
+        ns.append(x.shape[0])
+    return np.array(mus), np.array(ns, dtype=float)
+
+
+def estimate_orientations(calibration: Calibration, accel_sets, mag_sets) -> np.ndarray:
+    """Orientations (M, 3, 3) of new still intervals with the calibration held fixed.
+
+    The paper's test-set procedure (Sec. VIII): the approximation of Eq.
+    ``rotation_approximation``, then direct minimisation of Eq. ``rotation_estimation``.
+    """
+    mu_a, n_a = _means(accel_sets, "accel_sets")
+    mu_m, n_m = _means(mag_sets, "mag_sets")
+    if len(mu_a) != len(mu_m):
+        raise EstimationError("accel_sets and mag_sets must have the same number of intervals")
+    c = calibration
+    a = IntervalStats(mu_a, n_a, np.zeros((3, 3)), c.accel.noise_cov, 1.0)
+    m = IntervalStats(mu_m, n_m, np.zeros((3, 3)), c.mag.noise_cov, 1.0)
+    st = steps.State(c.accel.gain, c.accel.bias, c.mag.gain, c.mag.bias, c.h_z, np.zeros((len(mu_a), 3, 3)),
+                     c.accel.noise_cov, c.mag.noise_cov)
+    st = steps.rotations_approx(st, a, m)
+    st = steps.rotations_direct(st, a, m, iterations=50, tol=1e-15)
+    return st.R
+
+
+def reconstruction_error(calibration: Calibration, truth=None, *, orientations=None, mu_accel=None,
+                         mu_mag=None, noise_cov_accel=None, noise_cov_mag=None, n_accel=None,
+                         n_mag=None) -> Tuple[float, float]:
+    """The paper's delta_s (Eq. ``distance``) for both sensors: (delta_a, delta_m).
+
+    delta_s = sqrt( sum_i Delta[i] (mu_s[i] - mu_breve_s[i])^T Sigma_s^-1 (...) / sum_i Delta[i] )
+
+    mu_s[i] are the *true* means and Sigma_s the *true* covariance (from ``truth``, e.g. a
+    :class:`mavcal.sim.Truth`, or given explicitly); mu_breve_s[i] = K_s R_i s^I + b_s is
+    rebuilt from the calibration with ``orientations`` (default: the calibration's own,
+    i.e. the training set; for a test set pass :func:`estimate_orientations`).
+    """
+    if truth is not None:
+        mu_accel = truth.mu_accel if mu_accel is None else mu_accel
+        mu_mag = truth.mu_mag if mu_mag is None else mu_mag
+        noise_cov_accel = truth.noise_cov_accel if noise_cov_accel is None else noise_cov_accel
+        noise_cov_mag = truth.noise_cov_mag if noise_cov_mag is None else noise_cov_mag
+        n_accel = truth.n_accel if n_accel is None else n_accel
+        n_mag = truth.n_mag if n_mag is None else n_mag
+    if mu_accel is None or mu_mag is None or noise_cov_accel is None or noise_cov_mag is None:
+        raise EstimationError("reconstruction_error needs the true means and covariances (truth=...)")
+    R = calibration.orientations if orientations is None else np.asarray(orientations, dtype=float)
+    c = calibration
+    out = []
+    for mu, Sigma, n, sm, f in ((mu_accel, noise_cov_accel, n_accel, c.accel, c.gravity),
+                                (mu_mag, noise_cov_mag, n_mag, c.mag, c.field)):
+        mu = np.asarray(mu, dtype=float)
+        if mu.shape != (R.shape[0], 3):
+            raise EstimationError(f"true means of shape {mu.shape} do not match {R.shape[0]} orientations")
+        n = np.ones(len(mu)) if n is None else np.asarray(n, dtype=float)
+        rec = (sm.gain @ (R @ f)[..., None])[..., 0] + sm.bias
+        d = mu - rec
+        q = np.einsum("ni,ij,nj->n", d, np.linalg.inv(Sigma), d)
+        out.append(float(np.sqrt(np.sum(n * q) / np.sum(n))))
+    return out[0], out[1]

@@ -1,0 +1,234 @@
+"""Joint refinement of all parameters: the exact optimum of the cost, and its uncertainty.
+
+The paper's block steps (Sec. VII) converge linearly and slowly near the optimum. After
+them, a Levenberg-Marquardt iteration on *all* parameters at once (gains, biases, h_z and
+every orientation) minimises the same partial cost J' (Eq. ``partial_cost``)
+
+    J' = sum_s sum_i Delta_s[i] (K_s R_i s^I + b_s - mu_hat_s[i])^T Sigma_s^-1 (...)
+
+with an analytic Jacobian. The orientations enter through a local rotation vector
+(R_i <- R_i exp([d_i]x)), and the normal equations are solved with a Schur complement that
+eliminates the 3x3 block of each interval, so one iteration costs O(N).
+
+At the optimum, (J^T J)^-1 restricted to the global parameters (orientations marginalised
+by the same Schur complement) is the Gauss-Newton approximation of the inverse Fisher
+information, since J'/2 is the negative log-likelihood up to a constant.
+
+Any number of sensors can share the orientations (the multi-sensor fit); magnetometers
+share the field h = [1, 0, h_z], accelerometers the gravity g = [0, 0, -1].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from mavcal.core.initial import G_UNIT
+from mavcal.core.models import FORMS, GainForm
+from mavcal.core.rotations import exp_so3, skew
+
+
+@dataclass(frozen=True, eq=False)
+class Term:
+    """One sensor in the joint problem."""
+
+    kind: str  # "accel" or "mag"
+    form: GainForm
+    mu: np.ndarray  # (N, 3)
+    n: np.ndarray  # (N,)
+    Sigma: np.ndarray  # (3, 3)
+    name: str = ""
+
+    @property
+    def whiten(self) -> np.ndarray:
+        """L with L^T L = Sigma^-1."""
+        return np.linalg.cholesky(np.linalg.inv(self.Sigma)).T
+
+
+@dataclass(frozen=True, eq=False)
+class JointParams:
+    gains: Tuple[np.ndarray, ...]  # per term, (3, 3)
+    biases: Tuple[np.ndarray, ...]  # per term, (3,)
+    h_z: float
+    R: np.ndarray  # (N, 3, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class RefineResult:
+    params: JointParams
+    cost: float
+    iterations: int
+    converged: bool
+    cov: Optional[np.ndarray]  # global parameter covariance (unscaled (J^T J)^-1)
+    names: Tuple[str, ...]
+    dof: int
+
+
+class JointProblem:
+    """Residuals and Jacobians of J' for a list of sensor terms sharing orientations."""
+
+    def __init__(self, terms: Sequence[Term]):
+        self.terms = list(terms)
+        self.N = self.terms[0].mu.shape[0]
+        self.has_mag = any(t.kind == "mag" for t in self.terms)
+        self.L = [t.whiten for t in self.terms]
+        self.sn = [np.sqrt(t.n) for t in self.terms]
+        self.sizes = [t.form.size + 3 for t in self.terms]
+        self.P = sum(self.sizes) + (1 if self.has_mag else 0)
+        names: List[str] = []
+        for t in self.terms:
+            sym = "K_a" if t.kind == "accel" else "K_m"
+            bsym = "b_a" if t.kind == "accel" else "b_m"
+            tag = t.name
+            names += [f"{sym}{tag}[{lab}]" for lab in t.form.labels]
+            names += [f"{bsym}{tag}[{k}]" for k in "xyz"]
+        if self.has_mag:
+            names.append("h_z")
+        self.names = tuple(names)
+
+    # parameter vector <-> structured parameters
+    def pack(self, p: JointParams) -> np.ndarray:
+        parts = []
+        for t, K, b in zip(self.terms, p.gains, p.biases):
+            parts += [t.form.from_matrix(K), np.asarray(b, float)]
+        if self.has_mag:
+            parts.append([p.h_z])
+        return np.concatenate(parts)
+
+    def unpack(self, theta: np.ndarray, R: np.ndarray) -> JointParams:
+        gains, biases, k = [], [], 0
+        for t in self.terms:
+            gains.append(t.form.to_matrix(theta[k:k + t.form.size]))
+            k += t.form.size
+            biases.append(theta[k:k + 3].copy())
+            k += 3
+        h_z = float(theta[k]) if self.has_mag else 0.0
+        return JointParams(tuple(gains), tuple(biases), h_z, R)
+
+    def _fields(self, h_z: float):
+        return [G_UNIT if t.kind == "accel" else np.array([1.0, 0.0, h_z]) for t in self.terms]
+
+    def residuals(self, p: JointParams) -> np.ndarray:
+        """Whitened, sqrt(Delta)-weighted residuals, shape (N, 3 * n_terms)."""
+        out = []
+        for t, K, b, f, L, sn in zip(self.terms, p.gains, p.biases, self._fields(p.h_z), self.L, self.sn):
+            pred = (K @ (p.R @ f)[..., None])[..., 0] + b
+            out.append(((pred - t.mu) @ L.T) * sn[:, None])
+        return np.concatenate(out, axis=1)
+
+    def jacobians(self, p: JointParams):
+        """(r, Jg, Jr): residuals (N, m), global Jacobian (N, m, P), rotation Jacobian (N, m, 3)."""
+        N, P = self.N, self.P
+        m = 3 * len(self.terms)
+        Jg = np.zeros((N, m, P))
+        Jr = np.empty((N, m, 3))
+        r = np.empty((N, m))
+        col = 0
+        for s, (t, K, b, f, L, sn) in enumerate(zip(self.terms, p.gains, p.biases, self._fields(p.h_z),
+                                                     self.L, self.sn)):
+            rows = slice(3 * s, 3 * s + 3)
+            v = p.R @ f  # (N, 3)
+            r[:, rows] = ((((K @ v[..., None])[..., 0] + b) - t.mu) @ L.T) * sn[:, None]
+            Ev = np.einsum("kij,nj->nik", t.form.basis, v)  # (N, 3, k)
+            Jg[:, rows, col:col + t.form.size] = (L @ Ev) * sn[:, None, None]
+            col += t.form.size
+            Jg[:, rows, col:col + 3] = L[None] * sn[:, None, None]
+            col += 3
+            LK = L @ K
+            if t.kind == "mag":
+                Jg[:, rows, P - 1] = (LK @ p.R[:, :, 2:3])[..., 0] * sn[:, None]
+            Jr[:, rows, :] = -(LK @ p.R @ skew(f)) * sn[:, None, None]
+        return r, Jg, Jr
+
+    def solve(self, p0: JointParams, *, max_iter: int = 100, rtol: float = 1e-13,
+              covariance: bool = True) -> RefineResult:
+        """Levenberg-Marquardt with a Schur complement over the orientation blocks."""
+        theta = self.pack(p0)
+        p = self.unpack(theta, p0.R)
+        r, Jg, Jr = self.jacobians(p)
+        cost = float(np.sum(r * r))
+        lam = 1e-4
+        converged = False
+        it = 0
+        for it in range(1, max_iter + 1):
+            Hgg = np.einsum("nmp,nmq->pq", Jg, Jg)
+            Hgr = np.einsum("nmp,nmr->npr", Jg, Jr)
+            Hrr = np.einsum("nmr,nms->nrs", Jr, Jr)
+            gg = np.einsum("nmp,nm->p", Jg, r)
+            gr = np.einsum("nmr,nm->nr", Jr, r)
+            improved = False
+            for _ in range(12):
+                Dg = np.diag(Hgg) * lam + 1e-300
+                Drr = Hrr + lam * np.einsum("nii->ni", Hrr)[:, :, None] * np.eye(3)
+                try:
+                    Hrr_inv = np.linalg.inv(Drr)
+                except np.linalg.LinAlgError:
+                    lam *= 10.0
+                    continue
+                HgrHi = np.einsum("npr,nrs->nps", Hgr, Hrr_inv)
+                S = Hgg + np.diag(Dg) - np.einsum("nps,nqs->pq", HgrHi, Hgr)
+                rhs = gg - np.einsum("nps,ns->p", HgrHi, gr)
+                try:
+                    dth = -np.linalg.solve(S, rhs)
+                except np.linalg.LinAlgError:
+                    lam *= 10.0
+                    continue
+                dr = -np.einsum("nrs,ns->nr", Hrr_inv, gr + np.einsum("npr,p->nr", Hgr, dth))
+                th_new = theta + dth
+                p_new = self.unpack(th_new, p.R @ exp_so3(dr))
+                r_new = self.residuals(p_new)
+                c_new = float(np.sum(r_new * r_new))
+                if np.isfinite(c_new) and c_new <= cost:
+                    dec = cost - c_new
+                    theta, p, cost = th_new, p_new, c_new
+                    lam = max(lam * 0.1, 1e-12)
+                    improved = True
+                    break
+                lam *= 10.0
+            if not improved:
+                converged = True  # no descent direction left: at the optimum (to rounding)
+                break
+            r, Jg, Jr = self.jacobians(p)
+            if dec <= rtol * max(cost, 1e-300) or cost == 0.0:
+                converged = True
+                break
+        cov = self.covariance(Jg, Jr) if covariance else None
+        dof = 3 * len(self.terms) * self.N - 3 * self.N - self.P
+        return RefineResult(params=p, cost=cost, iterations=it, converged=converged, cov=cov,
+                            names=self.names, dof=dof)
+
+    @staticmethod
+    def covariance(Jg: np.ndarray, Jr: np.ndarray) -> Optional[np.ndarray]:
+        """(J^T J)^-1 on the global parameters, orientations marginalised (Schur complement)."""
+        Hgg = np.einsum("nmp,nmq->pq", Jg, Jg)
+        Hgr = np.einsum("nmp,nmr->npr", Jg, Jr)
+        Hrr = np.einsum("nmr,nms->nrs", Jr, Jr)
+        try:
+            Hrr_inv = np.linalg.inv(Hrr)
+            S = Hgg - np.einsum("npr,nrs,nqs->pq", Hgr, Hrr_inv, Hgr)
+            cov = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(cov)):
+            return None
+        return 0.5 * (cov + cov.T)
+
+
+def refit_covariances(problem: JointProblem, p: JointParams, scatters: Sequence[np.ndarray],
+                      diagonal: bool) -> List[np.ndarray]:
+    """ML noise covariances of Eq. ``covariance_estimation`` for every term."""
+    out = []
+    for t, K, b, f, S in zip(problem.terms, p.gains, p.biases, problem._fields(p.h_z), scatters):
+        rr = (K @ (p.R @ f)[..., None])[..., 0] + b - t.mu
+        C = (S + np.einsum("ni,nj,n->ij", rr, rr, t.n)) / t.n.sum()
+        C = 0.5 * (C + C.T)
+        if diagonal:
+            C = np.diag(np.diag(C))
+        scale = max(np.linalg.norm(t.mu, axis=1).max(), 1e-300)
+        w, V = np.linalg.eigh(C)
+        out.append((V * np.maximum(w, (1e-12 * scale) ** 2)) @ V.T)
+    return out
+
+
+__all__ = ["Term", "JointParams", "JointProblem", "RefineResult", "refit_covariances", "FORMS"]

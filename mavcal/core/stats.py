@@ -1,0 +1,103 @@
+"""Input validation and the sample statistics of the paper's Sec. IV.
+
+For every still interval i the sample mean (Eq. ``mu_hat``) and, over all intervals, the
+generalised-Bessel covariance (Eq. ``covariance_initial_estimation``)
+
+    Sigma_hat = sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T / (sum_i Delta[i] - N).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from mavcal.errors import EstimationError
+
+
+@dataclass(frozen=True, eq=False)
+class IntervalStats:
+    """Sufficient statistics of one sensor's readings over N still intervals.
+
+    mu : (N, 3) sample means mu_hat[i]
+    n : (N,) sample counts Delta[i]
+    scatter : (3, 3) within-interval scatter sum_i sum_j (v - mu_hat[i])(v - mu_hat[i])^T
+    sigma_hat : (3, 3) Sigma_hat (Bessel-corrected, floored to stay positive definite)
+    scale : float, typical magnitude of the readings (for tolerances)
+    """
+
+    mu: np.ndarray
+    n: np.ndarray
+    scatter: np.ndarray
+    sigma_hat: np.ndarray
+    scale: float
+
+    @property
+    def total(self) -> int:
+        return int(self.n.sum())
+
+
+def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float | None = None) -> IntervalStats:
+    """Validate one sensor's interval readings and compute their statistics.
+
+    Parameters
+    ----------
+    sets : sequence of N arrays of shape (n_i, 3)
+    name : "accel_sets" / "mag_sets", used in error messages
+    noise_floor : optional lower bound on the noise standard deviation (e.g. the
+        quantisation step / sqrt(12)); by default 1e-9 of the reading scale so that
+        noise-free data still give a usable (positive-definite) weighting.
+    """
+    if isinstance(sets, np.ndarray) and sets.ndim == 3:
+        sets = list(sets)
+    try:
+        seq = list(sets)
+    except TypeError:
+        raise EstimationError(f"{name} must be a sequence of (n_i, 3) arrays, one per still interval; "
+                              f"got {type(sets).__name__}") from None
+    if not seq:
+        raise EstimationError(f"{name} is empty: pass one (n_i, 3) array of readings per still interval")
+    arrays, ns = [], []
+    for i, s in enumerate(seq):
+        try:
+            a = np.asarray(s, dtype=float)
+        except (TypeError, ValueError):
+            raise EstimationError(f"{name}[{i}] is not numeric") from None
+        if a.ndim == 1 and a.shape[0] == 3:
+            a = a[None, :]
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise EstimationError(f"{name}[{i}] must have shape (n_i, 3), got {a.shape}")
+        if a.shape[0] < 2:
+            raise EstimationError(f"{name}[{i}] has {a.shape[0]} sample(s); every still interval needs at "
+                                  "least 2 samples to estimate the noise (hold each pose longer)")
+        arrays.append(a)
+        ns.append(a.shape[0])
+    X = np.concatenate(arrays)
+    if not np.all(np.isfinite(X)):
+        bad = [i for i, a in enumerate(arrays) if not np.all(np.isfinite(a))]
+        raise EstimationError(f"{name}[{bad[0]}] contains NaN/inf readings ({len(bad)} interval(s) affected); "
+                              "drop them before calibrating")
+    n = np.array(ns, dtype=float)
+    starts = np.concatenate([[0], np.cumsum(ns)[:-1]])
+    center = X.mean(axis=0)
+    Xc = X - center
+    mu = np.add.reduceat(Xc, starts, axis=0) / n[:, None]
+    D = Xc - np.repeat(mu, ns, axis=0)
+    scatter = D.T @ D  # sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T
+    mu = mu + center
+    N = len(seq)
+    scale = float(np.median(np.linalg.norm(mu, axis=1)))
+    spread = float(np.max(np.linalg.norm(mu - mu.mean(axis=0), axis=1))) if N > 1 else 0.0
+    if not np.isfinite(scale) or (scale == 0.0 and spread == 0.0):
+        raise EstimationError(f"{name} readings are all zero: the sensor sent no data")
+    if spread <= 1e-9 * max(scale, 1e-300):
+        raise EstimationError(f"{name}: the mean reading is the same in every interval (constant data); "
+                              "the vehicle must be held still in different orientations")
+    sigma = scatter / max(n.sum() - N, 1.0)  # generalised Bessel correction
+    sigma = 0.5 * (sigma + sigma.T)
+    ref = max(scale, spread)
+    floor = (1e-9 * ref) if noise_floor is None else max(float(noise_floor), 1e-12 * ref)
+    w, V = np.linalg.eigh(sigma)
+    w = np.maximum(w, floor ** 2)
+    sigma = (V * w) @ V.T
+    return IntervalStats(mu=mu, n=n, scatter=scatter, sigma_hat=sigma, scale=ref)
