@@ -1,0 +1,407 @@
+"""Undo the calibration ArduPilot applied to logged IMU readings.
+
+Logs carry *corrected* readings (RAW_IMU, SCALED_IMU2/3, DataFlash IMU/MAG). To calibrate
+anew we need what the sensors measured before the correction in force at each sample
+time. :func:`recover_raw` inverts the model of :mod:`mavcal.ardupilot.firmware` sample by
+sample, with the parameter values in force at that sample's time (a parameter changed
+mid-log counts from its change on).
+
+Frames of the results:
+
+* accelerometer: **board frame** (before AHRS_ORIENTATION; the frame of INS_ACCOFFS/SCAL);
+* compass: **body frame after COMPASS_ORIENT (external) / AHRS_ORIENTATION (internal)**,
+  the frame of COMPASS_OFS/DIA/ODI.
+
+While ArduPilot's 6-position accelerometer calibration runs, the firmware skips the accel
+offsets and scale (it still rotates by AHRS_ORIENTATION), so those samples are already
+uncorrected: only the board rotation is undone there. The periods are found from the
+events (MAV_CMD_PREFLIGHT_CALIBRATION with param5 = 1, the "Place vehicle ..." prompts,
+ACCELCAL_VEHICLE_POS, and "Calibration successful/FAILED/cancelled") and their edges are
+placed on the sample where the raw reading is continuous (the magnitude jump the
+suspended correction makes, e.g. |a| 9.81 -> 10.42 m/s^2 with INS_ACCSCAL_Y = 0.942).
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+
+from mavcal.ardupilot import firmware as fw
+from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RawImu", "recover_raw", "find_accel_cal_periods", "ACCEL_FRAME", "MAG_FRAME"]
+
+ACCEL_FRAME = "board frame (before AHRS_ORIENTATION)"
+MAG_FRAME = "body frame after COMPASS_ORIENT/AHRS_ORIENTATION"
+
+MAV_CMD_PREFLIGHT_CALIBRATION = 241
+MAV_CMD_ACCELCAL_VEHICLE_POS = 42429
+ACCELCAL_POS_SUCCESS = 16777215
+ACCELCAL_POS_FAILED = 16777216
+
+_PROMPT = re.compile(r"place vehicle", re.I)
+_END = re.compile(r"calibration (successful|failed|cancelled|canceled|timed out)", re.I)
+
+
+@dataclass(frozen=True, eq=False)
+class RawImu:
+    """Raw (uncorrected) IMU readings recovered from a log.
+
+    Attributes
+    ----------
+    source : str
+    accel : tuple of SensorSeries
+        One per accelerometer instance; ``values`` in m/s^2, **board frame**. ``extra``
+        holds ``"calibrating"`` (n,) 1.0 where the sample was taken while an accel
+        calibration ran (the firmware had suspended offsets/scale).
+    mag : tuple of SensorSeries
+        One per compass (priority index); ``values`` in mGauss, **body frame after
+        orientation**.
+    gyro : tuple of SensorSeries
+        As logged (corrected, body frame, rad/s); used to detect stillness.
+    params_used : mapping name -> tuple of (time_s, value)
+        Every calibration parameter the inversion used, with the values in force over the
+        span of the data (first entry: value at the start).
+    frames : mapping sensor -> frame description
+    warnings : tuple of str
+    accel_cal_periods : tuple of (start_s, end_s)
+        Periods during which ArduPilot's accelerometer calibration ran (samples there
+        were not inverse-corrected for offsets/scale).
+    """
+
+    source: str
+    accel: Tuple[SensorSeries, ...]
+    mag: Tuple[SensorSeries, ...]
+    gyro: Tuple[SensorSeries, ...] = ()
+    params_used: Mapping[str, Tuple[Tuple[float, float], ...]] = field(default_factory=dict)
+    frames: Mapping[str, str] = field(default_factory=lambda: {"accel": ACCEL_FRAME, "mag": MAG_FRAME})
+    warnings: Tuple[str, ...] = ()
+    accel_cal_periods: Tuple[Tuple[float, float], ...] = ()
+
+    def accel_instances(self) -> List[int]:
+        return [s.instance for s in self.accel]
+
+    def mag_instances(self) -> List[int]:
+        return [s.instance for s in self.mag]
+
+    def get(self, sensor: str, instance: int = 0) -> Optional[SensorSeries]:
+        for s in {"accel": self.accel, "mag": self.mag, "gyro": self.gyro}[sensor]:
+            if s.instance == instance:
+                return s
+        return None
+
+    @property
+    def time_span_s(self) -> Tuple[float, float]:
+        ts = [s.time_s for s in self.accel + self.mag if len(s)]
+        if not ts:
+            return (0.0, 0.0)
+        return (float(min(t[0] for t in ts)), float(max(t[-1] for t in ts)))
+
+
+# --------------------------------------------------------------------------- cal periods
+
+def _event_windows(events: Sequence[LogEvent]) -> List[Tuple[float, float, float]]:
+    """(start_hint, end_hint, start_command) from events; end_hint = inf when no end seen."""
+    evs = sorted(events, key=lambda e: e.time_s)
+    out: List[Tuple[float, float, float]] = []
+    start: Optional[float] = None
+    cmd: float = np.nan
+    for e in evs:
+        is_cmd = (e.kind == "command" and e.code == MAV_CMD_PREFLIGHT_CALIBRATION
+                  and len(e.params) >= 5 and int(round(e.params[4])) == 1)
+        is_prompt = e.kind == "statustext" and bool(_PROMPT.search(e.text))
+        is_pos = e.kind in ("accelcal_pos", "command") and e.code == MAV_CMD_ACCELCAL_VEHICLE_POS and bool(e.params)
+        pos_val = int(round(e.params[0])) if is_pos else 0
+        is_end = (e.kind == "statustext" and bool(_END.search(e.text))) or \
+            (is_pos and pos_val in (ACCELCAL_POS_SUCCESS, ACCELCAL_POS_FAILED))
+        if is_cmd:
+            if start is None:
+                cmd = e.time_s
+        elif (is_prompt or (is_pos and 1 <= pos_val <= 6)) and start is None:
+            start = e.time_s
+        elif is_end and start is not None:
+            out.append((start, e.time_s, cmd))
+            start, cmd = None, np.nan
+    if start is not None:
+        out.append((start, np.inf, cmd))
+    return out
+
+
+def _best_split(u_before: np.ndarray, u_after: np.ndarray, min_step: float) -> Optional[int]:
+    """Index k where the interpretation switches (samples [:k] from ``u_before``, [k:] from
+    ``u_after``) so that the raw sequence is continuous; None if no switch is visible.
+
+    At the true switch the step between consecutive samples is the small true motion,
+    while the step of the ``u_before`` sequence there contains the jump the suspended
+    correction made. Elsewhere the cross step carries that jump. So the switch is where
+    ``|u_after[k] - u_before[k-1]| - |u_before[k] - u_before[k-1]|`` is most negative;
+    motion between consecutive samples cancels to first order.
+    """
+    n = len(u_before)
+    if n < 2:
+        return None
+    cross = np.linalg.norm(u_after[1:] - u_before[:-1], axis=1)
+    ref = np.linalg.norm(u_before[1:] - u_before[:-1], axis=1)
+    cost = cross - ref
+    k = int(np.argmin(cost))
+    if cost[k] > -min_step:
+        return None
+    return k + 1
+
+
+def find_accel_cal_periods(log_: ImuLog, margin_s: float = 4.0, min_step_mps2: float = 0.05
+                           ) -> List[Tuple[float, float]]:
+    """Periods during which ArduPilot's 6-position accelerometer calibration ran.
+
+    The events give an approximate start (first "Place vehicle" prompt, or the first
+    ACCELCAL_VEHICLE_POS) and end ("Calibration successful/FAILED", or the SUCCESS/FAILED
+    position value). Each edge is then moved, within ``margin_s`` of the event, to the
+    sample of accelerometer 0 where the board-frame raw reading is continuous when the
+    samples before are undone as corrected and those after as uncorrected (and the reverse
+    at the end). When the correction makes no step larger than ``min_step_mps2``, the
+    event time is kept.
+
+    Returns
+    -------
+    list of (start_s, end_s): samples with ``start_s <= t < end_s`` were uncorrected.
+    """
+    wins = _event_windows(log_.events)
+    if not wins:
+        return []
+    acc = log_.get("accel", 0)
+    min_step = float(min_step_mps2)
+    out: List[Tuple[float, float]] = []
+    for start, end, cmd in wins:
+        s_edge, e_edge = start, end
+        if acc is not None and len(acc) > 2:
+            t, v = acc.time_s, acc.values
+            if np.isfinite(end):
+                e_edge = end
+            else:
+                e_edge = float(t[-1]) + 1e-6
+            # start edge: corrected before, uncorrected after
+            lo = start - margin_s if np.isnan(cmd) else max(start - margin_s, cmd)
+            sel = np.nonzero((t >= lo) & (t <= start + margin_s))[0]
+            if len(sel) > 1:
+                p = log_.params
+                cal_b = _accel_cal_at(p, 0, t[sel[0]])
+                u_corr = fw.undo_accel(cal_b, v[sel])
+                u_raw = fw.undo_accel(cal_b, v[sel], calibrating=True)
+                if np.all(np.isfinite(u_corr)):
+                    k = _best_split(u_corr, u_raw, min_step)
+                    if k is not None:
+                        s_edge = float(t[sel[k]])
+            if np.isfinite(end):
+                sel = np.nonzero((t >= end - margin_s) & (t <= end + margin_s))[0]
+                if len(sel) > 1:
+                    cal_a = _accel_cal_at(log_.params, 0, t[sel[-1]])
+                    u_raw = fw.undo_accel(cal_a, v[sel], calibrating=True)
+                    u_corr = fw.undo_accel(cal_a, v[sel])
+                    if np.all(np.isfinite(u_corr)):
+                        k = _best_split(u_raw, u_corr, min_step)
+                        if k is not None:
+                            e_edge = float(t[sel[k]])
+        out.append((float(s_edge), float(e_edge)))
+    return out
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _accel_cal_at(params: ParamTimeline, instance: int, time_s: float,
+                  missing: Optional[List[str]] = None) -> fw.AccelCal:
+    return fw.accel_cal_from_params(params.snapshot(float(time_s)), instance, missing)
+
+
+def _compass_cal_at(params: ParamTimeline, instance: int, time_s: float,
+                    missing: Optional[List[str]] = None) -> fw.CompassCal:
+    return fw.compass_cal_from_params(params.snapshot(float(time_s)), instance, missing)
+
+
+def _names_accel(instance: int) -> List[str]:
+    n = fw.accel_param_names(instance)
+    b = fw.board_param_names()
+    return list(n["ofs"]) + list(n["scale"]) + [b["orientation"]] + list(b["custom1"]) + list(b["custom2"])
+
+
+def _names_compass(instance: int) -> List[str]:
+    n = fw.compass_param_names(instance)
+    b = fw.board_param_names()
+    return (list(n["ofs"]) + list(n["dia"]) + list(n["odi"]) + [n["scale"], n["orient"], n["external"]]
+            + [b["orientation"]] + list(b["custom1"]) + list(b["custom2"]))
+
+
+def _segments(params: ParamTimeline, names: Sequence[str], t: np.ndarray) -> List[Tuple[int, int]]:
+    """Index ranges [i0, i1) of ``t`` over which none of ``names`` changes."""
+    ct = params.change_times(names)
+    cuts = np.searchsorted(t, ct, side="left") if len(ct) else np.array([], dtype=int)
+    edges = sorted({0, len(t), *[int(c) for c in cuts]})
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def _record(used: Dict[str, List[Tuple[float, float]]], params: ParamTimeline, names: Sequence[str],
+            t0: float, t1: float) -> None:
+    """Add to ``used`` the values of ``names`` in force over [t0, t1] as (time, value) pairs."""
+    for n in names:
+        if n not in params:
+            continue
+        ts, vs = params.changes[n]
+        pairs = used.get(n, []) + [(t0, float(params.value_at(n, t0)[0]))]
+        pairs += [(float(tt), float(vv)) for tt, vv in zip(ts, vs) if t0 < tt <= t1]
+        pairs.sort()
+        merged: List[Tuple[float, float]] = []
+        for p in pairs:
+            if not merged or merged[-1][1] != p[1]:
+                merged.append(p)
+        used[n] = merged
+
+
+def _in_periods(t: np.ndarray, periods: Sequence[Tuple[float, float]]) -> np.ndarray:
+    m = np.zeros(t.shape, dtype=bool)
+    for a, b in periods:
+        m |= (t >= a) & (t < b)
+    return m
+
+
+# --------------------------------------------------------------------------- main
+
+def recover_raw(log_: ImuLog, accel_cal_periods: Optional[Sequence[Tuple[float, float]]] = None,
+                drop_zero_series: bool = True) -> RawImu:
+    """Invert ArduPilot's correction of every accel and compass series of ``log_``.
+
+    Parameters
+    ----------
+    log_ : ImuLog
+        Readings as logged (corrected) and the parameter timeline (same time base).
+    accel_cal_periods : sequence of (start_s, end_s), optional
+        Override the detection of accelerometer-calibration periods
+        (:func:`find_accel_cal_periods`).
+    drop_zero_series : bool
+        Drop series whose values are all exactly zero (SCALED_IMU2/3 accel of a vehicle
+        without that IMU, a missing compass), with a warning.
+
+    Returns
+    -------
+    RawImu
+        Accel in m/s^2 (board frame), mag in mGauss (body frame after orientation).
+    """
+    warnings: List[str] = list()
+    params = log_.params
+    used: Dict[str, List[Tuple[float, float]]] = {}
+    periods = list(find_accel_cal_periods(log_) if accel_cal_periods is None else accel_cal_periods)
+    for a, b in periods:
+        log.info("accelerometer calibration ran %.2f..%.2f s: offsets/scale not undone there", a, b)
+
+    board = fw.board_param_names()["orientation"]
+    accel_out: List[SensorSeries] = []
+    for inst in log_.instances("accel"):
+        s = log_.get("accel", inst)
+        if s is None or len(s) == 0:
+            continue
+        if drop_zero_series and not np.any(s.values != 0.0):
+            warnings.append(f"accel {inst} ({s.message}) is all zero (no such IMU); dropped")
+            continue
+        t = s.time_s
+        names = _names_accel(inst)
+        an = fw.accel_param_names(inst)
+        have = [n for n in list(an["ofs"]) + list(an["scale"]) if n in params]
+        out = np.empty_like(s.values)
+        calib = _in_periods(t, periods)
+        if not have:
+            warnings.append(f"accel {inst}: the log has no {an['ofs'][0][:-2]}/{an['scale'][0][:-2]} "
+                            f"parameters; readings treated as raw"
+                            + ("" if board in params else " (and no AHRS_ORIENTATION: board frame = body frame)"))
+            bnames = [board] + list(fw.board_param_names()["custom1"]) + list(fw.board_param_names()["custom2"])
+            for i0, i1 in _segments(params, bnames, t):
+                cal = _accel_cal_at(params, inst, t[i0])
+                out[i0:i1] = fw.undo_accel(cal, s.values[i0:i1], calibrating=True)
+            _record(used, params, [board], float(t[0]), float(t[-1]))
+        else:
+            missing: List[str] = []
+            for i0, i1 in _segments(params, names, t):
+                cal = _accel_cal_at(params, inst, t[i0], missing)
+                if any(v == 0.0 for v in cal.scale):
+                    warnings.append(f"accel {inst}: scale parameter is zero (uncalibrated slot) from "
+                                    f"{t[i0]:.1f} s; those axes are NaN")
+                c = calib[i0:i1]
+                seg = s.values[i0:i1]
+                out[i0:i1] = np.where(c[:, None], fw.undo_accel(cal, seg, calibrating=True), fw.undo_accel(cal, seg))
+            if missing:
+                warnings.append(f"accel {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
+            _record(used, params, names, float(t[0]), float(t[-1]))
+        accel_out.append(SensorSeries("accel", inst, s.message, t, out, s.log_time_s,
+                                      {**dict(s.extra), "calibrating": calib.astype(float)}))
+
+    mag_out: List[SensorSeries] = []
+    for inst in log_.instances("mag"):
+        s = log_.get("mag", inst)
+        if s is None or len(s) == 0:
+            continue
+        if drop_zero_series and not np.any(s.values != 0.0):
+            warnings.append(f"mag {inst} ({s.message}) is all zero (no such compass); dropped")
+            continue
+        if inst >= fw.MAX_COMPASSES:
+            warnings.append(f"mag {inst}: no parameter slot for compass {inst + 1}; readings treated as raw")
+            mag_out.append(s)
+            continue
+        t = s.time_s
+        names = _names_compass(inst)
+        cn = fw.compass_param_names(inst)
+        have = [n for n in list(cn["ofs"]) + list(cn["dia"]) + [cn["scale"]] if n in params]
+        motor = s.extra.get("motor_ofs_mgauss")
+        if motor is not None and np.asarray(motor).shape != s.values.shape:
+            motor = None
+        if not have:
+            ofs_logged = s.extra.get("ofs_mgauss")
+            if ofs_logged is not None and np.asarray(ofs_logged).shape == s.values.shape:
+                warnings.append(f"mag {inst}: the log has no COMPASS parameters for this compass; "
+                                f"used the logged MAG offsets (int16) and no matrix/scale")
+                out = s.values - np.asarray(ofs_logged)
+                if motor is not None:
+                    out = out - motor
+            else:
+                warnings.append(f"mag {inst}: the log has no {cn['ofs'][0][:-2]}/DIA/ODI/SCALE parameters; "
+                                f"readings treated as raw")
+                out = np.array(s.values)
+        else:
+            out = np.empty_like(s.values)
+            missing = []
+            for i0, i1 in _segments(params, names, t):
+                cal = _compass_cal_at(params, inst, t[i0], missing)
+                m = None if motor is None else motor[i0:i1]
+                out[i0:i1] = fw.undo_compass(cal, s.values[i0:i1], m)
+            if missing:
+                warnings.append(f"mag {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
+            _record(used, params, names, float(t[0]), float(t[-1]))
+            if motor is None:
+                motct = params.final(fw.board_param_names()["motct"], 0) or 0
+                mot = [params.final(n, 0) or 0 for n in cn["mot"]]
+                if int(motct) != 0 and any(abs(x) > 0 for x in mot):
+                    warnings.append(f"mag {inst}: COMPASS_MOTCT={int(motct)} with non-zero {cn['mot'][0][:-2]} "
+                                    f"but no logged motor offset; motor compensation assumed zero "
+                                    f"(true when disarmed with zero throttle/current)")
+            dev, prio = cn["dev_id"], cn["prio_id"]
+            if dev in params and prio in params and params.final(dev) != params.final(prio):
+                warnings.append(f"mag {inst}: {dev} != {prio} (compass order changed without a reboot?); "
+                                f"parameters may belong to another compass")
+        extra = {k: v for k, v in dict(s.extra).items()}
+        mag_out.append(SensorSeries("mag", inst, s.message, t, out, s.log_time_s, extra))
+
+    gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
+                 and not (drop_zero_series and not np.any(g.values != 0.0)))
+    for w in warnings:
+        log.warning("%s", w)
+    return RawImu(
+        source=log_.source,
+        accel=tuple(accel_out),
+        mag=tuple(mag_out),
+        gyro=gyro,
+        params_used={k: tuple(v) for k, v in used.items()},
+        frames={"accel": ACCEL_FRAME, "mag": MAG_FRAME},
+        warnings=tuple(warnings),
+        accel_cal_periods=tuple((float(a), float(b)) for a, b in periods),
+    )
