@@ -18,15 +18,12 @@ from mavcal.errors import (  # noqa: E402
     MavcalError,
 )
 
-try:  # the engine
-    from mavcal.core.calibrate import (  # noqa: E402
-        calibrate,
-        estimate_orientations,
-        reconstruction_error,
-    )
-    from mavcal.core.multi import MultiCalibration, calibrate_multi  # noqa: E402
-except ImportError:  # pragma: no cover - during bootstrap only
-    pass
+from mavcal.core.calibrate import (  # noqa: E402
+    calibrate,
+    estimate_orientations,
+    reconstruction_error,
+)
+from mavcal.core.multi import MultiCalibration, calibrate_multi  # noqa: E402
 
 __all__ = [
     "Calibration",

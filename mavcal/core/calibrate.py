@@ -28,6 +28,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from mavcal.core import steps
+from mavcal.core.gauge import canonical
 from mavcal.core.initial import (
     G_UNIT,
     approximate_rotations,
@@ -85,12 +86,10 @@ def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, 
     z_a = np.linalg.solve(ea.K, (a.mu - ea.b).T).T
     z_m = np.linalg.solve(em.K, (m.mu - em.b).T).T
     R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
+    # R is the proper member of the (R, h_z) / (-R, -h_z) pair: the canonical mirror twin
     h_z = float(np.clip(h_z, -0.999999, 0.999999))
     h_x = np.sqrt(1.0 - h_z * h_z)
-    K_a = ea.K
-    K_m = em.K @ R * h_x
-    h = np.array([1.0, 0.0, h_z / h_x])
-    st = steps.State(K_a=K_a, b_a=ea.b, K_m=K_m, b_m=em.b, h_z=float(h[2]), R=np.zeros((N, 3, 3)),
+    st = steps.State(K_a=ea.K, b_a=ea.b, K_m=em.K @ R * h_x, b_m=em.b, h_z=h_z / h_x, R=np.zeros((N, 3, 3)),
                      Sigma_a=a.sigma_hat, Sigma_m=m.sigma_hat)
     return steps.rotations_approx(st, a, m)
 
@@ -353,6 +352,11 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
             reason += f"; simpler models are rejected ({tests[0]})"
 
     p = res.params
+    K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)
+    if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
+        cov = _transform_cov(res, p, K_a, K_m, h_z)
+        res = replace(res, cov=cov)
+    p = JointParams((K_a, K_m), p.biases, h_z, R)
     dof = res.dof
     scale = max(1.0, res.cost / dof) if dof > 0 else 1.0
     cov = None if res.cov is None else res.cov * scale
@@ -373,6 +377,17 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
         n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
         dof=int(dof))
+
+
+def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> Optional[np.ndarray]:
+    """Covariance after a discrete gauge change: every parameter maps to +-1 times itself."""
+    if res.cov is None:
+        return None
+    old = _theta_by_names(res)[0]
+    new_res = replace(res, params=JointParams((K_a, K_m), p.biases, h_z, p.R))
+    new = _theta_by_names(new_res)[0]
+    sign = np.where(np.isclose(new, -old) & (old != 0), -1.0, 1.0)
+    return res.cov * np.outer(sign, sign)
 
 
 # --- orientations of new data, reconstruction error -----------------------------------------

@@ -6,9 +6,11 @@
 2. The scale alpha = (b^T A^-1 b / 4 - c)^-1, the bias b_s = -A^-1 b / 2, and the gain from
    K^-T K^-1 = alpha A by an (upper-triangular) Cholesky factor ~K_s
    (Eq. ``decomposition_problem``).
-3. The accel-to-magnetometer rotation R and h_z from Eq. ``optimize_hz``, solved by Gauss-
-   Newton from random restarts (uniformly random rotations, h_z ~ U[-1, 1]); R may be
-   improper so that a mirrored magnetometer is found too. Then h_x = sqrt(1 - h_z^2),
+3. The accel-to-magnetometer rotation R and h_z from Eq. ``optimize_hz``, solved by
+   Levenberg-Marquardt from a closed-form relaxation and, when that is not good enough,
+   random restarts (uniformly random rotations, h_z ~ U[-1, 1]); R may be improper (det -1,
+   a mirrored magnetometer): the problem cannot distinguish (R, h_z) from (-R, -h_z), so
+   both are tried on the full cost. Then h_x = sqrt(1 - h_z^2),
    K_m = ~K_m R h_x, h_z <- h_z / h_x (normalisation g_z = -1, h_x = 1).
 4. The orientation of each interval from the eigenvector of the smallest eigenvalue of B_i
    (Eq. ``rotation_approximation``), weighted by w_s = |K_s^T Sigma_s^-1 K_s|^(1/3).
@@ -170,28 +172,28 @@ def _lm_rotation_hz(R, hz, z_a, z_m, w, iterations):
 
 
 def search_rotation_hz(z_a: np.ndarray, z_m: np.ndarray, w: np.ndarray, rng: np.random.Generator,
-                       restarts: int = 24, iterations: int = 30, allow_improper: bool = True,
-                       accept_rms: float = 0.01):
+                       restarts: int = 24, iterations: int = 30, accept_rms: float = 0.01):
     """Solve Eq. ``optimize_hz``: min_{R, h_z} 1/2 sum_i w_i (h_z + z_a[i]^T R^T z_m[i])^2.
 
     Levenberg-Marquardt from the two signs of a closed-form relaxation
     (:func:`_relaxed_start`). When that does not reach a residual consistent with noise
     (weighted RMS of h_z + z_a^T R^T z_m above ``accept_rms``), the paper's random restarts
-    follow: ``restarts`` uniformly random rotations with h_z ~ U[-1, 1], vectorised; half of
-    them improper (det R = -1) when ``allow_improper``, which is how a mirrored magnetometer
-    is found. Returns (R, h_z, cost).
+    follow: ``restarts`` uniformly random rotations with h_z ~ U[-1, 1], vectorised.
+
+    The cost is symmetric under (R, h_z) -> (-R, -h_z): every solution has an improper twin
+    of equal cost (a mirrored magnetometer seeing the field with the opposite dip). This
+    problem cannot tell them apart; the caller must compare both on the full cost
+    (see :func:`mavcal.core.calibrate.initial_state`). Returns the proper (det R = +1)
+    member (R, h_z, cost).
     """
     R0 = _relaxed_start(z_a, z_m, w)
-    if not allow_improper:
-        R0 = R0 * np.sign(np.linalg.det(R0))[:, None, None]
+    R0 = R0 * np.sign(np.linalg.det(R0))[:, None, None]
     hz0 = -np.einsum("nj,bjk,nk,n->b", z_m, R0, z_a, w) / w.sum()
     R, hz, c = _lm_rotation_hz(R0, hz0, z_a, z_m, w, iterations)
     k = int(np.argmin(c))
     if np.sqrt(c[k] / w.sum()) <= accept_rms or restarts <= 0:
         return R[k], float(hz[k]), float(c[k])
     Rr = random_rotations(restarts, rng)
-    if allow_improper:
-        Rr[restarts // 2:] = -Rr[restarts // 2:]
     hzr = rng.uniform(-1.0, 1.0, restarts)
     Rr, hzr, cr = _lm_rotation_hz(Rr, hzr, z_a, z_m, w, iterations)
     R, hz, c = np.concatenate([R, Rr]), np.concatenate([hz, hzr]), np.concatenate([c, cr])

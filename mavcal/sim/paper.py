@@ -17,6 +17,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 from scipy.linalg import rq
 
+from mavcal.core.gauge import canonical
 from mavcal.core.rotations import random_rotations
 
 
@@ -66,7 +67,8 @@ class Truth:
 
         Returns (K_a, b_a, K_m, b_m, h_z, orientations) such that the mean readings are
         unchanged: K_a' = |g_z| K_a = U Q (RQ decomposition, U upper triangular with a
-        positive diagonal), R_i' = Q R_i, K_m' = h_x K_m Q^T, h_z' = h_z / h_x.
+        positive diagonal), R_i' = Q R_i, K_m' = h_x K_m Q^T, h_z' = h_z / h_x, and then the
+        canonical mirror twin (det K_m > 0, see :mod:`mavcal.core.gauge`).
         """
         s = self.sensors
         Ka = -s.g[2] * s.K_a
@@ -76,7 +78,8 @@ class Truth:
         if np.linalg.det(Q) < 0:  # a mirrored accelerometer cannot be put in this gauge
             raise ValueError("accelerometer gain with negative determinant")
         Km = s.h[0] * s.K_m @ Q.T
-        return U, s.b_a.copy(), Km, s.b_m.copy(), float(s.h[2] / s.h[0]), Q @ self.orientations
+        U, Km, h_z, R, _ = canonical(U, Km, float(s.h[2] / s.h[0]), Q @ self.orientations)
+        return U, s.b_a.copy(), Km, s.b_m.copy(), h_z, R
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,0 +1,98 @@
+"""Parameter uncertainty: draws from the Gaussian approximation of the estimate.
+
+``Calibration.param_cov`` is the Gauss-Newton inverse Fisher information of the global
+parameters (orientations marginalised), inflated by max(1, J'/dof) when the data scatter
+more than the noise model explains. Drawing parameter sets from N(theta_hat, param_cov)
+and pushing them through any derived quantity (ArduPilot parameters, heading and tilt
+errors over a grid of attitudes) gives that quantity's confidence interval.
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from mavcal.core.types import Calibration
+
+
+def parameter_vector(cal: Calibration) -> np.ndarray:
+    """The global parameters of ``cal`` in the order of ``cal.param_names``."""
+    vals = []
+    for name in cal.param_names:
+        vals.append(_get(cal.accel.gain, cal.accel.bias, cal.mag.gain, cal.mag.bias, cal.h_z, name))
+    return np.array(vals)
+
+
+def _get(Ka, ba, Km, bm, hz, name):
+    if name == "h_z":
+        return hz
+    sym, lab = name.split("[")
+    lab = lab.rstrip("]")
+    if sym == "K_a":
+        return Ka[int(lab[0]) - 1, int(lab[1]) - 1] if lab != "s" else Ka[0, 0]
+    if sym == "K_m":
+        return Km[int(lab[0]) - 1, int(lab[1]) - 1] if lab != "s" else Km[0, 0]
+    if sym == "b_a":
+        return ba["xyz".index(lab)]
+    if sym == "b_m":
+        return bm["xyz".index(lab)]
+    raise KeyError(name)
+
+
+def _set(d: Dict[str, np.ndarray], name: str, value: float, forms: Dict[str, str]) -> None:
+    if name == "h_z":
+        d["h"][2] = value
+        return
+    sym, lab = name.split("[")
+    lab = lab.rstrip("]")
+    if sym in ("K_a", "K_m"):
+        K = d[sym]
+        if lab == "s":
+            K[:] = value * np.eye(3)
+            return
+        r, c = int(lab[0]) - 1, int(lab[1]) - 1
+        K[r, c] = value
+        if forms[sym] == "sym":
+            K[c, r] = value
+    else:
+        d[sym]["xyz".index(lab)] = value
+
+
+def _forms(cal: Calibration) -> Dict[str, str]:
+    from mavcal.core.models import MODELS
+
+    spec = MODELS.get(cal.model, MODELS["full"])
+    return {"K_a": spec.accel_form, "K_m": spec.mag_form}
+
+
+def sample_parameters(cal: Calibration, n: int, rng: Optional[np.random.Generator] = None) -> List[dict]:
+    """``n`` draws of (K_a, b_a, K_m, b_m, h) from N(theta_hat, param_cov).
+
+    Entries not among the estimated parameters (e.g. the zero off-diagonals of a diagonal
+    K_a) keep their fitted values. Without a covariance every draw equals the estimate.
+    """
+    rng = np.random.default_rng() if rng is None else rng
+    base = {"K_a": np.array(cal.accel.gain), "b_a": np.array(cal.accel.bias), "K_m": np.array(cal.mag.gain),
+            "b_m": np.array(cal.mag.bias), "h": np.array(cal.field)}
+    if cal.param_cov is None or not cal.param_names:
+        return [{k: v.copy() for k, v in base.items()} for _ in range(n)]
+    theta = parameter_vector(cal)
+    C = np.asarray(cal.param_cov)
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    L = V * np.sqrt(np.maximum(w, 0.0))
+    draws = theta + rng.standard_normal((n, len(theta))) @ L.T
+    forms = _forms(cal)
+    out = []
+    for th in draws:
+        d = {k: v.copy() for k, v in base.items()}
+        for name, val in zip(cal.param_names, th):
+            _set(d, name, float(val), forms)
+        out.append(d)
+    return out
+
+
+def parameter_std(cal: Calibration) -> Dict[str, float]:
+    """1-sigma uncertainty of each global parameter, by name."""
+    if cal.param_cov is None:
+        return {}
+    return {n: float(np.sqrt(max(v, 0.0))) for n, v in zip(cal.param_names, np.diag(cal.param_cov))}
