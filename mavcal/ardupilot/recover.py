@@ -72,6 +72,8 @@ class RawImu:
     accel_cal_periods : tuple of (start_s, end_s)
         Periods during which ArduPilot's accelerometer calibration ran (samples there
         were not inverse-corrected for offsets/scale).
+    board_rotation : (3, 3) array or None
+        R_A of AHRS_ORIENTATION (at the end of the data): board frame -> body frame.
     """
 
     source: str
@@ -82,6 +84,7 @@ class RawImu:
     frames: Mapping[str, str] = field(default_factory=lambda: {"accel": ACCEL_FRAME, "mag": MAG_FRAME})
     warnings: Tuple[str, ...] = ()
     accel_cal_periods: Tuple[Tuple[float, float], ...] = ()
+    board_rotation: Optional[np.ndarray] = None
 
     def accel_instances(self) -> List[int]:
         return [s.instance for s in self.accel]
@@ -404,4 +407,15 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Optional[Sequence[Tuple[float, 
         frames={"accel": ACCEL_FRAME, "mag": MAG_FRAME},
         warnings=tuple(warnings),
         accel_cal_periods=tuple((float(a), float(b)) for a, b in periods),
+        board_rotation=_board_rotation(params),
     )
+
+
+def _board_rotation(params: ParamTimeline) -> Optional[np.ndarray]:
+    snap = params.snapshot()
+    if fw.board_param_names()["orientation"] not in snap:
+        return None
+    try:
+        return np.array(fw.accel_cal_from_params(snap, 0).board_matrix)
+    except ValueError:  # custom rotation without its angles
+        return None

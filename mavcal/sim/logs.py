@@ -199,11 +199,11 @@ class _Motion:
         n = len(rots)
         starts = cfg.lead_s + np.arange(n) * (cfg.hold_s + cfg.move_s)
         self.windows = np.column_stack([starts, starts + cfg.hold_s])
-        # tremor: a few sinusoids per axis with random phase
-        self.freqs = rng.uniform(1.0, 7.0, (3, 4))
+        # hand sway/tremor: a few slow sinusoids per axis with random phase
+        self.freqs = rng.uniform(0.3, 3.0, (3, 4))
         self.phases = rng.uniform(0, 2 * np.pi, (3, 4))
         self.amp = np.radians(cfg.jitter_deg) / 2.0
-        self.lin_freqs = rng.uniform(1.0, 6.0, (3, 3))
+        self.lin_freqs = rng.uniform(0.5, 4.0, (3, 3))
         self.lin_phases = rng.uniform(0, 2 * np.pi, (3, 3))
 
     def _pose(self, t: np.ndarray) -> Rotation:
