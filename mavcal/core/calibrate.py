@@ -95,14 +95,17 @@ def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, 
 
 
 def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method: str, tol: float,
-                    max_iter: int, handoff_rate: Optional[float] = None) -> Tuple[steps.State, int, str]:
+                    max_iter: int, handoff_rate: Optional[float] = None,
+                    on_iteration=None) -> Tuple[steps.State, int, str]:
     """Sec. VII: iterate rotation, bias/field, gain (and covariance) steps until J_{k-1} - J_k < tol.
 
     With ``handoff_rate`` (used when the joint refinement follows), the steps also stop once
     they converge linearly slower than that rate (J_{k-1} - J_k > rate (J_{k-2} - J_{k-1})):
     from there Levenberg-Marquardt reaches the optimum in a few iterations, where the block
     steps would need hundreds. Returns (state, iterations, how): how is "gamma", "handoff"
-    or "limit".
+    or "limit". ``on_iteration(k, state, J, dJ, checked)`` is called after every iteration
+    (``checked`` is False on the iteration where the approximation was abandoned, when the
+    stop rule is not evaluated); benchmarks use it to stop at many gammas in one run.
     """
     refit = method in ("fcar", "dcar")
     cost = steps.complete_cost if refit else steps.partial_cost
@@ -120,6 +123,8 @@ def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method:
             raise EstimationError("the block steps diverged (non-finite cost); the data may not fit the "
                                   "linear sensor model (sensor saturation, magnetic disturbance?)")
         dJ = J_prev - J
+        if on_iteration is not None:
+            on_iteration(k, st, J, dJ, not (approx and J > J_prev))
         if approx and J > J_prev:
             approx = False  # the approximation stopped helping: direct minimisation from now on
             if handoff_rate is not None:
