@@ -60,6 +60,8 @@ class Link:
         self._handlers: Dict[str, Dict[int, Handler]] = {}
         self._ids = itertools.count(1)
         self.last_heartbeat_s: Optional[float] = None
+        #: time.monotonic() of the last message from the vehicle (starts "now")
+        self.last_rx_s: float = time.monotonic()
         self.messages_received = 0
 
     # -- ids ---------------------------------------------------------------------------------
@@ -67,6 +69,10 @@ class Link:
     def mav(self) -> Any:
         """The pymavlink ``MAVLink`` encoder (``conn.mav``) used to send messages."""
         return self.conn.mav
+
+    def silent_for(self) -> float:
+        """Seconds since the vehicle last sent anything (heartbeats included)."""
+        return time.monotonic() - self.last_rx_s
 
     def is_from_vehicle(self, m: Any) -> bool:
         """True if ``m`` was sent by the target system/component."""
@@ -91,8 +97,10 @@ class Link:
         if mtype == "BAD_DATA":
             return
         self.messages_received += 1
-        if mtype == "HEARTBEAT" and self.is_from_vehicle(m):
-            self.last_heartbeat_s = time.monotonic()
+        if self.is_from_vehicle(m):
+            self.last_rx_s = time.monotonic()
+            if mtype == "HEARTBEAT":
+                self.last_heartbeat_s = self.last_rx_s
         for table in (self._handlers.get(mtype), self._handlers.get("*")):
             if table:
                 for fn in list(table.values()):

@@ -1,0 +1,544 @@
+"""The safe parameter writer: write, verify by echo, and undo everything on failure.
+
+Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; research note
+section 8):
+
+* PARAM_SET of an unknown name (or NaN/Inf) is silently ignored: only a timeout shows it.
+  So names are checked against the vehicle's own table *before* anything is written.
+* The vehicle converts the float to the stored type (integers: +/-0.01 in float32, clamp,
+  truncate) and echoes PARAM_VALUE (``param_index`` 65535) after storing it; setting one
+  element of a Vector3 echoes all three. An echo with the right name and the expected value
+  (float32-equal after the conversion) confirms a write; anything else is ignored until the
+  attempt times out, then the PARAM_SET is sent again.
+* Values go out as plain float32 (REAL32), never byte-wise (PX4 style).
+
+Sequence of :func:`write_params`:
+
+1. the vehicle's table (fetched, or given) and fresh values of the parameters to change
+   (PARAM_REQUEST_READ); unknown names, non-finite values and values an integer parameter
+   would not store exactly are refused before any write;
+2. a backup ``.param`` of every value about to change, written and fsync'ed before the first
+   PARAM_SET (never overwriting an existing file);
+3. one parameter at a time: PARAM_SET, wait for the matching echo, retry;
+4. force-save (``MAV_CMD_PREFLIGHT_CALIBRATION`` param2=76 compass, param5=76 accel) so the
+   device ids are stored with the calibration; a missing ACK is reported, not fatal;
+5. read every written parameter back once more (PARAM_REQUEST_READ) and compare;
+6. on any failure in 3-5: restore every parameter a PARAM_SET was sent for (including the
+   one in flight) from the backup values, verify the restore by echo and read-back, then raise
+   :class:`~mavcal.errors.ParamWriteError` (exit 5) - or
+   :class:`~mavcal.errors.RestoreFailedError` (exit 6) naming the parameters in doubt.
+
+The library logs and never prints; the :class:`WriteReport` is data.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+from pymavlink import mavutil
+
+from mavcal.ardupilot.paramfile import write_param_file
+from mavcal.ardupilot.protocol import needs_reboot, valid_param_name, vector_group
+from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UsageError
+from mavcal.link.connection import Link, as_link
+from mavcal.link.params import ParamTable, fetch_all_params, read_params
+
+__all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "UnknownParameterError",
+           "expected_stored_value", "FORCE_SAVE_KINDS"]
+
+log = logging.getLogger(__name__)
+
+_A = mavutil.mavlink
+_INT_RANGE = {_A.MAV_PARAM_TYPE_INT8: (-128, 127), _A.MAV_PARAM_TYPE_INT16: (-32768, 32767),
+              _A.MAV_PARAM_TYPE_INT32: (-2147483648, 2147483647)}
+_TYPE_NAMES = {_A.MAV_PARAM_TYPE_INT8: "INT8", _A.MAV_PARAM_TYPE_INT16: "INT16",
+               _A.MAV_PARAM_TYPE_INT32: "INT32", _A.MAV_PARAM_TYPE_REAL32: "REAL32"}
+
+#: kind -> (param2, param5) of MAV_CMD_PREFLIGHT_CALIBRATION that force-saves it
+FORCE_SAVE_KINDS = {"compass": (76.0, 0.0), "accel": (0.0, 76.0)}
+
+
+class UnknownParameterError(UsageError):
+    """Some requested names do not exist on the vehicle (nothing was written)."""
+
+    def __init__(self, names: Sequence[str]) -> None:
+        self.names = list(names)
+        super().__init__("the vehicle has no parameter " + ", ".join(self.names) + " (nothing was written)")
+
+
+@dataclass(frozen=True)
+class ParamResult:
+    """The fate of one parameter.
+
+    Attributes
+    ----------
+    name : str
+    old : float
+        Value on the vehicle before the write (the backup value).
+    requested : float
+        Value asked for.
+    expected : float
+        What the vehicle stores for ``requested`` (float32 rounding, integer conversion).
+    echoed : float or None
+        Last value the vehicle reported for it (echo or read-back); None if never heard.
+    ok : bool
+        True if the vehicle holds ``expected`` (confirmed), or nothing had to change.
+    attempts : int
+        PARAM_SETs sent for the new value (0: unchanged, not written).
+    restored : bool or None
+        None if no restore touched it; True if restored to ``old`` and verified; False if the
+        restore could not be verified (value in doubt).
+    restore_attempts : int
+        PARAM_SETs sent to restore it.
+    """
+
+    name: str
+    old: float
+    requested: float
+    expected: float
+    echoed: Optional[float]
+    ok: bool
+    attempts: int
+    restored: Optional[bool] = None
+    restore_attempts: int = 0
+
+    @property
+    def changed(self) -> bool:
+        """True if the value differs from the old one (something had to be written)."""
+        return not _same(self.old, self.expected)
+
+
+@dataclass(frozen=True)
+class WriteReport:
+    """What :func:`write_params` did. Frozen; built once at the end.
+
+    Attributes
+    ----------
+    results : tuple of ParamResult
+        One per requested parameter, in request order.
+    backup_path : str or None
+        The backup written before the first PARAM_SET (None for a dry run or no change).
+    complete : bool
+        Every change written and verified by read-back.
+    restored : bool
+        A failure happened and every attempted parameter was restored and verified.
+    in_doubt : tuple of str
+        Parameters whose value on the vehicle is unknown (restore not verified).
+    reboot_required : tuple of str
+        Changed parameters that only take effect after a reboot.
+    force_saved : tuple of str
+        Force-saves acknowledged by the vehicle (``"compass"``, ``"accel"``).
+    force_save_failed : tuple of str
+        Force-saves not acknowledged.
+    dry_run : bool
+        Nothing was written.
+    message : str
+        One-line summary.
+    """
+
+    results: Tuple[ParamResult, ...]
+    backup_path: Optional[str]
+    complete: bool
+    restored: bool = False
+    in_doubt: Tuple[str, ...] = ()
+    reboot_required: Tuple[str, ...] = ()
+    force_saved: Tuple[str, ...] = ()
+    force_save_failed: Tuple[str, ...] = ()
+    dry_run: bool = False
+    message: str = ""
+
+    @property
+    def needs_reboot(self) -> bool:
+        """True if some changed parameter needs a reboot to take effect."""
+        return bool(self.reboot_required)
+
+    @property
+    def changed(self) -> Tuple[ParamResult, ...]:
+        """Results of the parameters whose value had to change."""
+        return tuple(r for r in self.results if r.changed)
+
+    @property
+    def total_attempts(self) -> int:
+        """PARAM_SETs sent in total (writes and restores)."""
+        return sum(r.attempts + r.restore_attempts for r in self.results)
+
+
+# ----------------------------------------------------------------------------------------------
+# value semantics
+# ----------------------------------------------------------------------------------------------
+def expected_stored_value(value: float, param_type: int) -> float:
+    """The value ArduPilot stores for a PARAM_SET of ``value`` (``AP_Param::set_float``).
+
+    Integer types: add 0.01 (-0.01 for negatives) in float32, clamp to the type's range, and
+    truncate toward zero. Everything else: float32 rounding.
+    """
+    if param_type in _INT_RANGE:
+        v = np.float32(value)
+        v = np.float32(v + (np.float32(-0.01) if v < 0 else np.float32(0.01)))
+        lo, hi = _INT_RANGE[param_type]
+        return float(int(min(max(float(v), lo), hi)))
+    return float(np.float32(value))
+
+
+def _same(a: Optional[float], b: Optional[float]) -> bool:
+    """Equal as float32 values (the wire format), within one float32 ulp."""
+    if a is None or b is None:
+        return False
+    fa, fb = np.float32(a), np.float32(b)
+    if fa == fb:
+        return True
+    return bool(abs(float(fa) - float(fb)) <= float(np.spacing(np.abs(fb))))
+
+
+def _check_values(changes: Mapping[str, float], table: ParamTable) -> None:
+    bad = []
+    for name, value in changes.items():
+        v = float(value)
+        if not math.isfinite(v):
+            bad.append(f"{name}={value!r} is not finite")
+            continue
+        ptype = table[name][1]
+        if ptype in _INT_RANGE:
+            lo, hi = _INT_RANGE[ptype]
+            stored = expected_stored_value(v, ptype)
+            if not (lo <= v <= hi) or abs(stored - v) > 1e-3 * max(1.0, abs(v)):
+                bad.append(f"{name} is {_TYPE_NAMES[ptype]}: {v!r} would be stored as {stored:g}")
+        elif not np.isfinite(np.float32(v)):
+            bad.append(f"{name}={v!r} does not fit a float32")
+    if bad:
+        raise UsageError("refusing to write (nothing was written): " + "; ".join(bad))
+
+
+def plan_changes(changes: Mapping[str, float], table: ParamTable) -> List[ParamResult]:
+    """Check ``changes`` against the vehicle's ``table`` and describe each change.
+
+    Returns
+    -------
+    list of ParamResult
+        Not yet written (``attempts`` 0; ``ok`` True only where nothing changes).
+
+    Raises
+    ------
+    UnknownParameterError
+        A name is not in ``table``.
+    UsageError
+        A bad name, a non-finite value, or a value an integer parameter cannot hold.
+    """
+    badnames = [n for n in changes if not valid_param_name(n)]
+    if badnames:
+        raise UsageError("bad parameter name " + ", ".join(repr(n) for n in badnames))
+    unknown = [n for n in changes if n not in table]
+    if unknown:
+        raise UnknownParameterError(unknown)
+    _check_values(changes, table)
+    plan = []
+    for name, value in changes.items():
+        old, ptype = table[name]
+        exp = expected_stored_value(float(value), ptype)
+        unchanged = _same(old, exp)
+        plan.append(ParamResult(name=name, old=float(old), requested=float(value), expected=exp,
+                                echoed=float(old) if unchanged else None, ok=unchanged, attempts=0))
+    return plan
+
+
+# ----------------------------------------------------------------------------------------------
+# the write loop
+# ----------------------------------------------------------------------------------------------
+class _EchoWatch:
+    """Remembers the last PARAM_VALUE per name from the vehicle while registered."""
+
+    def __init__(self, link: Link) -> None:
+        self.link = link
+        self.last: Dict[str, float] = {}
+        self.seen: Dict[str, List[float]] = {}
+        self._token = link.add_handler("PARAM_VALUE", self._on)
+
+    def _on(self, m: Any) -> None:
+        if not self.link.is_from_vehicle(m):
+            return
+        name = m.param_id.decode("ascii", "replace") if isinstance(m.param_id, bytes) else m.param_id
+        name = name.rstrip("\x00")
+        self.last[name] = float(m.param_value)
+        self.seen.setdefault(name, []).append(float(m.param_value))
+
+    def close(self) -> None:
+        self.link.remove_handler(self._token)
+
+
+def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, expected: float,
+                     retries: int, timeout_s: float, link_timeout_s: float) -> Tuple[bool, Optional[float], int]:
+    """PARAM_SET ``name`` until an echo equal to ``expected`` arrives. -> (ok, last echo, attempts).
+
+    Raises LinkError when the vehicle has sent nothing at all for ``link_timeout_s``.
+    """
+    attempts = 0
+    wire_value = float(np.float32(value))
+    mark = len(watch.seen.get(name, []))
+    for _ in range(max(1, retries)):
+        if link.silent_for() > link_timeout_s:
+            raise LinkError(f"{link.device}: vehicle silent for {link.silent_for():.1f} s")
+        attempts += 1
+        link.mav.param_set_send(link.target_system, link.target_component, name.encode("ascii"),
+                                wire_value, _A.MAV_PARAM_TYPE_REAL32)
+
+        def confirmed() -> bool:
+            return any(_same(v, expected) for v in watch.seen.get(name, [])[mark:])
+
+        if link.wait(confirmed, timeout_s):
+            return True, expected, attempts
+        log.debug("%s: no matching echo (attempt %d, last %r)", name, attempts, watch.last.get(name))
+    seen = watch.seen.get(name, [])[mark:]
+    return False, (seen[-1] if seen else None), attempts
+
+
+def _force_save(link: Link, kind: str, retries: int, timeout_s: float) -> bool:
+    p2, p5 = FORCE_SAVE_KINDS[kind]
+    acks: List[int] = []
+
+    def on_ack(m: Any) -> None:
+        if link.is_from_vehicle(m) and m.command == _A.MAV_CMD_PREFLIGHT_CALIBRATION:
+            acks.append(int(m.result))
+
+    token = link.add_handler("COMMAND_ACK", on_ack)
+    try:
+        for confirmation in range(max(1, retries)):
+            link.mav.command_long_send(link.target_system, link.target_component,
+                                       _A.MAV_CMD_PREFLIGHT_CALIBRATION, confirmation,
+                                       0, p2, 0, 0, p5, 0, 0)
+            if link.wait(lambda: bool(acks), timeout_s):
+                break
+    finally:
+        link.remove_handler(token)
+    ok = bool(acks) and acks[0] == _A.MAV_RESULT_ACCEPTED
+    if not ok:
+        log.warning("force-save of the %s calibration not acknowledged (%s)", kind,
+                    "no COMMAND_ACK" if not acks else f"result {acks[0]}")
+    return ok
+
+
+def _read_back(link: Link, names: Sequence[str], retries: int, timeout_s: float) -> ParamTable:
+    return read_params(link, names, timeout_s=timeout_s, attempts=max(1, retries))
+
+
+def _default_header(link: Link, what: str) -> List[str]:
+    now = _dt.datetime.now().astimezone().isoformat(timespec="seconds")
+    return [f"mavcal {what}: values on system {link.target_system} before the write, {now}",
+            f"undo with: mavcal restore THIS_FILE --connect {link.device}"]
+
+
+def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: Optional[str],
+                 params: Optional[ParamTable] = None, force_save: Sequence[str] = ("compass", "accel"),
+                 retries: int = 3, timeout_s: float = 1.0, restore_retries: Optional[int] = None,
+                 dry_run: bool = False, fetch_timeout_s: float = 30.0, link_timeout_s: float = 3.0,
+                 backup_header: Optional[Sequence[str]] = None) -> WriteReport:
+    """Write ``changes`` to the vehicle safely (see the module docstring for the sequence).
+
+    Parameters
+    ----------
+    conn : Link or pymavlink connection
+        Link to the vehicle (a bare connection must have seen its HEARTBEAT).
+    changes : mapping of str to float
+        New values by parameter name.
+    backup_path : str or path-like or None
+        Where the backup of the old values goes (must not exist yet). Required unless
+        ``dry_run``.
+    params : dict of str to (float, int), optional
+        The vehicle's table as returned by :func:`~mavcal.link.params.fetch_all_params`. If
+        given, it is used for the name check and the types, and only the parameters to change
+        are re-read for fresh old values; if None, the whole table is fetched first.
+    force_save : sequence of {"compass", "accel"}
+        Force-saves to send after the writes (empty: none).
+    retries : int
+        PARAM_SETs per parameter before giving up on the write.
+    timeout_s : float
+        Wait for each echo / answer.
+    restore_retries : int, optional
+        PARAM_SETs per parameter when restoring, and read requests per parameter when
+        reading values (reads change nothing, so they may insist); default ``5 * retries``,
+        at least 20. A dead link is detected by ``link_timeout_s`` instead.
+    dry_run : bool
+        Only compute the diff; write nothing (no backup either).
+    fetch_timeout_s : float
+        Bound on the initial parameter download.
+    link_timeout_s : float
+        The link counts as lost when the vehicle sent nothing at all (not even a HEARTBEAT,
+        1 Hz on ArduPilot) for this long; writing and restoring stop at once.
+    backup_header : sequence of str, optional
+        Comment lines for the backup file.
+
+    Returns
+    -------
+    WriteReport
+        ``complete`` True (or a dry run / nothing to change).
+
+    Raises
+    ------
+    UnknownParameterError, UsageError
+        Refused before any write.
+    LinkError
+        The vehicle does not answer before any write (nothing was written).
+    ParamWriteError
+        A write failed; every attempted parameter was restored and verified (exit 5).
+        ``.report`` holds the :class:`WriteReport`.
+    RestoreFailedError
+        A write failed and the restore could not be verified (exit 6); ``.in_doubt`` lists
+        the parameters whose value is unknown and ``.report`` the report.
+    """
+    link = as_link(conn)
+    if restore_retries is None:
+        restore_retries = max(20, 5 * retries)
+    changes = {str(k): float(v) for k, v in changes.items()}
+    bad_kinds = [k for k in force_save if k not in FORCE_SAVE_KINDS]
+    if bad_kinds:
+        raise UsageError(f"unknown force_save kind(s) {bad_kinds}; use 'compass' and/or 'accel'")
+    if not dry_run and backup_path is None:
+        raise UsageError("a backup path is required to write parameters")
+
+    # 1. the vehicle's table and fresh values
+    if params is None:
+        table = fetch_all_params(link, fetch_timeout_s, retry_s=max(timeout_s, 0.2))
+    else:
+        table = dict(params)
+        plan_changes(changes, table)  # refuse unknown names before talking to the vehicle
+        fresh = _read_back(link, list(changes), restore_retries, timeout_s)
+        missing = [n for n in changes if n not in fresh]
+        if missing:
+            raise LinkError(f"{link.device}: no answer reading {', '.join(missing)} (nothing was written)")
+        table.update(fresh)
+    plan = plan_changes(changes, table)
+    to_write = [r for r in plan if not r.ok]
+
+    if dry_run or not to_write:
+        msg = ("dry run: " if dry_run else "") + (
+            f"{len(to_write)} of {len(plan)} parameters would change" if dry_run
+            else "nothing to change: the vehicle already holds every value")
+        return WriteReport(results=tuple(plan), backup_path=None, complete=not dry_run, dry_run=dry_run,
+                           reboot_required=tuple(r.name for r in to_write if needs_reboot(r.name, r.requested)),
+                           message=msg)
+
+    # 2. backup before the first write
+    header = list(backup_header) if backup_header is not None else _default_header(link, "backup")
+    bpath = write_param_file(backup_path, {r.name: r.old for r in to_write}, header=header, exclusive=True)
+    log.info("backup of %d values written to %s", len(to_write), bpath)
+
+    watch = _EchoWatch(link)
+    results: Dict[str, ParamResult] = {r.name: r for r in plan}
+    attempted: List[str] = []
+    failure: Optional[str] = None
+    force_saved: List[str] = []
+    force_failed: List[str] = []
+    try:
+        # 3. write one at a time, confirm by echo
+        for r in to_write:
+            attempted.append(r.name)
+            try:
+                ok, echoed, attempts = _set_and_confirm(link, watch, r.name, r.requested, r.expected,
+                                                        retries, timeout_s, link_timeout_s)
+            except LinkError as exc:
+                ok, echoed, attempts = False, watch.last.get(r.name), max(1, retries)
+                failure = str(exc)
+            results[r.name] = replace(r, ok=ok, echoed=echoed, attempts=attempts)
+            if not ok:
+                failure = failure or (
+                    f"{r.name}: no echo after {attempts} attempts" if echoed is None
+                    else f"{r.name}: no echo of {r.expected!r} after {attempts} attempts (last heard {echoed!r})")
+                break
+            if vector_group(r.name):
+                log.debug("%s confirmed (vector echo of %s)", r.name, "/".join(vector_group(r.name) or ()))
+
+        # 4. force-save, 5. read back
+        if failure is None:
+            for kind in force_save:
+                try:
+                    (force_saved if _force_save(link, kind, retries, timeout_s) else force_failed).append(kind)
+                except LinkError:
+                    force_failed.append(kind)
+            try:
+                back = _read_back(link, attempted, restore_retries, timeout_s)
+            except LinkError as exc:
+                back, failure = {}, str(exc)
+            for name in attempted:
+                r = results[name]
+                if name in back:
+                    results[name] = replace(r, echoed=back[name][0], ok=_same(back[name][0], r.expected))
+                else:
+                    results[name] = replace(r, ok=False)
+            bad = [n for n in attempted if not results[n].ok]
+            if bad and failure is None:
+                failure = "read-back does not confirm " + ", ".join(
+                    f"{n} (got {results[n].echoed!r}, expected {results[n].expected!r})" if n in back
+                    else f"{n} (no answer)" for n in bad)
+
+        if failure is None:
+            reboot = tuple(n for n in attempted if needs_reboot(n, results[n].requested))
+            msg = f"{len(attempted)} parameters written and verified"
+            if force_failed:
+                msg += f"; force-save of {'/'.join(force_failed)} not acknowledged"
+            return WriteReport(results=tuple(results[r.name] for r in plan), backup_path=str(bpath),
+                               complete=True, reboot_required=reboot, force_saved=tuple(force_saved),
+                               force_save_failed=tuple(force_failed), message=msg)
+
+        # 6. restore everything attempted (including the one in flight), newest first
+        log.warning("write failed (%s); restoring %d parameters from %s", failure, len(attempted), bpath)
+        link_ok = True
+        try:
+            link.pump(min(timeout_s, 0.5))  # let late echoes of the failed attempts arrive first
+        except LinkError:
+            link_ok = False
+        for name in reversed(attempted):
+            r = results[name]
+            if not link_ok:
+                results[name] = replace(r, restored=False)
+                continue
+            try:
+                ok, echoed, attempts = _set_and_confirm(link, watch, name, r.old, expected_stored_value(
+                    r.old, table[name][1]), restore_retries, timeout_s, link_timeout_s)
+            except LinkError:
+                ok, echoed, attempts, link_ok = False, None, 1, False
+            results[name] = replace(r, restored=ok, restore_attempts=attempts,
+                                    echoed=echoed if echoed is not None else r.echoed)
+        confirmed = [n for n in attempted if results[n].restored]
+        if confirmed and link_ok:
+            try:
+                back = _read_back(link, confirmed, restore_retries, timeout_s)
+            except LinkError:
+                back = {}
+            for n in confirmed:
+                r = results[n]
+                good = n in back and _same(back[n][0], expected_stored_value(r.old, table[n][1]))
+                results[n] = replace(r, restored=good, echoed=back[n][0] if n in back else r.echoed)
+        in_doubt = tuple(n for n in attempted if not results[n].restored)
+        final = tuple(results[r.name] for r in plan)
+        if in_doubt:
+            report = WriteReport(results=final, backup_path=str(bpath), complete=False, restored=False,
+                                 in_doubt=in_doubt, force_saved=tuple(force_saved),
+                                 force_save_failed=tuple(force_failed),
+                                 message=f"write failed ({failure}) and the restore failed")
+            raise RestoreFailedError(
+                f"write failed ({failure}); restore not verified for {', '.join(in_doubt)}; "
+                f"backup in {bpath}", in_doubt=in_doubt, report=report)
+        report = WriteReport(results=final, backup_path=str(bpath), complete=False, restored=True,
+                             force_saved=tuple(force_saved), force_save_failed=tuple(force_failed),
+                             message=f"write failed ({failure}); {len(attempted)} parameters restored")
+        raise ParamWriteError(f"write failed ({failure}); restored {len(attempted)} parameters "
+                              f"from {bpath}", report=report)
+    finally:
+        watch.close()
+
+
+def default_backup_path(directory: str = ".", stem: str = "mavcal-backup") -> Path:
+    """A new, not yet existing backup file name ``<stem>-YYYYmmdd-HHMMSS[-n].param``."""
+    ts = time.strftime("%Y%m%d-%H%M%S")
+    base = Path(directory) / f"{stem}-{ts}.param"
+    n = 1
+    p = base
+    while p.exists():
+        p = base.with_name(f"{stem}-{ts}-{n}.param")
+        n += 1
+    return p
