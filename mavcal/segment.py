@@ -9,7 +9,8 @@ still poses. :func:`find_still_intervals` finds them in a recording:
    gyro with non-zero data exists), the largest per-axis accel standard deviation is
    below ``accel_std_mps2``, the largest per-axis mag standard deviation below
    ``mag_std_mgauss`` (when no gyro), and |a| is within ``accel_norm_tol`` of the median
-   still |a|. A sample is still when a still window covers it.
+   still |a|. A run of consecutive still windows covers a run of still samples (an
+   isolated still window in noisy motion only covers one window length).
 3. Runs of still samples, less ``trim_s`` at each edge, that last ``min_duration_s``
    and hold ``min_samples`` samples are intervals; adjacent intervals in the same
    orientation (gravity and field directions within ``merge_deg``, gap below
@@ -314,12 +315,12 @@ def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Co
 
 # --------------------------------------------------------------------------- detection
 
-def _still_mask(t: np.ndarray, acc: np.ndarray, gyro: Optional[Tuple[np.ndarray, np.ndarray]],
-                mag: Optional[Tuple[np.ndarray, np.ndarray]], w: int, cfg: StillConfig) -> np.ndarray:
-    """Per accel-0 sample: covered by at least one still window."""
+def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: Optional[Tuple[np.ndarray, np.ndarray]],
+                   mag: Optional[Tuple[np.ndarray, np.ndarray]], w: int, cfg: StillConfig) -> np.ndarray:
+    """Per window start i (window = samples i..i+w-1 of accel 0): is the window still."""
     n = len(t)
     if n < w:
-        return np.zeros(n, dtype=bool)
+        return np.zeros(0, dtype=bool)
     _, sd = _rolling(acc, w)
     ok = sd.max(axis=1) < cfg.accel_std_mps2
     starts = np.arange(n - w + 1)
@@ -352,13 +353,7 @@ def _still_mask(t: np.ndarray, acc: np.ndarray, gyro: Optional[Tuple[np.ndarray,
         bad = np.abs(norm - med) > cfg.accel_norm_tol * med
         cb = np.concatenate([[0], np.cumsum(bad)])
         ok &= (cb[starts + w] - cb[starts]) == 0
-    still = np.zeros(n, dtype=bool)
-    # dilation: a sample is still when any still window covers it
-    d = np.zeros(n + 1, dtype=int)
-    np.add.at(d, starts[ok], 1)
-    np.add.at(d, starts[ok] + w, -1)
-    still = np.cumsum(d[:-1]) > 0
-    return still
+    return ok
 
 
 def _runs(mask: np.ndarray) -> List[Tuple[int, int]]:
@@ -420,13 +415,25 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     if cfg.use_mag and gy is None and m_ser is not None:
         mo = np.argsort(m_ser.time_s, kind="stable")
         mg = (m_ser.time_s[mo], m_ser.values[mo])
-    still = _still_mask(t, a, gy, mg, w, cfg)
+    ok = _still_windows(t, a, gy, mg, w, cfg)
+    # a still run = consecutive still windows; it covers their samples. Runs separated by a
+    # moving window overlap in samples: the later one starts where the earlier one ends.
+    runs: List[Tuple[int, int]] = []
+    for r0, r1 in _runs(ok):
+        s0, s1 = int(r0), int(r1 - 1 + w)
+        if runs and s0 < runs[-1][1]:
+            s0 = runs[-1][1]
+        if s1 > s0:
+            runs.append((s0, s1))
+    still = np.zeros(len(t), dtype=bool)
+    for s0, s1 in runs:
+        still[s0:s1] = True
     if len(t) < w:
         warnings.append(f"only {len(t)} accelerometer samples ({len(t) * dt:.1f} s): too short for a "
                         f"{w}-sample window")
     trim = int(np.floor(cfg.trim_s / dt + 1e-9)) if dt > 0 else 0
     spans: List[Tuple[int, int]] = []
-    for i0, i1 in _runs(still):
+    for i0, i1 in runs:
         i0, i1 = i0 + trim, i1 - trim
         if i1 - i0 < cfg.min_samples or (i1 - i0) * dt < cfg.min_duration_s - 1e-9:
             continue
