@@ -143,14 +143,25 @@ def _best_split(u_before: np.ndarray, u_after: np.ndarray, min_step: float) -> O
     while the step of the ``u_before`` sequence there contains the jump the suspended
     correction made. Elsewhere the cross step carries that jump. So the switch is where
     ``|u_after[k] - u_before[k-1]| - |u_before[k] - u_before[k-1]|`` is most negative;
-    motion between consecutive samples cancels to first order.
+    motion between consecutive samples cancels to first order. Only samples where the
+    step is more than twice the change to the neighbouring samples are candidates (the
+    firmware starts and ends its calibration while the vehicle is held still).
     """
     n = len(u_before)
-    if n < 2:
+    if n < 4:
         return None
-    cross = np.linalg.norm(u_after[1:] - u_before[:-1], axis=1)
+    cross = np.linalg.norm(u_after[1:] - u_before[:-1], axis=1)      # index j -> split k = j + 1
     ref = np.linalg.norm(u_before[1:] - u_before[:-1], axis=1)
     cost = cross - ref
+    # only where the step is clearly larger than the motion on either side (the firmware
+    # starts and ends the calibration while the vehicle is held still)
+    step = np.linalg.norm(u_after - u_before, axis=1)[1:]
+    before = np.r_[np.inf, np.linalg.norm(np.diff(u_before, axis=0), axis=1)][:-1]   # k-2 -> k-1
+    after = np.r_[np.linalg.norm(np.diff(u_after, axis=0), axis=1), np.inf][1:]      # k -> k+1
+    ok = (np.maximum(before, after) < 0.5 * step) & (step > min_step)
+    if not np.any(ok):
+        return None
+    cost = np.where(ok, cost, np.inf)
     k = int(np.argmin(cost))
     if cost[k] > -min_step:
         return None
