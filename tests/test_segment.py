@@ -1,0 +1,144 @@
+"""Still intervals: simulated poses, 2 Hz data, SITL dance windows, coverage diagnosis and
+every real log (intervals or a clear reason)."""
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mavcal.ardupilot.recover import recover_raw
+from mavcal.errors import MavcalError, SegmentationError
+from mavcal.segment import StillConfig, diagnose_coverage, find_still_intervals
+from mavcal.sim.logs import AccelTruth, MagTruth, SimConfig, simulate_session
+from mavcal.sources import open_source
+from mavcal.sources.types import SensorSeries
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+REAL = SHARED / "data" / "real"
+SITL = SHARED / "sitl_logs"
+
+CFG = SimConfig(accels=(AccelTruth((0.2, -0.1, 0.1), (1.01, 0.98, 1.0)),),
+                mags=(MagTruth((50.0, -20.0, 80.0)), MagTruth((5.0, 5.0, 5.0))), seed=3)
+
+
+def _series(sim, rate_div=1):
+    t = sim.accel_time_s[0][::rate_div]
+    out = [SensorSeries("accel", 0, "sim", t, sim.accel_raw_mps2[0][::rate_div]),
+           SensorSeries("gyro", 0, "sim", t, sim.gyro_rad_s[0][::rate_div])]
+    for k, m in enumerate(sim.mag_raw_mgauss):
+        out.append(SensorSeries("mag", k, "sim", sim.mag_time_s[k][::rate_div], m[::rate_div]))
+    return out
+
+
+def _matches(intervals, windows, frac=0.7):
+    hit = 0
+    for t0, t1 in windows:
+        ov = max([(min(t1, iv.end_s) - max(t0, iv.start_s)) / (t1 - t0) for iv in intervals] + [0])
+        hit += ov > frac
+    return hit
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_session(CFG)
+
+
+def test_finds_every_simulated_pose(sim):
+    seg = find_still_intervals(_series(sim))
+    assert _matches(seg.intervals, sim.still_windows_s) == len(CFG.poses_deg)
+    assert len(seg) == len(CFG.poses_deg)
+    assert seg.used_gyro and seg.coverage.status == "ok"
+    assert seg.coverage.n_orientations >= 12
+    for iv, R in zip(seg.intervals, sim.attitudes):
+        # gravity (NED down) seen in the body frame
+        assert np.degrees(np.arccos(np.clip(iv.gravity_dir @ (R.T @ [0, 0, 1]), -1, 1))) < 3
+        assert iv.n_mag[0] == iv.n_accel[0] and iv.n_mag[1] > 0
+    arrays = seg.accel_arrays(0)
+    assert len(arrays) == len(seg) and all(a.shape[1] == 3 for a in arrays)
+
+
+def test_without_gyro_uses_mag_and_accel(sim):
+    seg = find_still_intervals([s for s in _series(sim) if s.sensor != "gyro"])
+    assert not seg.used_gyro and seg.used_mag
+    assert _matches(seg.intervals, sim.still_windows_s) == len(CFG.poses_deg)
+
+
+def test_two_hertz_data(sim):
+    seg = find_still_intervals(_series(sim, rate_div=25))  # 50 Hz -> 2 Hz
+    assert seg.window_samples == 3
+    assert _matches(seg.intervals, sim.still_windows_s, frac=0.5) == len(CFG.poses_deg)
+
+
+def test_thresholds_are_used(sim):
+    seg = find_still_intervals(_series(sim), StillConfig(accel_std_mps2=1e-4))
+    assert len(seg) == 0 and seg.coverage.status == "insufficient"
+    assert "no still intervals" in seg.coverage.messages[0]
+    with pytest.raises(ValueError):
+        StillConfig(window_s=0)
+
+
+def test_coverage_diagnosis_in_words():
+    one = diagnose_coverage(np.tile([0, 0, 1.0], (10, 1)))
+    assert one.n_orientations == 1 and one.status == "insufficient"
+    assert any("single orientation" in m for m in one.messages)
+    ang = np.radians(np.arange(0, 360, 30))
+    plane = diagnose_coverage(np.column_stack([np.cos(ang), np.sin(ang), 0 * ang]))
+    assert plane.min_eigenvalue < 0.01 and any("one plane" in m for m in plane.messages)
+    few = diagnose_coverage(np.vstack([np.eye(3), -np.eye(3)]))
+    assert few.n_orientations == 6 and few.status == "reduced"
+    assert any("needs >= 8 intervals" in m for m in few.messages)
+    assert few.min_eigenvalue == pytest.approx(1 / 3)
+    assert few.largest_empty_cap_deg == pytest.approx(54.7, abs=1.5)
+
+
+def test_no_accel_is_an_error():
+    with pytest.raises(SegmentationError):
+        find_still_intervals([SensorSeries("mag", 0, "x", [0.0, 1.0], np.zeros((2, 3)))])
+
+
+@pytest.mark.parametrize("name", ["sitl01", "sitl02"])
+def test_sitl_dance_windows_are_found(name):
+    truth = json.loads((SITL / f"{name}.truth.json").read_text()) if (SITL / f"{name}.truth.json").exists() \
+        else pytest.skip("no SITL logs")
+    raw = recover_raw(open_source(SITL / f"{name}.tlog"))
+    seg = find_still_intervals(raw)
+    unix = raw.accel[0].time_s[0] > 1e9
+    wins = [((w["still_start_unix_usec"] / 1e6, w["still_end_unix_usec"] / 1e6) if unix
+             else (w["still_start_boot_ms"] / 1e3, w["still_end_boot_ms"] / 1e3)) for w in truth["dance"]["windows"]]
+    assert _matches(seg.intervals, wins, frac=0.9) == len(wins)
+    assert seg.coverage.status == "ok" and len(seg) <= len(wins) + 1
+
+
+# name -> (min intervals, expected status or None, words expected in the diagnosis)
+REAL_EXPECT = {
+    "00000124.BIN": (8, "ok", None),
+    "2024-04-05 09-19-03.tlog": (8, "ok", None),
+    "2023-05-17 12-18-48.tlog": (6, "reduced", "needs >= 8"),
+    "2024-04-05 09-36-27.tlog": (3, "reduced", "poorly spread"),
+    "flight.tlog": (1, "insufficient", "single orientation"),
+    "log171.bin": (1, "insufficient", "single orientation"),
+    "00000-2021-12-02_13-34-15.bin": (1, "insufficient", "single orientation"),
+    "test.BIN": (0, "insufficient", "too short"),
+    "acc_log.csv": (1, None, None),
+}
+
+
+@pytest.mark.parametrize("name", sorted(REAL_EXPECT))
+def test_every_real_log_gives_intervals_or_a_reason(name):
+    path = REAL / name
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    try:
+        raw = recover_raw(open_source(path))
+    except MavcalError as exc:  # unreadable: the error itself is the diagnosis
+        pytest.fail(f"{name}: {exc}")
+    seg = find_still_intervals(raw)
+    n_min, status, words = REAL_EXPECT[name]
+    assert len(seg) >= n_min
+    if status:
+        assert seg.coverage.status == status
+    if words:
+        assert any(words in w for w in seg.warnings), seg.warnings
+    if len(seg) == 0:
+        assert seg.warnings  # says why
