@@ -164,5 +164,8 @@ def run(args) -> int:
     else:
         _print_text(rep)
     if not seg.intervals:
-        raise SegmentationError("no still intervals found: " + "; ".join(seg.coverage.messages))
+        why = [w for w in seg.warnings if not w.startswith("no still intervals")]
+        raise SegmentationError(f"no still intervals in {args.source}"
+                                + (f": {'; '.join(why)}" if why else " (the vehicle never stayed still "
+                                   "long enough, or the thresholds are too strict)"))
     return 0
