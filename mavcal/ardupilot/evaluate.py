@@ -1,0 +1,117 @@
+"""Heading and tilt errors of ArduPilot parameters over a grid of attitudes.
+
+Given a *truth* (functions giving the raw accelerometer and compass readings for the true
+specific force and field in the body frame) and the parameters written to the vehicle,
+run the readings through ArduPilot's correction (:mod:`mavcal.ardupilot.firmware`) and
+compare with the truth at every attitude of a grid:
+
+* tilt error: angle between the corrected and the true specific force;
+* heading error: the heading of the corrected field, levelled with the attitude that
+  the corrected accelerometer gives (what the autopilot sees when still), minus the true
+  heading; ``heading_compass_only`` levels with the true attitude instead (the compass's
+  own share).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from mavcal.ardupilot import firmware as fw
+
+G0 = fw.GRAVITY_MSS
+
+
+def attitude_grid(step_deg: float = 15.0, max_tilt_deg: float = 45.0) -> np.ndarray:
+    """Body-to-NED rotations C = Rz(yaw) Ry(pitch) Rx(roll) on a regular grid, (M, 3, 3).
+
+    Default: the flight envelope, roll and pitch in [-45, 45] deg and every yaw, in 15 deg
+    steps (near +-90 deg pitch the heading is ill-defined and any compass error is
+    amplified by 1/cos(pitch); pass ``max_tilt_deg=80`` to see that).
+    """
+    rolls = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
+    pitches = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
+    yaws = np.radians(np.arange(0.0, 360.0, step_deg))
+    r, p, y = [a.ravel() for a in np.meshgrid(rolls, pitches, yaws, indexing="ij")]
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    C = np.empty((len(r), 3, 3))
+    C[:, 0, 0] = cp * cy
+    C[:, 0, 1] = sr * sp * cy - cr * sy
+    C[:, 0, 2] = cr * sp * cy + sr * sy
+    C[:, 1, 0] = cp * sy
+    C[:, 1, 1] = sr * sp * sy + cr * cy
+    C[:, 1, 2] = cr * sp * sy - sr * cy
+    C[:, 2, 0] = -sp
+    C[:, 2, 1] = sr * cp
+    C[:, 2, 2] = cr * cp
+    return C
+
+
+@dataclass(frozen=True)
+class AttitudeErrors:
+    max_heading_deg: float
+    rms_heading_deg: float
+    max_heading_compass_only_deg: float
+    max_tilt_deg: float
+    rms_tilt_deg: float
+    max_field_error_mgauss: float
+    max_accel_error_mps2: float
+
+
+def _level_from_accel(a_body: np.ndarray) -> np.ndarray:
+    """Rotation body -> a levelled frame (yaw 0) from a still specific-force reading."""
+    roll = np.arctan2(-a_body[:, 1], -a_body[:, 2])
+    pitch = np.arctan2(a_body[:, 0], np.sqrt(a_body[:, 1] ** 2 + a_body[:, 2] ** 2))
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    L = np.zeros((len(roll), 3, 3))  # Ry(pitch) Rx(roll)
+    L[:, 0, 0] = cp
+    L[:, 0, 1] = sp * sr
+    L[:, 0, 2] = sp * cr
+    L[:, 1, 1] = cr
+    L[:, 1, 2] = -sr
+    L[:, 2, 0] = -sp
+    L[:, 2, 1] = cp * sr
+    L[:, 2, 2] = cp * cr
+    return L
+
+
+def _heading(v_level: np.ndarray) -> np.ndarray:
+    return np.arctan2(v_level[:, 1], v_level[:, 0])
+
+
+def _wrap_deg(x: np.ndarray) -> np.ndarray:
+    return np.degrees((x + np.pi) % (2 * np.pi) - np.pi)
+
+
+def attitude_errors(raw_accel: Callable[[np.ndarray], np.ndarray], raw_mag_sensor: Callable[[np.ndarray], np.ndarray],
+                    accel_cal: fw.AccelCal, compass_cal: fw.CompassCal, field_ned_mgauss,
+                    grid: np.ndarray | None = None) -> AttitudeErrors:
+    """Errors of ``accel_cal``/``compass_cal`` against the truth over ``grid`` (body->NED).
+
+    raw_accel(f_body (M, 3) m/s^2) -> board-frame raw accelerometer readings (M, 3);
+    raw_mag_sensor(B_body (M, 3) mGauss) -> raw compass readings in the sensor's own frame
+    (before COMPASS_ORIENT / AHRS_ORIENTATION), (M, 3).
+    """
+    C = attitude_grid() if grid is None else grid
+    Ct = np.swapaxes(C, 1, 2)
+    f_body = Ct @ np.array([0.0, 0.0, -G0])
+    B_ned = np.asarray(field_ned_mgauss, dtype=float)
+    B_body = Ct @ B_ned
+    a = fw.apply_accel(accel_cal, raw_accel(f_body))
+    m = fw.apply_compass(compass_cal, raw_mag_sensor(B_body), sensor_frame=True)
+    cos_t = np.sum(a * f_body, 1) / (np.linalg.norm(a, axis=1) * G0)
+    tilt = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
+    L_est = _level_from_accel(a)
+    L_true = _level_from_accel(f_body)
+    h_true = _heading((L_true @ B_body[..., None])[..., 0])
+    h_est = _heading((L_est @ m[..., None])[..., 0])
+    h_cmp = _heading((L_true @ m[..., None])[..., 0])
+    dh = _wrap_deg(h_est - h_true)
+    dc = _wrap_deg(h_cmp - h_true)
+    return AttitudeErrors(
+        max_heading_deg=float(np.abs(dh).max()), rms_heading_deg=float(np.sqrt(np.mean(dh ** 2))),
+        max_heading_compass_only_deg=float(np.abs(dc).max()), max_tilt_deg=float(tilt.max()),
+        rms_tilt_deg=float(np.sqrt(np.mean(tilt ** 2))),
+        max_field_error_mgauss=float(np.linalg.norm(m - B_body, axis=1).max()),
+        max_accel_error_mps2=float(np.linalg.norm(a - f_body, axis=1).max()))

@@ -1,0 +1,127 @@
+"""Quality gates applied before anything is written, per sensor, with reasons in words.
+
+ArduPilot's own limits (AP_Compass arming checks and CompassCalibrator::fit_acceptable,
+AccelCalibrator): compass offset length <= COMPASS_OFFS_MAX (default 1800 mGauss),
+0.2 < DIA < 5, |ODI| < 1, field 185-875 mGauss; accelerometer offsets <= 3.5 m/s^2 per
+axis, scales 0.8-1.2. Ours: enough intervals and orientations, held-out reconstruction
+error, parameter uncertainty (95 % heading and tilt error bounds).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Tuple
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    accel_offset_max_mps2: float = 3.5
+    accel_scale_range: Tuple[float, float] = (0.8, 1.2)
+    compass_offset_max_mgauss: Optional[float] = None  # None: COMPASS_OFFS_MAX from the vehicle, else 1800
+    dia_range: Tuple[float, float] = (0.2, 5.0)
+    odi_max: float = 1.0
+    field_range_mgauss: Tuple[float, float] = (185.0, 875.0)
+    min_intervals: int = 6
+    heading_95_max_deg: float = 2.0
+    tilt_95_max_deg: float = 0.5
+    holdout_accel_max_mps2: float = 0.15
+    holdout_mag_max_mgauss: float = 15.0
+
+
+@dataclass(frozen=True)
+class Gate:
+    sensor: str
+    name: str
+    ok: bool
+    value: float
+    limit: str
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class GateReport:
+    gates: Tuple[Gate, ...]
+
+    @property
+    def passed(self) -> bool:
+        return all(g.ok for g in self.gates)
+
+    def failures(self) -> List[Gate]:
+        return [g for g in self.gates if not g.ok]
+
+    def by_sensor(self) -> Dict[str, List[Gate]]:
+        out: Dict[str, List[Gate]] = {}
+        for g in self.gates:
+            out.setdefault(g.sensor, []).append(g)
+        return out
+
+
+def check(mapping, params: Mapping[str, float], *, n_intervals: int, n_orientations: int,
+          heading_95_deg: float, tilt_95_deg: float, holdout_accel_mps2: float, holdout_mag_mgauss: float,
+          config: GateConfig = GateConfig()) -> GateReport:
+    """Evaluate every gate for a :class:`mavcal.ardupilot.mapping.ParamMapping`."""
+    gates: List[Gate] = []
+    for am in mapping.accel:
+        s = f"accel{am.instance}"
+        ofs = np.abs(np.asarray(am.new.ofs_mps2))
+        gates.append(Gate(s, "offsets", bool(ofs.max() <= config.accel_offset_max_mps2), float(ofs.max()),
+                          f"<= {config.accel_offset_max_mps2} m/s^2",
+                          "" if ofs.max() <= config.accel_offset_max_mps2 else
+                          f"accelerometer offset {ofs.max():.2f} m/s^2 is beyond ArduPilot's limit: a damaged IMU, "
+                          "or readings that are not in m/s^2"))
+        sc = np.asarray(am.new.scale)
+        lo, hi = config.accel_scale_range
+        ok = bool(np.all((sc >= lo) & (sc <= hi)))
+        gates.append(Gate(s, "scales", ok, float(np.max(np.abs(sc - 1))), f"{lo}-{hi}",
+                          "" if ok else f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside ArduPilot's "
+                          f"{lo}-{hi}: check the IMU and that the vehicle was still"))
+    from mavcal.ardupilot import firmware as fw
+    for cm in mapping.compass:
+        s = f"compass{cm.instance}"
+        names = fw.compass_param_names(cm.instance)
+        omax = config.compass_offset_max_mgauss or float(params.get("COMPASS_OFFS_MAX", 1800.0))
+        ol = float(np.linalg.norm(cm.new.ofs_mgauss))
+        gates.append(Gate(s, "offsets", ol <= omax, ol, f"<= {omax:g} mGauss (COMPASS_OFFS_MAX)",
+                          "" if ol <= omax else f"compass offset length {ol:.0f} mGauss exceeds COMPASS_OFFS_MAX: "
+                          "a magnet or steel near the compass, or a magnetised part"))
+        dia = np.asarray(cm.new.dia)
+        ok = bool(np.all((dia > config.dia_range[0]) & (dia < config.dia_range[1])))
+        gates.append(Gate(s, "diagonal", ok, float(np.max(np.abs(dia - 1))), f"{config.dia_range[0]}-{config.dia_range[1]}",
+                          "" if ok else f"soft-iron diagonal {np.round(dia, 3)} outside ArduPilot's range"))
+        odi = np.abs(np.asarray(cm.new.odi))
+        gates.append(Gate(s, "off-diagonal", bool(odi.max() < config.odi_max), float(odi.max()), f"< {config.odi_max}",
+                          "" if odi.max() < config.odi_max else "soft-iron off-diagonal too large"))
+        f = cm.field_mgauss
+        lo, hi = config.field_range_mgauss
+        gates.append(Gate(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
+                          "" if lo <= f <= hi else f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range"))
+        dev = params.get(names["dev_id"])
+        prio = params.get(names["prio_id"])
+        if dev is not None and prio is not None and int(dev) != int(prio) and int(prio) != 0:
+            gates.append(Gate(s, "device id", False, float(dev), f"= COMPASS_PRIO{cm.instance + 1}_ID",
+                              f"compass slot {cm.instance + 1} holds device {int(dev)} but priority {cm.instance + 1} is "
+                              f"device {int(prio)}: the slots swapped after a priority change; reboot the vehicle and "
+                              "recalibrate"))
+    ok = n_intervals >= config.min_intervals
+    gates.append(Gate("data", "intervals", ok, float(n_intervals), f">= {config.min_intervals}",
+                      "" if ok else f"only {n_intervals} still intervals; hold the vehicle still in more orientations"))
+    ok = n_orientations >= min(config.min_intervals, 6)
+    gates.append(Gate("data", "orientations", ok, float(n_orientations), ">= 6 distinct",
+                      "" if ok else f"only {n_orientations} distinct orientations; add poses on every side"))
+    ok = heading_95_deg <= config.heading_95_max_deg
+    gates.append(Gate("data", "heading uncertainty", ok, heading_95_deg, f"<= {config.heading_95_max_deg} deg (95 %)",
+                      "" if ok else f"the heading error could reach {heading_95_deg:.2f} deg (95 %): more or better spread "
+                      "poses needed"))
+    ok = tilt_95_deg <= config.tilt_95_max_deg
+    gates.append(Gate("data", "tilt uncertainty", ok, tilt_95_deg, f"<= {config.tilt_95_max_deg} deg (95 %)",
+                      "" if ok else f"the tilt error could reach {tilt_95_deg:.2f} deg (95 %)"))
+    ok = holdout_accel_mps2 <= config.holdout_accel_max_mps2
+    gates.append(Gate("data", "held-out accel error", ok, holdout_accel_mps2, f"<= {config.holdout_accel_max_mps2} m/s^2",
+                      "" if ok else f"held-out accelerometer error {holdout_accel_mps2:.3f} m/s^2: the vehicle moved "
+                      "during the intervals or the model does not fit"))
+    ok = holdout_mag_mgauss <= config.holdout_mag_max_mgauss
+    gates.append(Gate("data", "held-out compass error", ok, holdout_mag_mgauss, f"<= {config.holdout_mag_max_mgauss} mGauss",
+                      "" if ok else f"held-out compass error {holdout_mag_mgauss:.1f} mGauss: magnetic disturbance "
+                      "(steel, magnets, currents) differs between poses"))
+    return GateReport(tuple(gates))
