@@ -200,7 +200,7 @@ def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
     """
     nb = len(b)
     seg = b[lo:hi]
-    cand = np.flatnonzero((seg == STX_V1) | (seg == STX_V2)).astype(np.int64) + lo
+    cand = np.flatnonzero((seg - np.uint8(STX_V2)) <= 1).astype(np.int64) + lo  # 0xFD or 0xFE
     cand = cand[cand >= 8]
     if len(cand) == 0:
         return None, hi + 0, 0, 0
@@ -215,10 +215,10 @@ def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
     incompat = np.where(isv2, b[np.minimum(cand + 2, nb - 1)], 0).astype(np.int64)
     signed = isv2 & ((incompat & 1) != 0)
     flen = hlen + plen + 2 + np.where(signed, 13, 0)
-    # timestamp plausibility (for resynchronisation only)
-    tsb = b[cand[:, None] - 8 + np.arange(8)]
-    ts = tsb.copy().view(">u8").ravel().astype(np.uint64)
-    strong = (ts >= _TS_MIN_US) & (ts <= _TS_MAX_US)
+    # timestamp plausibility (for resynchronisation only): the top 16 bits of a unix time in
+    # microseconds between 2000 and 2100 are 0x0003..0x000E
+    hi16 = b[cand - 7]
+    strong = (b[cand - 8] == 0) & (hi16 >= (_TS_MIN_US >> 48)) & (hi16 <= (_TS_MAX_US >> 48))
     n = len(cand)
     direct = cand + flen + 8
     j = np.searchsorted(cand, direct)
@@ -257,8 +257,9 @@ def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
         resyncs += int(nz.sum())
     last = idx[-1]
     nxt = int(direct[last]) if hit[last] or direct[last] >= hi else int(cand[resync[last]]) if resync[last] < n else hi
+    ts = np.ascontiguousarray(b[pos[:, None] - 8 + np.arange(8)]).view(">u8").ravel().astype(np.uint64)
     frames = dict(pos=pos, isv2=isv2[idx], hlen=hlen[idx], plen=plen[idx], flen=flen[idx],
-                  incompat=incompat[idx], signed=signed[idx], ts=ts[idx])
+                  incompat=incompat[idx], signed=signed[idx], ts=ts)
     return frames, nxt, skipped, resyncs
 
 
