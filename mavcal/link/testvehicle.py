@@ -561,9 +561,14 @@ class TestVehicle:
             if announce:
                 self._send_param(name, 65535)
 
-    def set_faults(self, **kw: float) -> None:
-        """Change fault injection at run time, e.g. ``set_faults(drop_in=0.3, drop_out=0.3)``."""
+    def set_faults(self, seed: Optional[int] = None, **kw: float) -> None:
+        """Change fault injection at run time, e.g. ``set_faults(drop_in=0.3, drop_out=0.3)``.
+
+        ``seed`` re-seeds the random generator that decides drops and duplicates.
+        """
         with self._lock:
+            if seed is not None:
+                self._rng.seed(seed)
             for k, v in kw.items():
                 if not hasattr(self.faults, k):
                     raise AttributeError(f"no fault {k!r}")

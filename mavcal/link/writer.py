@@ -209,7 +209,7 @@ def _check_values(changes: Mapping[str, float], table: ParamTable) -> None:
             stored = expected_stored_value(v, ptype)
             if not (lo <= v <= hi) or abs(stored - v) > 1e-3 * max(1.0, abs(v)):
                 bad.append(f"{name} is {_TYPE_NAMES[ptype]}: {v!r} would be stored as {stored:g}")
-        elif not np.isfinite(np.float32(v)):
+        elif abs(v) > float(np.finfo(np.float32).max):
             bad.append(f"{name}={v!r} does not fit a float32")
     if bad:
         raise UsageError("refusing to write (nothing was written): " + "; ".join(bad))
