@@ -205,6 +205,13 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
             raise SourceError(f"{log_.source}: no compass {mi} data")
         raise InsufficientDataError(f"{log_.source}: no still intervals found ({len(seg.intervals)} detected, none "
                                     "with both sensors); " + "; ".join(seg.coverage.messages))
+    from mavcal.core.models import MODEL_CHAIN, MODELS
+    n_min = MODELS[MODEL_CHAIN[-1]].min_intervals
+    if len(used) < n_min:
+        why = "; ".join(seg.coverage.messages) or f"{seg.coverage.n_orientations} distinct orientation(s)"
+        raise InsufficientDataError(
+            f"{log_.source}: {len(used)} still interval(s) with accelerometer {ai} and compass {mi} data; at least "
+            f"{n_min} in different orientations are needed ({MODELS['full'].min_intervals} for the full model): {why}")
     acc = [seg.intervals[k].accel_mps2[ai] for k in used]
     mag = [seg.intervals[k].mag_mgauss[mi] for k in used]
     qa, qm = steps.get(("accel", ai), 0.0), steps.get(("mag", mi), 0.0)

@@ -286,6 +286,15 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         raise EstimationError(f"tol (the stop condition gamma) must be a positive number; got {tol!r}")
     if model != "auto" and model not in MODELS:
         raise EstimationError(f"model must be 'auto' or one of {', '.join(MODELS)}; got {model!r}")
+    try:
+        n_given = len(accel_sets)
+    except TypeError:
+        n_given = None
+    if n_given is not None and 0 < n_given < MODELS[MODEL_CHAIN[-1]].min_intervals:
+        raise InsufficientDataError(
+            f"{n_given} still interval(s) cannot identify even the simplest model (offsets and scales need "
+            f"{MODELS[MODEL_CHAIN[-1]].min_intervals}; the full joint model needs {MODELS['full'].min_intervals}); "
+            "hold the vehicle still in more orientations")
     a, m = _stats(accel_sets, mag_sets, noise_floor)
     N = a.mu.shape[0]
     rng = np.random.default_rng(seed)
