@@ -200,8 +200,11 @@ def test_reboot_reorders_compasses_by_priority(vehicle, gcs):
     gcs.mav.command_long_send(1, 1, A.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 0, 1, 0, 0, 0, 0, 0, 0)
     assert wait_for(gcs, lambda m: m.get_type() == "COMMAND_ACK").result == A.MAV_RESULT_ACCEPTED
     assert not vehicle.alive
+    end = time.monotonic() + 5
+    while vehicle.reboots == 0 and time.monotonic() < end:
+        collect(gcs, 0.05)
+    assert vehicle.reboots == 1 and vehicle.alive
     assert wait_for(gcs, lambda m: m.get_type() == "HEARTBEAT", 3.0) is not None
-    assert vehicle.reboots == 1
     assert vehicle.get_param("COMPASS_DEV_ID") == 131874 and vehicle.get_param("COMPASS_OFS_X") == 22.0
     assert vehicle.get_param("COMPASS_DEV_ID2") == 97539 and vehicle.get_param("COMPASS_OFS2_X") == 11.0
     assert vehicle.get_param("COMPASS_EXTERN2") == 1 and vehicle.get_param("COMPASS_EXTERNAL") == 0

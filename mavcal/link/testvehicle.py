@@ -1074,9 +1074,9 @@ class TestVehicle:
         elif cmd == A.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
             if int(m.param1) in (1, 3):
                 self._ack(m, A.MAV_RESULT_ACCEPTED)
-                self._flush_out(time.monotonic() + self.faults.delay_out_s)
                 self._reboot_until = time.monotonic() + self.reboot_s
                 self._in_q.clear()
+                self._flush_out(time.monotonic() + self.faults.delay_out_s)  # the ACK goes out first
             else:
                 self._ack(m, A.MAV_RESULT_UNSUPPORTED)
         else:
