@@ -155,13 +155,25 @@ def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot
 
 
 def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Calibration,
-                   opts: Options, noise_floor) -> Tuple[float, float]:
-    """RMS leave-one-interval-out error: refit without interval j, predict j's means."""
+                   opts: Options, noise_floor, cluster_deg: float = 30.0) -> Tuple[float, float]:
+    """RMS leave-one-interval-out error: refit without interval j, predict j's means.
+
+    Only intervals whose gravity direction is seen again in another interval (within
+    ``cluster_deg``) are held out: leaving out the only pose on one side makes the rest
+    extrapolate, which measures the pose plan rather than the fit. NaN when none qualifies.
+    """
+    from mavcal.core.models import MODELS
+
     N = len(acc)
-    if N <= cal.n_intervals and N - 1 < mavcal.core.models.MODELS[cal.model].min_intervals:
+    if N - 1 < MODELS[cal.model].min_intervals:
         return float("nan"), float("nan")
+    dirs = np.array([a.mean(0) for a in acc])
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    close = (dirs @ dirs.T) > np.cos(np.radians(cluster_deg))
     ea, em = [], []
     for j in range(N):
+        if close[j].sum() < 2:
+            continue
         keep = [i for i in range(N) if i != j]
         try:
             cj = mavcal.calibrate([acc[i] for i in keep], [mag[i] for i in keep], method=opts.method, tol=opts.tol,

@@ -372,8 +372,7 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         res = replace(res, cov=cov)
     p = JointParams((K_a, K_m), p.biases, h_z, R)
     dof = res.dof
-    scale = max(1.0, res.cost / dof) if dof > 0 else 1.0
-    cov = None if res.cov is None else res.cov * scale
+    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res, gauge_changed=False)
     converged = bool(block_conv and res.converged)
     msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
            f"{res.iterations} joint refinement iterations"
@@ -391,6 +390,35 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
         n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
         dof=int(dof))
+
+
+def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,
+                         res: RefineResult, gauge_changed: bool) -> Optional[np.ndarray]:
+    """Parameter covariance honest about misfit, sensor by sensor.
+
+    When a sensor's weighted residuals exceed what its noise covariance explains
+    (chi2_s / dof_s > 1, e.g. magnetic disturbance that differs between poses, or a
+    vehicle not quite still), its covariance is inflated by that factor before the Fisher
+    information is formed, so one sensor's misfit does not inflate (or hide in) the
+    other's uncertainty. dof_s is the sensor's share 3N - P_s - 3N/2 of the degrees of freedom.
+    """
+    if res.cov is None or res.dof <= 0:
+        return res.cov
+    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    r = prob.residuals(p)
+    N = r.shape[0]
+    chi_a, chi_m = float(np.sum(r[:, :3] ** 2)), float(np.sum(r[:, 3:] ** 2))
+    Pa = FORMS[spec.accel_form].size + 3
+    Pm = FORMS[spec.mag_form].size + 3 + 1
+    dof_a = max(3 * N - Pa - 1.5 * N, 1.0)
+    dof_m = max(3 * N - Pm - 1.5 * N, 1.0)
+    fa, fm = max(1.0, chi_a / dof_a), max(1.0, chi_m / dof_m)
+    if fa == 1.0 and fm == 1.0:
+        return res.cov
+    prob2 = JointProblem(_terms(spec, a, m, Sa * fa, Sm * fm))
+    _, Jg, Jr = prob2.jacobians(p)
+    cov = prob2.covariance(Jg, Jr)
+    return res.cov * max(1.0, res.cost / res.dof) if cov is None else cov
 
 
 def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> Optional[np.ndarray]:

@@ -1,0 +1,19 @@
+"""mavcal's accelerometer result on real 6-position logs vs ArduPilot's own calibration."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+
+@pytest.mark.parametrize("name", ["00000124.BIN", "2023-05-17 12-18-48.tlog"])
+def test_accel_matches_ardupilot_within_stated_uncertainty(name, real_dir):
+    from real_6pose import compare
+
+    r = compare(name)
+    assert np.all(np.abs(r["z_ofs"]) < 2.5) and np.all(np.abs(r["z_scl"]) < 2.5), r
+    assert np.abs(r["d_scl"]).max() < 0.005  # within half a percent of ArduPilot's scales
+    assert np.abs(r["d_ofs"]).max() < 0.1
+    assert r["scl"][1] == pytest.approx(0.943, abs=0.003)  # the unusual 0.942 y scale is found
