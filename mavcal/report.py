@@ -7,7 +7,7 @@ the file can be mailed or archived alone), and optionally the same figures as PN
 
 * ``timeline``: accelerometer and compass readings as logged (components and norm) and
   the norm after the new calibration, against time, with the still intervals shaded
-  (used ones green, unused ones grey) and numbered in a strip on top;
+  (used ones green, unused ones orange) and numbered in a strip on top;
 * ``magnitudes``: |a| and |B| per interval before (the corrected readings as logged) and
   after (the raw interval samples through the new ArduPilot parameters, the firmware's
   own equations of :mod:`mavcal.ardupilot.firmware`);
@@ -48,7 +48,7 @@ FIGURE_NAMES = ("timeline", "magnitudes", "residuals", "coverage")
 
 G0 = fw.GRAVITY_MSS
 _USED = "#2e7d32"  # opaque span colours of the interval strip (tests look for them)
-_UNUSED = "#9e9e9e"
+_UNUSED = "#ef6c00"
 _BEFORE = "#c62828"
 _AFTER = "#1565c0"
 _MAX_POINTS = 20000  # per plotted series in the timeline (plain decimation beyond)
@@ -316,7 +316,7 @@ def _fig_timeline(Figure, run) -> Tuple[object, int]:
     strip.set_yticks([])
     strip.tick_params(labelbottom=False)
     strip.set_title(f"{run.source}: {len(seg.intervals)} still intervals "
-                    f"({len(used)} used = green, {len(seg.intervals) - len(used)} unused = grey)", fontsize=10)
+                    f"({len(used)} used = green, {len(seg.intervals) - len(used)} unused = orange)", fontsize=10)
     for ax, sensor, inst, unit, target, name in (
             (ax_a, "accel", ai, "m/s$^2$", G0, "accelerometer"),
             (ax_m, "mag", mi, "mGauss", float(run.mapping.compass[0].field_mgauss), "compass")):
@@ -555,7 +555,7 @@ def _html(run, st: IntervalStats, images: Dict[str, bytes], n_spans: int) -> str
     # figures
     captions = {
         "timeline": "Readings as logged (components and norm) and the norm with the new parameters, with the "
-                    "still intervals shaded and numbered (green: used in the fit, grey: not used).",
+                    "still intervals shaded and numbered (green: used in the fit, orange: not used).",
         "magnitudes": "Gravity and field magnitude per interval: as logged (before) and the raw interval samples "
                       "through the new ArduPilot parameters (after); the dotted line is what they should read.",
         "residuals": "Model residual of every used interval per axis in standard deviations of the interval mean; "
