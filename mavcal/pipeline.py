@@ -190,23 +190,46 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))
 
 
-def calibrate_source(source, options: Options = Options(), *, progress=None) -> CalibrationRun:
-    """Run the whole chain on a log path, a device string or an already read :class:`ImuLog`."""
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """A log read, de-truncated, raw-recovered and segmented (the input of the fit)."""
+
+    log: ImuLog
+    raw: RawImu
+    segmentation: Segmentation
+    quantization: Dict[Tuple[str, int], float]
+    warnings: Tuple[str, ...]
+
+
+def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
+    """Read (path, device string or ImuLog), undo integer truncation, recover raw readings
+    and find the still intervals."""
     from mavcal.sources import open_source
     from mavcal.sources.quantization import quantization_step, untruncate_log
 
     opts = options
     log_ = source if isinstance(source, ImuLog) else open_source(str(source), progress=progress)
     warnings: List[str] = list(log_.warnings)
-    steps = {}
-    for s in log_.series:
-        steps[(s.sensor, s.instance)] = quantization_step(s)
+    steps = {(s.sensor, s.instance): quantization_step(s) for s in log_.series}
     if opts.untruncate:
-        log_, n = untruncate_log(log_)
+        log_, _ = untruncate_log(log_)
     raw = recover_raw(log_)
     warnings += list(raw.warnings)
     seg = find_still_intervals(raw, opts.still)
     warnings += list(seg.warnings)
+    return Prepared(log_, raw, seg, steps, tuple(warnings))
+
+
+def calibrate_source(source, options: Options = Options(), *, progress=None) -> CalibrationRun:
+    """Run the whole chain on a log path, a device string or an already read :class:`ImuLog`."""
+    return calibrate_prepared(prepare(source, options, progress=progress), options)
+
+
+def calibrate_prepared(prep: Prepared, options: Options = Options()) -> CalibrationRun:
+    """The fit, mapping, quality and gates for a :class:`Prepared` recording."""
+    opts = options
+    log_, raw, seg, steps = prep.log, prep.raw, prep.segmentation, prep.quantization
+    warnings: List[str] = list(prep.warnings)
     ai, mi = opts.accel_instance, opts.mag_instance
     used = [k for k, iv in enumerate(seg.intervals)
             if iv.accel_mps2.get(ai, np.empty((0, 3))).shape[0] >= 2 and iv.mag_mgauss.get(mi, np.empty((0, 3))).shape[0] >= 2]

@@ -84,6 +84,28 @@ def _wrap_deg(x: np.ndarray) -> np.ndarray:
     return np.degrees((x + np.pi) % (2 * np.pi) - np.pi)
 
 
+def _signed_errors(raw_accel, raw_mag_sensor, accel_cal, compass_cal, field_ned_mgauss, C):
+    Ct = np.swapaxes(C, 1, 2)
+    f_body = Ct @ np.array([0.0, 0.0, -G0])
+    B_body = Ct @ np.asarray(field_ned_mgauss, dtype=float)
+    a = fw.apply_accel(accel_cal, raw_accel(f_body))
+    m = fw.apply_compass(compass_cal, raw_mag_sensor(B_body), sensor_frame=True)
+    L_est = _level_from_accel(a)
+    L_true = _level_from_accel(f_body)
+    h_true = _heading((L_true @ B_body[..., None])[..., 0])
+    dh = _wrap_deg(_heading((L_est @ m[..., None])[..., 0]) - h_true)
+    dc = _wrap_deg(_heading((L_true @ m[..., None])[..., 0]) - h_true)
+    return a, m, f_body, B_body, dh, dc
+
+
+def heading_errors_deg(raw_accel: Callable[[np.ndarray], np.ndarray], raw_mag_sensor: Callable[[np.ndarray], np.ndarray],
+                       accel_cal: fw.AccelCal, compass_cal: fw.CompassCal, field_ned_mgauss,
+                       grid: np.ndarray | None = None) -> np.ndarray:
+    """Signed heading error (deg) at every attitude of ``grid`` (see :func:`attitude_errors`)."""
+    C = attitude_grid() if grid is None else grid
+    return _signed_errors(raw_accel, raw_mag_sensor, accel_cal, compass_cal, field_ned_mgauss, C)[4]
+
+
 def attitude_errors(raw_accel: Callable[[np.ndarray], np.ndarray], raw_mag_sensor: Callable[[np.ndarray], np.ndarray],
                     accel_cal: fw.AccelCal, compass_cal: fw.CompassCal, field_ned_mgauss,
                     grid: np.ndarray | None = None) -> AttitudeErrors:
@@ -94,21 +116,10 @@ def attitude_errors(raw_accel: Callable[[np.ndarray], np.ndarray], raw_mag_senso
     (before COMPASS_ORIENT / AHRS_ORIENTATION), (M, 3).
     """
     C = attitude_grid() if grid is None else grid
-    Ct = np.swapaxes(C, 1, 2)
-    f_body = Ct @ np.array([0.0, 0.0, -G0])
-    B_ned = np.asarray(field_ned_mgauss, dtype=float)
-    B_body = Ct @ B_ned
-    a = fw.apply_accel(accel_cal, raw_accel(f_body))
-    m = fw.apply_compass(compass_cal, raw_mag_sensor(B_body), sensor_frame=True)
+    a, m, f_body, B_body, dh, dc = _signed_errors(raw_accel, raw_mag_sensor, accel_cal, compass_cal,
+                                                  field_ned_mgauss, C)
     cos_t = np.sum(a * f_body, 1) / (np.linalg.norm(a, axis=1) * G0)
     tilt = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
-    L_est = _level_from_accel(a)
-    L_true = _level_from_accel(f_body)
-    h_true = _heading((L_true @ B_body[..., None])[..., 0])
-    h_est = _heading((L_est @ m[..., None])[..., 0])
-    h_cmp = _heading((L_true @ m[..., None])[..., 0])
-    dh = _wrap_deg(h_est - h_true)
-    dc = _wrap_deg(h_cmp - h_true)
     return AttitudeErrors(
         max_heading_deg=float(np.abs(dh).max()), rms_heading_deg=float(np.sqrt(np.mean(dh ** 2))),
         max_heading_compass_only_deg=float(np.abs(dc).max()), max_tilt_deg=float(tilt.max()),

@@ -78,11 +78,17 @@ def _stats(accel_sets, mag_sets, noise_floor) -> Tuple[IntervalStats, IntervalSt
 # --- initial estimates ---------------------------------------------------------------------
 
 def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, *,
-                  accel_form: str = "upper", restarts: int = 24) -> steps.State:
-    """Sec. VI: closed-form gains and biases, the R/h_z search, the orientation approximation."""
+                  accel_form: str = "upper", restarts: int = 24, sphere: bool = False) -> steps.State:
+    """Sec. VI: closed-form gains and biases, the R/h_z search, the orientation approximation.
+
+    The general quadric of Eq. ``J_approx`` needs N >= 9 intervals (and falls back to a
+    sphere when it is not a well-conditioned ellipsoid); ``sphere=True`` starts from the
+    sphere fit of both sensors (used as a second start when the first fit looks wrong).
+    """
     N = a.mu.shape[0]
-    ea = fit_ellipsoid(a.mu) if (N >= 9 and accel_form == "upper") else fit_sphere(a.mu)
-    em = fit_ellipsoid(m.mu) if N >= 9 else fit_sphere(m.mu)
+    quadric = N >= 9 and not sphere
+    ea = fit_ellipsoid(a.mu) if (quadric and accel_form == "upper") else fit_sphere(a.mu)
+    em = fit_ellipsoid(m.mu) if quadric else fit_sphere(m.mu)
     z_a = np.linalg.solve(ea.K, (a.mu - ea.b).T).T
     z_m = np.linalg.solve(em.K, (m.mu - em.b).T).T
     R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
@@ -218,20 +224,41 @@ _REDUCTIONS = {
 _REDUCTIONS_FROM_SYM = {"offsets-scales": [{"K_m[12]": 1}, {"K_m[13]": 1}, {"K_m[23]": 1}]}
 
 
+SECOND_START_CHI2 = 3.0  # chi2/dof above which the other initial estimate is tried too
+
+
 def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start=None, refine=True):
+    """Fit one model; when the result fits poorly, also from the other initial estimate.
+
+    With few intervals the quadric start can be far off and the cost has poor local minima;
+    if chi2/dof of the first result exceeds ``SECOND_START_CHI2``, the fit is repeated from
+    the sphere start and the lower cost wins.
+    """
+    out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere=False)
+    if start is not None or not refine:
+        return out
+    res = out[0]
+    if res.dof > 0 and res.cost / res.dof > SECOND_START_CHI2:
+        alt = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, None, refine, sphere=True)
+        if alt[0].cost < res.cost:
+            return alt
+    return out
+
+
+def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere):
     """Fit one model: the paper's algorithm for ``full``, a reduced start + LM otherwise."""
     block_it, block_conv = 0, True
     if start is not None:
         st = start
     elif spec.name == "full":
-        st = initial_state(a, m, rng, restarts=restarts)
+        st = initial_state(a, m, rng, restarts=restarts, sphere=sphere)
         st, block_it, how = run_block_steps(st, a, m, method, tol, max_iter,
                                             handoff_rate=0.5 if refine else None)
         block_conv = how != "limit"
         if not refine:
             return st, block_it, block_conv
     else:
-        st = initial_state(a, m, rng, accel_form=spec.accel_form, restarts=restarts)
+        st = initial_state(a, m, rng, accel_form=spec.accel_form, restarts=restarts, sphere=sphere)
         if method == "ncdr":
             st = steps.rotations_direct(st, a, m)
     res, Sa, Sm = _refine(spec, st, a, m, method, tol)

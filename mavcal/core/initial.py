@@ -90,6 +90,11 @@ def fit_ellipsoid(mu: np.ndarray, weights: Optional[np.ndarray] = None) -> Ellip
     if denom == 0 or not np.isfinite(denom):
         raise EstimationError("degenerate ellipsoid fit: the orientations do not span enough directions")
     alpha = 1.0 / denom
+    w = np.linalg.eigvalsh(alpha * A)
+    if N >= 9 and (w[0] <= 0 or w[-1] / w[0] > 16.0):
+        # not an ellipsoid (a hyperboloid through noisy points), or one with axes more than 4:1:
+        # the quadric is not determined well enough; fall back to the sphere start
+        return fit_sphere(mu)
     P = _nearest_pd(alpha * A)  # = K^-T K^-1 in the conditioned coordinates
     b_x = -0.5 * Ainv_b
     K_x = _upper_cholesky(np.linalg.inv(P))
