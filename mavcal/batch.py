@@ -1,0 +1,386 @@
+"""Many logs at once: calibrate a fleet's logs in parallel and show which vehicles drifted.
+
+:func:`calibrate_many` runs :func:`mavcal.pipeline.calibrate_source` on every log, in
+worker **processes** when ``jobs > 1``. A worker handles one log at a time and sends back
+only a small :class:`BatchRow` (numbers and strings, never the sample arrays), and is
+replaced after :data:`MAX_TASKS_PER_CHILD` logs, so the memory of each worker stays that
+of one log. A log that cannot be calibrated gives a row with the error message and the
+exit code the CLI would return for it alone; it never stops the batch.
+
+:func:`format_fleet_table` prints one line per log, grouped per vehicle (system id,
+firmware and sensor device ids, as far as the log tells) and ordered by how much the
+calibration changes (biggest first), with the lines above the drift thresholds flagged.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from mavcal.ardupilot import firmware as fw
+from mavcal.errors import GateError, MavcalError, UsageError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["BatchRow", "calibrate_many", "format_fleet_table", "MAX_TASKS_PER_CHILD",
+           "DRIFT_COMPASS_MGAUSS", "DRIFT_ACCEL_OFS_MPS2", "DRIFT_ACCEL_SCALE"]
+
+#: Logs a worker process handles before it is replaced (bounds fragmentation growth).
+MAX_TASKS_PER_CHILD = 8
+#: A change of the compass offsets longer than this (mGauss) flags the log as drifted.
+DRIFT_COMPASS_MGAUSS = 25.0
+#: A change of the accelerometer offsets longer than this (m/s^2) flags it.
+DRIFT_ACCEL_OFS_MPS2 = 0.1
+#: A change of any accelerometer scale larger than this flags it.
+DRIFT_ACCEL_SCALE = 0.01
+
+Vec3 = Tuple[float, float, float]
+ProgressFn = Callable[[int, int, "BatchRow"], None]
+
+
+@dataclass(frozen=True)
+class BatchRow:
+    """The summary of one log of a batch (small and picklable).
+
+    Attributes
+    ----------
+    source : str
+        The log as given.
+    ok : bool
+        The calibration ran (its result may still be rejected by the gates).
+    error : str or None
+        Why it did not run (``ok`` False).
+    exit_code : int
+        What ``mavcal calibrate`` would return for this log alone: 0 accepted, 4 rejected
+        by the gates, else the :attr:`MavcalError.exit_code` of the error (1 for an
+        unexpected one).
+    sysid, firmware : vehicle identity from the log (None when unknown).
+    compass_dev_id, accel_id : COMPASS_DEV_ID(n) / INS_ACC(n)_ID of the calibrated instances.
+    accel_instance, compass_instance : int
+    accepted : bool or None
+        All quality gates passed.
+    failed_gates : tuple of str
+        ``"sensor gate: reason"`` per failed gate.
+    heading_95_deg, tilt_95_deg : float or None
+        95 % bounds of the heading and tilt error with the new parameters.
+    compass_ofs_old, compass_ofs_new : (3,) tuples (mGauss) or None
+    compass_ofs_change_mgauss : float or None
+        |new - old| of the compass offsets (None when the log has no old values).
+    accel_ofs_old, accel_ofs_new : (3,) tuples (m/s^2) or None
+    accel_ofs_change_mps2 : float or None
+        |new - old| of the accelerometer offsets.
+    accel_scale_old, accel_scale_new : (3,) tuples or None
+    accel_scale_change : float or None
+        Largest |new - old| of the accelerometer scales.
+    model : str or None
+        The calibration model used.
+    n_intervals : int or None
+        Still intervals used in the fit.
+    warnings : tuple of str
+    elapsed_s : float
+        Wall time of this log in its worker.
+    """
+
+    source: str
+    ok: bool
+    error: Optional[str] = None
+    exit_code: int = 0
+    sysid: Optional[int] = None
+    firmware: Optional[str] = None
+    compass_dev_id: Optional[int] = None
+    accel_id: Optional[int] = None
+    accel_instance: int = 0
+    compass_instance: int = 0
+    accepted: Optional[bool] = None
+    failed_gates: Tuple[str, ...] = ()
+    heading_95_deg: Optional[float] = None
+    tilt_95_deg: Optional[float] = None
+    compass_ofs_old: Optional[Vec3] = None
+    compass_ofs_new: Optional[Vec3] = None
+    compass_ofs_change_mgauss: Optional[float] = None
+    accel_ofs_old: Optional[Vec3] = None
+    accel_ofs_new: Optional[Vec3] = None
+    accel_ofs_change_mps2: Optional[float] = None
+    accel_scale_old: Optional[Vec3] = None
+    accel_scale_new: Optional[Vec3] = None
+    accel_scale_change: Optional[float] = None
+    model: Optional[str] = None
+    n_intervals: Optional[int] = None
+    warnings: Tuple[str, ...] = ()
+    elapsed_s: float = 0.0
+
+    @property
+    def vehicle(self) -> str:
+        """Words for the vehicle identity, e.g. ``"sys 1, ArduCopter V4.5.7"`` or ``"unknown"``."""
+        parts = []
+        if self.sysid is not None:
+            parts.append(f"sys {self.sysid}")
+        if self.firmware:
+            parts.append(str(self.firmware))
+        return ", ".join(parts) if parts else "unknown"
+
+    @property
+    def drift(self) -> Optional[float]:
+        """Largest change relative to its flag threshold (>= 1: drifted); None if unknown."""
+        terms = [c / t for c, t in ((self.compass_ofs_change_mgauss, DRIFT_COMPASS_MGAUSS),
+                                    (self.accel_ofs_change_mps2, DRIFT_ACCEL_OFS_MPS2),
+                                    (self.accel_scale_change, DRIFT_ACCEL_SCALE)) if c is not None]
+        return max(terms) if terms else None
+
+
+# --------------------------------------------------------------------------- worker
+
+def _vec(v) -> Vec3:
+    a = np.asarray(v, dtype=float)
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _old_vec(old: Dict[str, Optional[float]], names: Sequence[str]) -> Optional[Vec3]:
+    vals = [old.get(n) for n in names]
+    return None if any(v is None for v in vals) else _vec(vals)
+
+
+def _int_or_none(v) -> Optional[int]:
+    try:
+        return None if v is None else int(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def _identity(log_, params: Dict[str, float], ai: int, mi: int) -> dict:
+    veh = dict(getattr(log_, "vehicle", {}) or {})
+    out = {"sysid": _int_or_none(veh.get("sysid")), "firmware": veh.get("firmware")}
+    out["firmware"] = None if out["firmware"] is None else str(out["firmware"])
+    try:
+        out["compass_dev_id"] = _int_or_none(params.get(fw.compass_param_names(mi)["dev_id"]))
+    except ValueError:
+        out["compass_dev_id"] = None
+    try:
+        out["accel_id"] = _int_or_none(params.get(fw.accel_param_names(ai)["id"]))
+    except ValueError:
+        out["accel_id"] = None
+    return out
+
+
+def _row_from_run(source: str, run, ai: int, mi: int, elapsed: float) -> BatchRow:
+    am, cm = run.mapping.accel[0], run.mapping.compass[0]
+    old = dict(run.mapping.old)
+    an, cn = fw.accel_param_names(am.instance), fw.compass_param_names(cm.instance)
+    c_old, c_new = _old_vec(old, cn["ofs"]), _vec(cm.new.ofs_mgauss)
+    a_old, a_new = _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
+    s_old, s_new = _old_vec(old, an["scale"]), _vec(am.new.scale)
+    fails = tuple(f"{g.sensor} {g.name}: {g.reason}" if g.reason else f"{g.sensor} {g.name}"
+                  for g in run.gates.failures())
+    return BatchRow(
+        source=source, ok=True, exit_code=0 if run.accepted else GateError.exit_code,
+        **_identity(run.log, dict(run.params_before), ai, mi),
+        accel_instance=am.instance, compass_instance=cm.instance, accepted=bool(run.accepted), failed_gates=fails,
+        heading_95_deg=float(run.quality.heading_95_deg), tilt_95_deg=float(run.quality.tilt_95_deg),
+        compass_ofs_old=c_old, compass_ofs_new=c_new,
+        compass_ofs_change_mgauss=None if c_old is None else float(np.linalg.norm(np.subtract(c_new, c_old))),
+        accel_ofs_old=a_old, accel_ofs_new=a_new,
+        accel_ofs_change_mps2=None if a_old is None else float(np.linalg.norm(np.subtract(a_new, a_old))),
+        accel_scale_old=s_old, accel_scale_new=s_new,
+        accel_scale_change=None if s_old is None else float(np.max(np.abs(np.subtract(s_new, s_old)))),
+        model=run.calibration.model, n_intervals=len(run.intervals_used), warnings=tuple(run.warnings),
+        elapsed_s=float(elapsed))
+
+
+def _calibrate_one(source: str, options) -> BatchRow:
+    """Calibrate one log and keep only its summary (runs in a worker process)."""
+    from mavcal.pipeline import calibrate_prepared, prepare
+
+    ai, mi = options.accel_instance, options.mag_instance
+    t0 = time.perf_counter()
+    ident: dict = {}
+    try:
+        prep = prepare(source, options)
+        ident = _identity(prep.log, prep.log.params.snapshot(), ai, mi)
+        run = calibrate_prepared(prep, options)
+        del prep
+        return _row_from_run(source, run, ai, mi, time.perf_counter() - t0)
+    except MavcalError as exc:
+        log.info("%s: %s", source, exc)
+        return BatchRow(source=source, ok=False, error=str(exc), exit_code=int(exc.exit_code), accel_instance=ai,
+                        compass_instance=mi, elapsed_s=time.perf_counter() - t0, **ident)
+    except Exception as exc:  # a bug or a resource limit: report it, keep the batch going
+        log.exception("%s: unexpected error", source)
+        return BatchRow(source=source, ok=False, error=f"unexpected {type(exc).__name__}: {exc}", exit_code=1,
+                        accel_instance=ai, compass_instance=mi, elapsed_s=time.perf_counter() - t0, **ident)
+
+
+def _worker_init() -> None:
+    # the parent's logging configuration is not inherited by spawned workers; without a
+    # handler every warning would go to stderr through logging.lastResort (the warnings
+    # travel back in BatchRow.warnings instead)
+    logging.getLogger("mavcal").addHandler(logging.NullHandler())
+
+
+# --------------------------------------------------------------------------- batch
+
+def calibrate_many(sources: List[str], options, jobs: int = 1, *,
+                   progress: Optional[ProgressFn] = None) -> List[BatchRow]:
+    """Calibrate many logs, in parallel worker processes when ``jobs > 1``.
+
+    Parameters
+    ----------
+    sources : list of str
+        Log files (device strings work too, but record one after the other).
+    options : mavcal.pipeline.Options
+        The same options for every log.
+    jobs : int
+        Worker processes (1: in this process, one log after the other).
+    progress : callable ``(done, total, row)``, optional
+        Called in this process after each log, in completion order.
+
+    Returns
+    -------
+    list of BatchRow
+        One per source, in the order of ``sources``.
+
+    Raises
+    ------
+    mavcal.errors.UsageError
+        ``jobs < 1``.
+    """
+    if int(jobs) < 1:
+        raise UsageError(f"jobs must be at least 1, got {jobs}")
+    sources = [str(s) for s in sources]
+    total = len(sources)
+    rows: List[Optional[BatchRow]] = [None] * total
+    done = 0
+
+    def finish(i: int, row: BatchRow) -> None:
+        nonlocal done
+        rows[i] = row
+        done += 1
+        log.info("[%d/%d] %s: %s", done, total, row.source, "ok" if row.ok else row.error)
+        if progress is not None:
+            progress(done, total, row)
+
+    workers = min(int(jobs), total)
+    if workers <= 1:
+        for i, s in enumerate(sources):
+            finish(i, _calibrate_one(s, options))
+        return [r for r in rows if r is not None]
+
+    kw = {"max_workers": workers, "mp_context": multiprocessing.get_context("spawn"), "initializer": _worker_init}
+    if sys.version_info >= (3, 11):
+        kw["max_tasks_per_child"] = MAX_TASKS_PER_CHILD
+    with ProcessPoolExecutor(**kw) as pool:
+        futures = {pool.submit(_calibrate_one, s, options): i for i, s in enumerate(sources)}
+        try:
+            for fut in as_completed(futures):
+                i = futures[fut]
+                try:
+                    row = fut.result()
+                except BrokenProcessPool:
+                    row = BatchRow(source=sources[i], ok=False, exit_code=1,
+                                   error="the worker process died (out of memory?); run this log alone")
+                except Exception as exc:  # e.g. options that do not pickle
+                    row = BatchRow(source=sources[i], ok=False, exit_code=1,
+                                   error=f"unexpected {type(exc).__name__}: {exc}")
+                finish(i, row)
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+    return [r for r in rows if r is not None]
+
+
+# --------------------------------------------------------------------------- table
+
+def _f(v: Optional[float], fmt: str) -> str:
+    return "-" if v is None or not np.isfinite(v) else format(v, fmt)
+
+
+def _names(rows: Sequence[BatchRow]) -> Dict[str, str]:
+    """Short names for the sources: the file name unless two share it."""
+    base = [Path(r.source).name for r in rows]
+    return {r.source: (b if base.count(b) == 1 else r.source) for r, b in zip(rows, base)}
+
+
+def format_fleet_table(rows: Sequence[BatchRow]) -> str:
+    """A table of a batch per vehicle and instance, the biggest changes first.
+
+    Parameters
+    ----------
+    rows : sequence of BatchRow
+
+    Returns
+    -------
+    str
+        One line per log grouped per vehicle identity (system id, firmware, compass and
+        accelerometer device ids); the groups and the lines in them ordered by the
+        largest calibration change relative to the drift thresholds
+        (:data:`DRIFT_COMPASS_MGAUSS`, :data:`DRIFT_ACCEL_OFS_MPS2`,
+        :data:`DRIFT_ACCEL_SCALE`), ``DRIFT`` marking those beyond; failed logs last with
+        their error; then a count line and the drifted logs by name.
+    """
+    rows = list(rows)
+    if not rows:
+        return "no logs"
+    names = _names(rows)
+
+    def key(r: BatchRow):
+        return (r.sysid, r.firmware, r.compass_dev_id, r.accel_id, r.compass_instance, r.accel_instance)
+
+    def score(r: BatchRow) -> float:
+        d = r.drift
+        return -1.0 if d is None else d
+
+    groups: Dict[tuple, List[BatchRow]] = {}
+    for r in rows:
+        if r.ok:
+            groups.setdefault(key(r), []).append(r)
+    ordered = sorted(groups.values(), key=lambda g: -max(score(r) for r in g))
+    header = ["VEHICLE", "COMPASS(DEV_ID)", "ACCEL(ID)", "LOG", "RESULT", "|dOFS| mG", "COMPASS OFS old -> new",
+              "|dACC| m/s2", "max dSCAL", "HDG95", "TILT95", "MODEL", "N", "FLAG"]
+    table: List[List[str]] = []
+    for g in ordered:
+        for r in sorted(g, key=lambda r: -score(r)):
+            ofs = ("-" if r.compass_ofs_new is None else
+                   ("?" if r.compass_ofs_old is None else "(" + ",".join(f"{v:.0f}" for v in r.compass_ofs_old) + ")")
+                   + " -> (" + ",".join(f"{v:.0f}" for v in r.compass_ofs_new) + ")")
+            table.append([r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
+                          f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})", names[r.source],
+                          "accepted" if r.accepted else "REJECTED", _f(r.compass_ofs_change_mgauss, ".1f"), ofs,
+                          _f(r.accel_ofs_change_mps2, ".3f"), _f(r.accel_scale_change, ".4f"),
+                          _f(r.heading_95_deg, ".2f"), _f(r.tilt_95_deg, ".3f"), r.model or "-",
+                          "-" if r.n_intervals is None else str(r.n_intervals),
+                          "DRIFT" if score(r) >= 1.0 else ""])
+    failed = [r for r in rows if not r.ok]
+    for r in failed:
+        table.append([r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
+                      f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})", names[r.source],
+                      f"ERROR {r.exit_code}"] + [""] * (len(header) - 5))
+    widths = [max(len(header[j]), *(len(t[j]) for t in table)) for j in range(len(header))]
+    right = {5, 7, 8, 9, 10, 12}
+
+    def line(cells: Sequence[str]) -> str:
+        return "  ".join(c.rjust(w) if j in right else c.ljust(w) for j, (c, w) in enumerate(zip(cells, widths))).rstrip()
+
+    out = [line(header), line(["-" * w for w in widths])]
+    n_ok = len(rows) - len(failed)
+    for t, r in zip(table, [r for g in ordered for r in sorted(g, key=lambda r: -score(r))] + failed):
+        out.append(line(t))
+        if not r.ok:
+            out.append(f"    {r.error}")
+        elif r.failed_gates:
+            out += [f"    gate {fg}" for fg in r.failed_gates]
+    drifted = [names[r.source] for r in rows if r.ok and score(r) >= 1.0]
+    n_acc = sum(1 for r in rows if r.ok and r.accepted)
+    out.append("")
+    out.append(f"{len(rows)} logs: {n_acc} accepted, {n_ok - n_acc} rejected by the gates, {len(failed)} failed; "
+               f"{len(groups)} vehicle/instance group(s)")
+    out.append(("drifted (compass offsets > %g mGauss, accel offsets > %g m/s^2 or scale > %g): %s"
+                % (DRIFT_COMPASS_MGAUSS, DRIFT_ACCEL_OFS_MPS2, DRIFT_ACCEL_SCALE, ", ".join(drifted)))
+               if drifted else "no log drifted beyond the thresholds")
+    return "\n".join(out)
