@@ -235,14 +235,43 @@ def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, star
     the sphere start and the lower cost wins.
     """
     out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere=False)
-    if start is not None or not refine:
+    if not refine:
         return out
     res = out[0]
-    if res.dof > 0 and res.cost / res.dof > SECOND_START_CHI2:
+    if start is None and res.dof > 0 and res.cost / res.dof > SECOND_START_CHI2:
         alt = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, None, refine, sphere=True)
         if alt[0].cost < res.cost:
-            return alt
-    return out
+            out = alt
+    return _reweight(spec, a, m, method, tol, out)
+
+
+REWEIGHT_LIMIT = 4.0  # a sensor whose chi2/dof exceeds this gets its covariance inflated and the fit redone
+
+
+def _reweight(spec: ModelSpec, a, m, method, tol, out):
+    """Refit with each sensor's noise covariance inflated by its misfit (chi2_s / dof_s).
+
+    The noise covariance comes from the scatter *within* intervals; disturbances that differ
+    *between* intervals (magnetic fields that change with the pose, a hand that is not quite
+    still) are not in it, and one badly fitting sensor then dominates the shared orientations
+    and distorts the other. Iterating Sigma_s <- f_s Sigma_s and refitting until the factors
+    are near 1 weights each sensor by how well it actually fits (a scalar version of the
+    paper's covariance refit). Data that fit their noise model (f_s ~ 1) are left unchanged.
+    """
+    res, Sa, Sm, block_it, block_conv = out
+    for _ in range(6):
+        if res.dof <= 0:
+            break
+        fa, fm = _misfit_factors(spec, a, m, Sa, Sm, res.params)
+        if max(fa, fm) <= REWEIGHT_LIMIT:
+            break
+        Sa, Sm = Sa * fa, Sm * fm
+        p = res.params
+        st = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+        prev = res
+        res, Sa, Sm = _refine(spec, st, a, m, method, tol)
+        res = replace(res, iterations=res.iterations + prev.iterations)
+    return res, Sa, Sm, block_it, block_conv
 
 
 def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere):
@@ -419,6 +448,19 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         dof=int(dof))
 
 
+def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):
+    """max(1, chi2_s / dof_s) per sensor; dof_s = the sensor's share 3N - P_s - 3N/2."""
+    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    r = prob.residuals(p)
+    N = r.shape[0]
+    chi_a, chi_m = float(np.sum(r[:, :3] ** 2)), float(np.sum(r[:, 3:] ** 2))
+    Pa = FORMS[spec.accel_form].size + 3
+    Pm = FORMS[spec.mag_form].size + 3 + 1
+    dof_a = max(3 * N - Pa - 1.5 * N, 1.0)
+    dof_m = max(3 * N - Pm - 1.5 * N, 1.0)
+    return max(1.0, chi_a / dof_a), max(1.0, chi_m / dof_m)
+
+
 def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,
                          res: RefineResult, gauge_changed: bool) -> Optional[np.ndarray]:
     """Parameter covariance honest about misfit, sensor by sensor.
@@ -431,15 +473,7 @@ def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa
     """
     if res.cov is None or res.dof <= 0:
         return res.cov
-    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
-    r = prob.residuals(p)
-    N = r.shape[0]
-    chi_a, chi_m = float(np.sum(r[:, :3] ** 2)), float(np.sum(r[:, 3:] ** 2))
-    Pa = FORMS[spec.accel_form].size + 3
-    Pm = FORMS[spec.mag_form].size + 3 + 1
-    dof_a = max(3 * N - Pa - 1.5 * N, 1.0)
-    dof_m = max(3 * N - Pm - 1.5 * N, 1.0)
-    fa, fm = max(1.0, chi_a / dof_a), max(1.0, chi_m / dof_m)
+    fa, fm = _misfit_factors(spec, a, m, Sa, Sm, p)
     if fa == 1.0 and fm == 1.0:
         return res.cov
     prob2 = JointProblem(_terms(spec, a, m, Sa * fa, Sm * fm))
