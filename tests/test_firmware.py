@@ -73,7 +73,7 @@ def test_cal_from_params_defaults_and_mounting():
     ext = fw.compass_cal_from_params({"COMPASS_EXTERNAL": 1, "COMPASS_ORIENT": 38, "AHRS_ORIENTATION": 12}, 0)
     assert ext.orient == 38 and ext.external is True
     custom = fw.compass_cal_from_params({"COMPASS_EXTERNAL": 1, "COMPASS_ORIENT": 101, "CUST_ROT1_ROLL": 0,
-                                         "CUST_ROT1_PIT": 0, "CUST_ROT1_YAW": 90}, 0)
+                                         "CUST_ROT1_PITCH": 0, "CUST_ROT1_YAW": 90}, 0)
     np.testing.assert_allclose(custom.mount_matrix, rotation_matrix(2), atol=1e-12)
     a = fw.accel_cal_from_params({"INS_ACC2SCAL_Y": 0.9, "AHRS_ORIENTATION": 8}, 1)
     assert a.scale == (1.0, 0.9, 1.0) and a.board_orient == 8

@@ -131,8 +131,8 @@ def board_param_names() -> Dict[str, object]:
     (CUST_ROTn_ROLL/PIT/YAW), ``trim`` (AHRS_TRIM_X/Y/Z), ``motct`` (COMPASS_MOTCT)."""
     return {
         "orientation": "AHRS_ORIENTATION",
-        "custom1": ("CUST_ROT1_ROLL", "CUST_ROT1_PIT", "CUST_ROT1_YAW"),
-        "custom2": ("CUST_ROT2_ROLL", "CUST_ROT2_PIT", "CUST_ROT2_YAW"),
+        "custom1": ("CUST_ROT1_ROLL", "CUST_ROT1_PITCH", "CUST_ROT1_YAW"),
+        "custom2": ("CUST_ROT2_ROLL", "CUST_ROT2_PITCH", "CUST_ROT2_YAW"),
         "trim": ("AHRS_TRIM_X", "AHRS_TRIM_Y", "AHRS_TRIM_Z"),
         "motct": "COMPASS_MOTCT",
     }
