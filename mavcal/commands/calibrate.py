@@ -90,39 +90,10 @@ def _options(args):
 
 
 def summary(run) -> str:
-    """Short human summary: intervals, model, quality, old -> new, gates."""
-    from mavcal.ardupilot.paramfile import format_param_value
+    """Short human summary (the report module's text; kept here for the commands that print it)."""
+    from mavcal.report import summary_text
 
-    q = run.quality
-    cal = run.calibration
-    cm = run.mapping.compass[0]
-    L = [f"{run.source}: {len(run.intervals_used)} still intervals used of {len(run.segmentation.intervals)} found, "
-         f"{run.segmentation.coverage.n_orientations} distinct orientations",
-         f"model: {cal.model} ({cal.model_reason})",
-         f"quality: heading error <= {q.heading_95_deg:.3f} deg and tilt error <= {q.tilt_95_deg:.3f} deg "
-         f"(95 %, roll/pitch within 45 deg); held-out error {q.holdout_accel_mps2:.4f} m/s^2, "
-         f"{q.holdout_mag_mgauss:.2f} mGauss",
-         f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source}); "
-         f"dip {cm.inclination_deg:.2f} deg" + (f" (model {cm.inclination_model_deg:.2f})"
-                                                if cm.inclination_model_deg is not None else "")]
-    L += [f"note: {n}" for n in run.mapping.notes[1:]]
-    rows = [(n, run.mapping.old.get(n), v) for n, v in sorted(run.mapping.new.items())]
-    w = max(len(r[0]) for r in rows)
-    L.append(f"{'PARAMETER':<{w}}  {'OLD':>12}     NEW")
-    for n, o, v in rows:
-        mark = "" if o is not None and float(o) == float(v) else "  *"
-        L.append(f"{n:<{w}}  {format_param_value(o) if o is not None else '-':>12}  -> {format_param_value(v)}{mark}")
-    fails = run.gates.failures()
-    if fails:
-        L.append("REJECTED by the quality gates:")
-        L += [f"  {g.sensor} {g.name}: {g.reason}" for g in fails]
-    else:
-        L.append("all quality gates passed")
-    if run.mapping.reboot_required:
-        L.append("a reboot is needed after writing (custom orientation)")
-    for wmsg in run.warnings:
-        L.append(f"warning: {wmsg}")
-    return "\n".join(L)
+    return summary_text(run)
 
 
 def _single(args, source: str) -> int:
