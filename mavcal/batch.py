@@ -321,8 +321,9 @@ def format_fleet_table(rows: Sequence[BatchRow]) -> str:
         accelerometer device ids); the groups and the lines in them ordered by the
         largest calibration change relative to the drift thresholds
         (:data:`DRIFT_COMPASS_MGAUSS`, :data:`DRIFT_ACCEL_OFS_MPS2`,
-        :data:`DRIFT_ACCEL_SCALE`), ``DRIFT`` marking those beyond; failed logs last with
-        their error; then a count line and the drifted logs by name.
+        :data:`DRIFT_ACCEL_SCALE`), ``DRIFT`` marking accepted calibrations beyond them
+        (``drift?`` for rejected ones, whose values are not trustworthy); failed logs
+        last with their error; then a count line and the drifted logs by name.
     """
     rows = list(rows)
     if not rows:
@@ -355,7 +356,7 @@ def format_fleet_table(rows: Sequence[BatchRow]) -> str:
                           _f(r.accel_ofs_change_mps2, ".3f"), _f(r.accel_scale_change, ".4f"),
                           _f(r.heading_95_deg, ".2f"), _f(r.tilt_95_deg, ".3f"), r.model or "-",
                           "-" if r.n_intervals is None else str(r.n_intervals),
-                          "DRIFT" if score(r) >= 1.0 else ""])
+                          ("DRIFT" if r.accepted else "drift?") if score(r) >= 1.0 else ""])
     failed = [r for r in rows if not r.ok]
     for r in failed:
         table.append([r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
@@ -375,12 +376,15 @@ def format_fleet_table(rows: Sequence[BatchRow]) -> str:
             out.append(f"    {r.error}")
         elif r.failed_gates:
             out += [f"    gate {fg}" for fg in r.failed_gates]
-    drifted = [names[r.source] for r in rows if r.ok and score(r) >= 1.0]
+    drifted = [names[r.source] for r in rows if r.ok and r.accepted and score(r) >= 1.0]
+    unsure = [names[r.source] for r in rows if r.ok and not r.accepted and score(r) >= 1.0]
     n_acc = sum(1 for r in rows if r.ok and r.accepted)
     out.append("")
     out.append(f"{len(rows)} logs: {n_acc} accepted, {n_ok - n_acc} rejected by the gates, {len(failed)} failed; "
                f"{len(groups)} vehicle/instance group(s)")
     out.append(("drifted (compass offsets > %g mGauss, accel offsets > %g m/s^2 or scale > %g): %s"
                 % (DRIFT_COMPASS_MGAUSS, DRIFT_ACCEL_OFS_MPS2, DRIFT_ACCEL_SCALE, ", ".join(drifted)))
-               if drifted else "no log drifted beyond the thresholds")
+               if drifted else "no accepted calibration drifted beyond the thresholds")
+    if unsure:
+        out.append("large changes in rejected calibrations (not trustworthy, see the gates): " + ", ".join(unsure))
     return "\n".join(out)

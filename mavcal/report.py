@@ -641,7 +641,7 @@ def write_html(run, path, *, png_dir=None) -> Path:
     Raises
     ------
     mavcal.errors.UsageError
-        matplotlib is not installed.
+        matplotlib is not installed, or the file or directory cannot be written.
 
     Notes
     -----
@@ -666,12 +666,15 @@ def write_html(run, path, *, png_dir=None) -> Path:
     figs = {"timeline": fig_t, "magnitudes": _fig_magnitudes(Figure, st), "residuals": _fig_residuals(Figure, st),
             "coverage": _fig_coverage(Figure, run)}
     images = {name: _png(fig) for name, fig in figs.items()}
-    if png_dir is not None:
-        d = Path(png_dir)
-        d.mkdir(parents=True, exist_ok=True)
-        for name, data in images.items():
-            (d / f"{name}.png").write_bytes(data)
-        log.info("figures written to %s", d)
-    path.write_text(_html(run, st, images, n_spans), encoding="utf-8")
+    try:
+        if png_dir is not None:
+            d = Path(png_dir)
+            d.mkdir(parents=True, exist_ok=True)
+            for name, data in images.items():
+                (d / f"{name}.png").write_bytes(data)
+            log.info("figures written to %s", d)
+        path.write_text(_html(run, st, images, n_spans), encoding="utf-8")
+    except OSError as exc:
+        raise UsageError(f"cannot write the report: {exc.filename or path}: {exc.strerror or exc}") from None
     log.info("HTML report written to %s", path)
     return path

@@ -103,9 +103,10 @@ def test_fleet_table_orders_vehicles_by_drift():
     # vehicle 2 (one log changed 80 mGauss) first, its logs biggest change first; then 3, then 1; errors last
     assert order == ["v2_new", "v2_old", "v3.tlog", "v1.tlog", "broken"]
     lines = {n: next(ln for ln in table if n in ln) for n in names}
-    assert "DRIFT" in lines["v2_new"] and "DRIFT" in lines["v3.tlog"]  # above 25 mGauss
+    assert "DRIFT" in lines["v2_new"] and "drift?" in lines["v3.tlog"]  # above 25 mGauss, v3 rejected
     assert "DRIFT" not in lines["v2_old"] and "DRIFT" not in lines["v1.tlog"]
     assert "REJECTED" in lines["v3.tlog"] and "gate data intervals: only 4 still intervals" in text
     assert "5 logs: 3 accepted, 1 rejected by the gates, 1 failed; 3 vehicle/instance group(s)" in text
-    assert f"> {DRIFT_COMPASS_MGAUSS:g} mGauss" in text and "v2_new.tlog, v3.tlog" in text
+    assert f"compass offsets > {DRIFT_COMPASS_MGAUSS:g} mGauss" in text and "scale > 0.01): v2_new.tlog\n" in text
+    assert "rejected calibrations (not trustworthy, see the gates): v3.tlog" in text
     assert format_fleet_table([]) == "no logs"

@@ -153,6 +153,11 @@ def test_failed_gate_reasons_shown(run, tmp_path):
     assert not list(tmp_path.glob("*.png"))  # no png_dir, no PNG files
 
 
+def test_unwritable_path_is_a_usage_error(run, tmp_path):
+    with pytest.raises(UsageError, match="cannot write the report"):
+        write_html(run, tmp_path / "no" / "such" / "dir" / "r.html")
+
+
 def test_without_matplotlib_a_usage_error(run, tmp_path, monkeypatch):
     for mod in ("matplotlib", "matplotlib.figure", "matplotlib.backends.backend_agg"):
         monkeypatch.setitem(sys.modules, mod, None)
