@@ -238,8 +238,10 @@ def axis_label(gravity_dir: np.ndarray) -> str:
     """Words for a body-frame gravity direction (FRD): "level", "on its back", "nose down"..."""
     g = np.asarray(gravity_dir, dtype=float)
     k = int(np.argmax(np.abs(g)))
-    names = {(2, 1): "level", (2, -1): "on its back", (0, 1): "nose up", (0, -1): "nose down",
-             (1, 1): "on its left side", (1, -1): "on its right side"}
+    # gravity points along the body axis that faces the ground: +x down = nose down,
+    # +y (right wing) down = on its right side, +z down = level
+    names = {(2, 1): "level", (2, -1): "on its back", (0, 1): "nose down", (0, -1): "nose up",
+             (1, 1): "on its right side", (1, -1): "on its left side"}
     name = names[(k, int(np.sign(g[k])))]
     tilt = np.degrees(np.arccos(np.clip(abs(g[k]), -1, 1)))
     return name if tilt < 15 else f"{name} (+{tilt:.0f} deg)"

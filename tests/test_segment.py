@@ -142,3 +142,13 @@ def test_every_real_log_gives_intervals_or_a_reason(name):
         assert any(words in w for w in seg.warnings), seg.warnings
     if len(seg) == 0:
         assert seg.warnings  # says why
+
+
+def test_axis_labels_follow_frd():
+    from mavcal.segment import axis_label
+
+    assert axis_label(np.array([0.0, 0.0, 1.0])) == "level"
+    assert axis_label(np.array([1.0, 0.0, 0.0])) == "nose down"  # the nose (+x) faces the ground
+    assert axis_label(np.array([-1.0, 0.0, 0.0])) == "nose up"
+    assert axis_label(np.array([0.0, 1.0, 0.0])) == "on its right side"
+    assert axis_label(np.array([0.0, 0.0, -1.0])) == "on its back"
