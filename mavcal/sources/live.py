@@ -242,23 +242,8 @@ class LiveSource:
             a, b = self._batch_mark[name], len(rows)
             self._batch_mark[name] = b
             rows = [r for r in rows[a:b] if self.target_system is None or r[2] == self.target_system]
-            if not rows:
-                continue
-            f = list(self._fields[name])
-            v = np.array([r[4] for r in rows], dtype=float)
-            t = v[:, f.index("time_boot_ms")] * 1e-3 if "time_boot_ms" in f else v[:, f.index("time_usec")] * 1e-6
-            lt = np.array([r[1] for r in rows])
-            acc = v[:, [f.index("xacc"), f.index("yacc"), f.index("zacc")]]
-            gyr = v[:, [f.index("xgyro"), f.index("ygyro"), f.index("zgyro")]]
-            mag = v[:, [f.index("xmag"), f.index("ymag"), f.index("zmag")]]
-            inst = _SCALED_INSTANCE[name]
-            imu = ~((acc == 0).all(axis=1) & (gyr == 0).all(axis=1))
-            hm = ~(mag == 0).all(axis=1)
-            if imu.any():
-                out.append(SensorSeries("accel", inst, name, t[imu], acc[imu] * MG_TO_MS2, lt[imu]))
-                out.append(SensorSeries("gyro", inst, name, t[imu], gyr[imu] / 1000.0, lt[imu]))
-            if hm.any():
-                out.append(SensorSeries("mag", inst, name, t[hm], mag[hm], lt[hm]))
+            if rows:
+                out.extend(_imu_series(name, self._fields[name], [r[4] for r in rows], [r[1] for r in rows]))
         return tuple(out)
 
     def iter_batches(self, duration_s: Optional[float] = None, batch_s: float = 0.2) -> Iterator[Tuple[SensorSeries, ...]]:
@@ -307,3 +292,75 @@ class LiveSource:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+_BATCH_ORDER = ("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SCALED_IMU")
+
+
+def _imu_series(name: str, fields: Sequence[str], values: Sequence[tuple],
+                log_times: Sequence[float]) -> List[SensorSeries]:
+    """accel/gyro/mag :class:`SensorSeries` of rows of one IMU message type (SI units, mGauss).
+
+    The one unit conversion of live IMU messages: milli-g -> m/s^2, mrad/s -> rad/s, mGauss
+    as sent; rows whose accel and gyro are all zero (no IMU) or whose mag is all zero (no
+    compass) are left out of that sensor's series.
+    """
+    f = list(fields)
+    v = np.array(values, dtype=float)
+    t = v[:, f.index("time_boot_ms")] * 1e-3 if "time_boot_ms" in f else v[:, f.index("time_usec")] * 1e-6
+    lt = np.asarray(log_times, dtype=float)
+    acc = v[:, [f.index("xacc"), f.index("yacc"), f.index("zacc")]]
+    gyr = v[:, [f.index("xgyro"), f.index("ygyro"), f.index("zgyro")]]
+    mag = v[:, [f.index("xmag"), f.index("ymag"), f.index("zmag")]]
+    inst = _SCALED_INSTANCE[name]
+    imu = ~((acc == 0).all(axis=1) & (gyr == 0).all(axis=1))
+    hm = ~(mag == 0).all(axis=1)
+    out: List[SensorSeries] = []
+    if imu.any():
+        out.append(SensorSeries("accel", inst, name, t[imu], acc[imu] * MG_TO_MS2, lt[imu]))
+        out.append(SensorSeries("gyro", inst, name, t[imu], gyr[imu] / 1000.0, lt[imu]))
+    if hm.any():
+        out.append(SensorSeries("mag", inst, name, t[hm], mag[hm], lt[hm]))
+    return out
+
+
+def imu_batch_from_messages(messages: Sequence[object],
+                            target_system: Optional[int] = None) -> Tuple[SensorSeries, ...]:
+    """Convert received pymavlink IMU messages into a batch of :class:`SensorSeries`.
+
+    The same conversion as :meth:`LiveSource.iter_batches`, for code that receives the
+    messages itself (e.g. the MAVProxy module, where MAVProxy owns the read loop).
+
+    Parameters
+    ----------
+    messages : sequence of pymavlink messages
+        In receive order; types other than RAW_IMU, SCALED_IMU, SCALED_IMU2 and SCALED_IMU3
+        are ignored.
+    target_system : int, optional
+        Keep only messages from this system id.
+
+    Returns
+    -------
+    tuple of SensorSeries
+        accel/gyro/mag per instance (RAW_IMU and SCALED_IMU: 0, SCALED_IMU2: 1,
+        SCALED_IMU3: 2); host receive time (``m._timestamp``, else now) as ``log_time_s``.
+    """
+    groups: Dict[str, List[object]] = {}
+    for m in messages:
+        name = m.get_type()  # type: ignore[attr-defined]
+        if name not in _SCALED_INSTANCE:
+            continue
+        if target_system is not None and m.get_srcSystem() != target_system:  # type: ignore[attr-defined]
+            continue
+        groups.setdefault(name, []).append(m)
+    out: List[SensorSeries] = []
+    now = time.time()
+    for name in _BATCH_ORDER:
+        msgs = groups.get(name)
+        if not msgs:
+            continue
+        fields = msgs[0].get_fieldnames()  # type: ignore[attr-defined]
+        values = [tuple(getattr(m, k) for k in fields) for m in msgs]
+        times = [float(getattr(m, "_timestamp", None) or now) for m in msgs]
+        out.extend(_imu_series(name, fields, values, times))
+    return tuple(out)
