@@ -12,7 +12,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mav2
 
 from mavcal.errors import MavcalError, SourceError
 from mavcal.sources import read_log, open_source
-from mavcal.sources.fast_tlog import crc_x25, decode_tlog
+from mavcal.sources.fast_tlog import _mark_path, _path_from, crc_x25, decode_tlog
+from mavcal.sources.reader import REBOOT_BACKSTEP_S, TLOG_MESSAGES, _next_reboot
 from mavcal.sources.progress import ProgressPrinter, auto_progress
 from mavcal.sources.wmm import field_at, field_ned
 
@@ -69,8 +70,15 @@ def test_small_chunks_dataflash():
 
 @needs_real
 def test_bad_crc_records_counted():
-    lg = read_log(REAL / "2023-05-17 12-18-48.tlog")
-    assert any("991 MAVLink frames with a bad CRC" in w for w in lg.warnings)
+    path = REAL / "2023-05-17 12-18-48.tlog"
+    lg = read_log(path)
+    # the 991 bad frames are DISTANCE_SENSOR/CAMERA_*: types read_log does not decode, so by
+    # default their CRC is not checked, and the warnings say so
+    assert not any("bad CRC" in w for w in lg.warnings)
+    assert any("CRC checked only for the decoded message types" in w for w in lg.warnings)
+    _, stats = decode_tlog(str(path), TLOG_MESSAGES, check_all_crc=True)
+    assert stats.bad_crc == 991 and stats.crc_unchecked == 0
+    assert any("991 MAVLink frames with a bad CRC" in w for w in stats.warnings())
     assert len(lg.get("accel", 0)) == 781
     assert lg.instances("accel") == [0]  # SCALED_IMU2 accel is all zero: no IMU 2
     assert lg.instances("mag") == [0, 1]
@@ -251,6 +259,61 @@ def test_bad_crc_and_garbage_are_skipped_and_counted(tmp_path):
     assert any("unparseable bytes" in w for w in lg.warnings)
 
 
+def test_crc_checked_only_for_decoded_types_unless_asked(tmp_path):
+    msgs = imu_msgs(40)
+    data = bytearray(tlog_bytes(msgs))
+    # corrupt one payload byte of a PARAM_VALUE frame (id 22) and of a RAW_IMU frame (id 27)
+    i = data.index(b"COMPASS_OFS_X", 500)
+    data[i + 3] ^= 0x55
+    j = data.index(bytes([0xFD, 26]), 2000)
+    data[j + 12] ^= 0xFF
+    p = write(tmp_path, "c.tlog", bytes(data))
+    cols, stats = decode_tlog(str(p), ["RAW_IMU", "SCALED_IMU2"])
+    assert stats.bad_crc == 1 and stats.bad_crc_by_id == {27: 1}
+    n_other = sum(m.get_type() not in ("RAW_IMU", "SCALED_IMU2") for m in msgs)
+    assert stats.crc_unchecked == n_other
+    assert any(f"{n_other} MAVLink frames of other types were not checked" in w for w in stats.warnings())
+    assert len(cols["RAW_IMU"]["xacc"]) == 39 and len(cols["SCALED_IMU2"]["xacc"]) == 40
+    _, all_stats = decode_tlog(str(p), ["RAW_IMU", "SCALED_IMU2"], check_all_crc=True)
+    assert all_stats.bad_crc == 2 and all_stats.bad_crc_by_id == {22: 1, 27: 1} and all_stats.crc_unchecked == 0
+    # read_log decodes PARAM_VALUE: its bad frame is dropped like pymavlink drops it
+    lg = read_log(p)
+    assert any("2 MAVLink frames with a bad CRC" in w for w in lg.warnings)
+    assert_same(lg, read_log(p, fast=False))
+
+
+def test_path_contraction_matches_pointer_doubling():
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        n = int(rng.integers(1, 80))
+        step = np.where(rng.random(n) < 0.7, 1, rng.integers(1, 6, n))
+        succ = np.minimum(np.arange(n) + step, n)
+        succ[rng.random(n) < 0.05] = n
+        start = int(rng.integers(0, n + 1))
+        np.testing.assert_array_equal(_path_from(succ, start), _mark_path(succ, start))
+
+
+def test_reboot_search_matches_running_max_definition():
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 50, 4096, 4097, 30_000):
+        boot = np.cumsum(rng.random(n) * 0.02)
+        for i in rng.integers(1, max(n, 2), 6):
+            if i < n:
+                boot[i:] -= rng.choice([0.5, 1.99, 2.5, 100.0])
+        i0, got, want = 0, [], []
+        while (i0 := _next_reboot(boot, i0)) is not None:
+            got.append(i0)
+        i0 = 0
+        while True:
+            runmax = np.maximum.accumulate(boot[i0:])
+            drop = np.flatnonzero(boot[i0 + 1:] < runmax[:-1] - REBOOT_BACKSTEP_S)
+            if len(drop) == 0:
+                break
+            i0 = i0 + 1 + int(drop[0])
+            want.append(i0)
+        assert got == want
+
+
 def test_crc_matches_pymavlink():
     from pymavlink.mavutil import x25crc
 
@@ -261,6 +324,14 @@ def test_crc_matches_pymavlink():
     extra = np.array([7, 200, 0, 255], dtype=np.uint8)
     got = crc_x25(data, starts, lens, extra)
     for k in range(4):
+        buf = bytearray(data[starts[k]:starts[k] + lens[k]].tobytes()) + bytes([extra[k]])
+        assert got[k] == x25crc(buf).crc
+    # many frames, odd and even lengths (the two-byte table path), repeated lengths
+    starts = rng.integers(0, 190, 400)
+    lens = rng.integers(0, 300, 400) % (500 - starts)
+    extra = rng.integers(0, 256, 400).astype(np.uint8)
+    got = crc_x25(data, starts, lens, extra)
+    for k in range(400):
         buf = bytearray(data[starts[k]:starts[k] + lens[k]].tobytes()) + bytes([extra[k]])
         assert got[k] == x25crc(buf).crc
 
