@@ -1,0 +1,156 @@
+"""``mavcal capture --connect DEVICE``: guided live capture, then the calibration and an optional safe write.
+
+The vehicle streams its IMU; after every new still pose the calibration is refitted and
+the next pose to hold is shown in words ("nose down, rolled 45 deg left, nose towards
+magnetic east") until the 95 % heading error bound reaches the target (or the capture is
+aborted, stopped with Ctrl-C, or runs out of poses or time). Then the calibration summary is
+printed, the outputs are written, and the parameters are written to the vehicle only after
+confirmation (interactive y/N, or ``--write``/``--write --yes``) through the same safe
+writer as ``calibrate --write``.
+
+Exit codes as ``calibrate``: 0 success; 2 usage; 3 the device does not answer; 4 aborted
+(impossible field, magnetic disturbance), rejected by the gates or too little data; 5 write
+failed and the vehicle was restored; 6 write failed and the restore failed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Optional, TextIO
+
+from mavcal.errors import GateError, UsageError
+
+HELP = "guided live capture: says which pose to hold next, fits as it goes, then writes on confirmation"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from mavcal.commands.apply import add_link_arguments
+    from mavcal.commands.calibrate import _location
+
+    add_link_arguments(p)  # --connect, --baud, --timeout, --param-timeout, --retries, --dry-run, --yes
+    cap = p.add_argument_group("capture")
+    cap.add_argument("--target-deg", type=float, default=0.5, metavar="DEG",
+                     help="stop when the 95 %% heading error bound is below this (default 0.5)")
+    cap.add_argument("--max-poses", type=int, default=40, metavar="N", help="stop after N still poses (default 40)")
+    cap.add_argument("--min-poses", type=int, default=8, metavar="N", help="never stop before N poses (default 8)")
+    cap.add_argument("--duration", type=float, default=600.0, metavar="S",
+                     help="stop after S seconds at the latest (default 600)")
+    cap.add_argument("--hold", type=float, default=1.0, metavar="S",
+                     help="shortest still hold that counts as a pose (default 1)")
+    cap.add_argument("--rate", type=float, default=25.0, metavar="HZ", help="IMU stream rate (default 25, at least 25)")
+    fit = p.add_argument_group("calibration")
+    fit.add_argument("--accel", type=int, default=0, metavar="I", help="IMU instance (0-based, default 0)")
+    fit.add_argument("--compass", type=int, default=0, metavar="I", help="compass instance (priority, 0-based)")
+    fit.add_argument("--field-mgauss", type=float, help="Earth field magnitude to scale the compass to")
+    fit.add_argument("--location", type=_location, metavar="LAT,LON[,ALT]", help="position for the World Magnetic Model")
+    out = p.add_argument_group("outputs")
+    out.add_argument("--param-out", metavar="F", help="write the new parameters as a .param file")
+    out.add_argument("--json", metavar="F", help="write the full JSON report ('-' for stdout)")
+    out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
+    w = p.add_argument_group("writing to the vehicle")
+    w.add_argument("--write", action="store_true", help="write the parameters (asks first unless --yes)")
+    w.add_argument("--force", action="store_true", help="write even if a quality gate failed")
+    w.add_argument("--backup", metavar="F", help="backup .param of the old values (default mavcal-backup-DATE.param)")
+
+
+class StatusPrinter:
+    """Shows capture statuses: one redrawn screen on a terminal, one line per change otherwise."""
+
+    def __init__(self, out: TextIO, target_deg: Optional[float] = None, tty: Optional[bool] = None) -> None:
+        self.out = out
+        self.target_deg = target_deg
+        self.tty = bool(out.isatty()) if tty is None else tty
+        self._last = ""
+
+    def __call__(self, st) -> None:
+        from mavcal.live_capture import status_line, status_screen
+
+        if self.tty:
+            text = status_screen(st, self.target_deg)
+            if text != self._last:
+                self.out.write("\x1b[H\x1b[2J" + text + "\n")
+        else:
+            text = status_line(st)
+            if text != self._last:
+                self.out.write(text + "\n")
+        self._last = text
+        self.out.flush()
+
+
+def _check(args: argparse.Namespace) -> None:
+    if not args.target_deg > 0:
+        raise UsageError("--target-deg must be > 0")
+    if args.max_poses < 1 or args.min_poses < 1:
+        raise UsageError("--max-poses and --min-poses must be at least 1")
+    if not args.duration > 0 or not args.hold > 0 or not args.rate > 0:
+        raise UsageError("--duration, --hold and --rate must be > 0")
+    if args.backup is not None and Path(args.backup).exists():
+        raise UsageError(f"backup file {args.backup!r} already exists; not overwriting it")
+
+
+def run(args: argparse.Namespace) -> int:
+    from mavcal import live_capture
+    from mavcal.ardupilot.paramfile import write_param_file
+    from mavcal.capture import CaptureConfig
+    from mavcal.commands.apply import write_with_report
+    from mavcal.commands.calibrate import summary
+    from mavcal.pipeline import Options, run_to_json
+    from mavcal.segment import StillConfig
+
+    _check(args)
+    try:
+        still = StillConfig(min_duration_s=args.hold)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    config = CaptureConfig(target_heading_deg=args.target_deg, max_intervals=args.max_poses,
+                           min_intervals=min(args.min_poses, args.max_poses), still=still)
+    options = Options(still=still, accel_instance=args.accel, mag_instance=args.compass,
+                      field_mgauss=args.field_mgauss, location=args.location)
+    printer = StatusPrinter(sys.stderr, args.target_deg)
+    session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer,
+                                        baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,
+                                        heartbeat_timeout_s=args.timeout)
+    st = session.status
+    if st is not None and st.aborted:
+        raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
+    run = session.result()  # InsufficientDataError (exit 4) when too little was captured
+    print(summary(run))
+    if args.json:
+        text = json.dumps(run_to_json(run), indent=1)
+        if args.json == "-":
+            print(text)
+        else:
+            Path(args.json).write_text(text)
+    if args.report:
+        from mavcal.report import write_html
+        write_html(run, args.report)
+        print(f"report written to {args.report}")
+    if not run.accepted and not args.force:
+        print("nothing written: the calibration failed a quality gate (use --force to override)", file=sys.stderr)
+        raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
+    if args.param_out:
+        write_param_file(args.param_out, run.mapping.new,
+                         header=[f"mavcal guided capture on {args.connect}", f"model {run.calibration.model}"])
+        print(f"parameters written to {args.param_out}")
+    changes = dict(run.mapping.new)
+    if args.write or args.dry_run:
+        return write_with_report(args, changes, args.backup, "calibration write")
+    if sys.stdin.isatty():  # offer it: the diff, then y/N
+        try:
+            return write_with_report(replace_ns(args, yes=False), changes, args.backup, "calibration write")
+        except UsageError as exc:
+            if str(exc).startswith("cancelled"):
+                print("nothing written to the vehicle")
+                return 0
+            raise
+    print("nothing written to the vehicle (use --write to write the parameters)")
+    return 0
+
+
+def replace_ns(ns: argparse.Namespace, **kw) -> argparse.Namespace:
+    """A copy of ``ns`` with some attributes changed."""
+    d = dict(vars(ns))
+    d.update(kw)
+    return argparse.Namespace(**d)
