@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
+from mavcal.ardupilot import firmware as fw
+from mavcal.ardupilot.rotations import rotation_matrix as ap_rotation_matrix
 from mavcal.link.testvehicle import (AccelTruth, CompassTruth, TestVehicle, VehicleTruth,
                                      rotation_matrix)
 
@@ -190,6 +192,71 @@ def test_imu_stream_applies_current_calibration_like_ardupilot():
                                        raw_rot + [120, -80, 45], atol=1e-3)
         finally:
             conn.close()
+
+
+def test_corrected_sensors_are_the_firmware_forward_model():
+    """The vehicle applies exactly mavcal.ardupilot.firmware's model (the one mavcal inverts)."""
+    params = {
+        # compass 1: external, COMPASS_ORIENT, offsets, soft iron, scale
+        "COMPASS_OFS_X": 120.5, "COMPASS_OFS_Y": -80.25, "COMPASS_OFS_Z": 45.0,
+        "COMPASS_DIA_X": 1.05, "COMPASS_DIA_Y": 0.95, "COMPASS_DIA_Z": 1.02,
+        "COMPASS_ODI_X": 0.02, "COMPASS_ODI_Y": -0.01, "COMPASS_ODI_Z": 0.03,
+        "COMPASS_SCALE": 1.12, "COMPASS_ORIENT": 6, "COMPASS_EXTERNAL": 1,
+        # compass 2: external on the custom rotation 1 (angles read at boot)
+        "COMPASS_OFS2_X": -30, "COMPASS_OFS2_Y": 60, "COMPASS_OFS2_Z": 10, "COMPASS_DIA2_X": 0.97,
+        "COMPASS_ODI2_Z": -0.02, "COMPASS_SCALE2": 0.9, "COMPASS_ORIENT2": 101, "COMPASS_EXTERN2": 1,
+        "CUST_ROT1_ROLL": 10, "CUST_ROT1_PITCH": -5, "CUST_ROT1_YAW": 33,
+        # compass 3: internal, so AHRS_ORIENTATION; SCALE outside [1/1.5, 1.5] is ignored
+        "COMPASS_OFS3_X": 5, "COMPASS_SCALE3": 2.0, "COMPASS_ORIENT3": 4, "COMPASS_EXTERN3": 0,
+        "AHRS_ORIENTATION": 2,
+        "INS_ACCOFFS_X": 0.3, "INS_ACCOFFS_Y": -0.2, "INS_ACCOFFS_Z": 0.5,
+        "INS_ACCSCAL_X": 1.02, "INS_ACCSCAL_Y": 0.98, "INS_ACCSCAL_Z": 1.01,
+        "INS_ACC2OFFS_Y": 0.15, "INS_ACC2SCAL_Z": 0.97, "INS_ACC3OFFS_X": -0.4, "INS_ACC3SCAL_X": 1.03,
+    }
+    v = TestVehicle(truth=VehicleTruth.random(7), params=params, seed=7)  # never started: no sockets
+    v.set_attitude(roll=20, pitch=-35, yaw=140)
+
+    def check():
+        got = v.corrected_sensors(noise=False)
+        with v._lock:  # the same raw readings the vehicle corrected (noise off: deterministic)
+            raw = v._raw_sensors(noise=False)
+        p = v.params
+        for i in range(3):
+            cal = fw.accel_cal_from_params(p, i)
+            np.testing.assert_array_equal(got["accel_mps2"][i], fw.apply_accel(cal, raw["accel_mps2"][i]))
+            np.testing.assert_allclose(fw.undo_accel(cal, got["accel_mps2"][i]), raw["accel_mps2"][i], atol=1e-9)
+        for slot in range(3):
+            cal = fw.compass_cal_from_params(p, slot)
+            exp = fw.apply_compass(cal, raw["mag_mgauss"][slot])
+            np.testing.assert_array_equal(got["mag_mgauss"][slot], exp)
+            np.testing.assert_allclose(fw.undo_compass(cal, exp, sensor_frame=True), raw["mag_mgauss"][slot],
+                                       atol=1e-9)
+        return got, raw, p
+
+    got, raw, p = check()
+    # the calibration is not trivial: every stage moved the readings
+    cals = [fw.compass_cal_from_params(p, k) for k in range(3)]
+    assert [c.orient for c in cals] == [6, 101, 2] and cals[1].custom_deg == pytest.approx((10, -5, 33))
+    assert fw.effective_scale(cals[0].scale) == pytest.approx(1.12) and fw.effective_scale(cals[2].scale) == 1.0
+    assert not np.allclose(fw.soft_iron_matrix(cals[0].dia, cals[0].odi), np.eye(3))
+    for k in range(3):
+        assert np.linalg.norm(got["mag_mgauss"][k] - raw["mag_mgauss"][k]) > 5
+        assert np.linalg.norm(got["accel_mps2"][k] - raw["accel_mps2"][k]) > 0.1
+    # compass 1 by hand: M (k (R_orient raw + OFS))
+    M = fw.soft_iron_matrix((1.05, 0.95, 1.02), (0.02, -0.01, 0.03))
+    hand = M @ (1.12 * (ap_rotation_matrix(6) @ raw["mag_mgauss"][0] + [120.5, -80.25, 45.0]))
+    np.testing.assert_allclose(got["mag_mgauss"][0], hand, rtol=1e-6)  # float32-stored parameters
+    # new calibration values apply at once; new custom rotation angles only after a boot
+    v.set_param_local("COMPASS_OFS2_X", -45.5)
+    v.set_param_local("COMPASS_DIA3_Y", 1.04)
+    check()
+    before = v.corrected_sensors(noise=False)["mag_mgauss"][1]
+    v.set_param_local("CUST_ROT1_YAW", 80)
+    np.testing.assert_array_equal(v.corrected_sensors(noise=False)["mag_mgauss"][1], before)
+    with v._lock:
+        v._boot()  # what the simulated reboot does
+    check()
+    assert not np.allclose(v.corrected_sensors(noise=False)["mag_mgauss"][1], before)
 
 
 def test_reboot_reorders_compasses_by_priority(vehicle, gcs):

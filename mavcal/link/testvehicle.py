@@ -37,12 +37,17 @@ Transports (``transport=``): ``"udpout"`` (the vehicle sends to the GCS port; th
 ``"tcp"`` (the vehicle is a TCP server; the GCS uses ``tcp:``). :attr:`TestVehicle.gcs_device`
 is the device string a GCS should open.
 
-The sensor forward model is a small private copy (``_FirmwareModel``) of what
-:mod:`mavcal.ardupilot.firmware` models; it is kept here so the emulator does not depend on
-the code it is used to test.
+The sensor correction is :mod:`mavcal.ardupilot.firmware`'s forward model
+(:func:`~mavcal.ardupilot.firmware.apply_accel` / :func:`~mavcal.ardupilot.firmware.apply_compass`
+with the calibrations built from the current parameters by ``accel_cal_from_params`` /
+``compass_cal_from_params``), so the vehicle applies exactly the model the rest of mavcal
+inverts. Two things ArduPilot does at boot are kept on top of it: custom rotations (101/102)
+use the ``CUST_ROTn_*`` angles read at the last boot, and a rotation value the firmware does
+not know acts as NONE. Rotations are :func:`mavcal.ardupilot.rotations.rotation_matrix`.
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import itertools
 import logging
@@ -60,6 +65,9 @@ import numpy as np
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from mavcal.ardupilot import firmware as fw
+from mavcal.ardupilot import rotations as _rotations
+
 __all__ = ["TestVehicle", "VehicleTruth", "AccelTruth", "CompassTruth", "Faults",
            "default_param_table", "rotation_matrix", "euler_matrix"]
 
@@ -72,32 +80,14 @@ INT8, INT16, INT32, REAL32 = (mavlink2.MAV_PARAM_TYPE_INT8, mavlink2.MAV_PARAM_T
 _INT_RANGE = {INT8: (-128, 127), INT16: (-32768, 32767), INT32: (-2147483648, 2147483647)}
 
 # ------------------------------------------------------------------------------------------
-# rotations (AP_Math conventions: R = Rz(yaw) Ry(pitch) Rx(roll), v' = R v)
+# rotations (AP_Math conventions: R = Rz(yaw) Ry(pitch) Rx(roll), v' = R v), from
+# mavcal.ardupilot.rotations
 # ------------------------------------------------------------------------------------------
-_ROTATION_EULER_DEG = {
-    0: (0, 0, 0), 1: (0, 0, 45), 2: (0, 0, 90), 3: (0, 0, 135), 4: (0, 0, 180), 5: (0, 0, 225),
-    6: (0, 0, 270), 7: (0, 0, 315), 8: (180, 0, 0), 9: (180, 0, 45), 10: (180, 0, 90),
-    11: (180, 0, 135), 12: (0, 180, 0), 13: (180, 0, 225), 14: (180, 0, 270), 15: (180, 0, 315),
-    16: (90, 0, 0), 17: (90, 0, 45), 18: (90, 0, 90), 19: (90, 0, 135), 20: (270, 0, 0),
-    21: (270, 0, 45), 22: (270, 0, 90), 23: (270, 0, 135), 24: (0, 90, 0), 25: (0, 270, 0),
-    26: (0, 180, 90), 27: (0, 180, 270), 28: (90, 90, 0), 29: (180, 90, 0), 30: (270, 90, 0),
-    31: (90, 180, 0), 32: (270, 180, 0), 33: (90, 270, 0), 34: (180, 270, 0), 35: (270, 270, 0),
-    36: (90, 180, 90), 37: (90, 0, 270), 38: (90, 68.8, 293.3), 39: (0, 315, 0), 40: (90, 315, 0),
-    41: (0, 7, 0), 42: (45, 0, 0), 43: (315, 0, 0),
-}
-
-
 def euler_matrix(roll: float, pitch: float, yaw: float, degrees: bool = True) -> np.ndarray:
     """Body-to-earth DCM ``Rz(yaw) Ry(pitch) Rx(roll)`` (AP_Math ``Matrix3::from_euler``)."""
     if degrees:
         roll, pitch, yaw = (math.radians(a) for a in (roll, pitch, yaw))
-    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
-                              math.cos(yaw), math.sin(yaw))
-    return np.array([
-        [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
-        [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
-        [-sp, sr * cp, cr * cp],
-    ])
+    return _rotations.euler_to_matrix(roll, pitch, yaw)
 
 
 def rotation_matrix(rotation: int, custom: Optional[Mapping[int, np.ndarray]] = None) -> np.ndarray:
@@ -107,8 +97,8 @@ def rotation_matrix(rotation: int, custom: Optional[Mapping[int, np.ndarray]] = 
     does after flagging an internal error.
     """
     r = int(rotation)
-    if r in _ROTATION_EULER_DEG:
-        return euler_matrix(*_ROTATION_EULER_DEG[r])
+    if r in _rotations.ROTATIONS:
+        return np.array(_rotations.rotation_matrix(r))
     if custom is not None and r in custom:
         return np.array(custom[r], dtype=float)
     return np.eye(3)
@@ -236,6 +226,23 @@ _COMPASS_SFX = ("", "2", "3")
 _ACCEL_SFX = ("", "2", "3")
 
 
+def _calibration_param_names() -> Tuple[str, ...]:
+    """Every parameter ``firmware.*_cal_from_params`` reads for the vehicle's sensors."""
+    names: List[str] = [fw.board_param_names()["orientation"]]  # type: ignore[list-item]
+    for slot in range(len(_COMPASS_SFX)):
+        cn = fw.compass_param_names(slot)
+        for k in ("ofs", "dia", "odi", "mot"):
+            names += list(cn[k])  # type: ignore[arg-type]
+        names += [cn["scale"], cn["orient"], cn["external"]]  # type: ignore[list-item]
+    for i in range(len(_ACCEL_SFX)):
+        an = fw.accel_param_names(i)
+        names += list(an["ofs"]) + list(an["scale"])  # type: ignore[operator]
+    return tuple(names)
+
+
+_CAL_PARAM_NAMES = _calibration_param_names()
+
+
 # ------------------------------------------------------------------------------------------
 # truth (the physical sensors)
 # ------------------------------------------------------------------------------------------
@@ -303,42 +310,6 @@ class VehicleTruth:
         return cls(accels=(AccelTruth(),) * 3,
                    compasses=tuple(CompassTruth(dev_id=d, external=(i == 0))
                                    for i, d in enumerate((97539, 131874, 263178))))
-
-
-def _soft_iron(dia: Sequence[float], odi: Sequence[float]) -> np.ndarray:
-    return np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]], dtype=float)
-
-
-class _FirmwareModel:
-    """ArduPilot's correction stages (private copy; see the module docstring)."""
-
-    @staticmethod
-    def compass(raw_sensor: np.ndarray, p: Mapping[str, float], sfx: str, external: bool,
-                custom: Mapping[int, np.ndarray]) -> np.ndarray:
-        """``AP_Compass_Backend::rotate_field`` + ``correct_field`` (no motor compensation)."""
-        if external:
-            rot = rotation_matrix(int(p[f"COMPASS_ORIENT{sfx}"]), custom)
-        else:
-            rot = rotation_matrix(int(p["AHRS_ORIENTATION"]), custom)
-        c = rot @ raw_sensor
-        c = c + np.array([p[f"COMPASS_OFS{sfx}_{a}"] for a in "XYZ"])
-        scale = p[f"COMPASS_SCALE{sfx}"]
-        if 1.0 / 1.5 <= scale <= 1.5:
-            c = scale * c
-        dia = [p[f"COMPASS_DIA{sfx}_{a}"] for a in "XYZ"]
-        if any(d != 0.0 for d in dia):
-            odi = [p[f"COMPASS_ODI{sfx}_{a}"] for a in "XYZ"]
-            c = _soft_iron(dia, odi) @ c
-        return c
-
-    @staticmethod
-    def accel(raw_board: np.ndarray, p: Mapping[str, float], sfx: str,
-              custom: Mapping[int, np.ndarray]) -> np.ndarray:
-        """``AP_InertialSensor_Backend::_rotate_and_correct_accel`` (no temperature cal)."""
-        ofs = np.array([p[f"INS_ACC{sfx}OFFS_{a}"] for a in "XYZ"])
-        scl = np.array([p[f"INS_ACC{sfx}SCAL_{a}"] for a in "XYZ"])
-        u = (raw_board - ofs) * scl
-        return rotation_matrix(int(p["AHRS_ORIENTATION"]), custom) @ u
 
 
 # ------------------------------------------------------------------------------------------
@@ -463,6 +434,8 @@ class TestVehicle:
         self._seq = itertools.count()
         self._enc = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self._list_cursor: Optional[int] = None
+        self._cal_key: Optional[Tuple[Any, ...]] = None
+        self._cal_cache: Tuple[List[fw.AccelCal], List[fw.CompassCal]] = ([], [])
         self._boot()
 
     # ------------------------------------------------------------------ lifecycle
@@ -651,43 +624,90 @@ class TestVehicle:
             * compass: ``M (SCALE (rot(ORIENT or AHRS_ORIENTATION) raw + OFS))``, M from
               DIA/ODI skipped when DIA is all zero, SCALE only within [1/1.5, 1.5];
             * accel: ``rot(AHRS_ORIENTATION) (ACCSCAL * (raw - ACCOFFS))``.
+
+            That is :func:`mavcal.ardupilot.firmware.apply_compass` /
+            :func:`~mavcal.ardupilot.firmware.apply_accel` with the calibrations
+            ``compass_cal_from_params`` / ``accel_cal_from_params`` build from the current
+            parameters (custom rotations: the angles of the last boot).
         """
         with self._lock:
             return self._sensors(noise)
 
-    def _sensors(self, noise: bool) -> Dict[str, Any]:
+    def _firmware_rotation(self, orient: int) -> Tuple[int, Optional[Tuple[float, float, float]]]:
+        """A rotation value as the firmware applies it: (value, custom angles or None)."""
+        if orient in (_rotations.CUSTOM_1, _rotations.CUSTOM_2):
+            return orient, self._custom_deg[orient]  # the angles read at boot
+        if orient in _rotations.ROTATIONS:
+            return orient, None
+        return 0, None  # Vector3::rotate of an unknown value: internal error, no rotation
+
+    def _calibrations(self) -> Tuple[List[fw.AccelCal], List[fw.CompassCal]]:
+        """The calibrations in force: accel per IMU, compass per priority slot (lock held).
+
+        Rebuilt only when a parameter they depend on (or the boot-time custom angles) changed.
+        """
         p = self._values
+        key = tuple(p.get(n) for n in _CAL_PARAM_NAMES) + tuple(self._custom_deg.values())
+        if key == self._cal_key:
+            return self._cal_cache
+        accels = []
+        for i in range(len(_ACCEL_SFX)):
+            cal = fw.accel_cal_from_params(p, i)
+            o, c = self._firmware_rotation(cal.board_orient)
+            accels.append(dataclasses.replace(cal, board_orient=o, custom_deg=c))
+        compasses = []
+        for slot in range(len(_COMPASS_SFX)):
+            cal = fw.compass_cal_from_params(p, slot)
+            o, c = self._firmware_rotation(cal.orient)
+            compasses.append(dataclasses.replace(cal, orient=o, custom_deg=c))
+        self._cal_key, self._cal_cache = key, (accels, compasses)
+        return accels, compasses
+
+    def _raw_sensors(self, noise: bool) -> Dict[str, Any]:
+        """What the sensors measure now, before any calibration (lock held).
+
+        ``accel_mps2`` (3, 3) board frame per IMU, ``mag_mgauss`` (3, 3) sensor frame per
+        compass slot (None for a slot without a compass), ``gyro_rads`` (3, 3).
+        """
         R = self._R
         tr = self.truth
         g_ned = np.array([0.0, 0.0, -GRAVITY_MSS])        # specific force at rest, NED
         f_body = R.T @ g_ned
         R_board = rotation_matrix(tr.board_orientation)
         accels = []
-        for i, sfx in enumerate(_ACCEL_SFX):
+        for i in range(len(_ACCEL_SFX)):
             at = tr.accels[i]
             u = R_board.T @ f_body                          # board frame
             raw = u / np.array(at.scale) + np.array(at.offsets)
             if noise:
                 raw = raw + self._np_rng.normal(0, at.noise_mps2, 3)
-            accels.append(_FirmwareModel.accel(raw, p, sfx, self._custom))
+            accels.append(raw)
         B_body = R.T @ np.array(tr.earth_field_ned_mgauss)
-        mags = []
-        for slot, sfx in enumerate(_COMPASS_SFX):
+        mags: List[Optional[np.ndarray]] = []
+        for slot in range(len(_COMPASS_SFX)):
             ct = self._slot_truth[slot]
             if ct is None:
-                mags.append(np.zeros(3))
+                mags.append(None)
                 continue
-            M = _soft_iron(ct.dia, ct.odi)
+            M = fw.soft_iron_matrix(ct.dia, ct.odi)
             ideal = np.linalg.solve(M, B_body) / ct.scale - np.array(ct.offsets)
             mount = rotation_matrix(ct.orientation) if ct.external else R_board
             raw = mount.T @ ideal
             if noise:
                 raw = raw + self._np_rng.normal(0, ct.noise_mgauss, 3)
-            mags.append(_FirmwareModel.compass(raw, p, sfx, bool(p[_EXTERNAL_NAMES[slot]]), self._custom))
+            mags.append(raw)
         gyro = np.tile(self._omega, (3, 1))
         if noise:
             gyro = gyro + self._np_rng.normal(0, tr.gyro_noise_rads, (3, 3))
-        return {"accel_mps2": np.array(accels), "mag_mgauss": np.array(mags), "gyro_rads": gyro}
+        return {"accel_mps2": np.array(accels), "mag_mgauss": mags, "gyro_rads": gyro}
+
+    def _sensors(self, noise: bool) -> Dict[str, Any]:
+        raw = self._raw_sensors(noise)
+        accel_cals, compass_cals = self._calibrations()
+        accels = [fw.apply_accel(cal, u) for cal, u in zip(accel_cals, raw["accel_mps2"])]
+        mags = [np.zeros(3) if m is None else fw.apply_compass(cal, m)
+                for cal, m in zip(compass_cals, raw["mag_mgauss"])]
+        return {"accel_mps2": np.array(accels), "mag_mgauss": np.array(mags), "gyro_rads": raw["gyro_rads"]}
 
     # ------------------------------------------------------------------ boot
     def _boot(self) -> None:
@@ -714,9 +734,9 @@ class TestVehicle:
             p[_EXTERNAL_NAMES[i]] = sl["EXT"]
         truth_by_id = {c.dev_id: c for c in self.truth.compasses}
         self._slot_truth = [truth_by_id.get(int(p[f"COMPASS_DEV_ID{sfx}"])) for sfx in _COMPASS_SFX]
-        # AP_CustomRotations: matrices built once from CUST_ROTn_* (degrees, 3-2-1)
-        self._custom = {100 + n: euler_matrix(p[f"CUST_ROT{n}_ROLL"], p[f"CUST_ROT{n}_PITCH"], p[f"CUST_ROT{n}_YAW"])
-                        for n in (1, 2)}
+        # AP_CustomRotations: built once at boot from CUST_ROTn_* (degrees, 3-2-1)
+        self._custom_deg = {100 + n: (p[f"CUST_ROT{n}_ROLL"], p[f"CUST_ROT{n}_PITCH"], p[f"CUST_ROT{n}_YAW"])
+                            for n in (1, 2)}
         # stream rates from SR0_*
         self._intervals: Dict[int, Optional[float]] = {}
         self._stream_hz = {"RAW_SENS": p["SR0_RAW_SENS"], "EXTRA1": p["SR0_EXTRA1"]}
