@@ -20,7 +20,7 @@ from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, ParamMapping, map_accel, map_compass
 from mavcal.ardupilot.recover import RawImu, recover_raw
 from mavcal.core.types import Calibration
-from mavcal.errors import InsufficientDataError, SourceError
+from mavcal.errors import InsufficientDataError, MavcalError, SourceError
 from mavcal.segment import Segmentation, StillConfig, find_still_intervals
 from mavcal.sources.types import ImuLog
 
@@ -39,8 +39,9 @@ class Options:
     tol: float = 1e-4
     model: str = "auto"
     seed: int = 0
-    accel_instance: int = 0
+    accel_instance: int = 0  # the primary pair: the board frame and the quality numbers
     mag_instance: int = 0
+    all_instances: bool = True  # also every other IMU (with compass 0) and compass (with IMU 0)
     field_mgauss: Optional[float] = None
     location: Optional[Tuple[float, float, float]] = None
     orient_tol_deg: float = 1.0
@@ -80,6 +81,7 @@ class CalibrationRun:
     gates: gates_mod.GateReport
     params_before: Dict[str, float]
     warnings: Tuple[str, ...] = ()
+    others: Tuple["CalibrationRun", ...] = ()  # the fits of the other instances (all_instances)
 
     @property
     def accepted(self) -> bool:
@@ -226,7 +228,58 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
 
 
 def calibrate_prepared(prep: Prepared, options: Options = Options()) -> CalibrationRun:
-    """The fit, mapping, quality and gates for a :class:`Prepared` recording."""
+    """The fit, mapping, quality and gates for a :class:`Prepared` recording.
+
+    With ``options.all_instances`` every other accelerometer is calibrated jointly with
+    compass ``mag_instance`` and every other compass jointly with accelerometer
+    ``accel_instance`` (so all compasses are expressed in the primary IMU's board frame);
+    their parameters and gates join the primary pair's. An instance without enough data
+    is skipped with a warning.
+    """
+    primary = _calibrate_pair(prep, options)
+    if not options.all_instances:
+        return primary
+    from dataclasses import replace as _replace
+
+    ai, mi = options.accel_instance, options.mag_instance
+    pairs = [(a, mi) for a in prep.raw.accel_instances() if a != ai] + \
+            [(ai, m) for m in prep.raw.mag_instances() if m != mi]
+    others, warnings = [], list(primary.warnings)
+    for a, m in pairs:
+        try:
+            others.append(_calibrate_pair(prep, _replace(options, accel_instance=a, mag_instance=m, holdout=False)))
+        except MavcalError as exc:
+            warnings.append(f"accelerometer {a} / compass {m} not calibrated: {exc}")
+    if not others:
+        return _replace(primary, warnings=tuple(warnings))
+    accel = list(primary.mapping.accel) + [r.mapping.accel[0] for r in others if r.mapping.accel[0].instance != ai]
+    compass = list(primary.mapping.compass) + [r.mapping.compass[0] for r in others
+                                               if r.mapping.compass[0].instance != mi]
+    new, old = {}, {}
+    for mp in accel:
+        new.update(mp.params())
+    for mp in compass:
+        new.update(mp.params())
+    for r in (primary,) + tuple(others):
+        old.update(r.mapping.old)
+    old = {n: old.get(n, primary.params_before.get(n)) for n in new}
+    notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compass[1:]]
+    mapping = ParamMapping(accel=tuple(accel), compass=tuple(compass), new=new, old=old, notes=tuple(notes),
+                           reboot_required=any(c.reboot_required for c in compass))
+    gates = list(primary.gates.gates)
+    for r in others:
+        a, m = r.mapping.accel[0].instance, r.mapping.compass[0].instance
+        for g in r.gates.gates:
+            if g.sensor == f"accel{a}" and a != ai or g.sensor == f"compass{m}" and m != mi:
+                gates.append(g)
+            elif g.sensor == "data":
+                gates.append(gates_mod.Gate(f"data (accel{a}+compass{m})", g.name, g.ok, g.value, g.limit, g.reason))
+    return _replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(gates)), others=tuple(others),
+                    warnings=tuple(dict.fromkeys(warnings)))
+
+
+def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
+    """The fit of one accelerometer/compass pair."""
     opts = options
     log_, raw, seg, steps = prep.log, prep.raw, prep.segmentation, prep.quantization
     warnings: List[str] = list(prep.warnings)
@@ -338,7 +391,18 @@ def run_to_json(run: CalibrationRun) -> dict:
                      "largest_empty_cap_deg": seg.coverage.largest_empty_cap_deg, "status": seg.coverage.status,
                      "messages": list(seg.coverage.messages)},
         "instances": {"accel": am.instance, "compass": cm.instance,
-                      "accel_present": list(run.raw.accel_instances()), "compass_present": list(run.raw.mag_instances())},
+                      "accel_present": list(run.raw.accel_instances()), "compass_present": list(run.raw.mag_instances()),
+                      "accel_calibrated": [{"instance": a.instance, "offsets_mps2": _f(np.array(a.new.ofs_mps2)),
+                                            "scales": _f(np.array(a.new.scale)), "dropped_tilt_deg": a.dropped_tilt_deg}
+                                           for a in run.mapping.accel],
+                      "compass_calibrated": [{"instance": c.instance, "external": c.external,
+                                              "offsets_mgauss": _f(np.array(c.new.ofs_mgauss)),
+                                              "orientation": c.orientation_note, "rotation_deg": c.rotation_deg,
+                                              "residual_rotation_deg": c.residual_rotation_deg}
+                                             for c in run.mapping.compass],
+                      "pairs": [{"accel": r.mapping.accel[0].instance, "compass": r.mapping.compass[0].instance,
+                                 "model": r.calibration.model, "heading_95_deg": r.quality.heading_95_deg,
+                                 "tilt_95_deg": r.quality.tilt_95_deg} for r in (run,) + tuple(run.others)]},
         "raw_recovery": {"frames": dict(run.raw.frames), "accel_cal_periods": _f(run.raw.accel_cal_periods),
                          "params_used": {k: _f(v) for k, v in run.raw.params_used.items()}},
         "notes": list(run.mapping.notes),

@@ -231,6 +231,21 @@ def _param_rows(run) -> List[Tuple[str, Optional[float], float, bool]]:
             for n, v in sorted(run.mapping.new.items())]
 
 
+def _group_vectors(rows):
+    """Merge NAME_X/_Y/_Z rows into one (NAME_{X,Y,Z}) row: (label, olds, news, any changed)."""
+    out, i = [], 0
+    while i < len(rows):
+        n = rows[i][0]
+        if n.endswith("_X") and i + 2 < len(rows) and rows[i + 1][0] == n[:-1] + "Y" and rows[i + 2][0] == n[:-1] + "Z":
+            trio = rows[i:i + 3]
+            out.append((n[:-2] + "_XYZ", [r[1] for r in trio], [r[2] for r in trio], any(r[3] for r in trio)))
+            i += 3
+        else:
+            out.append((n, [rows[i][1]], [rows[i][2]], rows[i][3]))
+            i += 1
+    return out
+
+
 def _gate_failures_by_sensor(run) -> Dict[str, List[str]]:
     out: Dict[str, List[str]] = {}
     for g in run.gates.failures():
@@ -268,12 +283,17 @@ def summary_text(run) -> str:
          f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"]
     rows = _param_rows(run)
     if rows:
-        w = max(len(r[0]) for r in rows)
-        L.append(f"  {'PARAMETER':<{w}}  {'OLD':>12}    NEW")
-        for n, o, v, ch in rows:
-            L.append(f"  {n:<{w}}  {_fmt(o):>12} -> {_fmt(v)}{'  *' if ch else ''}")
+        grouped = _group_vectors(rows)
+        w = max(len(g[0]) for g in grouped)
+        L.append(f"  {'PARAMETER':<{w}}  OLD -> NEW   (* changed)")
+        for name, olds, news, ch in grouped:
+            if len(news) == 1:
+                L.append(f"  {name:<{w}}  {_fmt(olds[0])} -> {_fmt(news[0])}{'  *' if ch else ''}")
+            else:
+                L.append(f"  {name:<{w}}  ({', '.join(_fmt(o) for o in olds)}) -> "
+                         f"({', '.join(_fmt(v) for v in news)}){'  *' if ch else ''}")
         n_ch = sum(r[3] for r in rows)
-        L.append(f"  ({n_ch} of {len(rows)} parameters change, marked *)")
+        L.append(f"  ({n_ch} of {len(rows)} parameters change; _X/_Y/_Z shown together)")
     fails = _gate_failures_by_sensor(run)
     if fails:
         L.append("REJECTED by the quality gates:")

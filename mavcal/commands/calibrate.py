@@ -38,8 +38,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fit = p.add_argument_group("calibration")
     fit.add_argument("--method", default="ncar", choices=["ncar", "ncdr", "fcar", "dcar"], help="paper variant")
     fit.add_argument("--model", default="auto", choices=["auto", "full", "diag-accel", "ardupilot", "offsets-scales"])
-    fit.add_argument("--accel", type=int, default=0, metavar="I", help="IMU instance (0-based, default 0)")
-    fit.add_argument("--compass", type=int, default=0, metavar="I", help="compass instance (priority, 0-based)")
+    fit.add_argument("--accel", type=int, default=0, metavar="I",
+                     help="primary IMU instance (0-based, default 0): its board frame and quality numbers")
+    fit.add_argument("--compass", type=int, default=0, metavar="I", help="primary compass instance (priority, 0-based)")
+    fit.add_argument("--primary-only", action="store_true",
+                     help="calibrate only the primary IMU and compass (default: every instance with data)")
     fit.add_argument("--field-mgauss", type=float, help="Earth field magnitude to scale the compass to")
     fit.add_argument("--location", type=_location, metavar="LAT,LON[,ALT]", help="position for the World Magnetic Model")
     fit.add_argument("--orient-tol", type=float, default=1.0, metavar="DEG",
@@ -84,7 +87,7 @@ def _options(args):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     return Options(still=still, method=args.method, model=args.model, accel_instance=args.accel,
-                   mag_instance=args.compass, field_mgauss=args.field_mgauss, location=args.location,
+                   mag_instance=args.compass, all_instances=not args.primary_only, field_mgauss=args.field_mgauss, location=args.location,
                    orient_tol_deg=args.orient_tol, allow_custom=not args.no_custom_rotation,
                    force_external=args.force_external)
 
