@@ -86,3 +86,20 @@ def test_cli_exit_codes_for_bad_sources(tmp_path, real_dir, capsys):
 def test_write_needs_a_device(sitl_dir, capsys):
     assert main(["calibrate", str(sitl_dir / "sitl01.tlog"), "--write"]) == 2
     assert "--connect" in capsys.readouterr().err
+
+
+def test_every_instance_is_calibrated(sitl_dir):
+    """IMU 2 and compasses 2, 3 carry no injected error in the SITL logs (close to calibrated)."""
+    run = calibrate_source(str(sitl_dir / "sitl01.tlog"))
+    assert [a.instance for a in run.mapping.accel] == [0, 1]
+    assert [c.instance for c in run.mapping.compass] == [0, 1, 2]
+    new, before = run.mapping.new, run.params_before
+    for sfx in ("2", "3"):
+        for ax in "XYZ":
+            assert abs(new[f"COMPASS_OFS{sfx}_{ax}"] - before[f"COMPASS_OFS{sfx}_{ax}"]) < 1.0
+    for ax in "XYZ":
+        assert abs(new[f"INS_ACC2OFFS_{ax}"] - before[f"INS_ACC2OFFS_{ax}"]) < 0.01
+        assert abs(new[f"INS_ACC2SCAL_{ax}"] - before[f"INS_ACC2SCAL_{ax}"]) < 0.002
+    assert len(run.others) == 3 and run.accepted
+    rep = run.to_json()
+    assert [p["compass"] for p in rep["instances"]["pairs"]] == [0, 0, 1, 2]
