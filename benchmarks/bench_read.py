@@ -157,7 +157,9 @@ def main(argv=None) -> int:
     text = ("# Reading speed (benchmarks/bench_read.py)\n\n" + "\n".join(md) +
             f"\n\npymavlink = `recv_match(type=IMU messages)` loop (DFReader for .bin), collecting the values;"
             f" fast decode = `decode_tlog`/`decode_dataflash` of the same messages; read_log = full ImuLog"
-            f" (also params, events, position). Best of 3 for the fast paths. {env}.\n")
+            f" (also params, events, position; tlog CRCs checked for the decoded message types, as"
+            f" `read_log` does by default). Best of 3 for the fast paths, pymavlink once."
+            f" Machine shared with other jobs: timings vary by ~20% between runs. {env}.\n")
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".md").write_text(text)
