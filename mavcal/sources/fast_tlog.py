@@ -250,14 +250,19 @@ class TlogStats:
     #: frames of known message types whose CRC was not checked (types not decoded)
     crc_unchecked: int = 0
 
+    def notes(self) -> List[str]:
+        """Informational lines (logged at debug level, not shown as warnings)."""
+        if self.crc_unchecked:
+            return [f"CRC checked only for the decoded message types: {self.crc_unchecked} MAVLink frames "
+                    "of other types were not checked"]
+        return []
+
     def warnings(self) -> List[str]:
+        """What was skipped, for the user."""
         w = []
         if self.bad_crc:
             top = ", ".join(f"id {k}: {v}" for k, v in sorted(self.bad_crc_by_id.items(), key=lambda kv: -kv[1])[:5])
             w.append(f"skipped {self.bad_crc} MAVLink frames with a bad CRC ({top})")
-        if self.crc_unchecked:
-            w.append(f"CRC checked only for the decoded message types: {self.crc_unchecked} MAVLink frames "
-                     f"of other types were not checked")
         if self.unknown_id:
             w.append(f"skipped {self.unknown_id} MAVLink frames with an unknown message id")
         if self.bad_header:

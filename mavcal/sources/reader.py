@@ -745,6 +745,8 @@ def read_log(path, *, progress: Optional[ProgressFn] = None, fast: bool = True, 
                 cols, stats = decode_tlog(src, TLOG_MESSAGES, progress=progress, **kw)
                 if stats.frames == 0:
                     raise SourceError(f"no MAVLink frames in {src}: not a tlog, or corrupt")
+                for note in stats.notes():
+                    log.debug("%s: %s", src, note)
                 return assemble_tlog(cols, src, stats.warnings())
             cols, warns = pymavlink_tlog_columns(src)
             return assemble_tlog(cols, src, warns)
