@@ -35,8 +35,8 @@ from mavcal.capture import CaptureConfig, CaptureSession, CaptureStatus, coverag
 from mavcal.errors import InsufficientDataError
 from mavcal.pipeline import Options
 
-__all__ = ["capture_live", "CaptureAbortedError", "FedConnection", "status_line", "status_screen",
-           "STREAM_MESSAGE_IDS", "LiveCaptureInfo"]
+__all__ = ["capture_live", "CaptureAbortedError", "FedConnection", "QueuedSender", "flush_outbox", "status_line",
+           "status_screen", "STREAM_MESSAGE_IDS", "LiveCaptureInfo", "stream_interval_commands"]
 
 log = logging.getLogger(__name__)
 
@@ -171,14 +171,21 @@ def capture_live(device: str, *, config: CaptureConfig = CaptureConfig(), option
         src.close()
 
 
+def stream_interval_commands(mav: Any, target_system: int, target_component: int,
+                             rate_hz: Optional[float]) -> None:
+    """Ask for the capture's IMU messages at ``rate_hz`` (SET_MESSAGE_INTERVAL), or None: default rates."""
+    interval_us = 0 if rate_hz is None else int(round(1e6 / max(float(rate_hz), 1.0)))
+    for mid in STREAM_MESSAGE_IDS:
+        mav.command_long_send(target_system, target_component, _MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                              mid, interval_us, 0, 0, 0, 0, 0)
+
+
 def _default_rates(conn: Any, target_system: Optional[int], target_component: Optional[int]) -> None:
     """Give the IMU messages back their default rates (best effort; the link may be dead)."""
     if target_system is None:
         return
     try:
-        for mid in STREAM_MESSAGE_IDS:
-            conn.mav.command_long_send(target_system, target_component or 0, _MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                                       mid, 0, 0, 0, 0, 0, 0)
+        stream_interval_commands(conn.mav, target_system, target_component or 0, None)
     except Exception as exc:  # a dead socket: nothing to restore
         log.debug("could not reset the stream rates: %s", exc)
 
@@ -232,8 +239,11 @@ def status_screen(st: CaptureStatus, target_deg: Optional[float] = None) -> str:
 # ----------------------------------------------------------------------------------------------
 # a connection fed by someone else's read loop
 # ----------------------------------------------------------------------------------------------
-class _QueuedSender:
-    """Stands in for a pymavlink ``MAVLink`` encoder: every ``*_send`` call is queued."""
+class QueuedSender:
+    """Stands in for a pymavlink ``MAVLink`` encoder: every ``*_send`` call goes to an outbox.
+
+    The outbox's owner sends them with :func:`flush_outbox` on its own thread.
+    """
 
     def __init__(self, outbox: "queue.Queue[Tuple[str, tuple, dict]]") -> None:
         self._outbox = outbox
@@ -246,6 +256,19 @@ class _QueuedSender:
             self._outbox.put((name, args, kwargs))
 
         return send
+
+
+def flush_outbox(outbox: "queue.Queue[Tuple[str, tuple, dict]]", mav: Any, max_messages: int = 200) -> int:
+    """Send up to ``max_messages`` queued ``(method, args, kwargs)`` calls with the encoder ``mav``."""
+    n = 0
+    while n < max_messages:
+        try:
+            name, args, kwargs = outbox.get_nowait()
+        except queue.Empty:
+            break
+        getattr(mav, name)(*args, **kwargs)
+        n += 1
+    return n
 
 
 class FedConnection:
@@ -265,16 +288,19 @@ class FedConnection:
         Shown in messages.
     max_queued : int
         Received messages kept while nobody reads; the oldest are dropped beyond this.
+    outbox : queue.Queue, optional
+        Where sends are queued (several connections may share the owner's one outbox);
+        default a new queue.
     """
 
     def __init__(self, target_system: int, target_component: int, *, address: str = "fed",
-                 max_queued: int = 20000) -> None:
+                 max_queued: int = 20000, outbox: "Optional[queue.Queue[Tuple[str, tuple, dict]]]" = None) -> None:
         self.target_system = int(target_system)
         self.target_component = int(target_component)
         self.address = address
         self._in: "queue.Queue[Any]" = queue.Queue(maxsize=max_queued)
-        self._outbox: "queue.Queue[Tuple[str, tuple, dict]]" = queue.Queue()
-        self.mav = _QueuedSender(self._outbox)
+        self._outbox: "queue.Queue[Tuple[str, tuple, dict]]" = outbox if outbox is not None else queue.Queue()
+        self.mav = QueuedSender(self._outbox)
         self._closed = threading.Event()
         self.dropped = 0
 
@@ -313,15 +339,7 @@ class FedConnection:
 
     def flush_outbox(self, mav: Any, max_messages: int = 200) -> int:
         """Send the queued messages with the real encoder ``mav``; returns how many went."""
-        n = 0
-        while n < max_messages:
-            try:
-                name, args, kwargs = self._outbox.get_nowait()
-            except queue.Empty:
-                break
-            getattr(mav, name)(*args, **kwargs)
-            n += 1
-        return n
+        return flush_outbox(self._outbox, mav, max_messages)
 
     def close(self) -> None:
         """Stop accepting messages; a reader waiting in :meth:`recv_match` gets OSError next."""

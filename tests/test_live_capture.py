@@ -59,7 +59,8 @@ class AdviceHand(threading.Thread):
 
     def stop(self) -> None:
         self.halt.set()
-        self.join(timeout=5)
+        if self.is_alive():
+            self.join(timeout=5)
 
 
 class StatusFeed:
