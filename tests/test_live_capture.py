@@ -15,6 +15,8 @@ import pytest
 from mavcal import cli, live_capture
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.capture import CaptureConfig
+from mavcal.link.connection import Link, open_link
+from mavcal.link.writer import write_params
 from mavcal.link.testvehicle import CompassTruth, TestVehicle, VehicleTruth
 from mavcal.segment import StillConfig
 
@@ -91,41 +93,19 @@ def vehicle():
         v.stop()
 
 
-def test_api_capture_reaches_the_target(vehicle):
-    feed = StatusFeed()
-    hand = AdviceHand(vehicle, feed.advice)
-    hand.start()
-    try:
-        sess = live_capture.capture_live(vehicle.gcs_device, config=CaptureConfig(still=HOLD), on_status=feed,
-                                         rate_hz=25, max_duration_s=60)
-    finally:
-        hand.stop()
-    st = sess.status
-    assert st.done and not st.aborted, st.reason
-    assert st.heading_95_deg <= 0.5 and "target" in st.reason
-    assert st.n_intervals >= 8
-    # the hand followed the advice: the first six poses were the six faces the session asked for
-    assert len(hand.poses) >= 8
-    run = sess.result()
-    assert run.accepted
-    c0 = vehicle.truth.compasses[0]
-    new = run.mapping.new
-    ofs = np.array([new["COMPASS_OFS_X"], new["COMPASS_OFS_Y"], new["COMPASS_OFS_Z"]])
-    assert np.all(np.abs(ofs - np.array(c0.offsets)) < 15.0), (ofs, c0.offsets)
-    # the streams went back to their default rates at the end (SET_MESSAGE_INTERVAL param2 = 0)
-    resets = [c for c in vehicle.commands if c[0] == 511 and c[1][1] == 0]
-    assert {int(c[1][0]) for c in resets} == {27, 116, 129}
-
-
-def test_cli_capture_writes_with_write_yes(vehicle, tmp_path, monkeypatch, capsys):
+def test_following_the_advice_reaches_the_target_and_write_yes_writes(vehicle, tmp_path, monkeypatch, capsys):
+    """One hand-guided capture through ``mavcal capture`` (the real capture_live underneath)."""
     feed = StatusFeed()
     real = live_capture.capture_live
+    sessions = []
 
     def tee(device, *, on_status=None, **kw):  # the CLI's printer, and the hand's view of the same statuses
         def both(st):
             feed(st)
             on_status(st)
-        return real(device, on_status=both, **kw)
+        sess = real(device, on_status=both, **kw)
+        sessions.append(sess)
+        return sess
 
     monkeypatch.setattr(live_capture, "capture_live", tee)
     hand = AdviceHand(vehicle, feed.advice)
@@ -139,7 +119,13 @@ def test_cli_capture_writes_with_write_yes(vehicle, tmp_path, monkeypatch, capsy
         hand.stop()
     out, err = capsys.readouterr()
     assert rc == 0, err
-    assert feed.latest.done and feed.latest.heading_95_deg <= 0.5
+    st = sessions[0].status
+    assert st is feed.latest and st.done and not st.aborted
+    assert st.heading_95_deg <= 0.5 and "target" in st.reason and st.n_intervals >= 8
+    assert len(hand.poses) >= 8  # the hand moved to every advised pose
+    # the streams went back to their default rates at the end (SET_MESSAGE_INTERVAL param2 = 0)
+    resets = [c for c in vehicle.commands if c[0] == 511 and c[1][1] == 0]
+    assert {int(c[1][0]) for c in resets} == {27, 116, 129}
     # piped: one status line per change, with the next pose in words
     assert "next: level, nose towards magnetic north" in err
     assert "done: heading error bound" in err
@@ -154,6 +140,9 @@ def test_cli_capture_writes_with_write_yes(vehicle, tmp_path, monkeypatch, capsy
     backup = read_param_file(tmp_path / "backup.param")
     assert set(backup) == set(changed) and all(backup[n] == pytest.approx(before[n], abs=1e-5) for n in backup)
     assert (tmp_path / "run.json").stat().st_size > 0
+    # and the written calibration is the vehicle's true one
+    ofs = np.array([vehicle.get_param(f"COMPASS_OFS_{a}") for a in "XYZ"])
+    assert np.all(np.abs(ofs - np.array(vehicle.truth.compasses[0].offsets)) < 15.0), ofs
 
 
 def _free_udp_port() -> int:
@@ -196,3 +185,62 @@ def test_usage_errors_exit_2(capsys):
     with pytest.raises(SystemExit) as exc:  # --connect is required (argparse exits)
         cli.main(["capture"])
     assert exc.value.code == 2
+
+
+def test_should_stop_ends_the_capture_as_the_user(vehicle):
+    seen = []
+    sess = live_capture.capture_live(vehicle.gcs_device, config=CaptureConfig(still=HOLD), on_status=seen.append,
+                                     should_stop=lambda: len(seen) >= 2, max_duration_s=30)
+    assert sess.status.done and sess.status.reason == "stopped by the user" and not sess.status.aborted
+    assert seen[-1] is sess.status and len(seen) == 3
+
+
+def test_safe_writer_over_a_fed_connection(vehicle, tmp_path):
+    """The MAVProxy module's arrangement without MAVProxy: one thread owns the socket (reads, feeds,
+    flushes the outbox), the writer runs in another on a Link over a FedConnection."""
+    owner = open_link(vehicle.gcs_device, timeout_s=5)
+    fed = live_capture.FedConnection(owner.target_system, owner.target_component)
+    halt = threading.Event()
+
+    def own():
+        while not halt.is_set():
+            fed.flush_outbox(owner.mav)
+            m = owner.conn.recv_match(blocking=True, timeout=0.01)
+            if m is not None and m.get_type() in ("HEARTBEAT", "PARAM_VALUE", "COMMAND_ACK"):
+                fed.feed(m)
+
+    t = threading.Thread(target=own, name="test-owner", daemon=True)
+    t.start()
+    try:
+        link = Link(fed, target_system=owner.target_system, target_component=owner.target_component, device="fed")
+        report = write_params(link, {"COMPASS_OFS_X": 12.5, "INS_ACCOFFS_Y": -0.125},
+                              backup_path=str(tmp_path / "b.param"))
+    finally:
+        halt.set()
+        t.join(timeout=5)
+        fed.close()
+        owner.close()
+    assert report.complete and set(report.force_saved) == {"compass", "accel"}
+    assert vehicle.get_param("COMPASS_OFS_X") == 12.5 and vehicle.get_param("INS_ACCOFFS_Y") == -0.125
+    assert (tmp_path / "b.param").exists()
+    with pytest.raises(OSError):
+        fed.recv_match(blocking=True, timeout=0.01)
+
+
+def test_status_screen_on_a_terminal_and_lines_when_piped():
+    import io
+
+    from mavcal.capture import CaptureSession
+    from mavcal.commands.capture import StatusPrinter
+
+    st = CaptureSession(TestVehicle(seed=1).params).update()  # no data yet: the first pose of the plan
+    screen, piped = io.StringIO(), io.StringIO()
+    tty, pipe = StatusPrinter(screen, 0.5, tty=True), StatusPrinter(piped, 0.5, tty=False)
+    for _ in range(3):
+        tty(st)
+        pipe(st)
+    assert screen.getvalue().count("\x1b[H\x1b[2J") == 1  # redrawn only when it changes
+    assert "NEXT POSE: level, nose towards magnetic north" in screen.getvalue()
+    assert "intervals kept: 0" in screen.getvalue() and "level       " in screen.getvalue()  # the coverage map
+    assert piped.getvalue().splitlines() == [
+        "0 intervals, moving, heading - deg; next: level, nose towards magnetic north (roll 0 pitch 0 yaw 0 deg magnetic)"]
