@@ -244,3 +244,17 @@ def test_status_screen_on_a_terminal_and_lines_when_piped():
     assert "intervals kept: 0" in screen.getvalue() and "level       " in screen.getvalue()  # the coverage map
     assert piped.getvalue().splitlines() == [
         "0 intervals, moving, heading - deg; next: level, nose towards magnetic north (roll 0 pitch 0 yaw 0 deg magnetic)"]
+
+
+def test_ctrl_c_stops_the_capture_and_keeps_the_session(vehicle):
+    seen = []
+
+    def on_status(st):
+        seen.append(st)
+        if len(seen) == 2:
+            raise KeyboardInterrupt  # as Ctrl-C would, in the middle of the capture
+
+    sess = live_capture.capture_live(vehicle.gcs_device, config=CaptureConfig(still=HOLD), on_status=on_status,
+                                     max_duration_s=30)
+    assert len(seen) == 3 and seen[-1] is sess.status
+    assert sess.status.done and sess.status.reason == "stopped by the user"
