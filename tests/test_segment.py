@@ -1,7 +1,6 @@
 """Still intervals: simulated poses, 2 Hz data, SITL dance windows, coverage diagnosis and
 every real log (intervals or a clear reason)."""
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np

@@ -8,7 +8,7 @@ error, parameter uncertainty (95 % heading and tilt error bounds).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np

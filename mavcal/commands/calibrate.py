@@ -99,19 +99,16 @@ def summary(run) -> str:
     return summary_text(run)
 
 
-def _single(args, source: str) -> int:
-    from mavcal.ardupilot.paramfile import write_param_file
-    from mavcal.pipeline import calibrate_source, run_to_json
-    from mavcal.sources import is_device, open_source
-    from mavcal.sources.progress import auto_progress
+def write_outputs(run, args, title: str) -> None:
+    """Print the summary, write --json/--report, apply the gates, then write --param-out.
 
-    opts = _options(args)
-    device = is_device(source)
-    if device:
-        log_ = open_source(source, baud=args.baud, duration_s=args.duration, progress=auto_progress("recording"))
-        run = calibrate_source(log_, opts)
-    else:
-        run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))
+    Shared by ``calibrate`` and ``capture``. Raises GateError (exit 4) when a quality gate
+    failed and ``--force`` was not given; the JSON and HTML reports are written first, so
+    the reasons are on disk either way.
+    """
+    from mavcal.ardupilot.paramfile import write_param_file
+    from mavcal.pipeline import run_to_json
+
     print(summary(run))
     if args.json:
         text = json.dumps(run_to_json(run), indent=1)
@@ -124,13 +121,27 @@ def _single(args, source: str) -> int:
         write_html(run, args.report)
         print(f"report written to {args.report}")
     if not run.accepted and not args.force:
-        if args.param_out or args.write:
+        if args.param_out or getattr(args, "write", False):
             print("nothing written: the calibration failed a quality gate (use --force to override)", file=sys.stderr)
         raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
     if args.param_out:
-        write_param_file(args.param_out, run.mapping.new,
-                         header=[f"mavcal calibration of {run.source}", f"model {run.calibration.model}"])
+        write_param_file(args.param_out, run.mapping.new, header=[title, f"model {run.calibration.model}"])
         print(f"parameters written to {args.param_out}")
+
+
+def _single(args, source: str) -> int:
+    from mavcal.pipeline import calibrate_source
+    from mavcal.sources import is_device, open_source
+    from mavcal.sources.progress import auto_progress
+
+    opts = _options(args)
+    device = is_device(source)
+    if device:
+        log_ = open_source(source, baud=args.baud, duration_s=args.duration, progress=auto_progress("recording"))
+        run = calibrate_source(log_, opts)
+    else:
+        run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))
+    write_outputs(run, args, f"mavcal calibration of {run.source}")
     if args.write or args.dry_run:
         target = args.connect or (source if device else None)
         if target is None:

@@ -15,12 +15,11 @@ failed and the vehicle was restored; 6 write failed and the restore failed.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Optional, TextIO
 
-from mavcal.errors import GateError, UsageError
+from mavcal.errors import UsageError
 
 HELP = "guided live capture: says which pose to hold next, fits as it goes, then writes on confirmation"
 
@@ -92,11 +91,10 @@ def _check(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mavcal import live_capture
-    from mavcal.ardupilot.paramfile import write_param_file
     from mavcal.capture import CaptureConfig
     from mavcal.commands.apply import write_with_report
-    from mavcal.commands.calibrate import summary
-    from mavcal.pipeline import Options, run_to_json
+    from mavcal.commands.calibrate import write_outputs
+    from mavcal.pipeline import Options
     from mavcal.segment import StillConfig
 
     _check(args)
@@ -116,24 +114,7 @@ def run(args: argparse.Namespace) -> int:
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
     run = session.result()  # InsufficientDataError (exit 4) when too little was captured
-    print(summary(run))
-    if args.json:
-        text = json.dumps(run_to_json(run), indent=1)
-        if args.json == "-":
-            print(text)
-        else:
-            Path(args.json).write_text(text)
-    if args.report:
-        from mavcal.report import write_html
-        write_html(run, args.report)
-        print(f"report written to {args.report}")
-    if not run.accepted and not args.force:
-        print("nothing written: the calibration failed a quality gate (use --force to override)", file=sys.stderr)
-        raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
-    if args.param_out:
-        write_param_file(args.param_out, run.mapping.new,
-                         header=[f"mavcal guided capture on {args.connect}", f"model {run.calibration.model}"])
-        print(f"parameters written to {args.param_out}")
+    write_outputs(run, args, f"mavcal guided capture on {args.connect}")
     changes = dict(run.mapping.new)
     if args.write or args.dry_run:
         return write_with_report(args, changes, args.backup, "calibration write")

@@ -31,11 +31,9 @@ from mavcal.core import steps
 from mavcal.core.gauge import canonical
 from mavcal.core.initial import (
     G_UNIT,
-    approximate_rotations,
     fit_ellipsoid,
     fit_sphere,
     search_rotation_hz,
-    sensor_weight,
 )
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, refit_covariances

@@ -10,7 +10,7 @@ least-squares gain and bias for those orientations, and then refines everything 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np

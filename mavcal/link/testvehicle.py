@@ -52,13 +52,12 @@ import heapq
 import itertools
 import logging
 import math
-import os
 import random
 import select
 import socket
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -716,7 +715,7 @@ class TestVehicle:
         # AP_Compass::_reorder_compass_params: slot i gets the compass whose id is PRIO(i+1)
         slots = [{f: p[f"COMPASS_{f.format(s=sfx)}"] for f in _COMPASS_SET_FIELDS} | {"EXT": p[_EXTERNAL_NAMES[i]]}
                  for i, sfx in enumerate(_COMPASS_SFX)]
-        by_id = {int(sl[f"DEV_ID{{s}}"]): sl for sl in slots if int(sl["DEV_ID{s}"]) != 0}
+        by_id = {int(sl["DEV_ID{s}"]): sl for sl in slots if int(sl["DEV_ID{s}"]) != 0}
         new_slots = []
         for i in range(3):
             prio = int(p[f"COMPASS_PRIO{i + 1}_ID"])

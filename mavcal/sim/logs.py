@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.rotations import euler_to_matrix, rotation_matrix
-from mavcal.sources.writers import DataFlashWriter, TlogWriter, int16_trunc
+from mavcal.sources.writers import DataFlashWriter, TlogWriter
 
 log = logging.getLogger(__name__)
 

@@ -18,12 +18,11 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
-from mavcal.errors import SourceError
 from mavcal.sources.fast_tlog import _mark_path
 
 log = logging.getLogger(__name__)

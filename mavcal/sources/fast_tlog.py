@@ -35,7 +35,6 @@ try:  # the dialect mavutil uses by default (superset of ardupilotmega)
 except ImportError:  # pragma: no cover
     from pymavlink.dialects.v20 import ardupilotmega as _dialect
 
-from mavcal.errors import SourceError
 
 log = logging.getLogger(__name__)
 
