@@ -31,7 +31,23 @@ def int16_trunc(x) -> np.ndarray:
 
 # =========================================================================== tlog
 
-class TlogWriter:
+class _FileWriter:
+    """Context-manager plumbing shared by the log writers (``self._f`` is the open file)."""
+
+    _f: BinaryIO
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+
+
+class TlogWriter(_FileWriter):
     """Write a .tlog: MAVLink packets with 8-byte big-endian µs UNIX timestamps.
 
     Parameters
@@ -62,16 +78,6 @@ class TlogWriter:
         self.count = 0
 
     # -- plumbing
-    def __enter__(self) -> "TlogWriter":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        if not self._f.closed:
-            self._f.close()
-
     def write(self, t_unix_s: float, msg, from_gcs: bool = False) -> None:
         """Write one pymavlink message object at receive time ``t_unix_s`` (seconds)."""
         mav = self._gcs if from_gcs else self._mav
@@ -155,7 +161,7 @@ def _cstr(s: str, n: int) -> bytes:
     return b + b"\0" * (n - len(b))
 
 
-class DataFlashWriter:
+class DataFlashWriter(_FileWriter):
     """Write an ArduPilot DataFlash (.bin) log that pymavlink's DFReader reads.
 
     Times are ``TimeUS``: microseconds since boot (int).
@@ -167,16 +173,6 @@ class DataFlashWriter:
         self._written: set = set()
         self.count = 0
         self._write_fmt("FMT", _FMT_TYPE, "BBnNZ", "Type,Length,Name,Format,Columns")
-
-    def __enter__(self) -> "DataFlashWriter":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        if not self._f.closed:
-            self._f.close()
 
     def _write_fmt(self, name: str, type_id: int, fmt: str, columns: str) -> None:
         length = 3 + struct.calcsize(_struct_of(fmt))
