@@ -197,20 +197,10 @@ def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> Tuple
 
 def _theta_by_names(res: RefineResult):
     """Global parameter vector in ``res.names`` order (recomputed from the structured params)."""
-    vals = []
+    from mavcal.core.uncertainty import param_value
+
     p = res.params
-    for name in res.names:
-        if name == "h_z":
-            vals.append(p.h_z)
-            continue
-        sym, lab = name.split("[")
-        lab = lab.rstrip("]")
-        k = 0 if sym.startswith(("K_a", "b_a")) else 1
-        if sym.startswith("K"):
-            vals.append(p.gains[k][int(lab[0]) - 1, int(lab[1]) - 1])
-        else:
-            vals.append(p.biases[k]["xyz".index(lab)])
-    return [np.array(vals)]
+    return [np.array([param_value(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, n) for n in res.names])]
 
 
 # constraints that turn each model of MODEL_CHAIN into the next (on the *full* parameterisation)

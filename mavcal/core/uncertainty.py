@@ -17,13 +17,12 @@ from mavcal.core.types import Calibration
 
 def parameter_vector(cal: Calibration) -> np.ndarray:
     """The global parameters of ``cal`` in the order of ``cal.param_names``."""
-    vals = []
-    for name in cal.param_names:
-        vals.append(_get(cal.accel.gain, cal.accel.bias, cal.mag.gain, cal.mag.bias, cal.h_z, name))
-    return np.array(vals)
+    return np.array([param_value(cal.accel.gain, cal.accel.bias, cal.mag.gain, cal.mag.bias, cal.h_z, name)
+                     for name in cal.param_names])
 
 
-def _get(Ka, ba, Km, bm, hz, name):
+def param_value(Ka, ba, Km, bm, hz, name: str) -> float:
+    """The value of the global parameter ``name`` ("K_a[12]", "b_m[y]", "h_z", ...)."""
     if name == "h_z":
         return hz
     sym, lab = name.split("[")
