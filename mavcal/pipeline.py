@@ -17,7 +17,14 @@ import mavcal
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
-from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, ParamMapping, map_accel, map_compass
+from mavcal.ardupilot.mapping import (
+    AccelMapping,
+    CompassMapping,
+    ParamMapping,
+    accel_frame,
+    map_accel,
+    map_compass,
+)
 from mavcal.ardupilot.recover import RawImu, recover_raw
 from mavcal.core.types import Calibration
 from mavcal.errors import InsufficientDataError, MavcalError, SourceError
@@ -114,10 +121,7 @@ def _field_magnitude(opts: Options, log_: ImuLog, raw_mag_means: np.ndarray, old
 
 def _truth_functions(K_a, b_a, K_m, b_m, h, board_rot, R_old, field_norm):
     """Raw-reading functions of a sensor model in the engine frame (for error propagation)."""
-    D = np.linalg.norm(K_a, axis=1)
-    A = (G0 / D)[:, None] * K_a / G0
-    W, _, Vt = np.linalg.svd(A)
-    P = W @ Vt
+    _, _, P = accel_frame(K_a)
     to_E = (board_rot @ P).T  # body -> E
     h_norm = float(np.linalg.norm(h))
 

@@ -142,13 +142,18 @@ class ParamMapping:
         return out
 
 
+def accel_frame(K_a: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-axis scales S_j = g0 / |row_j(K_a)|, A = diag(S) K_a / g0 and its polar factor P
+    (engine frame E -> board frame). Returns (S, A, P)."""
+    K_a = np.asarray(K_a, dtype=float)
+    S = G0 / np.linalg.norm(K_a, axis=1)
+    A = S[:, None] * K_a / G0
+    return S, A, _polar_right_rotation(A)
+
+
 def map_accel(K_a: np.ndarray, b_a: np.ndarray, old: fw.AccelCal, instance: int = 0) -> AccelMapping:
     """Best per-axis ArduPilot representation of an accelerometer gain and bias (board frame)."""
-    K_a = np.asarray(K_a, dtype=float)
-    D = np.linalg.norm(K_a, axis=1)
-    S = G0 / D
-    A = S[:, None] * K_a / G0
-    P = _polar_right_rotation(A)
+    S, A, P = accel_frame(K_a)
     if np.linalg.det(P) < 0:
         raise ParameterMappingError("the accelerometer gain is mirrored (det < 0): an axis of the IMU is "
                                     "inverted, check the board orientation and the IMU driver")
