@@ -209,7 +209,6 @@ _REDUCTIONS = {
     "ardupilot": [{"K_m[12]": 1, "K_m[21]": -1}, {"K_m[13]": 1, "K_m[31]": -1}, {"K_m[23]": 1, "K_m[32]": -1}],
     "offsets-scales": [{"K_m[12]": 1}, {"K_m[13]": 1}, {"K_m[23]": 1}],
 }
-_REDUCTIONS_FROM_SYM = {"offsets-scales": [{"K_m[12]": 1}, {"K_m[13]": 1}, {"K_m[23]": 1}]}
 
 
 SECOND_START_CHI2 = 3.0  # chi2/dof above which the other initial estimate is tried too
@@ -386,7 +385,7 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         chosen, tests = spec, []
         cons: list = []
         for nxt in chain[1:]:
-            extra = _REDUCTIONS[nxt] if spec.mag_form == "full" or nxt != "offsets-scales" else _REDUCTIONS_FROM_SYM[nxt]
+            extra = _REDUCTIONS[nxt]
             if spec.accel_form == "diag" and nxt == "diag-accel":
                 continue
             if spec.mag_form == "sym" and nxt == "ardupilot":
@@ -416,7 +415,7 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         res = replace(res, cov=cov)
     p = JointParams((K_a, K_m), p.biases, h_z, R)
     dof = res.dof
-    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res, gauge_changed=False)
+    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res)
     converged = bool(block_conv and res.converged)
     msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
            f"{res.iterations} joint refinement iterations"
@@ -450,7 +449,7 @@ def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm,
 
 
 def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,
-                         res: RefineResult, gauge_changed: bool) -> Optional[np.ndarray]:
+                         res: RefineResult) -> Optional[np.ndarray]:
     """Parameter covariance honest about misfit, sensor by sensor.
 
     When a sensor's weighted residuals exceed what its noise covariance explains
