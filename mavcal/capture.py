@@ -31,6 +31,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from mavcal.ardupilot.rotations import euler_to_matrix
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
 from mavcal.errors import MavcalError
@@ -92,12 +93,8 @@ class CaptureStatus:
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
-    """Body-to-NED rotation Rz(yaw) Ry(pitch) Rx(roll) (ArduPilot ``from_euler``)."""
-    r, p, y = np.radians([roll_deg, pitch_deg, yaw_deg])
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array([[cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
-                     [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
-                     [-sp, sr * cp, cr * cp]])
+    """Body-to-NED rotation Rz(yaw) Ry(pitch) Rx(roll) from degrees (ArduPilot ``from_euler``)."""
+    return euler_to_matrix(*np.radians([roll_deg, pitch_deg, yaw_deg]))
 
 
 _POINTS = ["north", "north-east", "east", "south-east", "south", "south-west", "west", "north-west"]
