@@ -61,67 +61,64 @@ def check(mapping, params: Mapping[str, float], *, n_intervals: int, n_orientati
           heading_95_deg: float, tilt_95_deg: float, holdout_accel_mps2: float, holdout_mag_mgauss: float,
           config: GateConfig = GateConfig()) -> GateReport:
     """Evaluate every gate for a :class:`mavcal.ardupilot.mapping.ParamMapping`."""
+    from mavcal.ardupilot import firmware as fw
+
     gates: List[Gate] = []
+
+    def add(sensor: str, name: str, ok, value, limit: str, reason: str) -> None:
+        """Record a gate; the reason is kept only when it failed."""
+        gates.append(Gate(sensor, name, bool(ok), float(value), limit, "" if ok else reason))
+
+    c = config
     for am in mapping.accel:
         s = f"accel{am.instance}"
-        ofs = np.abs(np.asarray(am.new.ofs_mps2))
-        gates.append(Gate(s, "offsets", bool(ofs.max() <= config.accel_offset_max_mps2), float(ofs.max()),
-                          f"<= {config.accel_offset_max_mps2} m/s^2",
-                          "" if ofs.max() <= config.accel_offset_max_mps2 else
-                          f"accelerometer offset {ofs.max():.2f} m/s^2 is beyond ArduPilot's limit: a damaged IMU, "
-                          "or readings that are not in m/s^2"))
+        ofs = float(np.abs(np.asarray(am.new.ofs_mps2)).max())
+        add(s, "offsets", ofs <= c.accel_offset_max_mps2, ofs, f"<= {c.accel_offset_max_mps2} m/s^2",
+            f"accelerometer offset {ofs:.2f} m/s^2 is beyond ArduPilot's limit: a damaged IMU, "
+            "or readings that are not in m/s^2")
         sc = np.asarray(am.new.scale)
-        lo, hi = config.accel_scale_range
-        ok = bool(np.all((sc >= lo) & (sc <= hi)))
-        gates.append(Gate(s, "scales", ok, float(np.max(np.abs(sc - 1))), f"{lo}-{hi}",
-                          "" if ok else f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside ArduPilot's "
-                          f"{lo}-{hi}: check the IMU and that the vehicle was still"))
-    from mavcal.ardupilot import firmware as fw
+        lo, hi = c.accel_scale_range
+        add(s, "scales", np.all((sc >= lo) & (sc <= hi)), np.max(np.abs(sc - 1)), f"{lo}-{hi}",
+            f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside ArduPilot's {lo}-{hi}: check the IMU "
+            "and that the vehicle was still")
     for cm in mapping.compass:
         s = f"compass{cm.instance}"
         names = fw.compass_param_names(cm.instance)
-        omax = config.compass_offset_max_mgauss or float(params.get("COMPASS_OFFS_MAX", 1800.0))
+        omax = c.compass_offset_max_mgauss or float(params.get("COMPASS_OFFS_MAX", 1800.0))
         ol = float(np.linalg.norm(cm.new.ofs_mgauss))
-        gates.append(Gate(s, "offsets", ol <= omax, ol, f"<= {omax:g} mGauss (COMPASS_OFFS_MAX)",
-                          "" if ol <= omax else f"compass offset length {ol:.0f} mGauss exceeds COMPASS_OFFS_MAX: "
-                          "a magnet or steel near the compass, or a magnetised part"))
+        add(s, "offsets", ol <= omax, ol, f"<= {omax:g} mGauss (COMPASS_OFFS_MAX)",
+            f"compass offset length {ol:.0f} mGauss exceeds COMPASS_OFFS_MAX: a magnet or steel near the compass, "
+            "or a magnetised part")
         dia = np.asarray(cm.new.dia)
-        ok = bool(np.all((dia > config.dia_range[0]) & (dia < config.dia_range[1])))
-        gates.append(Gate(s, "diagonal", ok, float(np.max(np.abs(dia - 1))), f"{config.dia_range[0]}-{config.dia_range[1]}",
-                          "" if ok else f"soft-iron diagonal {np.round(dia, 3)} outside ArduPilot's range"))
-        odi = np.abs(np.asarray(cm.new.odi))
-        gates.append(Gate(s, "off-diagonal", bool(odi.max() < config.odi_max), float(odi.max()), f"< {config.odi_max}",
-                          "" if odi.max() < config.odi_max else "soft-iron off-diagonal too large"))
+        add(s, "diagonal", np.all((dia > c.dia_range[0]) & (dia < c.dia_range[1])), np.max(np.abs(dia - 1)),
+            f"{c.dia_range[0]}-{c.dia_range[1]}", f"soft-iron diagonal {np.round(dia, 3)} outside ArduPilot's range")
+        odi = float(np.abs(np.asarray(cm.new.odi)).max())
+        add(s, "off-diagonal", odi < c.odi_max, odi, f"< {c.odi_max}", "soft-iron off-diagonal too large")
         f = cm.field_mgauss
-        lo, hi = config.field_range_mgauss
-        gates.append(Gate(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
-                          "" if lo <= f <= hi else f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range"))
+        lo, hi = c.field_range_mgauss
+        add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
+            f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range")
         dev = params.get(names["dev_id"])
         prio = params.get(names["prio_id"])
         if dev is not None and prio is not None and int(dev) != int(prio) and int(prio) != 0:
-            gates.append(Gate(s, "device id", False, float(dev), f"= COMPASS_PRIO{cm.instance + 1}_ID",
-                              f"compass slot {cm.instance + 1} holds device {int(dev)} but priority {cm.instance + 1} is "
-                              f"device {int(prio)}: the slots swapped after a priority change; reboot the vehicle and "
-                              "recalibrate"))
-    ok = n_intervals >= config.min_intervals
-    gates.append(Gate("data", "intervals", ok, float(n_intervals), f">= {config.min_intervals}",
-                      "" if ok else f"only {n_intervals} still intervals; hold the vehicle still in more orientations"))
-    ok = n_orientations >= min(config.min_intervals, 6)
-    gates.append(Gate("data", "orientations", ok, float(n_orientations), ">= 6 distinct",
-                      "" if ok else f"only {n_orientations} distinct orientations; add poses on every side"))
-    ok = heading_95_deg <= config.heading_95_max_deg
-    gates.append(Gate("data", "heading uncertainty", ok, heading_95_deg, f"<= {config.heading_95_max_deg} deg (95 %)",
-                      "" if ok else f"the heading error could reach {heading_95_deg:.2f} deg (95 %): more or better spread "
-                      "poses needed"))
-    ok = tilt_95_deg <= config.tilt_95_max_deg
-    gates.append(Gate("data", "tilt uncertainty", ok, tilt_95_deg, f"<= {config.tilt_95_max_deg} deg (95 %)",
-                      "" if ok else f"the tilt error could reach {tilt_95_deg:.2f} deg (95 %)"))
-    ok = holdout_accel_mps2 <= config.holdout_accel_max_mps2
-    gates.append(Gate("data", "held-out accel error", ok, holdout_accel_mps2, f"<= {config.holdout_accel_max_mps2} m/s^2",
-                      "" if ok else f"held-out accelerometer error {holdout_accel_mps2:.3f} m/s^2: the vehicle moved "
-                      "during the intervals or the model does not fit"))
-    ok = holdout_mag_mgauss <= config.holdout_mag_max_mgauss
-    gates.append(Gate("data", "held-out compass error", ok, holdout_mag_mgauss, f"<= {config.holdout_mag_max_mgauss} mGauss",
-                      "" if ok else f"held-out compass error {holdout_mag_mgauss:.1f} mGauss: magnetic disturbance "
-                      "(steel, magnets, currents) differs between poses"))
+            add(s, "device id", False, dev, f"= COMPASS_PRIO{cm.instance + 1}_ID",
+                f"compass slot {cm.instance + 1} holds device {int(dev)} but priority {cm.instance + 1} is device "
+                f"{int(prio)}: the slots swapped after a priority change; reboot the vehicle and recalibrate")
+    add("data", "intervals", n_intervals >= c.min_intervals, n_intervals, f">= {c.min_intervals}",
+        f"only {n_intervals} still intervals; hold the vehicle still in more orientations")
+    add("data", "orientations", n_orientations >= min(c.min_intervals, 6), n_orientations, ">= 6 distinct",
+        f"only {n_orientations} distinct orientations; add poses on every side")
+    add("data", "heading uncertainty", heading_95_deg <= c.heading_95_max_deg, heading_95_deg,
+        f"<= {c.heading_95_max_deg} deg (95 %)",
+        f"the heading error could reach {heading_95_deg:.2f} deg (95 %): more or better spread poses needed")
+    add("data", "tilt uncertainty", tilt_95_deg <= c.tilt_95_max_deg, tilt_95_deg, f"<= {c.tilt_95_max_deg} deg (95 %)",
+        f"the tilt error could reach {tilt_95_deg:.2f} deg (95 %)")
+    add("data", "held-out accel error", holdout_accel_mps2 <= c.holdout_accel_max_mps2, holdout_accel_mps2,
+        f"<= {c.holdout_accel_max_mps2} m/s^2",
+        f"held-out accelerometer error {holdout_accel_mps2:.3f} m/s^2: the vehicle moved during the intervals or "
+        "the model does not fit")
+    add("data", "held-out compass error", holdout_mag_mgauss <= c.holdout_mag_max_mgauss, holdout_mag_mgauss,
+        f"<= {c.holdout_mag_max_mgauss} mGauss",
+        f"held-out compass error {holdout_mag_mgauss:.1f} mGauss: magnetic disturbance (steel, magnets, currents) "
+        "differs between poses")
     return GateReport(tuple(gates))
