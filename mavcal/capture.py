@@ -32,6 +32,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 
 from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
 from mavcal.errors import MavcalError
@@ -41,7 +42,7 @@ from mavcal.sources.types import ImuLog, ParamTimeline, SensorSeries
 
 log = logging.getLogger(__name__)
 
-G0 = 9.80665
+G0 = GRAVITY_MPS2
 
 
 @dataclass(frozen=True)

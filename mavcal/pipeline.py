@@ -27,6 +27,7 @@ from mavcal.ardupilot.mapping import (
 )
 from mavcal.ardupilot.recover import RawImu, recover_raw
 from mavcal.core.types import Calibration
+from mavcal.core.uncertainty import sample_parameters
 from mavcal.errors import InsufficientDataError, MavcalError, SourceError
 from mavcal.segment import Segmentation, StillConfig, find_still_intervals
 from mavcal.sources.types import ImuLog
@@ -149,7 +150,7 @@ def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot
     nominal = errs({"K_a": cal.accel.gain, "b_a": cal.accel.bias, "K_m": cal.mag.gain, "b_m": cal.mag.bias,
                     "h": cal.field})
     hs, ts = [], []
-    for d in cal.sample_parameters(draws, np.random.default_rng(seed)):
+    for d in sample_parameters(cal, draws, np.random.default_rng(seed)):
         e = errs(d)
         hs.append(e.max_heading_deg)
         ts.append(e.max_tilt_deg)

@@ -31,6 +31,7 @@ from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
+from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, rotation_matrix
 
 __all__ = [
@@ -57,7 +58,7 @@ __all__ = [
     "accel_param_values",
 ]
 
-GRAVITY_MSS = 9.80665
+GRAVITY_MSS = GRAVITY_MPS2  # ArduPilot's name for the one constant
 COMPASS_MIN_SCALE = 1.0 / 1.5
 COMPASS_MAX_SCALE = 1.5
 MAX_COMPASSES = 3

@@ -20,7 +20,7 @@ from mavcal.core.initial import G_UNIT
 from mavcal.core.models import FORMS
 from mavcal.core.refine import JointParams, JointProblem, Term, refit_covariances
 from mavcal.core.stats import interval_stats
-from mavcal.core.types import SensorModel, _frozen
+from mavcal.core.types import SensorModel, frozen_array
 from mavcal.errors import EstimationError
 
 
@@ -43,7 +43,7 @@ class MultiCalibration:
 
     def __post_init__(self) -> None:
         for n in ("gravity", "field", "orientations", "param_cov"):
-            object.__setattr__(self, n, _frozen(getattr(self, n)))
+            object.__setattr__(self, n, frozen_array(getattr(self, n)))
 
     @property
     def h_z(self) -> float:

@@ -19,7 +19,8 @@ from typing import Optional, Tuple
 import numpy as np
 
 
-def _frozen(a: np.ndarray | None) -> np.ndarray | None:
+def frozen_array(a: np.ndarray | None) -> np.ndarray | None:
+    """A read-only float copy of ``a`` (None stays None): what frozen results hold."""
     if a is None:
         return None
     a = np.array(a, dtype=float, copy=True)
@@ -54,9 +55,9 @@ class SensorModel:
     kind: str = "accel"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "gain", _frozen(self.gain))
-        object.__setattr__(self, "bias", _frozen(self.bias))
-        object.__setattr__(self, "noise_cov", _frozen(self.noise_cov))
+        object.__setattr__(self, "gain", frozen_array(self.gain))
+        object.__setattr__(self, "bias", frozen_array(self.bias))
+        object.__setattr__(self, "noise_cov", frozen_array(self.noise_cov))
 
     def nominal(self, readings: np.ndarray) -> np.ndarray:
         """Invert the model: K^-1 (v - b) for readings of shape (..., 3)."""
@@ -135,7 +136,7 @@ class Calibration:
 
     def __post_init__(self) -> None:
         for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):
-            object.__setattr__(self, name, _frozen(getattr(self, name)))
+            object.__setattr__(self, name, frozen_array(getattr(self, name)))
         object.__setattr__(self, "param_names", tuple(self.param_names))
 
     @property
@@ -154,17 +155,6 @@ class Calibration:
         of a still vehicle points up), so "down" is +z and inclination = atan2(h_z, h_x).
         """
         return float(np.degrees(np.arctan2(self.field[2], self.field[0])))
-
-    def sample_parameters(self, n: int, rng: np.random.Generator | None = None):
-        """Draw ``n`` parameter sets from the Gaussian approximation of the posterior.
-
-        Returns a list of dicts with keys ``K_a``, ``b_a``, ``K_m``, ``b_m``, ``h`` (field).
-        Used to propagate the estimation uncertainty into derived quantities (heading and
-        tilt errors of the ArduPilot parameters, for instance).
-        """
-        from mavcal.core.uncertainty import sample_parameters
-
-        return sample_parameters(self, n, rng)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Calibration):

@@ -15,11 +15,12 @@ from typing import Dict, Tuple
 
 import numpy as np
 
+from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.sources.types import ImuLog, SensorSeries
 
 # message -> sensor -> telemetry unit in the series' units
 TRUNCATED_UNITS: Dict[str, Dict[str, float]] = {
-    **{m: {"accel": 9.80665e-3, "gyro": 1e-3, "mag": 1.0} for m in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")},
+    **{m: {"accel": GRAVITY_MPS2 / 1000.0, "gyro": 1e-3, "mag": 1.0} for m in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")},
     **{m: {"mag": 1.0} for m in ("MAG", "MAG2", "MAG3")},
 }
 

@@ -50,12 +50,13 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import MavcalError, SourceError
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 
 log = logging.getLogger(__name__)
 
-G0 = 9.80665
+G0 = GRAVITY_MPS2
 MG_TO_MS2 = G0 / 1000.0
 ProgressFn = Callable[[int, int], None]
 
