@@ -16,7 +16,26 @@ from __future__ import annotations
 import re
 from typing import Iterable, Optional, Tuple
 
-__all__ = ["vector_group", "needs_reboot", "force_save_kinds", "valid_param_name", "CUSTOM_ROTATIONS"]
+__all__ = ["vector_group", "needs_reboot", "force_save_kinds", "valid_param_name", "CUSTOM_ROTATIONS", "MAV_CMD",
+           "MAV_CMD_PREFLIGHT_CALIBRATION", "MAV_CMD_SET_MESSAGE_INTERVAL", "MAV_CMD_ACCELCAL_VEHICLE_POS"]
+
+#: The one table of the MAV_CMD numbers mavcal sends or recognises in logs (common.xml /
+#: ardupilotmega.xml; the same values as pymavlink's ``mavlink.MAV_CMD_*``, kept here so that
+#: modules that must not import pymavlink can name them).
+MAV_CMD = {
+    "MAV_CMD_PREFLIGHT_CALIBRATION": 241,
+    "MAV_CMD_PREFLIGHT_SET_SENSOR_OFFSETS": 242,
+    "MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN": 246,
+    "MAV_CMD_SET_MESSAGE_INTERVAL": 511,
+    "MAV_CMD_FIXED_MAG_CAL_YAW": 42006,
+    "MAV_CMD_DO_START_MAG_CAL": 42424,
+    "MAV_CMD_DO_ACCEPT_MAG_CAL": 42425,
+    "MAV_CMD_DO_CANCEL_MAG_CAL": 42426,
+    "MAV_CMD_ACCELCAL_VEHICLE_POS": 42429,
+}
+MAV_CMD_PREFLIGHT_CALIBRATION = MAV_CMD["MAV_CMD_PREFLIGHT_CALIBRATION"]
+MAV_CMD_SET_MESSAGE_INTERVAL = MAV_CMD["MAV_CMD_SET_MESSAGE_INTERVAL"]
+MAV_CMD_ACCELCAL_VEHICLE_POS = MAV_CMD["MAV_CMD_ACCELCAL_VEHICLE_POS"]
 
 #: names ArduPilot accepts: at most 16 characters (AP_MAX_NAME_SIZE), upper case, digits, '_'
 _NAME_RE = re.compile(r"^[A-Z0-9_]{1,16}$")
