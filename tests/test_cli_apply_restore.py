@@ -54,7 +54,7 @@ def test_device_that_does_not_answer_exits_3_quickly_with_one_line(calfile, caps
     assert rc == 3 and err.count("\n") == 1 and "no heartbeat" in err
 
 
-@pytest.mark.parametrize("text,code", [("COMPASS_OFS_X\n", 3), ("COMPASS_OFS_X 1 2\n", 3), ("", 2)])
+@pytest.mark.parametrize("text,code", [("COMPASS_OFS_X\n", 3), ("COMPASS_OFS_X 1 2\n", 3), ("", 3)])
 def test_bad_files(tmp_path, capsys, text, code):
     p = tmp_path / "bad.param"
     p.write_text(text)

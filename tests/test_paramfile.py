@@ -67,3 +67,18 @@ def test_name_rules():
     assert not needs_reboot("COMPASS_OFS_X", 10)
     assert force_save_kinds(["COMPASS_OFS_X", "INS_ACC2SCAL_Y"]) == ("compass", "accel")
     assert force_save_kinds(["SR0_RAW_SENS"]) == ()
+
+
+def test_byte_order_mark_is_accepted(tmp_path):
+    p = tmp_path / "bom.param"
+    p.write_bytes("\ufeffCOMPASS_OFS_X,12.5\nCOMPASS_OFS_Y 3\n".encode("utf-8"))
+    assert read_param_file(p) == {"COMPASS_OFS_X": 12.5, "COMPASS_OFS_Y": 3.0}
+
+
+@pytest.mark.parametrize("text", ["", "# only a comment\n\n"])
+def test_file_without_parameters_is_unreadable_input(tmp_path, text):
+    p = tmp_path / "empty.param"
+    p.write_text(text)
+    with pytest.raises(ParamFileError, match="holds no parameters") as ei:
+        read_param_file(p)
+    assert ei.value.exit_code == 3

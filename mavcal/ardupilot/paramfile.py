@@ -135,14 +135,19 @@ def read_param_file(path: PathLike) -> Dict[str, float]:
     Raises
     ------
     ParamFileError
-        If the file is missing, unreadable, not text, or has a malformed line.
+        If the file is missing, unreadable, not text, has a malformed line or holds no
+        parameter at all (an empty file is unreadable input, exit code 3, not a usage error).
+        A UTF-8 byte-order mark (as some Windows editors write) is accepted.
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise ParamFileError(f"cannot read parameter file {str(p)!r}: {exc}") from None
-    return parse_param_text(text, source=str(p))
+    params = parse_param_text(text, source=str(p))
+    if not params:
+        raise ParamFileError(f"{str(p)!r} holds no parameters (empty, or only comments)")
+    return params
 
 
 def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Optional[Iterable[str]] = None,
