@@ -1,7 +1,7 @@
 """Guided capture vs random poses: how many poses until the heading-error target.
 
 A simulated hand holds an ArduPilot-like vehicle (the loopback test vehicle's sensor model,
-:class:`mavcal.link.testvehicle.TestVehicle`, with random true sensor errors, its own
+:class:`mavcal.testing.vehicle.TestVehicle`, with random true sensor errors, its own
 calibration parameters applied and int16 truncation as in RAW_IMU) still in one pose after
 another, turning between them at a realistic rate (the gyro sees the motion). Telemetry at
 10 Hz, 2 s per hold. The hand either follows :class:`mavcal.capture.CaptureSession`'s
@@ -23,8 +23,8 @@ import numpy as np
 
 from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix
 from mavcal.core.rotations import exp_so3, random_rotations
-from mavcal.link.testvehicle import TestVehicle, VehicleTruth
 from mavcal.sources.types import SensorSeries
+from mavcal.testing.vehicle import TestVehicle, VehicleTruth
 
 OUT = Path(__file__).resolve().parent / "results"
 MG = 9.80665e-3

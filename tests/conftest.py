@@ -1,6 +1,9 @@
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+
+from mavcal.testing.vehicle import TestVehicle
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -18,3 +21,21 @@ def real_dir() -> Path:
 @pytest.fixture(scope="session")
 def sitl_dir() -> Path:
     return SITL
+
+
+@pytest.fixture
+def start_vehicle() -> Iterator[Callable[..., TestVehicle]]:
+    """Factory: ``start_vehicle(transport="udpout", **options)`` starts a :class:`TestVehicle`
+    on 127.0.0.1 with those options and returns it; every vehicle it started is stopped at
+    teardown, whatever the test did (stopping twice is harmless, so ``with start_vehicle(...)
+    as v:`` also works)."""
+    started: list[TestVehicle] = []
+
+    def start(transport: str = "udpout", **options) -> TestVehicle:
+        vehicle = TestVehicle(transport, **options)
+        started.append(vehicle)
+        return vehicle.start()
+
+    yield start
+    for vehicle in started:
+        vehicle.stop()

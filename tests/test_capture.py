@@ -7,7 +7,7 @@ import pytest
 
 from mavcal.capture import (CaptureConfig, CaptureSession, candidate_poses, coverage_map, describe_pose,
                             euler_matrix)
-from mavcal.link.testvehicle import CompassTruth, TestVehicle, VehicleTruth
+from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from capture_guidance import Hand  # noqa: E402  (the simulated hand of the benchmark)

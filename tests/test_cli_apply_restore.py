@@ -5,15 +5,13 @@ import pytest
 
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.cli import main
-from mavcal.link.testvehicle import TestVehicle
 
 FAST = ["--param-timeout", "0.2", "--timeout", "3"]
 
 
 @pytest.fixture
-def vehicle():
-    with TestVehicle("udpout", heartbeat_hz=20, seed=2) as v:
-        yield v
+def vehicle(start_vehicle):
+    return start_vehicle("udpout", heartbeat_hz=20, seed=2)
 
 
 @pytest.fixture

@@ -4,16 +4,11 @@ import pytest
 
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.cli import main
-from mavcal.link.testvehicle import TestVehicle
 
 
 @pytest.fixture
-def vehicle():
-    v = TestVehicle(transport="udpout", heartbeat_hz=20).start()
-    try:
-        yield v
-    finally:
-        v.stop()
+def vehicle(start_vehicle):
+    return start_vehicle("udpout", heartbeat_hz=20)
 
 
 def test_calibrate_log_and_write_to_vehicle(vehicle, sitl_dir, tmp_path, capsys):

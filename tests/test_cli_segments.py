@@ -5,7 +5,7 @@ from dataclasses import replace
 import pytest
 
 from mavcal.cli import main
-from mavcal.sim.logs import SimConfig, simulate_session
+from mavcal.testing.simlog import SimConfig, simulate_session
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import pytest
 from mavcal.errors import ParamWriteError, RestoreFailedError
 from mavcal.link.connection import open_link
 from mavcal.link.params import fetch_all_params
-from mavcal.link.testvehicle import Faults, TestVehicle
+from mavcal.testing.vehicle import Faults
 from mavcal.link.writer import write_params
 
 N_WRITES = 100
@@ -26,12 +26,12 @@ def _f32(x):
 
 
 @pytest.mark.slow
-def test_every_write_is_verified_or_fully_restored_under_30_percent_loss(tmp_path):
+def test_every_write_is_verified_or_fully_restored_under_30_percent_loss(tmp_path, start_vehicle):
     rng = np.random.default_rng(2024)
     faults = Faults(drop_in=0.3, drop_out=0.3, dup_in=0.05, dup_out=0.05)
     outcomes = {"complete": 0, "restored": 0, "restore_failed": 0}
     attempts = restore_attempts = 0
-    with TestVehicle("udpout", heartbeat_hz=20, seed=7) as v:
+    with start_vehicle("udpout", heartbeat_hz=20, seed=7) as v:
         link = open_link(v.gcs_device, timeout_s=5)
         try:
             table = fetch_all_params(link, 10, retry_s=0.1)

@@ -13,17 +13,16 @@ import pytest
 from pymavlink import mavutil
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import rotation_matrix as ap_rotation_matrix
-from mavcal.link.testvehicle import (AccelTruth, CompassTruth, TestVehicle, VehicleTruth,
-                                     rotation_matrix)
+from mavcal.ardupilot.rotations import rotation_matrix
+from mavcal.core.constants import GRAVITY_MPS2
+from mavcal.testing.vehicle import AccelCalTruth, CompassTruth, TestVehicle, VehicleTruth
 
 A = mavutil.mavlink
 
 
 @pytest.fixture
-def vehicle():
-    with TestVehicle("udpout", heartbeat_hz=20, seed=3) as v:
-        yield v
+def vehicle(start_vehicle):
+    return start_vehicle("udpout", heartbeat_hz=20, seed=3)
 
 
 @pytest.fixture
@@ -144,54 +143,54 @@ def test_commands_force_save_message_interval_and_unsupported(vehicle, gcs):
     assert wait_for(gcs, lambda m: m.get_type() == "COMMAND_ACK").result == A.MAV_RESULT_UNSUPPORTED
 
 
-def test_imu_stream_applies_current_calibration_like_ardupilot():
+def test_imu_stream_applies_current_calibration_like_ardupilot(start_vehicle):
     truth = VehicleTruth(
-        accels=(AccelTruth(offsets=(0.3, -0.2, 0.5), scale=(1.02, 0.98, 1.01), noise_mps2=0.0),) * 3,
+        accels=(AccelCalTruth(offsets=(0.3, -0.2, 0.5), scale=(1.02, 0.98, 1.01), noise_mps2=0.0),) * 3,
         compasses=(CompassTruth(97539, offsets=(120, -80, 45), dia=(1.05, 0.95, 1.02), odi=(0.02, -0.01, 0.03),
                                 orientation=6, external=True, noise_mgauss=0.0),
                    CompassTruth(131874, offsets=(-30, 60, 10), noise_mgauss=0.0),
                    CompassTruth(263178, noise_mgauss=0.0)),
         gyro_noise_rads=0.0)
-    with TestVehicle("tcp", truth=truth, heartbeat_hz=20) as v:
-        conn = mavutil.mavlink_connection(v.gcs_device, source_system=255, dialect="ardupilotmega")
-        try:
-            assert conn.wait_heartbeat(timeout=5)
-            conn.mav.request_data_stream_send(1, 1, A.MAV_DATA_STREAM_RAW_SENSORS, 50, 1)
-            v.set_attitude(roll=30, pitch=-20, yaw=100)
-            m = wait_for(conn, lambda m: m.get_type() == "RAW_IMU")
-            ideal = v.corrected_sensors(noise=False)
-            # int16 truncation toward zero of the corrected, body-frame values
-            exp_acc = [math.trunc(x * 1000 / 9.80665) for x in ideal["accel_mps2"][0]]
-            exp_mag = [math.trunc(x) for x in ideal["mag_mgauss"][0]]
-            assert [m.xacc, m.yacc, m.zacc] == exp_acc and [m.xmag, m.ymag, m.zmag] == exp_mag
-            # uncalibrated: the field is off; with the ideal calibration it is the Earth field
-            field = np.array(truth.earth_field_ned_mgauss)
-            R = v.attitude
-            assert np.linalg.norm(ideal["mag_mgauss"][0] - R.T @ field) > 50
-            ideal_params = {"COMPASS_OFS_X": 120, "COMPASS_OFS_Y": -80, "COMPASS_OFS_Z": 45,
-                            "COMPASS_DIA_X": 1.05, "COMPASS_DIA_Y": 0.95, "COMPASS_DIA_Z": 1.02,
-                            "COMPASS_ODI_X": 0.02, "COMPASS_ODI_Y": -0.01, "COMPASS_ODI_Z": 0.03,
-                            "COMPASS_ORIENT": 6, "INS_ACCOFFS_X": 0.3, "INS_ACCOFFS_Y": -0.2,
-                            "INS_ACCOFFS_Z": 0.5, "INS_ACCSCAL_X": 1.02, "INS_ACCSCAL_Y": 0.98,
-                            "INS_ACCSCAL_Z": 1.01}
-            for k, val in ideal_params.items():  # over the protocol: takes effect at once
-                conn.mav.param_set_send(1, 1, k.encode(), val, A.MAV_PARAM_TYPE_REAL32)
-            time.sleep(0.1)
-            assert v.get_param("COMPASS_ORIENT") == 6
-            now = v.corrected_sensors(noise=False)
-            np.testing.assert_allclose(now["mag_mgauss"][0], R.T @ field, atol=1e-3)
-            np.testing.assert_allclose(now["accel_mps2"][0], R.T @ [0, 0, -9.80665], atol=1e-5)
-            # DIA all zero skips the whole matrix (ODI too); SCALE outside [1/1.5, 1.5] is ignored
-            for k in ("COMPASS_DIA_X", "COMPASS_DIA_Y", "COMPASS_DIA_Z"):
-                v.set_param_local(k, 0.0)
-            v.set_param_local("COMPASS_SCALE", 2.0)
-            raw_rot = rotation_matrix(6) @ (rotation_matrix(6).T @ (
-                np.linalg.solve([[1.05, 0.02, -0.01], [0.02, 0.95, 0.03], [-0.01, 0.03, 1.02]], R.T @ field)
-                - [120, -80, 45]))
-            np.testing.assert_allclose(v.corrected_sensors(noise=False)["mag_mgauss"][0],
-                                       raw_rot + [120, -80, 45], atol=1e-3)
-        finally:
-            conn.close()
+    v = start_vehicle("tcp", truth=truth, heartbeat_hz=20)
+    conn = mavutil.mavlink_connection(v.gcs_device, source_system=255, dialect="ardupilotmega")
+    try:
+        assert conn.wait_heartbeat(timeout=5)
+        conn.mav.request_data_stream_send(1, 1, A.MAV_DATA_STREAM_RAW_SENSORS, 50, 1)
+        v.set_attitude(roll=30, pitch=-20, yaw=100)
+        m = wait_for(conn, lambda m: m.get_type() == "RAW_IMU")
+        ideal = v.corrected_sensors(noise=False)
+        # int16 truncation toward zero of the corrected, body-frame values
+        exp_acc = [math.trunc(x * 1000 / GRAVITY_MPS2) for x in ideal["accel_mps2"][0]]
+        exp_mag = [math.trunc(x) for x in ideal["mag_mgauss"][0]]
+        assert [m.xacc, m.yacc, m.zacc] == exp_acc and [m.xmag, m.ymag, m.zmag] == exp_mag
+        # uncalibrated: the field is off; with the ideal calibration it is the Earth field
+        field = np.array(truth.earth_field_ned_mgauss)
+        R = v.attitude
+        assert np.linalg.norm(ideal["mag_mgauss"][0] - R.T @ field) > 50
+        ideal_params = {"COMPASS_OFS_X": 120, "COMPASS_OFS_Y": -80, "COMPASS_OFS_Z": 45,
+                        "COMPASS_DIA_X": 1.05, "COMPASS_DIA_Y": 0.95, "COMPASS_DIA_Z": 1.02,
+                        "COMPASS_ODI_X": 0.02, "COMPASS_ODI_Y": -0.01, "COMPASS_ODI_Z": 0.03,
+                        "COMPASS_ORIENT": 6, "INS_ACCOFFS_X": 0.3, "INS_ACCOFFS_Y": -0.2,
+                        "INS_ACCOFFS_Z": 0.5, "INS_ACCSCAL_X": 1.02, "INS_ACCSCAL_Y": 0.98,
+                        "INS_ACCSCAL_Z": 1.01}
+        for k, val in ideal_params.items():  # over the protocol: takes effect at once
+            conn.mav.param_set_send(1, 1, k.encode(), val, A.MAV_PARAM_TYPE_REAL32)
+        time.sleep(0.1)
+        assert v.get_param("COMPASS_ORIENT") == 6
+        now = v.corrected_sensors(noise=False)
+        np.testing.assert_allclose(now["mag_mgauss"][0], R.T @ field, atol=1e-3)
+        np.testing.assert_allclose(now["accel_mps2"][0], R.T @ [0, 0, -9.80665], atol=1e-5)
+        # DIA all zero skips the whole matrix (ODI too); SCALE outside [1/1.5, 1.5] is ignored
+        for k in ("COMPASS_DIA_X", "COMPASS_DIA_Y", "COMPASS_DIA_Z"):
+            v.set_param_local(k, 0.0)
+        v.set_param_local("COMPASS_SCALE", 2.0)
+        raw_rot = rotation_matrix(6) @ (rotation_matrix(6).T @ (
+            np.linalg.solve([[1.05, 0.02, -0.01], [0.02, 0.95, 0.03], [-0.01, 0.03, 1.02]], R.T @ field)
+            - [120, -80, 45]))
+        np.testing.assert_allclose(v.corrected_sensors(noise=False)["mag_mgauss"][0],
+                                   raw_rot + [120, -80, 45], atol=1e-3)
+    finally:
+        conn.close()
 
 
 def test_corrected_sensors_are_the_firmware_forward_model():
@@ -244,7 +243,7 @@ def test_corrected_sensors_are_the_firmware_forward_model():
         assert np.linalg.norm(got["accel_mps2"][k] - raw["accel_mps2"][k]) > 0.1
     # compass 1 by hand: M (k (R_orient raw + OFS))
     M = fw.soft_iron_matrix((1.05, 0.95, 1.02), (0.02, -0.01, 0.03))
-    hand = M @ (1.12 * (ap_rotation_matrix(6) @ raw["mag_mgauss"][0] + [120.5, -80.25, 45.0]))
+    hand = M @ (1.12 * (rotation_matrix(6) @ raw["mag_mgauss"][0] + [120.5, -80.25, 45.0]))
     np.testing.assert_allclose(got["mag_mgauss"][0], hand, rtol=1e-6)  # float32-stored parameters
     # new calibration values apply at once; new custom rotation angles only after a boot
     v.set_param_local("COMPASS_OFS2_X", -45.5)
@@ -288,33 +287,33 @@ def test_kill_and_revive_keep_state(vehicle, gcs):
     assert wait_for(gcs, lambda m: m.get_type() == "HEARTBEAT") is not None
 
 
-def test_die_after_n_sets_applies_the_last_set_without_echo():
-    with TestVehicle("udpin", heartbeat_hz=20, die_after_n_sets=2) as v:
-        conn = mavutil.mavlink_connection(v.gcs_device, source_system=255, dialect="ardupilotmega")
-        try:
-            conn.mav.heartbeat_send(A.MAV_TYPE_GCS, A.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-            assert conn.wait_heartbeat(timeout=5)
-            param_set(conn, "COMPASS_SCALE", 1.1)
-            assert wait_for(conn, lambda m: m.get_type() == "PARAM_VALUE") is not None
-            param_set(conn, "COMPASS_SCALE2", 1.2)
-            assert wait_for(conn, lambda m: m.get_type() == "PARAM_VALUE", 0.3) is None
-            assert v.get_param("COMPASS_SCALE2") == pytest.approx(1.2) and not v.alive
-        finally:
-            conn.close()
+def test_die_after_n_sets_applies_the_last_set_without_echo(start_vehicle):
+    v = start_vehicle("udpin", heartbeat_hz=20, die_after_n_sets=2)
+    conn = mavutil.mavlink_connection(v.gcs_device, source_system=255, dialect="ardupilotmega")
+    try:
+        conn.mav.heartbeat_send(A.MAV_TYPE_GCS, A.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        assert conn.wait_heartbeat(timeout=5)
+        param_set(conn, "COMPASS_SCALE", 1.1)
+        assert wait_for(conn, lambda m: m.get_type() == "PARAM_VALUE") is not None
+        param_set(conn, "COMPASS_SCALE2", 1.2)
+        assert wait_for(conn, lambda m: m.get_type() == "PARAM_VALUE", 0.3) is None
+        assert v.get_param("COMPASS_SCALE2") == pytest.approx(1.2) and not v.alive
+    finally:
+        conn.close()
 
 
-def test_faults_drop_and_duplicate():
-    with TestVehicle("udpout", heartbeat_hz=50, seed=5) as v:
-        conn = mavutil.mavlink_connection(v.gcs_device, source_system=255, dialect="ardupilotmega")
-        try:
-            assert conn.wait_heartbeat(timeout=5)
-            v.set_faults(dup_out=1.0)
-            param_set(conn, "COMPASS_SCALE", 1.1)
-            got = [m for m in collect(conn, 0.2, {"PARAM_VALUE"})]
-            assert len(got) == 2
-            v.set_faults(dup_out=0.0, drop_in=1.0)
-            param_set(conn, "COMPASS_SCALE", 1.3)
-            assert collect(conn, 0.2, {"PARAM_VALUE"}) == []
-            assert v.stats["dropped_in"] >= 1 and v.get_param("COMPASS_SCALE") == pytest.approx(1.1)
-        finally:
-            conn.close()
+def test_faults_drop_and_duplicate(start_vehicle):
+    v = start_vehicle("udpout", heartbeat_hz=50, seed=5)
+    conn = mavutil.mavlink_connection(v.gcs_device, source_system=255, dialect="ardupilotmega")
+    try:
+        assert conn.wait_heartbeat(timeout=5)
+        v.set_faults(dup_out=1.0)
+        param_set(conn, "COMPASS_SCALE", 1.1)
+        got = [m for m in collect(conn, 0.2, {"PARAM_VALUE"})]
+        assert len(got) == 2
+        v.set_faults(dup_out=0.0, drop_in=1.0)
+        param_set(conn, "COMPASS_SCALE", 1.3)
+        assert collect(conn, 0.2, {"PARAM_VALUE"}) == []
+        assert v.stats["dropped_in"] >= 1 and v.get_param("COMPASS_SCALE") == pytest.approx(1.1)
+    finally:
+        conn.close()

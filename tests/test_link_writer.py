@@ -9,16 +9,14 @@ from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UsageError
 from mavcal.link.connection import as_link, open_link
 from mavcal.link.params import fetch_all_params
-from mavcal.link.testvehicle import TestVehicle
 from mavcal.link.writer import UnknownParameterError, write_params
 
 FAST = dict(timeout_s=0.2, link_timeout_s=1.0)
 
 
 @pytest.fixture
-def vehicle():
-    with TestVehicle("udpout", heartbeat_hz=20, seed=1) as v:
-        yield v
+def vehicle(start_vehicle):
+    return start_vehicle("udpout", heartbeat_hz=20, seed=1)
 
 
 @pytest.fixture

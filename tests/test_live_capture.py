@@ -17,7 +17,7 @@ from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.capture import CaptureConfig
 from mavcal.link.connection import Link, open_link
 from mavcal.link.writer import write_params
-from mavcal.link.testvehicle import CompassTruth, TestVehicle, VehicleTruth
+from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 from mavcal.segment import StillConfig
 
 HOLD = StillConfig(min_duration_s=0.6, window_s=0.4)
@@ -85,12 +85,8 @@ class StatusFeed:
 
 
 @pytest.fixture
-def vehicle():
-    v = TestVehicle(truth=VehicleTruth.random(3), seed=3, heartbeat_hz=5).start()
-    try:
-        yield v
-    finally:
-        v.stop()
+def vehicle(start_vehicle):
+    return start_vehicle(truth=VehicleTruth.random(3), seed=3, heartbeat_hz=5)
 
 
 def test_following_the_advice_reaches_the_target_and_write_yes_writes(vehicle, tmp_path, monkeypatch, capsys):
@@ -163,11 +159,11 @@ def test_device_that_does_not_answer_exits_3(capsys):
     assert took < 10  # a generous bound: the heartbeat timeout is 1 s
 
 
-def test_impossible_field_aborts_with_exit_4(capsys, tmp_path):
+def test_impossible_field_aborts_with_exit_4(capsys, tmp_path, start_vehicle):
     t = VehicleTruth.random(4)
     magnet = CompassTruth(dev_id=97539, offsets=(3500.0, -400.0, 200.0), external=True)
-    v = TestVehicle(truth=VehicleTruth(accels=t.accels, compasses=(magnet,) + t.compasses[1:]), seed=4,
-                    heartbeat_hz=5).start()
+    v = start_vehicle(truth=VehicleTruth(accels=t.accels, compasses=(magnet,) + t.compasses[1:]), seed=4,
+                      heartbeat_hz=5)
     try:  # the vehicle sits still: the first interval already shows the field
         rc = cli.main(["capture", "--connect", v.gcs_device, "--hold", "0.6", "--duration", "30", "--write",
                        "--yes", "--backup", str(tmp_path / "b.param")])

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot.paramfile import read_param_file
-from mavcal.link.testvehicle import TestVehicle, VehicleTruth
+from mavcal.testing.vehicle import VehicleTruth
 from test_live_capture import AdviceHand
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,
@@ -109,8 +109,8 @@ def _changed_rows(lines, start):
     return rows
 
 
-def test_mavproxy_module_capture_fit_write_restore_unload(tmp_path):
-    v = TestVehicle(truth=VehicleTruth.random(3), seed=3, heartbeat_hz=2).start()
+def test_mavproxy_module_capture_fit_write_restore_unload(tmp_path, start_vehicle):
+    v = start_vehicle(truth=VehicleTruth.random(3), seed=3, heartbeat_hz=2)
     before = v.params
     mp = MAVProxy(v.gcs_device, tmp_path)
     hand = AdviceHand(v, mp.advice)

@@ -11,9 +11,9 @@ import pytest
 
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
 from mavcal.ardupilot.paramfile import read_param_file
-from mavcal.ardupilot.sitl import load_truth
 from mavcal.cli import main
 from mavcal.pipeline import calibrate_source
+from mavcal.testing.sitl_truth import load_truth
 
 
 @pytest.fixture(scope="module", params=["sitl01", "sitl02"])

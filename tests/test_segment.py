@@ -9,9 +9,10 @@ import pytest
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.errors import MavcalError, SegmentationError
 from mavcal.segment import StillConfig, diagnose_coverage, find_still_intervals
-from mavcal.sim.logs import AccelTruth, MagTruth, SimConfig, simulate_session
 from mavcal.sources import open_source
 from mavcal.sources.types import SensorSeries
+from mavcal.testing.simlog import AccelErrorTruth as AccelTruth
+from mavcal.testing.simlog import MagTruth, SimConfig, simulate_session
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 REAL = SHARED / "data" / "real"

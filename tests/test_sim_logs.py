@@ -8,15 +8,16 @@ import pytest
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.recover import recover_raw
-from mavcal.sim.logs import AccelTruth, MagTruth, SimConfig, simulate_session
+from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.sources import open_source
-from mavcal.sources.writers import DataFlashWriter, TlogWriter, int16_trunc
+from mavcal.testing.logwriters import DataFlashWriter, TlogWriter, int16_trunc
+from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
 
-G = fw.GRAVITY_MSS
+G = GRAVITY_MPS2
 
 CFG = SimConfig(
-    accels=(AccelTruth((0.3, -0.2, 0.15), (1.02, 0.97, 1.01), (0.004, -0.003, 0.002)),
-            AccelTruth((-0.1, 0.05, 0.2), (0.99, 1.01, 1.0))),
+    accels=(AccelErrorTruth((0.3, -0.2, 0.15), (1.02, 0.97, 1.01), (0.004, -0.003, 0.002)),
+            AccelErrorTruth((-0.1, 0.05, 0.2), (0.99, 1.01, 1.0))),
     mags=(MagTruth((120.0, -60.0, 210.0), ((1.05, 0.02, 0.0), (0.02, 0.96, 0.01), (0.0, 0.01, 1.0))),
           MagTruth((15.0, 25.0, -35.0))),
     accel_cals=(fw.AccelCal((0.1, -0.05, 0.2), (1.0, 0.95, 1.02), 16), fw.AccelCal((0.02, 0, 0), (1, 1, 1), 16)),

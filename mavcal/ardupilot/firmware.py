@@ -42,6 +42,7 @@ __all__ = [
     "MAX_IMUS",
     "compass_param_names",
     "accel_param_names",
+    "gyro_param_names",
     "board_param_names",
     "CompassCal",
     "AccelCal",
@@ -125,6 +126,31 @@ def accel_param_names(instance: int) -> Dict[str, object]:
         "scale": tuple(f"{scal}_{a}" for a in _XYZ),
         "id": ident,
     }
+
+
+def gyro_param_names(instance: int) -> dict[str, object]:
+    """Parameter names of gyroscope ``instance`` (0-based IMU index), as
+    :func:`accel_param_names` for the accelerometer of the same IMU.
+
+    Returns
+    -------
+    dict with keys ``ofs`` (tuple of 3 names, X/Y/Z) and ``id``.
+
+    Examples
+    --------
+    >>> gyro_param_names(0)["ofs"][0], gyro_param_names(1)["id"], gyro_param_names(3)["ofs"][2]
+    ('INS_GYROFFS_X', 'INS_GYR2_ID', 'INS4_GYROFFS_Z')
+    """
+    i = int(instance)
+    if not 0 <= i < MAX_IMUS:
+        raise ValueError(f"gyro instance must be 0..{MAX_IMUS - 1}, got {instance}")
+    if i == 0:
+        ofs, ident = "INS_GYROFFS", "INS_GYR_ID"
+    elif i < 3:
+        ofs, ident = f"INS_GYR{i + 1}OFFS", f"INS_GYR{i + 1}_ID"
+    else:
+        ofs, ident = f"INS{i + 1}_GYROFFS", f"INS{i + 1}_GYR_ID"
+    return {"ofs": tuple(f"{ofs}_{a}" for a in _XYZ), "id": ident}
 
 
 def board_param_names() -> Dict[str, object]:

@@ -1,5 +1,7 @@
-"""Simulators: the paper's Monte Carlo experiment (:mod:`mavcal.sim.paper`) and realistic
-ArduPilot logs (:mod:`mavcal.sim.logs`)."""
-from mavcal.sim.paper import SimData, Sensors, Truth, draw_intervals, draw_sensors, simulate
+"""The paper's Monte Carlo experiment (:mod:`mavcal.sim.paper`), behind ``mavcal simulate``.
+
+Simulated ArduPilot sessions and logs are test fixtures: :mod:`mavcal.testing.simlog`.
+"""
+from mavcal.sim.paper import Sensors, SimData, Truth, draw_intervals, draw_sensors, simulate
 
 __all__ = ["SimData", "Sensors", "Truth", "draw_intervals", "draw_sensors", "simulate"]

@@ -10,7 +10,8 @@ STATUSTEXT, HEARTBEAT) and/or a DataFlash .bin (PARM, MSG, IMU, MAG with I, Ofs,
 Raw sensor models (frames as :func:`mavcal.ardupilot.recover.recover_raw` returns them):
 
 * accelerometer, board frame: ``u = K_a @ (R_A.T @ f_body) + b_a + noise`` with
-  ``K_a = diag(gain) + upper off-diagonals (cross)`` and ``R_A`` = AHRS_ORIENTATION;
+  ``K_a = diag(gain) + upper off-diagonals (cross)`` and ``R_A`` = AHRS_ORIENTATION
+  (:class:`AccelErrorTruth`);
 * compass, sensor frame: ``s = R_phys.T @ (K_m @ B_body + h) + noise`` (``R_phys`` the
   physical mounting rotation, ``K_m`` soft iron, ``h`` hard iron); the firmware rotates it
   by its configured orientation, ``b = R_param @ s`` -- ``b`` is the "raw" truth returned.
@@ -22,27 +23,28 @@ stores ``t0_unix_s + t`` as receive time and ``boot_s + t`` as vehicle time, the
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.rotations import euler_to_matrix, rotation_matrix
-from mavcal.sources.writers import DataFlashWriter, TlogWriter
+from mavcal.core.constants import GRAVITY_MPS2
+from mavcal.testing.logwriters import DataFlashWriter, TlogWriter
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AccelTruth", "MagTruth", "SimConfig", "SimLog", "simulate_session", "write_tlog", "write_bin",
+__all__ = ["AccelErrorTruth", "MagTruth", "SimConfig", "SimLog", "simulate_session", "write_tlog", "write_bin",
            "DEFAULT_POSES_DEG"]
 
-G = fw.GRAVITY_MSS
+G = GRAVITY_MPS2
 
 #: 14 hand-held poses (roll, pitch, yaw in degrees) spread over the sphere of gravity
 #: directions: the six faces, plus tilted poses and yaw variety.
-DEFAULT_POSES_DEG: Tuple[Tuple[float, float, float], ...] = (
+DEFAULT_POSES_DEG: tuple[tuple[float, float, float], ...] = (
     (0, 0, 0), (0, 0, 120), (90, 0, 30), (-90, 0, 200), (0, 80, 60), (0, -80, 300),
     (180, 0, 90), (45, 30, 150), (-45, 35, 240), (40, -40, 20), (-35, -45, 100),
     (135, 30, 330), (-130, -35, 45), (150, -40, 270),
@@ -50,8 +52,14 @@ DEFAULT_POSES_DEG: Tuple[Tuple[float, float, float], ...] = (
 
 
 @dataclass(frozen=True)
-class AccelTruth:
-    """Raw errors of one accelerometer: ``u = K (R_A^T f) + bias``.
+class AccelErrorTruth:
+    """Raw errors of one accelerometer, stated **as the sensor's own errors**:
+    ``u = K (R_A^T f) + bias`` (f = true specific force in the body frame, u = raw reading
+    in the board frame).
+
+    The ArduPilot calibration that undoes it is *not* these numbers (INS_ACCnSCAL ~ 1/gain,
+    INS_ACCnOFFS = bias); :class:`mavcal.testing.vehicle_sensors.AccelCalTruth` is the
+    test vehicle's opposite convention, truth stated as the ideal calibration.
 
     Attributes
     ----------
@@ -61,9 +69,9 @@ class AccelTruth:
     noise_mps2 : float, standard deviation per axis.
     """
 
-    bias_mps2: Tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gain: Tuple[float, float, float] = (1.0, 1.0, 1.0)
-    cross: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    bias_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    cross: tuple[float, float, float] = (0.0, 0.0, 0.0)
     noise_mps2: float = 0.02
 
     @property
@@ -85,9 +93,9 @@ class MagTruth:
     noise_mgauss : float, standard deviation per axis.
     """
 
-    hard_iron_mgauss: Tuple[float, float, float] = (0.0, 0.0, 0.0)
-    soft_iron: Tuple[Tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-    mount: Optional[int] = None
+    hard_iron_mgauss: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    soft_iron: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    mount: int | None = None
     noise_mgauss: float = 1.5
 
     @property
@@ -120,16 +128,16 @@ class SimConfig:
     seed : random seed.
     """
 
-    accels: Tuple[AccelTruth, ...] = (AccelTruth(),)
-    mags: Tuple[MagTruth, ...] = (MagTruth(),)
-    accel_cals: Optional[Tuple[fw.AccelCal, ...]] = None
-    compass_cals: Optional[Tuple[fw.CompassCal, ...]] = None
-    change_at_s: Optional[float] = None
-    accel_cals_after: Optional[Tuple[fw.AccelCal, ...]] = None
-    compass_cals_after: Optional[Tuple[fw.CompassCal, ...]] = None
-    accel_cal_period_s: Optional[Tuple[float, float]] = None
-    earth_field_ned_mgauss: Tuple[float, float, float] = (200.0, 15.0, 450.0)
-    poses_deg: Tuple[Tuple[float, float, float], ...] = DEFAULT_POSES_DEG
+    accels: tuple[AccelErrorTruth, ...] = (AccelErrorTruth(),)
+    mags: tuple[MagTruth, ...] = (MagTruth(),)
+    accel_cals: tuple[fw.AccelCal, ...] | None = None
+    compass_cals: tuple[fw.CompassCal, ...] | None = None
+    change_at_s: float | None = None
+    accel_cals_after: tuple[fw.AccelCal, ...] | None = None
+    compass_cals_after: tuple[fw.CompassCal, ...] | None = None
+    accel_cal_period_s: tuple[float, float] | None = None
+    earth_field_ned_mgauss: tuple[float, float, float] = (200.0, 15.0, 450.0)
+    poses_deg: tuple[tuple[float, float, float], ...] = DEFAULT_POSES_DEG
     hold_s: float = 4.0
     move_s: float = 2.0
     lead_s: float = 1.0
@@ -138,7 +146,7 @@ class SimConfig:
     mag_rate_hz: float = 10.0
     jitter_deg: float = 0.3
     tremor_mps2: float = 0.03
-    motor_ofs_mgauss: Optional[Tuple[Tuple[float, float, float], ...]] = None
+    motor_ofs_mgauss: tuple[tuple[float, float, float], ...] | None = None
     seed: int = 0
 
     @property
@@ -170,20 +178,20 @@ class SimLog:
     config : SimConfig
     """
 
-    accel_time_s: List[np.ndarray]
-    mag_time_s: List[np.ndarray]
-    accel_raw_mps2: List[np.ndarray]
-    mag_raw_mgauss: List[np.ndarray]
-    accel_logged_mps2: List[np.ndarray]
-    mag_logged_mgauss: List[np.ndarray]
-    gyro_rad_s: List[np.ndarray]
-    calibrating: List[np.ndarray]
+    accel_time_s: list[np.ndarray]
+    mag_time_s: list[np.ndarray]
+    accel_raw_mps2: list[np.ndarray]
+    mag_raw_mgauss: list[np.ndarray]
+    accel_logged_mps2: list[np.ndarray]
+    mag_logged_mgauss: list[np.ndarray]
+    gyro_rad_s: list[np.ndarray]
+    calibrating: list[np.ndarray]
     still_windows_s: np.ndarray
     attitudes: np.ndarray
-    params_initial: Dict[str, float]
-    params_after: Dict[str, float]
+    params_initial: dict[str, float]
+    params_after: dict[str, float]
     config: SimConfig
-    paths: Dict[str, Path] = field(default_factory=dict)
+    paths: dict[str, Path] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------- motion
@@ -259,21 +267,23 @@ class _Motion:
 
 # --------------------------------------------------------------------------- simulate
 
-def _cal_params(accel_cals: Sequence[fw.AccelCal], compass_cals: Sequence[fw.CompassCal]) -> Dict[str, float]:
-    p: Dict[str, float] = {}
+def _cal_params(accel_cals: Sequence[fw.AccelCal], compass_cals: Sequence[fw.CompassCal]) -> dict[str, float]:
+    p: dict[str, float] = {}
     board = accel_cals[0].board_orient if accel_cals else (compass_cals[0].orient if compass_cals else 0)
-    p[fw.board_param_names()["orientation"]] = float(board)
-    for i, c in enumerate(accel_cals):
-        p.update(fw.accel_param_values(c, i))
-    for k, c in enumerate(compass_cals):
-        p.update(fw.compass_param_values(c, k))
-        names = fw.compass_param_names(k)
-        ext = bool(c.external)
+    board_names = fw.board_param_names()
+    p[str(board_names["orientation"])] = float(board)
+    for i, acal in enumerate(accel_cals):
+        p.update(fw.accel_param_values(acal, i))
+    for k, ccal in enumerate(compass_cals):
+        p.update(fw.compass_param_values(ccal, k))
+        names = {key: str(name) for key, name in fw.compass_param_names(k).items()
+                 if key in ("external", "orient", "dev_id", "prio_id")}
+        ext = bool(ccal.external)
         p[names["external"]] = 1.0 if ext else 0.0
-        p[names["orient"]] = float(c.orient) if ext else 0.0
+        p[names["orient"]] = float(ccal.orient) if ext else 0.0
         p[names["dev_id"]] = float(97539 + 256 * k)
         p[names["prio_id"]] = float(97539 + 256 * k)
-    p["COMPASS_MOTCT"] = 0.0
+    p[str(board_names["motct"])] = 0.0
     return {k: float(np.float32(v)) for k, v in p.items()}
 
 
@@ -287,8 +297,82 @@ def _f32(c):
                    scale=float(np.float32(c.scale)))
 
 
-def simulate_session(cfg: SimConfig = SimConfig(), tlog: Union[str, Path, None] = None,
-                     bin: Union[str, Path, None] = None, mavlink2: bool = False) -> SimLog:  # noqa: A002
+class _Session:
+    """The sensors of one simulated session: motion, calibrations in force, noise."""
+
+    def __init__(self, cfg: SimConfig) -> None:
+        self.cfg = cfg
+        self.rng = np.random.default_rng(cfg.seed)
+        self.motion = _Motion(cfg, self.rng)
+        n_acc, n_mag = len(cfg.accels), len(cfg.mags)
+        self.acal0 = tuple(_f32(c) for c in (cfg.accel_cals or tuple(fw.AccelCal() for _ in range(n_acc))))
+        self.ccal0 = tuple(_f32(c) for c in (cfg.compass_cals or tuple(fw.CompassCal() for _ in range(n_mag))))
+        self.acal1 = tuple(_f32(c) for c in (cfg.accel_cals_after or self.acal0))
+        self.ccal1 = tuple(_f32(c) for c in (cfg.compass_cals_after or self.ccal0))
+        if (len(self.acal0) != n_acc or len(self.ccal0) != n_mag or len(self.acal1) != n_acc
+                or len(self.ccal1) != n_mag):
+            raise ValueError("one calibration per sensor instance is needed")
+        self.t_change = np.inf if cfg.change_at_s is None else float(cfg.change_at_s)
+        self.p0 = _cal_params(self.acal0, self.ccal0)
+        self.p1 = _cal_params(self.acal1, self.ccal1)
+
+    def times(self, rate: float) -> np.ndarray:
+        return np.arange(0.0, self.cfg.duration_s, 1.0 / rate)
+
+    def accel(self, i: int, t: np.ndarray):
+        """(true raw u, reported, gyro, calibrating) of accelerometer ``i`` at times ``t``."""
+        cfg, motion = self.cfg, self.motion
+        att = motion.attitude(t)
+        f_ned = motion.linear_accel_ned(t) - np.array([0.0, 0.0, G])
+        f_body = att.inv().apply(f_ned)
+        a_truth = cfg.accels[i]
+        RA = self.acal0[i].board_matrix
+        u = (f_body @ RA) @ a_truth.K.T + np.asarray(a_truth.bias_mps2)
+        u = u + self.rng.normal(0.0, a_truth.noise_mps2, u.shape)
+        calib = np.zeros(len(t), dtype=bool)
+        if cfg.accel_cal_period_s is not None:
+            calib = (t >= cfg.accel_cal_period_s[0]) & (t < cfg.accel_cal_period_s[1])
+        rep = np.empty_like(u)
+        before = t < self.t_change
+        for mask, cal in ((before, self.acal0[i]), (~before, self.acal1[i])):
+            rep[mask & ~calib] = fw.apply_accel(cal, u[mask & ~calib])
+            rep[mask & calib] = fw.apply_accel(cal, u[mask & calib], calibrating=True)
+        return u, rep, motion.gyro_body(t), calib
+
+    def mag(self, k: int, t: np.ndarray):
+        """(true raw b, reported, motor offset or None) of compass ``k`` at times ``t``."""
+        att = self.motion.attitude(t)
+        B_body = att.inv().apply(np.tile(np.asarray(self.cfg.earth_field_ned_mgauss, dtype=float), (len(t), 1)))
+        m_truth = self.cfg.mags[k]
+        R_param = self.ccal0[k].mount_matrix
+        R_phys = R_param if m_truth.mount is None else rotation_matrix(m_truth.mount)
+        s = (B_body @ m_truth.K.T + np.asarray(m_truth.hard_iron_mgauss)) @ R_phys  # R_phys^T applied
+        s = s + self.rng.normal(0.0, m_truth.noise_mgauss, s.shape)
+        b = s @ R_param.T
+        mot = None
+        if self.cfg.motor_ofs_mgauss is not None:
+            mot = np.broadcast_to(np.asarray(self.cfg.motor_ofs_mgauss[k], dtype=float), b.shape)
+        rep = np.empty_like(b)
+        before = t < self.t_change
+        for mask, cal in ((before, self.ccal0[k]), (~before, self.ccal1[k])):
+            rep[mask] = fw.apply_compass(cal, b[mask], None if mot is None else mot[mask], sensor_frame=False)
+        return b, rep, mot
+
+    def samples(self, ta: np.ndarray, tm: np.ndarray):
+        """Every accelerometer at ``ta``, then every compass at ``tm`` (this order of noise draws)."""
+        acc = [self.accel(i, ta) for i in range(len(self.cfg.accels))]
+        mag = [self.mag(k, tm) for k in range(len(self.cfg.mags))]
+        return acc, mag
+
+    def result(self, ta: np.ndarray, tm: np.ndarray, acc, mag, paths: dict[str, Path]) -> SimLog:
+        n_acc, n_mag = len(acc), len(mag)
+        return SimLog([ta] * n_acc, [tm] * n_mag, [a[0] for a in acc], [m[0] for m in mag],
+                      [a[1] for a in acc], [m[1] for m in mag], [a[2] for a in acc], [a[3] for a in acc],
+                      self.motion.windows.copy(), self.motion.attitudes.copy(), self.p0, self.p1, self.cfg, paths)
+
+
+def simulate_session(cfg: SimConfig = SimConfig(), tlog: str | Path | None = None,
+                     bin: str | Path | None = None, mavlink2: bool = False) -> SimLog:  # noqa: A002
     """Simulate a session and optionally write it as a tlog and/or DataFlash log.
 
     Parameters
@@ -305,94 +389,32 @@ def simulate_session(cfg: SimConfig = SimConfig(), tlog: Union[str, Path, None] 
     -------
     SimLog
     """
-    rng = np.random.default_rng(cfg.seed)
-    motion = _Motion(cfg, rng)
-    n_acc, n_mag = len(cfg.accels), len(cfg.mags)
-    acal0 = tuple(_f32(c) for c in (cfg.accel_cals or tuple(fw.AccelCal() for _ in range(n_acc))))
-    ccal0 = tuple(_f32(c) for c in (cfg.compass_cals or tuple(fw.CompassCal() for _ in range(n_mag))))
-    acal1 = tuple(_f32(c) for c in (cfg.accel_cals_after or acal0))
-    ccal1 = tuple(_f32(c) for c in (cfg.compass_cals_after or ccal0))
-    if len(acal0) != n_acc or len(ccal0) != n_mag or len(acal1) != n_acc or len(ccal1) != n_mag:
-        raise ValueError("one calibration per sensor instance is needed")
-    t_change = np.inf if cfg.change_at_s is None else float(cfg.change_at_s)
-    B_ned = np.asarray(cfg.earth_field_ned_mgauss, dtype=float)
-
-    def times(rate: float) -> np.ndarray:
-        return np.arange(0.0, cfg.duration_s, 1.0 / rate)
-
-    def accel_for(i: int, t: np.ndarray):
-        att = motion.attitude(t)
-        f_ned = motion.linear_accel_ned(t) - np.array([0.0, 0.0, G])
-        f_body = att.inv().apply(f_ned)
-        a_truth = cfg.accels[i]
-        RA = acal0[i].board_matrix
-        u = (f_body @ RA) @ a_truth.K.T + np.asarray(a_truth.bias_mps2)
-        u = u + rng.normal(0.0, a_truth.noise_mps2, u.shape)
-        calib = np.zeros(len(t), dtype=bool)
-        if cfg.accel_cal_period_s is not None:
-            calib = (t >= cfg.accel_cal_period_s[0]) & (t < cfg.accel_cal_period_s[1])
-        rep = np.empty_like(u)
-        before = t < t_change
-        for mask, cal in ((before, acal0[i]), (~before, acal1[i])):
-            rep[mask & ~calib] = fw.apply_accel(cal, u[mask & ~calib])
-            rep[mask & calib] = fw.apply_accel(cal, u[mask & calib], calibrating=True)
-        return u, rep, motion.gyro_body(t), calib
-
-    def mag_for(k: int, t: np.ndarray):
-        att = motion.attitude(t)
-        B_body = att.inv().apply(np.tile(B_ned, (len(t), 1)))
-        m_truth = cfg.mags[k]
-        R_param = ccal0[k].mount_matrix
-        R_phys = R_param if m_truth.mount is None else rotation_matrix(m_truth.mount)
-        s = (B_body @ m_truth.K.T + np.asarray(m_truth.hard_iron_mgauss)) @ R_phys  # R_phys^T applied
-        s = s + rng.normal(0.0, m_truth.noise_mgauss, s.shape)
-        b = s @ R_param.T
-        mot = None
-        if cfg.motor_ofs_mgauss is not None:
-            mot = np.broadcast_to(np.asarray(cfg.motor_ofs_mgauss[k], dtype=float), b.shape)
-        rep = np.empty_like(b)
-        before = t < t_change
-        for mask, cal in ((before, ccal0[k]), (~before, ccal1[k])):
-            rep[mask] = fw.apply_compass(cal, b[mask], None if mot is None else mot[mask], sensor_frame=False)
-        return b, rep, mot
-
-    p0 = _cal_params(acal0, ccal0)
-    p1 = _cal_params(acal1, ccal1)
-    result: Optional[SimLog] = None
-    paths: Dict[str, Path] = {}
-
+    sim = _Session(cfg)
+    result: SimLog | None = None
+    paths: dict[str, Path] = {}
     if tlog is not None:
-        t = times(cfg.rate_hz)
-        acc = [accel_for(i, t) for i in range(n_acc)]
-        mag = [mag_for(k, t) for k in range(n_mag)]
-        write_tlog(Path(tlog), cfg, t, acc, mag, p0, p1, t_change, mavlink2=mavlink2)
+        t = sim.times(cfg.rate_hz)
+        acc, mag = sim.samples(t, t)
+        write_tlog(Path(tlog), cfg, t, acc, mag, sim.p0, sim.p1, sim.t_change, mavlink2=mavlink2)
         paths["tlog"] = Path(tlog)
-        result = SimLog([t] * n_acc, [t] * n_mag, [a[0] for a in acc], [m[0] for m in mag],
-                        [a[1] for a in acc], [m[1] for m in mag], [a[2] for a in acc], [a[3] for a in acc],
-                        motion.windows.copy(), motion.attitudes.copy(), p0, p1, cfg, paths)
+        result = sim.result(t, t, acc, mag, paths)
     if bin is not None:
-        ta = times(cfg.imu_rate_hz)
-        tm = times(cfg.mag_rate_hz) + 0.013  # compass samples not aligned with IMU samples
+        ta = sim.times(cfg.imu_rate_hz)
+        tm = sim.times(cfg.mag_rate_hz) + 0.013  # compass samples not aligned with IMU samples
         tm = tm[tm < cfg.duration_s]
-        acc = [accel_for(i, ta) for i in range(n_acc)]
-        mag = [mag_for(k, tm) for k in range(n_mag)]
-        write_bin(Path(bin), cfg, ta, tm, acc, mag, p0, p1, t_change, ccal0, ccal1)
+        acc, mag = sim.samples(ta, tm)
+        write_bin(Path(bin), cfg, ta, tm, acc, mag, sim.p0, sim.p1, sim.t_change, sim.ccal0, sim.ccal1)
         paths["bin"] = Path(bin)
         if result is None:
-            result = SimLog([ta] * n_acc, [tm] * n_mag, [a[0] for a in acc], [m[0] for m in mag],
-                            [a[1] for a in acc], [m[1] for m in mag], [a[2] for a in acc], [a[3] for a in acc],
-                            motion.windows.copy(), motion.attitudes.copy(), p0, p1, cfg, paths)
+            result = sim.result(ta, tm, acc, mag, paths)
     if result is None:  # nothing written: the tlog-rate truth
-        t = times(cfg.rate_hz)
-        acc = [accel_for(i, t) for i in range(n_acc)]
-        mag = [mag_for(k, t) for k in range(n_mag)]
-        result = SimLog([t] * n_acc, [t] * n_mag, [a[0] for a in acc], [m[0] for m in mag],
-                        [a[1] for a in acc], [m[1] for m in mag], [a[2] for a in acc], [a[3] for a in acc],
-                        motion.windows.copy(), motion.attitudes.copy(), p0, p1, cfg, paths)
+        t = sim.times(cfg.rate_hz)
+        acc, mag = sim.samples(t, t)
+        result = sim.result(t, t, acc, mag, paths)
     return result
 
 
-def _events(cfg: SimConfig) -> List[Tuple[float, str, str]]:
+def _events(cfg: SimConfig) -> list[tuple[float, str, str]]:
     """(time, kind, text) of the onboard accel calibration, if any."""
     if cfg.accel_cal_period_s is None:
         return []
@@ -405,11 +427,11 @@ def _events(cfg: SimConfig) -> List[Tuple[float, str, str]]:
     return out
 
 
-def write_tlog(path: Path, cfg: SimConfig, t: np.ndarray, acc, mag, p0: Dict[str, float],
-               p1: Dict[str, float], t_change: float, t0_unix_s: float = 1.7e9, boot_s: float = 30.0,
+def write_tlog(path: Path, cfg: SimConfig, t: np.ndarray, acc, mag, p0: dict[str, float],
+               p1: dict[str, float], t_change: float, t0_unix_s: float = 1.7e9, boot_s: float = 30.0,
                mavlink2: bool = False) -> Path:
     """Write the simulated samples as a tlog (see :func:`simulate_session`)."""
-    recs: List[Tuple[float, int, object]] = []
+    recs: list[tuple[float, int, tuple]] = []
     for hb in np.arange(0.0, cfg.duration_s, 1.0):
         recs.append((hb, 0, ("hb",)))
     names = sorted(p0)
@@ -453,10 +475,10 @@ def write_tlog(path: Path, cfg: SimConfig, t: np.ndarray, acc, mag, p0: Dict[str
     return path
 
 
-def write_bin(path: Path, cfg: SimConfig, ta: np.ndarray, tm: np.ndarray, acc, mag, p0: Dict[str, float],
-              p1: Dict[str, float], t_change: float, ccal0, ccal1, boot_s: float = 30.0) -> Path:
+def write_bin(path: Path, cfg: SimConfig, ta: np.ndarray, tm: np.ndarray, acc, mag, p0: dict[str, float],
+              p1: dict[str, float], t_change: float, ccal0, ccal1, boot_s: float = 30.0) -> Path:
     """Write the simulated samples as a DataFlash log (see :func:`simulate_session`)."""
-    recs: List[Tuple[float, int, tuple]] = []
+    recs: list[tuple[float, int, tuple]] = []
     for n in sorted(p0):
         recs.append((0.0, 0, ("parm", n, p0[n], p0[n])))
     if np.isfinite(t_change):
@@ -467,11 +489,11 @@ def write_bin(path: Path, cfg: SimConfig, ta: np.ndarray, tm: np.ndarray, acc, m
     for te, kind, text in _events(cfg):
         if kind == "text":
             recs.append((te, 2, ("msg", text)))
-    for i, (u, rep, gyro, _) in enumerate(acc):
+    for i, (_u, rep, gyro, _) in enumerate(acc):
         rep32 = rep.astype(np.float32)
         for j, tt in enumerate(ta):
             recs.append((tt, 3, ("imu", i, gyro[j], rep32[j])))
-    for k, (b, rep, mot) in enumerate(mag):
+    for k, (_b, rep, mot) in enumerate(mag):
         for j, tt in enumerate(tm):
             cal = ccal0[k] if tt < t_change else ccal1[k]
             recs.append((tt, 3, ("mag", k, rep[j], cal.ofs_mgauss, (0, 0, 0) if mot is None else mot[j])))

@@ -1,6 +1,6 @@
 """Write MAVLink telemetry logs (.tlog) and ArduPilot DataFlash logs (.bin).
 
-Used by the simulator (:mod:`mavcal.sim.logs`) to produce logs that the readers, and
+Used by the simulator (:mod:`mavcal.testing.simlog`) to produce logs that the readers, and
 pymavlink, read exactly like real ones.
 
 * tlog: each record is an 8-byte big-endian unsigned UNIX time in microseconds followed by
@@ -13,8 +13,9 @@ pymavlink, read exactly like real ones.
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from pathlib import Path
-from typing import BinaryIO, Dict, Optional, Sequence, Tuple, Union
+from typing import BinaryIO, Union
 
 import numpy as np
 
@@ -133,7 +134,7 @@ class TlogWriter(_FileWriter):
 # =========================================================================== DataFlash
 
 #: name -> (type id, format, columns). Formats as ArduPilot writes them.
-DF_FORMATS: Dict[str, Tuple[int, str, str]] = {
+DF_FORMATS: dict[str, tuple[int, str, str]] = {
     "PARM": (64, "QNff", "TimeUS,Name,Value,Default"),
     "MSG": (91, "QZ", "TimeUS,Message"),
     "IMU": (168, "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz"),
@@ -186,7 +187,7 @@ class DataFlashWriter(_FileWriter):
         type_id, fmt, columns = DF_FORMATS[name]
         if name not in self._written:
             self._write_fmt(name, type_id, fmt, columns)
-        vals = []
+        vals: list[bytes | float | int] = []
         for c, v in zip(fmt, values):
             if c in "nNZ":
                 vals.append(_cstr(str(v), {"n": 4, "N": 16, "Z": 64}[c]))
@@ -214,7 +215,7 @@ class DataFlashWriter(_FileWriter):
                     rate_hz, rate_hz)
 
     def mag(self, time_us: int, instance: int, mag_mgauss, ofs_mgauss=(0, 0, 0), motor_ofs_mgauss=(0, 0, 0),
-            healthy: bool = True, last_update_ms: Optional[int] = None) -> None:
+            healthy: bool = True, last_update_ms: int | None = None) -> None:
         """MAG record: corrected field, offsets and motor offset, all int16 (truncated)."""
         m, o, mo = (int16_trunc(v) for v in (mag_mgauss, ofs_mgauss, motor_ofs_mgauss))
         s = int(time_us // 1000) if last_update_ms is None else int(last_update_ms)

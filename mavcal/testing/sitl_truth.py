@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict
+from typing import Callable
 
 import numpy as np
 
@@ -27,8 +27,8 @@ class SitlTruth:
     raw_accel: Callable[[np.ndarray], np.ndarray]
     raw_mag_sensor: Callable[[np.ndarray], np.ndarray]
     field_ned_mgauss: np.ndarray
-    expected: Dict[str, float]
-    injected: Dict[str, float]
+    expected: dict[str, float]
+    injected: dict[str, float]
 
 
 def load_truth(path) -> SitlTruth:

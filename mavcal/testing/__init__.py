@@ -1,0 +1,21 @@
+"""Test fixtures shipped with mavcal, for tests, benchmarks and plug-in authors (like ``numpy.testing``).
+
+* :mod:`mavcal.testing.vehicle` -- :class:`~mavcal.testing.vehicle.TestVehicle`, a loopback
+  ArduPilot emulator that speaks MAVLink 2 on 127.0.0.1 (parameter protocol, commands, IMU
+  streams from simulated sensors with known errors, fault injection);
+  :mod:`mavcal.testing.vehicle_params` (its parameter table and ArduPilot's PARAM_SET
+  semantics) and :mod:`mavcal.testing.vehicle_sensors` (true sensor errors, motion, readings).
+* :mod:`mavcal.testing.simlog` -- simulated hand-held calibration sessions written as
+  .tlog / DataFlash .bin logs, with their truth.
+* :mod:`mavcal.testing.logwriters` -- .tlog and DataFlash writers.
+* :mod:`mavcal.testing.sitl_truth` -- the truth files of the SITL logs in ``sitl_logs/``.
+
+Two conventions for a sensor's truth exist, and the class names say which:
+:class:`~mavcal.testing.vehicle_sensors.AccelCalTruth` states the truth as the ideal
+ArduPilot calibration (``raw = u / scale + offsets``), :class:`~mavcal.testing.simlog.AccelErrorTruth`
+as the sensor's own errors (``raw = K u + bias``).
+
+Only this package (besides :mod:`mavcal.sources` and :mod:`mavcal.link`) imports pymavlink,
+and it may spell ArduPilot parameter names; no product module imports it. Nothing is
+imported here: import the submodule you need.
+"""
