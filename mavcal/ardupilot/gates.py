@@ -9,7 +9,7 @@ error, parameter uncertainty (95 % heading and tilt error bounds).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -121,4 +121,18 @@ def check(mapping, params: Mapping[str, float], *, n_intervals: int, n_orientati
         f"<= {c.holdout_mag_max_mgauss} mGauss",
         f"held-out compass error {holdout_mag_mgauss:.1f} mGauss: magnetic disturbance (steel, magnets, currents) "
         "differs between poses")
+    return GateReport(tuple(gates))
+
+
+def merge_reports(primary: GateReport, others: Sequence[Tuple[int, int, GateReport]], *, accel_instance: int,
+                  mag_instance: int) -> GateReport:
+    """The primary pair's gates plus, from each other pair ``(accel, compass, report)``,
+    the gates of its non-primary sensor and its data gates (named after the pair)."""
+    gates = list(primary.gates)
+    for a, m, rep in others:
+        for g in rep.gates:
+            if g.sensor == f"accel{a}" and a != accel_instance or g.sensor == f"compass{m}" and m != mag_instance:
+                gates.append(g)
+            elif g.sensor == "data":
+                gates.append(Gate(f"data (accel{a}+compass{m})", g.name, g.ok, g.value, g.limit, g.reason))
     return GateReport(tuple(gates))

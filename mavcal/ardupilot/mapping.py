@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Dict, Mapping, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -47,6 +47,9 @@ from mavcal.ardupilot.rotations import (
     rotation_matrix,
 )
 from mavcal.errors import ParameterMappingError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mavcal.core.types import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -266,3 +269,80 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
 
 def old_values(params: Mapping[str, float], names) -> Dict[str, Optional[float]]:
     return {n: (float(params[n]) if n in params else None) for n in names}
+
+
+# --------------------------------------------------------------------------- one pair, several pairs
+
+def field_magnitude(raw_mag_means: np.ndarray, old: fw.CompassCal, *,
+                    location: Optional[Sequence[float]] = None,
+                    field_mgauss: Optional[float] = None) -> Tuple[float, str, Optional[float]]:
+    """The field magnitude |B| to scale the compass to: (mGauss, source in words, WMM inclination deg or None).
+
+    The World Magnetic Model at ``location`` (lat, lon[, alt]) when known and no
+    ``field_mgauss`` is given; else ``field_mgauss``; else what the current calibration
+    ``old`` makes of the raw interval means (still intervals do not determine |B|).
+    """
+    incl = None
+    if location is not None:
+        loc = tuple(location)
+        try:
+            from mavcal.sources.wmm import field_at
+            _, incl, intensity = field_at(loc[0], loc[1], loc[2] if len(loc) > 2 else 0.0)
+        except Exception as exc:  # pragma: no cover - tables missing
+            log.warning("World Magnetic Model unavailable: %s", exc)
+            intensity = None
+        if field_mgauss is None and intensity:
+            return float(intensity), f"World Magnetic Model at {loc[0]:.4f}, {loc[1]:.4f}", incl
+    if field_mgauss is not None:
+        return float(field_mgauss), "given", incl
+    cur = fw.apply_compass(old, raw_mag_means, sensor_frame=False)
+    return float(np.mean(np.linalg.norm(cur, axis=1))), "kept from the current calibration (no position)", incl
+
+
+def map_calibration(cal: "Calibration", params: Mapping[str, float], raw_mag_means: np.ndarray, *,
+                    accel_instance: int = 0, mag_instance: int = 0,
+                    location: Optional[Sequence[float]] = None, field_mgauss: Optional[float] = None,
+                    orient_tol_deg: float = 1.0, allow_custom: bool = True,
+                    force_external: bool = False) -> ParamMapping:
+    """The :class:`ParamMapping` of one accelerometer/compass pair fitted jointly.
+
+    ``params`` are the vehicle's current parameters (the old calibration and the mounting);
+    ``raw_mag_means`` the (N, 3) raw compass interval means (for the field magnitude when
+    neither ``location`` nor ``field_mgauss`` gives it, see :func:`field_magnitude`).
+    """
+    old_a = fw.accel_cal_from_params(params, accel_instance)
+    old_c = fw.compass_cal_from_params(params, mag_instance)
+    field_norm, field_src, incl_model = field_magnitude(np.asarray(raw_mag_means, float), old_c, location=location,
+                                                        field_mgauss=field_mgauss)
+    am = map_accel(cal.accel.gain, cal.accel.bias, old_a, accel_instance)
+    cm = map_compass(cal.mag.gain, cal.mag.bias, cal.h_z, am.frame_rotation, old_c, params, instance=mag_instance,
+                     field_mgauss=field_norm, field_source=field_src, board_rotation=old_a.board_matrix,
+                     orient_tol_deg=orient_tol_deg, allow_custom=allow_custom, force_external=force_external,
+                     inclination_model_deg=incl_model)
+    new = {**am.params(), **cm.params()}
+    notes = [cm.orientation_note]
+    if am.dropped_tilt_deg > 0.01:
+        notes.append(f"accelerometer cross-axis terms ArduPilot cannot hold: up to {am.dropped_tilt_deg:.3f} deg tilt, "
+                     f"{am.dropped_magnitude_mps2:.3f} m/s^2")
+    return ParamMapping(accel=(am,), compass=(cm,), new=new, old=old_values(params, new), notes=tuple(notes),
+                        reboot_required=cm.reboot_required)
+
+
+def merge_mappings(primary: ParamMapping, others: Sequence[ParamMapping],
+                   params: Mapping[str, float]) -> ParamMapping:
+    """One :class:`ParamMapping` for several pairs: the primary pair's, plus every other
+    accelerometer and compass calibrated (each other pair contributes the instance that
+    is not the primary's). ``params`` gives the old values no pair recorded."""
+    ai, mi = primary.accel[0].instance, primary.compass[0].instance
+    accel = list(primary.accel) + [m.accel[0] for m in others if m.accel[0].instance != ai]
+    compass = list(primary.compass) + [m.compass[0] for m in others if m.compass[0].instance != mi]
+    new: Dict[str, float] = {}
+    for mp in (*accel, *compass):
+        new.update(mp.params())
+    old: Dict[str, Optional[float]] = {}
+    for m in (primary, *others):
+        old.update(m.old)
+    old = {n: old.get(n, params.get(n)) for n in new}
+    notes = list(primary.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compass[1:]]
+    return ParamMapping(accel=tuple(accel), compass=tuple(compass), new=new, old=old, notes=tuple(notes),
+                        reboot_required=any(c.reboot_required for c in compass))
