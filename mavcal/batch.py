@@ -307,6 +307,51 @@ def _names(rows: Sequence[BatchRow]) -> Dict[str, str]:
     return {r.source: (b if base.count(b) == 1 else r.source) for r, b in zip(rows, base)}
 
 
+_HEADER = ["VEHICLE", "COMPASS(DEV_ID)", "ACCEL(ID)", "LOG", "RESULT", "|dOFS| mG", "COMPASS OFS old -> new",
+           "|dACC| m/s2", "max dSCAL", "HDG95", "TILT95", "MODEL", "N", "FLAG"]
+_RIGHT = {5, 7, 8, 9, 10, 12}
+
+
+def _group_key(r: BatchRow) -> tuple:
+    return (r.sysid, r.firmware, r.compass_dev_id, r.accel_id, r.compass_instance, r.accel_instance)
+
+
+def _score(r: BatchRow) -> float:
+    d = r.drift
+    return -1.0 if d is None else d
+
+
+def _ids(r: BatchRow) -> List[str]:
+    return [r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
+            f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})"]
+
+
+def _ok_cells(r: BatchRow, name: str) -> List[str]:
+    ofs = ("-" if r.compass_ofs_new is None else
+           ("?" if r.compass_ofs_old is None else "(" + ",".join(f"{v:.0f}" for v in r.compass_ofs_old) + ")")
+           + " -> (" + ",".join(f"{v:.0f}" for v in r.compass_ofs_new) + ")")
+    return _ids(r) + [name, "accepted" if r.accepted else "REJECTED", _f(r.compass_ofs_change_mgauss, ".1f"), ofs,
+                      _f(r.accel_ofs_change_mps2, ".3f"), _f(r.accel_scale_change, ".4f"),
+                      _f(r.heading_95_deg, ".2f"), _f(r.tilt_95_deg, ".3f"), r.model or "-",
+                      "-" if r.n_intervals is None else str(r.n_intervals),
+                      ("DRIFT" if r.accepted else "drift?") if _score(r) >= 1.0 else ""]
+
+
+def _footer(rows: Sequence[BatchRow], names: Dict[str, str], n_failed: int, n_groups: int) -> List[str]:
+    n_ok = len(rows) - n_failed
+    drifted = [names[r.source] for r in rows if r.ok and r.accepted and _score(r) >= 1.0]
+    unsure = [names[r.source] for r in rows if r.ok and not r.accepted and _score(r) >= 1.0]
+    n_acc = sum(1 for r in rows if r.ok and r.accepted)
+    out = ["", f"{len(rows)} logs: {n_acc} accepted, {n_ok - n_acc} rejected by the gates, {n_failed} failed; "
+               f"{n_groups} vehicle/instance group(s)",
+           ("drifted (compass offsets > %g mGauss, accel offsets > %g m/s^2 or scale > %g): %s"
+            % (DRIFT_COMPASS_MGAUSS, DRIFT_ACCEL_OFS_MPS2, DRIFT_ACCEL_SCALE, ", ".join(drifted)))
+           if drifted else "no accepted calibration drifted beyond the thresholds"]
+    if unsure:
+        out.append("large changes in rejected calibrations (not trustworthy, see the gates): " + ", ".join(unsure))
+    return out
+
+
 def format_fleet_table(rows: Sequence[BatchRow]) -> str:
     """A table of a batch per vehicle and instance, the biggest changes first.
 
@@ -329,62 +374,25 @@ def format_fleet_table(rows: Sequence[BatchRow]) -> str:
     if not rows:
         return "no logs"
     names = _names(rows)
-
-    def key(r: BatchRow):
-        return (r.sysid, r.firmware, r.compass_dev_id, r.accel_id, r.compass_instance, r.accel_instance)
-
-    def score(r: BatchRow) -> float:
-        d = r.drift
-        return -1.0 if d is None else d
-
     groups: Dict[tuple, List[BatchRow]] = {}
     for r in rows:
         if r.ok:
-            groups.setdefault(key(r), []).append(r)
-    ordered = sorted(groups.values(), key=lambda g: -max(score(r) for r in g))
-    header = ["VEHICLE", "COMPASS(DEV_ID)", "ACCEL(ID)", "LOG", "RESULT", "|dOFS| mG", "COMPASS OFS old -> new",
-              "|dACC| m/s2", "max dSCAL", "HDG95", "TILT95", "MODEL", "N", "FLAG"]
-    table: List[List[str]] = []
-    for g in ordered:
-        for r in sorted(g, key=lambda r: -score(r)):
-            ofs = ("-" if r.compass_ofs_new is None else
-                   ("?" if r.compass_ofs_old is None else "(" + ",".join(f"{v:.0f}" for v in r.compass_ofs_old) + ")")
-                   + " -> (" + ",".join(f"{v:.0f}" for v in r.compass_ofs_new) + ")")
-            table.append([r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
-                          f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})", names[r.source],
-                          "accepted" if r.accepted else "REJECTED", _f(r.compass_ofs_change_mgauss, ".1f"), ofs,
-                          _f(r.accel_ofs_change_mps2, ".3f"), _f(r.accel_scale_change, ".4f"),
-                          _f(r.heading_95_deg, ".2f"), _f(r.tilt_95_deg, ".3f"), r.model or "-",
-                          "-" if r.n_intervals is None else str(r.n_intervals),
-                          ("DRIFT" if r.accepted else "drift?") if score(r) >= 1.0 else ""])
+            groups.setdefault(_group_key(r), []).append(r)
+    ordered = [r for g in sorted(groups.values(), key=lambda g: -max(_score(r) for r in g))
+               for r in sorted(g, key=lambda r: -_score(r))]
     failed = [r for r in rows if not r.ok]
-    for r in failed:
-        table.append([r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
-                      f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})", names[r.source],
-                      f"ERROR {r.exit_code}"] + [""] * (len(header) - 5))
-    widths = [max(len(header[j]), *(len(t[j]) for t in table)) for j in range(len(header))]
-    right = {5, 7, 8, 9, 10, 12}
+    table = [_ok_cells(r, names[r.source]) for r in ordered]
+    table += [_ids(r) + [names[r.source], f"ERROR {r.exit_code}"] + [""] * (len(_HEADER) - 5) for r in failed]
+    widths = [max(len(_HEADER[j]), *(len(t[j]) for t in table)) for j in range(len(_HEADER))]
 
     def line(cells: Sequence[str]) -> str:
-        return "  ".join(c.rjust(w) if j in right else c.ljust(w) for j, (c, w) in enumerate(zip(cells, widths))).rstrip()
+        return "  ".join(c.rjust(w) if j in _RIGHT else c.ljust(w) for j, (c, w) in enumerate(zip(cells, widths))).rstrip()
 
-    out = [line(header), line(["-" * w for w in widths])]
-    n_ok = len(rows) - len(failed)
-    for t, r in zip(table, [r for g in ordered for r in sorted(g, key=lambda r: -score(r))] + failed):
+    out = [line(_HEADER), line(["-" * w for w in widths])]
+    for t, r in zip(table, ordered + failed):
         out.append(line(t))
         if not r.ok:
             out.append(f"    {r.error}")
         elif r.failed_gates:
             out += [f"    gate {fg}" for fg in r.failed_gates]
-    drifted = [names[r.source] for r in rows if r.ok and r.accepted and score(r) >= 1.0]
-    unsure = [names[r.source] for r in rows if r.ok and not r.accepted and score(r) >= 1.0]
-    n_acc = sum(1 for r in rows if r.ok and r.accepted)
-    out.append("")
-    out.append(f"{len(rows)} logs: {n_acc} accepted, {n_ok - n_acc} rejected by the gates, {len(failed)} failed; "
-               f"{len(groups)} vehicle/instance group(s)")
-    out.append(("drifted (compass offsets > %g mGauss, accel offsets > %g m/s^2 or scale > %g): %s"
-                % (DRIFT_COMPASS_MGAUSS, DRIFT_ACCEL_OFS_MPS2, DRIFT_ACCEL_SCALE, ", ".join(drifted)))
-               if drifted else "no accepted calibration drifted beyond the thresholds")
-    if unsure:
-        out.append("large changes in rejected calibrations (not trustworthy, see the gates): " + ", ".join(unsure))
-    return "\n".join(out)
+    return "\n".join(out + _footer(rows, names, len(failed), len(groups)))

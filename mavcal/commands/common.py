@@ -122,7 +122,7 @@ def write_outputs(run, args: argparse.Namespace, title: str) -> None:
     """
     from mavcal.ardupilot.paramfile import write_param_file
     from mavcal.report.json import to_json
-    from mavcal.report.text import summary_text
+    from mavcal.report.text import gate_refusal_text, summary_text
 
     print(summary_text(run))
     if args.json:
@@ -133,7 +133,7 @@ def write_outputs(run, args: argparse.Namespace, title: str) -> None:
         print(f"report written to {args.report}")
     if not run.accepted and not args.force:
         if args.param_out or getattr(args, "write", False):
-            print("nothing written: the calibration failed a quality gate (use --force to override)", file=sys.stderr)
+            print(gate_refusal_text(run, "use --force"), file=sys.stderr, end="")
         raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
     if args.param_out:
         write_param_file(args.param_out, run.mapping.new, header=[title, f"model {run.calibration.model}"])

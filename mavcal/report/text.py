@@ -13,7 +13,7 @@ import numpy as np
 from mavcal.ardupilot.paramfile import format_param_value
 
 __all__ = ["summary_text", "param_rows", "format_value", "gate_failures_by_sensor", "param_table",
-           "plan_text", "write_done_text", "write_failed_text", "in_doubt_text", "writing_text"]
+           "plan_text", "gate_refusal_text", "write_done_text", "write_failed_text", "in_doubt_text", "writing_text"]
 
 
 def format_value(v: Optional[float]) -> str:
@@ -144,6 +144,13 @@ def param_table(results: Iterable, *, show_status: bool = True) -> str:
 
 def _lines(lines: Sequence[str], prefix: str) -> str:
     return "".join(f"{prefix}{x}\n" for x in lines)
+
+
+def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
+    """Why nothing is written: the quality gates that failed, and how to override."""
+    fails = "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures())
+    return _lines([f"nothing written: the calibration failed a quality gate ({fails}); {override_hint} to override"],
+                  prefix)
 
 
 def plan_text(plan, *, dry_run: bool = False, confirm_hint: Optional[str] = None, prefix: str = "") -> str:
