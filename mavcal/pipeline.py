@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
-from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -47,8 +46,8 @@ class Options:
     accel_instance: int = 0  # the primary pair: the board frame and the quality numbers
     mag_instance: int = 0
     all_instances: bool = True  # also every other IMU (with compass 0) and compass (with IMU 0)
-    field_mgauss: Optional[float] = None
-    location: Optional[Tuple[float, float, float]] = None
+    field_mgauss: float | None = None
+    location: tuple[float, float, float] | None = None
     orient_tol_deg: float = 1.0
     allow_custom: bool = True
     force_external: bool = False
@@ -66,14 +65,14 @@ class CalibrationRun:
     log: ImuLog
     raw: RawImu
     segmentation: Segmentation
-    intervals_used: Tuple[int, ...]
+    intervals_used: tuple[int, ...]
     calibration: Calibration
     mapping: ParamMapping
     quality: Quality
     gates: gates_mod.GateReport
-    params_before: Dict[str, float]
-    warnings: Tuple[str, ...] = ()
-    others: Tuple["CalibrationRun", ...] = ()  # the fits of the other instances (all_instances)
+    params_before: dict[str, float]
+    warnings: tuple[str, ...] = ()
+    others: tuple[CalibrationRun, ...] = ()  # the fits of the other instances (all_instances)
 
     @property
     def accepted(self) -> bool:
@@ -93,15 +92,15 @@ class Prepared:
     log: ImuLog
     raw: RawImu
     segmentation: Segmentation
-    quantization: Dict[Tuple[str, int], float]
-    warnings: Tuple[str, ...]
+    quantization: dict[tuple[str, int], float]
+    warnings: tuple[str, ...]
 
 
 # --------------------------------------------------------------------------- read
 
 def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbeat_timeout_s: float = 5.0,
                 param_timeout_s: float = 30.0, rate_hz: float = 50.0,
-                progress: Optional[ProgressFn] = None) -> ImuLog:
+                progress: ProgressFn | None = None) -> ImuLog:
     """A log file (:func:`mavcal.sources.reader.read_log`) or ``duration_s`` seconds recorded
     from a MAVLink device string (:func:`mavcal.link.live.record_device`)."""
     from mavcal.sources.reader import is_device, read_log
@@ -122,7 +121,7 @@ def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
 
     opts = options
     log_ = source if isinstance(source, ImuLog) else open_source(source, progress=progress)
-    warnings: List[str] = list(log_.warnings)
+    warnings: list[str] = list(log_.warnings)
     steps = {(s.sensor, s.instance): quantization_step(s) for s in log_.series}
     if opts.untruncate:
         log_, _ = untruncate_log(log_)
@@ -170,7 +169,7 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
                    warnings=tuple(dict.fromkeys(warnings)))
 
 
-def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> List[int]:
+def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
     """The still intervals holding samples of both accelerometer ``ai`` and compass ``mi``;
     InsufficientDataError/SourceError when too few for any model."""
     log_, raw, seg = prep.log, prep.raw, prep.segmentation
@@ -197,7 +196,7 @@ def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
     """calibrate -> map -> quality -> gates for one accelerometer/compass pair."""
     opts = options
     log_, seg = prep.log, prep.segmentation
-    warnings: List[str] = list(prep.warnings)
+    warnings: list[str] = list(prep.warnings)
     ai, mi = opts.accel_instance, opts.mag_instance
     used = _intervals_of_pair(prep, ai, mi)
     acc = [seg.intervals[k].accel_mps2[ai] for k in used]

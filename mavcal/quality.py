@@ -11,8 +11,9 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence, Tuple
+from typing import Callable
 
 import numpy as np
 
@@ -46,7 +47,7 @@ class Quality:
 
 
 def truth_functions(K_a: np.ndarray, b_a: np.ndarray, K_m: np.ndarray, b_m: np.ndarray, h: np.ndarray,
-                    board_rot: np.ndarray, R_old: np.ndarray, field_norm: float) -> Tuple[RawFn, RawFn]:
+                    board_rot: np.ndarray, R_old: np.ndarray, field_norm: float) -> tuple[RawFn, RawFn]:
     """Raw-reading functions of a sensor model in the engine frame (for error propagation).
 
     Returns ``(raw_accel(f_body m/s^2), raw_mag(B_body mGauss))``: the readings
@@ -69,7 +70,7 @@ def truth_functions(K_a: np.ndarray, b_a: np.ndarray, K_m: np.ndarray, b_m: np.n
 
 
 def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
-               draws: int, seed: int, holdout: Tuple[float, float]) -> Quality:
+               draws: int, seed: int, holdout: tuple[float, float]) -> Quality:
     """Heading/tilt error bounds of the written parameters ``am``/``cm`` against ``cal``
     and ``draws`` samples of its parameter distribution; ``holdout`` is
     :func:`holdout_errors`' (accel m/s^2, compass mGauss)."""
@@ -98,8 +99,8 @@ def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot
 
 def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Calibration, *,
                    method: str = "ncar", tol: float = 1e-4, seed: int = 0,
-                   noise_floor: Tuple[Optional[float], Optional[float]] = (None, None),
-                   cluster_deg: float = 30.0) -> Tuple[float, float]:
+                   noise_floor: tuple[float | None, float | None] = (None, None),
+                   cluster_deg: float = 30.0) -> tuple[float, float]:
     """RMS leave-one-interval-out error: refit without interval j, predict j's means.
 
     Only intervals whose gravity direction is seen again in another interval (within

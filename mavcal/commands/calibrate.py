@@ -27,9 +27,11 @@ HELP = "calibrate from a log or a live link, check quality, write .param/JSON/HT
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("sources", nargs="+", metavar="SOURCE",
-                   help="log file(s) (.tlog, .bin, .log, .csv) or one MAVLink device (udpin:..., tcp:..., /dev/ttyACM0)")
+                   help="log file(s) (.tlog, .bin, .log, .csv) or one MAVLink device "
+                        "(udpin:..., tcp:..., /dev/ttyACM0)")
     out = p.add_argument_group("outputs")
-    out.add_argument("--param-out", metavar="F", help="write the new parameters as a .param file (MAVProxy/Mission Planner)")
+    out.add_argument("--param-out", metavar="F",
+                     help="write the new parameters as a .param file (MAVProxy/Mission Planner)")
     out.add_argument("--json", metavar="F", help="write the full JSON report ('-' for stdout)")
     out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
     out.add_argument("--jobs", type=int, default=1, metavar="N", help="with several logs: parallel processes")

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Optional, TextIO
+from typing import TextIO
 
 from mavcal.commands.common import (
     add_link_arguments,
@@ -61,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 class StatusPrinter:
     """Shows capture statuses: one redrawn screen on a terminal, one line per change otherwise."""
 
-    def __init__(self, out: TextIO, target_deg: Optional[float] = None, tty: Optional[bool] = None) -> None:
+    def __init__(self, out: TextIO, target_deg: float | None = None, tty: bool | None = None) -> None:
         self.out = out
         self.target_deg = target_deg
         self.tty = bool(out.isatty()) if tty is None else tty

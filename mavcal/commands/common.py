@@ -9,7 +9,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any, Optional, TextIO
+from typing import Any, TextIO
 
 from mavcal.errors import GateError, UsageError
 
@@ -142,7 +142,7 @@ def write_outputs(run, args: argparse.Namespace, title: str) -> None:
 
 # --------------------------------------------------------------------------- the write flow
 
-def check_new_backup(path: Optional[str]) -> None:
+def check_new_backup(path: str | None) -> None:
     """UsageError when a backup file was named and already exists (never overwrite one)."""
     if path is not None and Path(path).exists():
         raise UsageError(f"backup file {path!r} already exists; not overwriting it")
@@ -159,8 +159,8 @@ def confirm(prompt: str, assume_yes: bool) -> None:
         raise UsageError("cancelled; nothing was written")
 
 
-def write_with_report(args: argparse.Namespace, changes: dict, backup: Optional[str], what: str,
-                      out: Optional[TextIO] = None) -> int:
+def write_with_report(args: argparse.Namespace, changes: dict, backup: str | None, what: str,
+                      out: TextIO | None = None) -> int:
     """Connect to ``args.connect``, show the diff, confirm, write with the safe writer
     (:func:`mavcal.link.writer.write_params`) and print the outcome (:mod:`mavcal.report.text`)."""
     from mavcal.ardupilot.protocol import force_save_kinds

@@ -16,7 +16,7 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any, Dict
+from typing import Any
 
 import numpy as np
 
@@ -42,11 +42,11 @@ def _num(x: float) -> Any:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _report(src: str, raw, seg, samples: bool) -> Dict[str, Any]:
+def _report(src: str, raw, seg, samples: bool) -> dict[str, Any]:
     from mavcal.segment import axis_label
 
     cov = seg.coverage
-    out: Dict[str, Any] = {
+    out: dict[str, Any] = {
         "source": src,
         "sample_rate_hz": _num(seg.sample_rate_hz),
         "window_samples": seg.window_samples,
@@ -88,7 +88,7 @@ def _report(src: str, raw, seg, samples: bool) -> Dict[str, Any]:
     return out
 
 
-def _print_text(rep: Dict[str, Any]) -> None:
+def _print_text(rep: dict[str, Any]) -> None:
     print(f"{rep['source']}: accel 0 at {rep['sample_rate_hz'] or 0:.1f} Hz, window {rep['window_samples']} "
           f"samples, stillness from accel{' + gyro' if rep['used_gyro'] else ''}"
           f"{' + mag' if rep['used_mag'] else ''}")

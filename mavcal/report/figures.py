@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import io
-from typing import Tuple
 
 import numpy as np
 
@@ -25,12 +24,12 @@ _BEFORE = "#c62828"
 _AFTER = "#1565c0"
 _MAX_POINTS = 20000  # per plotted series in the timeline (plain decimation beyond)
 
-def _decimate(t: np.ndarray, v: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _decimate(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     step = max(1, int(np.ceil(t.shape[0] / _MAX_POINTS)))
     return t[::step], v[::step]
 
 
-def fig_timeline(Figure, run) -> Tuple[object, int]:
+def fig_timeline(Figure, run) -> tuple[object, int]:
     """Timeline figure and the number of interval spans drawn in its strip."""
     ai, mi = instances(run)
     seg = run.segmentation

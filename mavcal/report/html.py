@@ -15,8 +15,8 @@ import base64
 import datetime as _dt
 import html
 import logging
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Dict, List, Sequence
 
 import numpy as np
 
@@ -95,7 +95,7 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], row_classes: Se
     return "".join(out)
 
 
-def _top(run) -> List[str]:
+def _top(run) -> list[str]:
     q, seg = run.quality, run.segmentation
     n_int, n_used, accepted = len(seg.intervals), len(run.intervals_used), run.accepted
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -113,7 +113,7 @@ def _top(run) -> List[str]:
             "(95 % confidence).</p>"]
 
 
-def _quality(run) -> List[str]:
+def _quality(run) -> list[str]:
     cal, q, cm = run.calibration, run.quality, run.mapping.compass[0]
     dip = _num(cm.inclination_deg, ".2f") + (
         "" if cm.inclination_model_deg is None else f" (World Magnetic Model {_num(cm.inclination_model_deg, '.2f')})")
@@ -134,7 +134,7 @@ def _quality(run) -> List[str]:
             + "</table>"]
 
 
-def _parameters(run) -> List[str]:
+def _parameters(run) -> list[str]:
     rows, cls = [], []
     for n, o, v, ch in param_rows(run):
         d = "-" if o is None else _num(v - float(o), "+.4g")
@@ -146,7 +146,7 @@ def _parameters(run) -> List[str]:
             _table(["parameter", "old", "new", "change"], rows, cls)]
 
 
-def _dropped(run) -> List[str]:
+def _dropped(run) -> list[str]:
     am, cm = run.mapping.accel[0], run.mapping.compass[0]
     ca = np.asarray(am.cross_axis)
     largest = np.max(np.abs(ca - np.diag(np.diag(ca)))) if ca.size else float("nan")
@@ -159,7 +159,7 @@ def _dropped(run) -> List[str]:
             "<li>compass motor compensation: unchanged (still poses cannot observe it)</li></ul>"]
 
 
-def _figures(images: Dict[str, bytes], n_spans: int) -> List[str]:
+def _figures(images: dict[str, bytes], n_spans: int) -> list[str]:
     P = ["<h2>Figures</h2>"]
     for name in FIGURE_NAMES:
         if name not in images:
@@ -171,7 +171,7 @@ def _figures(images: Dict[str, bytes], n_spans: int) -> List[str]:
     return P
 
 
-def _gates(run) -> List[str]:
+def _gates(run) -> list[str]:
     P = ["<h2>Quality gates</h2>"]
     fails = gate_failures_by_sensor(run)
     if fails:
@@ -188,7 +188,7 @@ def _gates(run) -> List[str]:
     return P
 
 
-def _intervals(run, st: IntervalNumbers) -> List[str]:
+def _intervals(run, st: IntervalNumbers) -> list[str]:
     seg = run.segmentation
     ai, mi = run.mapping.accel[0].instance, run.mapping.compass[0].instance
     irows, icls = [], []
@@ -207,7 +207,7 @@ def _intervals(run, st: IntervalNumbers) -> List[str]:
                     "accel resid (sigma)", "mag resid (sigma)"], irows, icls, left=())]
 
 
-def _notes(run) -> List[str]:
+def _notes(run) -> list[str]:
     seg = run.segmentation
     msgs = list(seg.coverage.messages)
     P = ["<h2>Coverage, notes and warnings</h2>",
@@ -225,7 +225,7 @@ def _notes(run) -> List[str]:
     return P
 
 
-def html_page(run, st: IntervalNumbers, images: Dict[str, bytes], n_spans: int) -> str:
+def html_page(run, st: IntervalNumbers, images: dict[str, bytes], n_spans: int) -> str:
     """The whole HTML page: verdict, quality, parameters, dropped terms, figures, gates,
     intervals, coverage/notes/warnings."""
     P = (_top(run) + _quality(run) + _parameters(run) + _dropped(run) + _figures(images, n_spans) + _gates(run)

@@ -15,9 +15,10 @@ covariances rebuilt from their diagonals and those other fields empty. 2 adds th
 from __future__ import annotations
 
 import json as _json
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Dict, Mapping, Optional, Tuple
+from typing import Any
 
 import numpy as np
 
@@ -66,8 +67,8 @@ class SavedCalibration:
     mapping: ParamMapping
     quality: Quality
     gates: GateReport
-    intervals: Tuple[SavedInterval, ...]
-    warnings: Tuple[str, ...]
+    intervals: tuple[SavedInterval, ...]
+    warnings: tuple[str, ...]
     document: Mapping[str, Any]
 
 
@@ -85,7 +86,7 @@ def _f(x):
     return x
 
 
-def _calibration(cal: Calibration) -> Dict[str, Any]:
+def _calibration(cal: Calibration) -> dict[str, Any]:
     return {"model": cal.model, "model_reason": cal.model_reason, "method": cal.method,
             "cost": cal.cost, "dof": cal.dof, "converged": cal.converged, "message": cal.message,
             "K_a": _f(cal.accel.gain), "b_a": _f(cal.accel.bias), "K_m": _f(cal.mag.gain),
@@ -101,7 +102,7 @@ def _calibration(cal: Calibration) -> Dict[str, Any]:
             "n_mag": None if cal.n_mag is None else _f(cal.n_mag)}
 
 
-def _compass(cm) -> Dict[str, Any]:
+def _compass(cm) -> dict[str, Any]:
     return {"instance": cm.instance, "external": cm.external, "orientation": cm.orientation_note,
             "rotation_deg": cm.rotation_deg, "field_mgauss": cm.field_mgauss, "field_source": cm.field_source,
             "inclination_deg": cm.inclination_deg, "inclination_model_deg": _f(cm.inclination_model_deg),
@@ -109,7 +110,7 @@ def _compass(cm) -> Dict[str, Any]:
                                            else cm.inclination_deg - cm.inclination_model_deg)}
 
 
-def _instances(run) -> Dict[str, Any]:
+def _instances(run) -> dict[str, Any]:
     am, cm = run.mapping.accel[0], run.mapping.compass[0]
     return {"accel": am.instance, "compass": cm.instance,
             "accel_present": list(run.raw.accel_instances()), "compass_present": list(run.raw.mag_instances()),
@@ -126,11 +127,11 @@ def _instances(run) -> Dict[str, Any]:
                        "tilt_95_deg": r.quality.tilt_95_deg} for r in (run,) + tuple(run.others)]}
 
 
-def _changed(old: Optional[float], new: float) -> bool:
+def _changed(old: float | None, new: float) -> bool:
     return bool(old is None or np.float32(new) != np.float32(old))
 
 
-def to_json(run) -> Dict[str, Any]:
+def to_json(run) -> dict[str, Any]:
     """The JSON report of a :class:`mavcal.pipeline.CalibrationRun` (a dict for :func:`json.dump`)."""
     am, cm = run.mapping.accel[0], run.mapping.compass[0]
     seg = run.segmentation

@@ -8,7 +8,6 @@ firmware's equations of :mod:`mavcal.ardupilot.firmware`) and the whitened model
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Tuple
 
 import numpy as np
 
@@ -70,7 +69,7 @@ class IntervalNumbers:
         return int(self.used.shape[0])
 
 
-def instances(run) -> Tuple[int, int]:
+def instances(run) -> tuple[int, int]:
     return run.mapping.accel[0].instance, run.mapping.compass[0].instance
 
 
@@ -108,7 +107,7 @@ def _window(series, t0: float, t1: float, pad: float) -> np.ndarray:
     return np.asarray(series.values[i0:i1], float)
 
 
-def _norm_stats(v: np.ndarray) -> Tuple[float, float]:
+def _norm_stats(v: np.ndarray) -> tuple[float, float]:
     if v.shape[0] == 0:
         return float("nan"), float("nan")
     n = np.linalg.norm(v, axis=1)

@@ -6,7 +6,7 @@ Every function returns a string (no printing); an empty string means nothing to 
 """
 from __future__ import annotations
 
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -16,7 +16,7 @@ __all__ = ["summary_text", "param_rows", "format_value", "gate_failures_by_senso
            "plan_text", "gate_refusal_text", "write_done_text", "write_failed_text", "in_doubt_text", "writing_text"]
 
 
-def format_value(v: Optional[float]) -> str:
+def format_value(v: float | None) -> str:
     if v is None:
         return "-"
     try:
@@ -25,11 +25,11 @@ def format_value(v: Optional[float]) -> str:
         return str(v)
 
 
-def _changed(old: Optional[float], new: float) -> bool:
+def _changed(old: float | None, new: float) -> bool:
     return old is None or np.float32(old) != np.float32(new)
 
 
-def param_rows(run) -> List[Tuple[str, Optional[float], float, bool]]:
+def param_rows(run) -> list[tuple[str, float | None, float, bool]]:
     return [(n, run.mapping.old.get(n), float(v), _changed(run.mapping.old.get(n), v))
             for n, v in sorted(run.mapping.new.items())]
 
@@ -49,8 +49,8 @@ def _group_vectors(rows):
     return out
 
 
-def gate_failures_by_sensor(run) -> Dict[str, List[str]]:
-    out: Dict[str, List[str]] = {}
+def gate_failures_by_sensor(run) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
     for g in run.gates.failures():
         out.setdefault(g.sensor, []).append(f"{g.name}: {g.reason or 'failed (limit ' + g.limit + ')'}")
     return out
@@ -153,7 +153,7 @@ def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
                   prefix)
 
 
-def plan_text(plan, *, dry_run: bool = False, confirm_hint: Optional[str] = None, prefix: str = "") -> str:
+def plan_text(plan, *, dry_run: bool = False, confirm_hint: str | None = None, prefix: str = "") -> str:
     """The dry-run plan of a write (a :class:`~mavcal.link.writer.WriteReport`): the table,
     then "nothing to change", the dry-run count, or how to confirm (``confirm_hint``)."""
     n = len(plan.changed)
@@ -179,13 +179,14 @@ def write_done_text(report, *, prefix: str = "") -> str:
     if report.force_saved:
         lines.append(f"calibration marked saved ({', '.join(report.force_saved)}), device ids stored")
     if report.force_save_failed:
-        lines.append(f"warning: the vehicle did not acknowledge the force-save of {', '.join(report.force_save_failed)}")
+        failed = ", ".join(report.force_save_failed)
+        lines.append(f"warning: the vehicle did not acknowledge the force-save of {failed}")
     if report.reboot_required:
         lines.append(f"reboot the vehicle for {', '.join(report.reboot_required)} to take effect")
     return param_table(report.changed) + _lines(lines, prefix)
 
 
-def in_doubt_text(names: Sequence[str], backup_path: str, connect: Optional[str] = None, *,
+def in_doubt_text(names: Sequence[str], backup_path: str, connect: str | None = None, *,
                   prefix: str = "") -> str:
     """The parameters whose value is unknown after a failed restore, and how to restore them."""
     cmd = f"mavcal restore {backup_path}" + (f" --connect {connect}" if connect else "")
@@ -194,7 +195,7 @@ def in_doubt_text(names: Sequence[str], backup_path: str, connect: Optional[str]
             + _lines([f"restore them when the vehicle answers again: {cmd}"], prefix))
 
 
-def write_failed_text(exc, what: str, backup_path: str, connect: Optional[str] = None, *,
+def write_failed_text(exc, what: str, backup_path: str, connect: str | None = None, *,
                       prefix: str = "") -> str:
     """The outcome of a failed write: a :class:`~mavcal.errors.ParamWriteError` (everything
     restored) or a :class:`~mavcal.errors.RestoreFailedError` (parameters in doubt)."""
