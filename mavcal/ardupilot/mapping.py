@@ -339,8 +339,10 @@ def merge_mappings(primary: ParamMapping, others: Sequence[ParamMapping],
     accel = list(primary.accel) + [m.accel[0] for m in others if m.accel[0].instance != ai]
     compass = list(primary.compass) + [m.compass[0] for m in others if m.compass[0].instance != mi]
     new: dict[str, float] = {}
-    for mp in (*accel, *compass):
-        new.update(mp.params())
+    for am in accel:
+        new.update(am.params())
+    for cm in compass:
+        new.update(cm.params())
     old: dict[str, float | None] = {}
     for m in (primary, *others):
         old.update(m.old)
