@@ -17,11 +17,12 @@ import logging
 import multiprocessing
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable
 
 import numpy as np
 
@@ -42,7 +43,7 @@ DRIFT_ACCEL_OFS_MPS2 = 0.1
 #: A change of any accelerometer scale larger than this flags it.
 DRIFT_ACCEL_SCALE = 0.01
 
-Vec3 = Tuple[float, float, float]
+Vec3 = tuple[float, float, float]
 ProgressFn = Callable[[int, int, "BatchRow"], None]
 
 
@@ -91,30 +92,30 @@ class BatchRow:
 
     source: str
     ok: bool
-    error: Optional[str] = None
+    error: str | None = None
     exit_code: int = 0
-    sysid: Optional[int] = None
-    firmware: Optional[str] = None
-    compass_dev_id: Optional[int] = None
-    accel_id: Optional[int] = None
+    sysid: int | None = None
+    firmware: str | None = None
+    compass_dev_id: int | None = None
+    accel_id: int | None = None
     accel_instance: int = 0
     compass_instance: int = 0
-    accepted: Optional[bool] = None
-    failed_gates: Tuple[str, ...] = ()
-    heading_95_deg: Optional[float] = None
-    tilt_95_deg: Optional[float] = None
-    compass_ofs_old: Optional[Vec3] = None
-    compass_ofs_new: Optional[Vec3] = None
-    compass_ofs_change_mgauss: Optional[float] = None
-    accel_ofs_old: Optional[Vec3] = None
-    accel_ofs_new: Optional[Vec3] = None
-    accel_ofs_change_mps2: Optional[float] = None
-    accel_scale_old: Optional[Vec3] = None
-    accel_scale_new: Optional[Vec3] = None
-    accel_scale_change: Optional[float] = None
-    model: Optional[str] = None
-    n_intervals: Optional[int] = None
-    warnings: Tuple[str, ...] = ()
+    accepted: bool | None = None
+    failed_gates: tuple[str, ...] = ()
+    heading_95_deg: float | None = None
+    tilt_95_deg: float | None = None
+    compass_ofs_old: Vec3 | None = None
+    compass_ofs_new: Vec3 | None = None
+    compass_ofs_change_mgauss: float | None = None
+    accel_ofs_old: Vec3 | None = None
+    accel_ofs_new: Vec3 | None = None
+    accel_ofs_change_mps2: float | None = None
+    accel_scale_old: Vec3 | None = None
+    accel_scale_new: Vec3 | None = None
+    accel_scale_change: float | None = None
+    model: str | None = None
+    n_intervals: int | None = None
+    warnings: tuple[str, ...] = ()
     elapsed_s: float = 0.0
 
     @property
@@ -128,7 +129,7 @@ class BatchRow:
         return ", ".join(parts) if parts else "unknown"
 
     @property
-    def drift(self) -> Optional[float]:
+    def drift(self) -> float | None:
         """Largest change relative to its flag threshold (>= 1: drifted); None if unknown."""
         terms = [c / t for c, t in ((self.compass_ofs_change_mgauss, DRIFT_COMPASS_MGAUSS),
                                     (self.accel_ofs_change_mps2, DRIFT_ACCEL_OFS_MPS2),
@@ -143,19 +144,19 @@ def _vec(v) -> Vec3:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def _old_vec(old: Dict[str, Optional[float]], names: Sequence[str]) -> Optional[Vec3]:
+def _old_vec(old: dict[str, float | None], names: Sequence[str]) -> Vec3 | None:
     vals = [old.get(n) for n in names]
     return None if any(v is None for v in vals) else _vec(vals)
 
 
-def _int_or_none(v) -> Optional[int]:
+def _int_or_none(v) -> int | None:
     try:
         return None if v is None else int(v)
     except (TypeError, ValueError):
         return None
 
 
-def _identity(log_, params: Dict[str, float], ai: int, mi: int) -> dict:
+def _identity(log_, params: dict[str, float], ai: int, mi: int) -> dict:
     veh = dict(getattr(log_, "vehicle", {}) or {})
     out = {"sysid": _int_or_none(veh.get("sysid")), "firmware": veh.get("firmware")}
     out["firmware"] = None if out["firmware"] is None else str(out["firmware"])
@@ -226,8 +227,8 @@ def _worker_init() -> None:
 
 # --------------------------------------------------------------------------- batch
 
-def calibrate_many(sources: List[str], options, jobs: int = 1, *,
-                   progress: Optional[ProgressFn] = None) -> List[BatchRow]:
+def calibrate_many(sources: list[str], options, jobs: int = 1, *,
+                   progress: ProgressFn | None = None) -> list[BatchRow]:
     """Calibrate many logs, in parallel worker processes when ``jobs > 1``.
 
     Parameters
@@ -255,7 +256,7 @@ def calibrate_many(sources: List[str], options, jobs: int = 1, *,
         raise UsageError(f"jobs must be at least 1, got {jobs}")
     sources = [str(s) for s in sources]
     total = len(sources)
-    rows: List[Optional[BatchRow]] = [None] * total
+    rows: list[BatchRow | None] = [None] * total
     done = 0
 
     def finish(i: int, row: BatchRow) -> None:
@@ -297,14 +298,59 @@ def calibrate_many(sources: List[str], options, jobs: int = 1, *,
 
 # --------------------------------------------------------------------------- table
 
-def _f(v: Optional[float], fmt: str) -> str:
+def _f(v: float | None, fmt: str) -> str:
     return "-" if v is None or not np.isfinite(v) else format(v, fmt)
 
 
-def _names(rows: Sequence[BatchRow]) -> Dict[str, str]:
+def _names(rows: Sequence[BatchRow]) -> dict[str, str]:
     """Short names for the sources: the file name unless two share it."""
     base = [Path(r.source).name for r in rows]
     return {r.source: (b if base.count(b) == 1 else r.source) for r, b in zip(rows, base)}
+
+
+_HEADER = ["VEHICLE", "COMPASS(DEV_ID)", "ACCEL(ID)", "LOG", "RESULT", "|dOFS| mG", "COMPASS OFS old -> new",
+           "|dACC| m/s2", "max dSCAL", "HDG95", "TILT95", "MODEL", "N", "FLAG"]
+_RIGHT = {5, 7, 8, 9, 10, 12}
+
+
+def _group_key(r: BatchRow) -> tuple:
+    return (r.sysid, r.firmware, r.compass_dev_id, r.accel_id, r.compass_instance, r.accel_instance)
+
+
+def _score(r: BatchRow) -> float:
+    d = r.drift
+    return -1.0 if d is None else d
+
+
+def _ids(r: BatchRow) -> list[str]:
+    return [r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
+            f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})"]
+
+
+def _ok_cells(r: BatchRow, name: str) -> list[str]:
+    ofs = ("-" if r.compass_ofs_new is None else
+           ("?" if r.compass_ofs_old is None else "(" + ",".join(f"{v:.0f}" for v in r.compass_ofs_old) + ")")
+           + " -> (" + ",".join(f"{v:.0f}" for v in r.compass_ofs_new) + ")")
+    return _ids(r) + [name, "accepted" if r.accepted else "REJECTED", _f(r.compass_ofs_change_mgauss, ".1f"), ofs,
+                      _f(r.accel_ofs_change_mps2, ".3f"), _f(r.accel_scale_change, ".4f"),
+                      _f(r.heading_95_deg, ".2f"), _f(r.tilt_95_deg, ".3f"), r.model or "-",
+                      "-" if r.n_intervals is None else str(r.n_intervals),
+                      ("DRIFT" if r.accepted else "drift?") if _score(r) >= 1.0 else ""]
+
+
+def _footer(rows: Sequence[BatchRow], names: dict[str, str], n_failed: int, n_groups: int) -> list[str]:
+    n_ok = len(rows) - n_failed
+    drifted = [names[r.source] for r in rows if r.ok and r.accepted and _score(r) >= 1.0]
+    unsure = [names[r.source] for r in rows if r.ok and not r.accepted and _score(r) >= 1.0]
+    n_acc = sum(1 for r in rows if r.ok and r.accepted)
+    out = ["", f"{len(rows)} logs: {n_acc} accepted, {n_ok - n_acc} rejected by the gates, {n_failed} failed; "
+               f"{n_groups} vehicle/instance group(s)",
+           (f"drifted (compass offsets > {DRIFT_COMPASS_MGAUSS:g} mGauss, accel offsets > {DRIFT_ACCEL_OFS_MPS2:g} "
+            f"m/s^2 or scale > {DRIFT_ACCEL_SCALE:g}): " + ", ".join(drifted))
+           if drifted else "no accepted calibration drifted beyond the thresholds"]
+    if unsure:
+        out.append("large changes in rejected calibrations (not trustworthy, see the gates): " + ", ".join(unsure))
+    return out
 
 
 def format_fleet_table(rows: Sequence[BatchRow]) -> str:
@@ -329,62 +375,26 @@ def format_fleet_table(rows: Sequence[BatchRow]) -> str:
     if not rows:
         return "no logs"
     names = _names(rows)
-
-    def key(r: BatchRow):
-        return (r.sysid, r.firmware, r.compass_dev_id, r.accel_id, r.compass_instance, r.accel_instance)
-
-    def score(r: BatchRow) -> float:
-        d = r.drift
-        return -1.0 if d is None else d
-
-    groups: Dict[tuple, List[BatchRow]] = {}
+    groups: dict[tuple, list[BatchRow]] = {}
     for r in rows:
         if r.ok:
-            groups.setdefault(key(r), []).append(r)
-    ordered = sorted(groups.values(), key=lambda g: -max(score(r) for r in g))
-    header = ["VEHICLE", "COMPASS(DEV_ID)", "ACCEL(ID)", "LOG", "RESULT", "|dOFS| mG", "COMPASS OFS old -> new",
-              "|dACC| m/s2", "max dSCAL", "HDG95", "TILT95", "MODEL", "N", "FLAG"]
-    table: List[List[str]] = []
-    for g in ordered:
-        for r in sorted(g, key=lambda r: -score(r)):
-            ofs = ("-" if r.compass_ofs_new is None else
-                   ("?" if r.compass_ofs_old is None else "(" + ",".join(f"{v:.0f}" for v in r.compass_ofs_old) + ")")
-                   + " -> (" + ",".join(f"{v:.0f}" for v in r.compass_ofs_new) + ")")
-            table.append([r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
-                          f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})", names[r.source],
-                          "accepted" if r.accepted else "REJECTED", _f(r.compass_ofs_change_mgauss, ".1f"), ofs,
-                          _f(r.accel_ofs_change_mps2, ".3f"), _f(r.accel_scale_change, ".4f"),
-                          _f(r.heading_95_deg, ".2f"), _f(r.tilt_95_deg, ".3f"), r.model or "-",
-                          "-" if r.n_intervals is None else str(r.n_intervals),
-                          ("DRIFT" if r.accepted else "drift?") if score(r) >= 1.0 else ""])
+            groups.setdefault(_group_key(r), []).append(r)
+    ordered = [r for g in sorted(groups.values(), key=lambda g: -max(_score(r) for r in g))
+               for r in sorted(g, key=lambda r: -_score(r))]
     failed = [r for r in rows if not r.ok]
-    for r in failed:
-        table.append([r.vehicle, f"{r.compass_instance}({r.compass_dev_id if r.compass_dev_id is not None else '?'})",
-                      f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})", names[r.source],
-                      f"ERROR {r.exit_code}"] + [""] * (len(header) - 5))
-    widths = [max(len(header[j]), *(len(t[j]) for t in table)) for j in range(len(header))]
-    right = {5, 7, 8, 9, 10, 12}
+    table = [_ok_cells(r, names[r.source]) for r in ordered]
+    table += [_ids(r) + [names[r.source], f"ERROR {r.exit_code}"] + [""] * (len(_HEADER) - 5) for r in failed]
+    widths = [max(len(_HEADER[j]), *(len(t[j]) for t in table)) for j in range(len(_HEADER))]
 
     def line(cells: Sequence[str]) -> str:
-        return "  ".join(c.rjust(w) if j in right else c.ljust(w) for j, (c, w) in enumerate(zip(cells, widths))).rstrip()
+        return "  ".join(c.rjust(w) if j in _RIGHT else c.ljust(w)
+                         for j, (c, w) in enumerate(zip(cells, widths))).rstrip()
 
-    out = [line(header), line(["-" * w for w in widths])]
-    n_ok = len(rows) - len(failed)
-    for t, r in zip(table, [r for g in ordered for r in sorted(g, key=lambda r: -score(r))] + failed):
+    out = [line(_HEADER), line(["-" * w for w in widths])]
+    for t, r in zip(table, ordered + failed):
         out.append(line(t))
         if not r.ok:
             out.append(f"    {r.error}")
         elif r.failed_gates:
             out += [f"    gate {fg}" for fg in r.failed_gates]
-    drifted = [names[r.source] for r in rows if r.ok and r.accepted and score(r) >= 1.0]
-    unsure = [names[r.source] for r in rows if r.ok and not r.accepted and score(r) >= 1.0]
-    n_acc = sum(1 for r in rows if r.ok and r.accepted)
-    out.append("")
-    out.append(f"{len(rows)} logs: {n_acc} accepted, {n_ok - n_acc} rejected by the gates, {len(failed)} failed; "
-               f"{len(groups)} vehicle/instance group(s)")
-    out.append(("drifted (compass offsets > %g mGauss, accel offsets > %g m/s^2 or scale > %g): %s"
-                % (DRIFT_COMPASS_MGAUSS, DRIFT_ACCEL_OFS_MPS2, DRIFT_ACCEL_SCALE, ", ".join(drifted)))
-               if drifted else "no accepted calibration drifted beyond the thresholds")
-    if unsure:
-        out.append("large changes in rejected calibrations (not trustworthy, see the gates): " + ", ".join(unsure))
-    return "\n".join(out)
+    return "\n".join(out + _footer(rows, names, len(failed), len(groups)))

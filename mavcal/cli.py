@@ -11,7 +11,6 @@ import argparse
 import importlib
 import logging
 import sys
-from typing import List, Optional
 
 from mavcal import __version__
 from mavcal.errors import MavcalError
@@ -60,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):

@@ -34,7 +34,6 @@ the pipeline and the writer, like the ``capture`` command.
 """
 from __future__ import annotations
 
-import io
 import logging
 import queue
 import threading
@@ -46,7 +45,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
 from MAVProxy.modules.lib import mp_module, mp_settings
 
-from mavcal.errors import MavcalError, RestoreFailedError
+from mavcal.errors import MavcalError
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +53,7 @@ IMU_TYPES = frozenset(("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"))
 FED_TYPES = frozenset(("HEARTBEAT", "PARAM_VALUE", "COMMAND_ACK", "STATUSTEXT"))
 SUBCOMMANDS = ("start", "stop", "status", "next", "fit", "write", "restore", "set", "threads")
 THREAD_PREFIX = "mavcal"
+_PREFIX = "mavcal: "  # of every line the module prints (tables excepted)
 _MAX_BUFFERED = 200_000  # IMU messages kept if the worker falls behind
 _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
@@ -303,9 +303,9 @@ class _Worker:
             if self.run is None:
                 return
         if not self.run.accepted and not cfg.force:
-            fails = "; ".join(f"{g.sensor} {g.name}" for g in self.run.gates.failures())
-            self.say(f"mavcal: not writing: the calibration failed a quality gate ({fails}); "
-                     "'mavcal set force 1' overrides")
+            from mavcal.report.text import gate_refusal_text
+
+            self.say(gate_refusal_text(self.run, "'mavcal set force 1'", prefix=_PREFIX).rstrip("\n"))
             return
         self._write_params(cfg, dict(self.run.mapping.new), confirmed, "calibration write",
                            "mavcal write yes", stem="mavcal-backup")
@@ -322,59 +322,35 @@ class _Worker:
 
     def _write_params(self, cfg: ModuleSettings, changes: Dict[str, float], confirmed: bool, what: str,
                       confirm_cmd: str, stem: str) -> None:
+        """The safe writer over the fed link; every word from :mod:`mavcal.report.text`."""
         from mavcal.ardupilot.protocol import force_save_kinds
-        from mavcal.commands.apply import print_table
         from mavcal.errors import ParamWriteError
         from mavcal.link.params import fetch_all_params
         from mavcal.link.writer import default_backup_path, write_params
+        from mavcal.report.text import plan_text, write_done_text, write_failed_text, writing_text
 
         with self._link() as link:
             table = self.table or fetch_all_params(link, timeout_s=30.0, retry_s=max(0.2, cfg.param_timeout / 2))
             self.table = table
             plan = write_params(link, changes, backup_path=None, params=table, dry_run=True,
                                 retries=cfg.retries, timeout_s=cfg.param_timeout)
-            buf = io.StringIO()
-            print_table(plan.results, buf)
-            if not plan.changed:
-                self.say(buf.getvalue() + "mavcal: nothing to change: the vehicle already holds every value")
-                return
-            if cfg.confirm and not confirmed:
-                self.say(buf.getvalue() + f"mavcal: {len(plan.changed)} parameter(s) would change; "
-                         f"type '{confirm_cmd}' to write them")
+            if not plan.changed or (cfg.confirm and not confirmed):
+                hint = f"type '{confirm_cmd}' to write them"
+                self.say(plan_text(plan, confirm_hint=hint, prefix=_PREFIX).rstrip("\n"))
                 return
             Path(cfg.backup_dir).mkdir(parents=True, exist_ok=True)
             bpath = str(default_backup_path(cfg.backup_dir, stem))
-            kinds = force_save_kinds(r.name for r in plan.changed)
-            self.say(f"mavcal: writing {len(plan.changed)} parameter(s) (backup {bpath})...")
+            self.say(writing_text(len(plan.changed), bpath, prefix=_PREFIX).rstrip("\n"))
             try:
-                report = write_params(link, changes, backup_path=bpath, params=table, force_save=kinds,
+                report = write_params(link, changes, backup_path=bpath, params=table,
+                                      force_save=force_save_kinds(r.name for r in plan.changed),
                                       retries=cfg.retries, timeout_s=cfg.param_timeout,
                                       link_timeout_s=max(3.0, 3 * cfg.param_timeout))
-            except RestoreFailedError as exc:
-                buf = io.StringIO()
-                if exc.report is not None:
-                    print_table(exc.report.results, buf)
-                self.say(buf.getvalue() + f"mavcal: {what} FAILED and the restore failed; parameters in doubt: "
-                         f"{', '.join(exc.in_doubt)}; when the vehicle answers: mavcal restore {bpath}")
-                return
             except ParamWriteError as exc:
-                buf = io.StringIO()
-                if exc.report is not None:
-                    print_table(exc.report.results, buf)
-                self.say(buf.getvalue() + f"mavcal: {what} failed ({exc}); every value written was restored "
-                         f"(backup kept in {bpath})")
-                return
+                self.say(write_failed_text(exc, what, bpath, prefix=_PREFIX).rstrip("\n"))
+                raise  # the worker says "mavcal: error: ..."
         self.table = None  # the values changed: fetch afresh next time
-        buf = io.StringIO()
-        print_table(report.changed, buf)
-        lines = [buf.getvalue().rstrip("\n"), f"mavcal: {report.message}; backup of the old values in {report.backup_path}"]
-        if report.force_saved:
-            lines.append(f"mavcal: calibration marked saved ({', '.join(report.force_saved)})")
-        if report.force_save_failed:
-            lines.append(f"mavcal: warning: no acknowledgement of the force-save of {', '.join(report.force_save_failed)}")
-        if report.reboot_required:
-            lines.append(f"mavcal: reboot the vehicle for {', '.join(report.reboot_required)} to take effect")
-        self.say("\n".join(lines))
+        self.say(write_done_text(report, prefix=_PREFIX).rstrip("\n"))
 
 
 class MavcalModule(mp_module.MPModule):

@@ -100,3 +100,61 @@ def test_dip_of_the_wrong_sign_means_a_mirrored_compass():
     with pytest.raises(ParameterMappingError, match="mirrored"):
         map_compass(K_m, b_m, h_z, am.frame_rotation, fw.CompassCal(external=True), {}, field_mgauss=500,
                     field_source="t", board_rotation=np.eye(3), inclination_model_deg=60.0)
+
+
+def _cal(R_true=np.eye(3)):
+    from mavcal.core.types import Calibration, SensorModel
+
+    K_a, b_a, K_m, b_m, h_z = _engine_truth((0.99, 1.02, 0.97), (0.1, -0.2, 0.3), M_TRUE, (40.0, -60.0, 120.0), R_true)
+    return Calibration(accel=SensorModel(K_a, b_a, np.eye(3) * 1e-4, "accel"),
+                       mag=SensorModel(K_m, b_m, np.eye(3), "mag"), gravity=np.array([0.0, 0.0, -1.0]),
+                       field=np.array([1.0, 0.0, h_z]), orientations=np.empty((0, 3, 3)), cost=0.0, iterations=0,
+                       converged=True, message="test")
+
+
+PARAMS = {"COMPASS_EXTERNAL": 1.0, "COMPASS_ORIENT": 0.0, "AHRS_ORIENTATION": 0.0, "COMPASS_OFS_X": 5.0}
+
+
+def test_map_calibration_is_map_accel_and_map_compass_of_one_pair():
+    from mavcal.ardupilot.mapping import map_calibration
+
+    means = np.array([[300.0, 0.0, 400.0], [-300.0, 0.0, 400.0]])
+    m = map_calibration(_cal(), PARAMS, means, field_mgauss=500.0)
+    am, cm = _map(np.eye(3))
+    assert len(m.accel) == len(m.compass) == 1
+    np.testing.assert_allclose(m.accel[0].new.scale, am.new.scale, atol=1e-12)
+    np.testing.assert_allclose(m.compass[0].new.ofs_mgauss, cm.new.ofs_mgauss, atol=1e-9)
+    assert m.compass[0].field_source == "given" and m.compass[0].field_mgauss == 500.0
+    assert dict(m.new) == {**m.accel[0].params(), **m.compass[0].params()}
+    assert m.old["COMPASS_OFS_X"] == 5.0 and m.old["INS_ACCOFFS_X"] is None  # unknown old values stay None
+    assert m.notes[0] == m.compass[0].orientation_note
+
+
+def test_field_magnitude_choice():
+    from mavcal.ardupilot.mapping import field_magnitude
+
+    old = fw.compass_cal_from_params({}, 0)
+    means = np.array([[300.0, 0.0, 400.0], [0.0, 500.0, 0.0]])
+    assert field_magnitude(means, old, field_mgauss=420.0) == (420.0, "given", None)
+    f, src, incl = field_magnitude(means, old)  # no position: what the current calibration reads
+    assert f == pytest.approx(500.0) and src.startswith("kept from the current calibration") and incl is None
+    f, src, incl = field_magnitude(means, old, location=(47.4, 8.5, 400.0))
+    assert 400 < f < 550 and src.startswith("World Magnetic Model") and 55 < incl < 70
+    f, src, incl = field_magnitude(means, old, location=(47.4, 8.5), field_mgauss=420.0)
+    assert (f, src) == (420.0, "given") and 55 < incl < 70  # the given value wins; the dip still checks
+
+
+def test_merge_mappings_adds_the_other_instances():
+    from mavcal.ardupilot.mapping import map_calibration, merge_mappings
+
+    means = np.array([[300.0, 0.0, 400.0]])
+    primary = map_calibration(_cal(), PARAMS, means, field_mgauss=500.0)
+    other_accel = map_calibration(_cal(), PARAMS, means, accel_instance=1, field_mgauss=500.0)
+    other_compass = map_calibration(_cal(), PARAMS, means, mag_instance=1, field_mgauss=500.0)
+    merged = merge_mappings(primary, [other_accel, other_compass], {"INS_ACC2OFFS_X": 0.5})
+    assert [a.instance for a in merged.accel] == [0, 1] and [c.instance for c in merged.compass] == [0, 1]
+    assert set(merged.new) == set(primary.new) | set(other_accel.accel[0].params()) | set(
+        other_compass.compass[0].params())
+    assert set(merged.old) == set(merged.new)
+    assert merged.old["COMPASS_OFS_X"] == 5.0 and merged.old["INS_ACC2OFFS_X"] is None  # the pair recorded None
+    assert merged.notes[-1].startswith("compass 1: ")

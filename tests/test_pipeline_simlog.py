@@ -48,3 +48,47 @@ def test_recovers_the_truth_from_simulated_logs(run):
     e = attitude_errors(raw_accel, raw_mag, am.new, cm.new, FIELD)
     assert e.max_heading_deg < 0.3 and e.max_tilt_deg < 0.1, e
     assert e.max_heading_deg <= r.quality.heading_95_deg * 1.5 + 0.05
+
+
+def test_quality_stage_reproduces_the_run_quality(run):
+    """The pipeline only chains: quality_of on the run's own calibration and mapping gives its Quality."""
+    from mavcal.quality import quality_of
+
+    _, r = run
+    am, cm = r.mapping.accel[0], r.mapping.compass[0]
+    q = r.quality
+    again = quality_of(r.calibration, am, cm, am.old.board_matrix, 60, 0,
+                       (q.holdout_accel_mps2, q.holdout_mag_mgauss))
+    assert again == q
+
+
+def test_truth_functions_are_the_reading_model():
+    """raw = K R g + b (paper Eq. sensor_reading_model) with the body frame = engine frame."""
+    from mavcal.quality import truth_functions
+
+    K_a = fw.GRAVITY_MSS * np.diag([1.0, 1.02, 0.98])
+    b_a = np.array([0.1, -0.2, 0.3])
+    h = np.array([1.0, 0.0, 1.5])
+    K_m = np.diag([500.0, 480.0, 510.0]) / np.linalg.norm(h)
+    b_m = np.array([40.0, 0.0, -20.0])
+    ra, rm = truth_functions(K_a, b_a, K_m, b_m, h, np.eye(3), np.eye(3), 500.0)
+    f = np.array([[0.0, 0.0, -fw.GRAVITY_MSS], [fw.GRAVITY_MSS, 0.0, 0.0]])
+    np.testing.assert_allclose(ra(f), f / fw.GRAVITY_MSS @ K_a.T + b_a)
+    B = np.array([[200.0, 0.0, 300.0]])
+    np.testing.assert_allclose(rm(B), B * np.linalg.norm(h) / 500.0 @ K_m.T + b_m)
+
+
+def test_open_source_sends_devices_to_link_live(monkeypatch):
+    """A device string goes to mavcal.link.live.record_device (imported lazily), a path to read_log."""
+    import sys
+    import types
+
+    from mavcal.pipeline import open_source
+
+    calls = []
+    fake = types.ModuleType("mavcal.link.live")
+    fake.record_device = lambda device, **kw: calls.append((device, kw)) or "log"
+    monkeypatch.setitem(sys.modules, "mavcal.link.live", fake)
+    assert open_source("udpin:127.0.0.1:14550", baud=57600, duration_s=3.0) == "log"
+    assert calls == [("udpin:127.0.0.1:14550", {"baud": 57600, "duration_s": 3.0, "heartbeat_timeout_s": 5.0,
+                                                "param_timeout_s": 30.0, "rate_hz": 50.0, "progress": None})]

@@ -17,9 +17,9 @@ pytest.importorskip("matplotlib")
 from mavcal.ardupilot.gates import Gate, GateReport  # noqa: E402
 from mavcal.errors import UsageError  # noqa: E402
 from mavcal.pipeline import calibrate_source  # noqa: E402
-from mavcal.report import FIGURE_NAMES, interval_stats, summary_text, write_html  # noqa: E402
+from mavcal.report import FIGURE_NAMES, interval_numbers, summary_text, write_html  # noqa: E402
 
-USED_RGB = (0x2E, 0x7D, 0x32)  # report._USED: the opaque interval strip of the timeline
+USED_RGB = (0x2E, 0x7D, 0x32)  # report.figures.USED_COLOUR: the opaque interval strip of the timeline
 UNUSED_RGB = (0xEF, 0x6C, 0x00)
 
 
@@ -112,8 +112,8 @@ def test_timeline_figure_shows_the_intervals(run, report, tmp_path):
     assert _attr(text, "data-shaded-spans") == 21
 
 
-def test_interval_stats_before_and_after(run):
-    st = interval_stats(run)
+def test_interval_numbers_before_and_after(run):
+    st = interval_numbers(run)
     n = len(run.segmentation.intervals)
     assert len(st) == n and st.used.sum() == len(run.intervals_used)
     # the SITL log was recorded with a deliberately wrong calibration: |a| and |B| as
@@ -223,3 +223,125 @@ def test_report_opens_in_headless_chromium(report, tmp_path):
     # the timeline's interval strip is on screen (green of the used intervals)
     target = np.array(USED_RGB) / 255.0
     assert np.all(np.abs(img[:, :, :3] - target) < 3 / 255, axis=2).sum() > 5000
+
+
+# --------------------------------------------------------------------------- JSON both ways
+
+def _same(a, b) -> bool:
+    return np.array_equal(np.asarray(a, float), np.asarray(b, float), equal_nan=True)
+
+
+def test_json_round_trip_loads_the_same_objects(run):
+    from mavcal.report.json import FORMAT_VERSION, from_json, to_json
+
+    doc = json.loads(json.dumps(to_json(run)))  # through text, as on disk
+    assert doc["format"] == "mavcal report v1" and doc["format_version"] == FORMAT_VERSION
+    saved = from_json(doc)
+    cal, sc = run.calibration, saved.calibration
+    assert sc == cal  # gains, biases, noise covariances, field, orientations, cost, model
+    for name in ("param_cov", "n_accel", "n_mag"):
+        assert _same(getattr(sc, name), getattr(cal, name)), name
+    assert sc.param_names == cal.param_names and sc.dof == cal.dof and sc.iterations == cal.iterations
+    assert sc.method == cal.method and sc.model_reason == cal.model_reason and sc.converged == cal.converged
+    assert dict(saved.mapping.new) == {n: float(v) for n, v in run.mapping.new.items()}
+    assert dict(saved.mapping.old) == dict(run.mapping.old)
+    assert saved.mapping.notes == tuple(run.mapping.notes)
+    assert saved.mapping.reboot_required == run.mapping.reboot_required
+    assert saved.mapping.changed() == run.mapping.changed()
+    for k, v in run.quality.__dict__.items():
+        assert _same(getattr(saved.quality, k), v), k
+    assert len(saved.gates.gates) == len(run.gates.gates) and saved.gates.passed == run.gates.passed
+    for g, h in zip(saved.gates.gates, run.gates.gates):
+        assert (g.sensor, g.name, g.ok, g.limit, g.reason) == (h.sensor, h.name, h.ok, h.limit, h.reason)
+        assert _same(g.value, h.value)
+    assert saved.accepted == run.accepted and saved.source == run.source
+    assert [(i.start_s, i.end_s, i.used) for i in saved.intervals] == \
+        [(iv.start_s, iv.end_s, k in run.intervals_used) for k, iv in enumerate(run.segmentation.intervals)]
+    assert [dict(i.samples_accel) for i in saved.intervals] == [iv.n_accel for iv in run.segmentation.intervals]
+    # and back again: the loaded objects give the same document
+    assert to_json(run)["parameters"] == doc["parameters"]
+
+
+def test_json_file_round_trip_and_bad_documents(run, tmp_path):
+    from mavcal.errors import SourceError
+    from mavcal.report.json import read_json, to_json, write_json
+
+    p = write_json(run, tmp_path / "cal.json")
+    saved = read_json(p)
+    assert saved.calibration == run.calibration and saved.format_version == 2
+    with pytest.raises(SourceError):
+        read_json(tmp_path / "missing.json")
+    (tmp_path / "other.json").write_text('{"format": "something else"}')
+    with pytest.raises(SourceError, match="not a mavcal JSON report"):
+        read_json(tmp_path / "other.json")
+    doc = to_json(run)
+    doc["format_version"] = 99
+    with pytest.raises(SourceError, match="newer"):
+        from mavcal.report.json import from_json
+        from_json(doc)
+
+
+def test_json_format_1_loads_with_diagonal_noise(run):
+    from mavcal.report.json import from_json, to_json
+
+    doc = json.loads(json.dumps(to_json(run)))
+    del doc["format_version"]
+    for k in ("accel_noise_cov", "mag_noise_cov", "gravity", "orientations", "iterations", "block_iterations",
+              "refine_iterations", "param_names", "param_cov", "n_accel", "n_mag"):
+        del doc["calibration"][k]
+    saved = from_json(doc)
+    assert saved.format_version == 1
+    np.testing.assert_allclose(saved.calibration.accel.gain, run.calibration.accel.gain)
+    np.testing.assert_allclose(np.diag(saved.calibration.mag.noise_cov), np.diag(run.calibration.mag.noise_cov))
+    assert saved.calibration.orientations.shape == (0, 3, 3) and saved.calibration.param_cov is None
+
+
+def test_run_to_json_method_is_the_report(run):
+    from mavcal.report.json import to_json
+
+    assert run.to_json()["parameters"] == to_json(run)["parameters"]
+
+
+# --------------------------------------------------------------------------- write texts
+
+class _R:  # a ParamResult stand-in
+    def __init__(self, name, old, expected, changed=True, ok=True, attempts=1, restored=None):
+        self.name, self.old, self.expected, self.changed = name, old, expected, changed
+        self.ok, self.attempts, self.restored = ok, attempts, restored
+
+
+def test_write_texts():
+    from mavcal.errors import ParamWriteError, RestoreFailedError
+    from mavcal.report.text import param_table, plan_text, write_done_text, write_failed_text
+
+    rows = [_R("COMPASS_OFS_X", 1.0, 12.5), _R("COMPASS_OFS_Y", 2.0, 2.0, changed=False, attempts=0)]
+    t = param_table(rows)
+    assert t.splitlines()[0].startswith("PARAMETER") and "-> 12.5" in t and "unchanged" in t and "ok" in t
+    assert param_table([]) == ""
+
+    class Plan:
+        results = rows
+        changed = rows[:1]
+
+    assert "dry run: 1 of 2 parameters would change" in plan_text(Plan, dry_run=True)
+    assert plan_text(Plan, confirm_hint="type 'x'", prefix="mavcal: ").endswith(
+        "mavcal: 1 parameter(s) would change; type 'x'\n")
+
+    class Report:
+        changed = rows[:1]
+        results = rows
+        message = "1 parameters written and verified"
+        backup_path = "b.param"
+        force_saved = ("compass",)
+        force_save_failed = ()
+        reboot_required = ("COMPASS_ORIENT",)
+
+    done = write_done_text(Report, prefix="mavcal: ")
+    assert "mavcal: 1 parameters written and verified; backup of the old values in b.param" in done
+    assert "calibration marked saved (compass)" in done and "reboot the vehicle for COMPASS_ORIENT" in done
+    failed = write_failed_text(ParamWriteError("x"), "write", "b.param")
+    assert failed == "write failed; every value written was restored (backup kept in b.param)\n"
+    exc = RestoreFailedError("y", in_doubt=("COMPASS_OFS_Y",))
+    doubt = write_failed_text(exc, "write", "b.param", "tcp:x:1")
+    assert "parameters in doubt" in doubt and "  COMPASS_OFS_Y\n" in doubt
+    assert "mavcal restore b.param --connect tcp:x:1" in doubt

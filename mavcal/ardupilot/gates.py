@@ -8,8 +8,8 @@ error, parameter uncertainty (95 % heading and tilt error bounds).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -17,11 +17,11 @@ import numpy as np
 @dataclass(frozen=True)
 class GateConfig:
     accel_offset_max_mps2: float = 3.5
-    accel_scale_range: Tuple[float, float] = (0.8, 1.2)
-    compass_offset_max_mgauss: Optional[float] = None  # None: COMPASS_OFFS_MAX from the vehicle, else 1800
-    dia_range: Tuple[float, float] = (0.2, 5.0)
+    accel_scale_range: tuple[float, float] = (0.8, 1.2)
+    compass_offset_max_mgauss: float | None = None  # None: COMPASS_OFFS_MAX from the vehicle, else 1800
+    dia_range: tuple[float, float] = (0.2, 5.0)
     odi_max: float = 1.0
-    field_range_mgauss: Tuple[float, float] = (185.0, 875.0)
+    field_range_mgauss: tuple[float, float] = (185.0, 875.0)
     min_intervals: int = 6
     heading_95_max_deg: float = 2.0
     tilt_95_max_deg: float = 0.5
@@ -41,17 +41,17 @@ class Gate:
 
 @dataclass(frozen=True)
 class GateReport:
-    gates: Tuple[Gate, ...]
+    gates: tuple[Gate, ...]
 
     @property
     def passed(self) -> bool:
         return all(g.ok for g in self.gates)
 
-    def failures(self) -> List[Gate]:
+    def failures(self) -> list[Gate]:
         return [g for g in self.gates if not g.ok]
 
-    def by_sensor(self) -> Dict[str, List[Gate]]:
-        out: Dict[str, List[Gate]] = {}
+    def by_sensor(self) -> dict[str, list[Gate]]:
+        out: dict[str, list[Gate]] = {}
         for g in self.gates:
             out.setdefault(g.sensor, []).append(g)
         return out
@@ -63,7 +63,7 @@ def check(mapping, params: Mapping[str, float], *, n_intervals: int, n_orientati
     """Evaluate every gate for a :class:`mavcal.ardupilot.mapping.ParamMapping`."""
     from mavcal.ardupilot import firmware as fw
 
-    gates: List[Gate] = []
+    gates: list[Gate] = []
 
     def add(sensor: str, name: str, ok, value, limit: str, reason: str) -> None:
         """Record a gate; the reason is kept only when it failed."""
@@ -121,4 +121,18 @@ def check(mapping, params: Mapping[str, float], *, n_intervals: int, n_orientati
         f"<= {c.holdout_mag_max_mgauss} mGauss",
         f"held-out compass error {holdout_mag_mgauss:.1f} mGauss: magnetic disturbance (steel, magnets, currents) "
         "differs between poses")
+    return GateReport(tuple(gates))
+
+
+def merge_reports(primary: GateReport, others: Sequence[tuple[int, int, GateReport]], *, accel_instance: int,
+                  mag_instance: int) -> GateReport:
+    """The primary pair's gates plus, from each other pair ``(accel, compass, report)``,
+    the gates of its non-primary sensor and its data gates (named after the pair)."""
+    gates = list(primary.gates)
+    for a, m, rep in others:
+        for g in rep.gates:
+            if g.sensor == f"accel{a}" and a != accel_instance or g.sensor == f"compass{m}" and m != mag_instance:
+                gates.append(g)
+            elif g.sensor == "data":
+                gates.append(Gate(f"data (accel{a}+compass{m})", g.name, g.ok, g.value, g.limit, g.reason))
     return GateReport(tuple(gates))

@@ -32,8 +32,9 @@ World Magnetic Model when the position is known.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Dict, Mapping, Optional, Tuple
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -48,13 +49,16 @@ from mavcal.ardupilot.rotations import (
 )
 from mavcal.errors import ParameterMappingError
 
+if TYPE_CHECKING:  # pragma: no cover
+    from mavcal.core.types import Calibration
+
 log = logging.getLogger(__name__)
 
 G0 = fw.GRAVITY_MSS
 CUST_ROT_ENABLE = "CUST_ROT_ENABLE"
 
 
-def _polar_left(T: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _polar_left(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """T = S U with S symmetric positive semi-definite and U orthogonal."""
     W, s, Vt = np.linalg.svd(T)
     return (W * s) @ W.T, W @ Vt
@@ -91,7 +95,7 @@ class AccelMapping:
     dropped_tilt_deg: float
     dropped_magnitude_mps2: float
 
-    def params(self) -> Dict[str, float]:
+    def params(self) -> dict[str, float]:
         return fw.accel_param_values(self.new, self.instance)
 
 
@@ -109,13 +113,13 @@ class CompassMapping:
     rotation_deg: float
     orientation_note: str
     residual_rotation_deg: float  # what the written orientation leaves uncorrected
-    custom_deg: Optional[Tuple[float, float, float]] = None
+    custom_deg: tuple[float, float, float] | None = None
     extra_params: Mapping[str, float] = field(default_factory=dict)  # ORIENT, EXTERN, CUST_ROT...
     reboot_required: bool = False
     inclination_deg: float = float("nan")
-    inclination_model_deg: Optional[float] = None
+    inclination_model_deg: float | None = None
 
-    def params(self) -> Dict[str, float]:
+    def params(self) -> dict[str, float]:
         out = fw.compass_param_values(self.new, self.instance)
         out.update(self.extra_params)
         return out
@@ -125,14 +129,14 @@ class CompassMapping:
 class ParamMapping:
     """Everything :func:`map_calibration` decided: new values, old values, notes."""
 
-    accel: Tuple[AccelMapping, ...]
-    compass: Tuple[CompassMapping, ...]
+    accel: tuple[AccelMapping, ...]
+    compass: tuple[CompassMapping, ...]
     new: Mapping[str, float]
-    old: Mapping[str, Optional[float]]
-    notes: Tuple[str, ...] = ()
+    old: Mapping[str, float | None]
+    notes: tuple[str, ...] = ()
     reboot_required: bool = False
 
-    def changed(self, rel: float = 1e-7) -> Dict[str, float]:
+    def changed(self, rel: float = 1e-7) -> dict[str, float]:
         """Parameters whose new value differs from the old one (float32 comparison)."""
         out = {}
         for n, v in self.new.items():
@@ -142,7 +146,7 @@ class ParamMapping:
         return out
 
 
-def accel_frame(K_a: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def accel_frame(K_a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-axis scales S_j = g0 / |row_j(K_a)|, A = diag(S) K_a / g0 and its polar factor P
     (engine frame E -> board frame). Returns (S, A, P)."""
     K_a = np.asarray(K_a, dtype=float)
@@ -167,7 +171,7 @@ def map_accel(K_a: np.ndarray, b_a: np.ndarray, old: fw.AccelCal, instance: int 
     return AccelMapping(instance, old, new, P, N - np.eye(3), float(tilt.max()), float(mag.max()))
 
 
-def _custom_slot(params: Mapping[str, float], current: int) -> Optional[int]:
+def _custom_slot(params: Mapping[str, float], current: int) -> int | None:
     names = fw.board_param_names()
     if CUST_ROT_ENABLE not in params and not any(n in params for n in names["custom1"]):
         return None  # firmware without AP_CustomRotations
@@ -189,7 +193,7 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
                 params: Mapping[str, float], *, instance: int = 0, field_mgauss: float,
                 field_source: str, board_rotation: np.ndarray, orient_tol_deg: float = 1.0,
                 allow_custom: bool = True, force_external: bool = False,
-                inclination_model_deg: Optional[float] = None) -> CompassMapping:
+                inclination_model_deg: float | None = None) -> CompassMapping:
     """ArduPilot compass parameters for an estimated K_m, b_m (see the module docstring)."""
     names = fw.compass_param_names(instance)
     h_norm = float(np.sqrt(1.0 + h_z * h_z))
@@ -208,7 +212,7 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
     ext_param = params.get(names["external"])
     external = bool(ext_param) if ext_param is not None else old.orient != int(round(
         params.get(fw.board_param_names()["orientation"], 0) or 0))
-    extra: Dict[str, float] = {}
+    extra: dict[str, float] = {}
     custom = None
     reboot = False
     rot_deg = rotation_angle_deg(np.eye(3), U)
@@ -230,8 +234,9 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
                     extra[n] = v
                 extra[CUST_ROT_ENABLE] = 1.0
                 R_used, orient, reboot = R_new, slot, True
-                note = (f"custom orientation {slot} (roll {custom[0]:.2f}, pitch {custom[1]:.2f}, yaw {custom[2]:.2f} deg): "
-                        f"the nearest standard one ({enum}) is {err:.2f} deg away; reboot needed")
+                note = (f"custom orientation {slot} (roll {custom[0]:.2f}, pitch {custom[1]:.2f}, "
+                        f"yaw {custom[2]:.2f} deg): the nearest standard one ({enum}) is {err:.2f} deg away; "
+                        "reboot needed")
             else:
                 R_used, orient = rotation_matrix(enum), enum
                 note = (f"orientation {enum}, {err:.2f} deg from the estimate: the firmware has no custom "
@@ -264,5 +269,84 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
                           inclination_model_deg=inclination_model_deg)
 
 
-def old_values(params: Mapping[str, float], names) -> Dict[str, Optional[float]]:
+def old_values(params: Mapping[str, float], names) -> dict[str, float | None]:
     return {n: (float(params[n]) if n in params else None) for n in names}
+
+
+# --------------------------------------------------------------------------- one pair, several pairs
+
+def field_magnitude(raw_mag_means: np.ndarray, old: fw.CompassCal, *,
+                    location: Sequence[float] | None = None,
+                    field_mgauss: float | None = None) -> tuple[float, str, float | None]:
+    """The field magnitude |B| to scale the compass to: (mGauss, source in words, WMM inclination deg or None).
+
+    The World Magnetic Model at ``location`` (lat, lon[, alt]) when known and no
+    ``field_mgauss`` is given; else ``field_mgauss``; else what the current calibration
+    ``old`` makes of the raw interval means (still intervals do not determine |B|).
+    """
+    incl = None
+    if location is not None:
+        loc = tuple(location)
+        try:
+            from mavcal.sources.wmm import field_at
+            _, incl, intensity = field_at(loc[0], loc[1], loc[2] if len(loc) > 2 else 0.0)
+        except Exception as exc:  # pragma: no cover - tables missing
+            log.warning("World Magnetic Model unavailable: %s", exc)
+            intensity = None
+        if field_mgauss is None and intensity:
+            return float(intensity), f"World Magnetic Model at {loc[0]:.4f}, {loc[1]:.4f}", incl
+    if field_mgauss is not None:
+        return float(field_mgauss), "given", incl
+    cur = fw.apply_compass(old, raw_mag_means, sensor_frame=False)
+    return float(np.mean(np.linalg.norm(cur, axis=1))), "kept from the current calibration (no position)", incl
+
+
+def map_calibration(cal: Calibration, params: Mapping[str, float], raw_mag_means: np.ndarray, *,
+                    accel_instance: int = 0, mag_instance: int = 0,
+                    location: Sequence[float] | None = None, field_mgauss: float | None = None,
+                    orient_tol_deg: float = 1.0, allow_custom: bool = True,
+                    force_external: bool = False) -> ParamMapping:
+    """The :class:`ParamMapping` of one accelerometer/compass pair fitted jointly.
+
+    ``params`` are the vehicle's current parameters (the old calibration and the mounting);
+    ``raw_mag_means`` the (N, 3) raw compass interval means (for the field magnitude when
+    neither ``location`` nor ``field_mgauss`` gives it, see :func:`field_magnitude`).
+    """
+    old_a = fw.accel_cal_from_params(params, accel_instance)
+    old_c = fw.compass_cal_from_params(params, mag_instance)
+    field_norm, field_src, incl_model = field_magnitude(np.asarray(raw_mag_means, float), old_c, location=location,
+                                                        field_mgauss=field_mgauss)
+    am = map_accel(cal.accel.gain, cal.accel.bias, old_a, accel_instance)
+    cm = map_compass(cal.mag.gain, cal.mag.bias, cal.h_z, am.frame_rotation, old_c, params, instance=mag_instance,
+                     field_mgauss=field_norm, field_source=field_src, board_rotation=old_a.board_matrix,
+                     orient_tol_deg=orient_tol_deg, allow_custom=allow_custom, force_external=force_external,
+                     inclination_model_deg=incl_model)
+    new = {**am.params(), **cm.params()}
+    notes = [cm.orientation_note]
+    if am.dropped_tilt_deg > 0.01:
+        notes.append(f"accelerometer cross-axis terms ArduPilot cannot hold: up to {am.dropped_tilt_deg:.3f} deg tilt, "
+                     f"{am.dropped_magnitude_mps2:.3f} m/s^2")
+    return ParamMapping(accel=(am,), compass=(cm,), new=new, old=old_values(params, new), notes=tuple(notes),
+                        reboot_required=cm.reboot_required)
+
+
+def merge_mappings(primary: ParamMapping, others: Sequence[ParamMapping],
+                   params: Mapping[str, float]) -> ParamMapping:
+    """One :class:`ParamMapping` for several pairs: the primary pair's, plus every other
+    accelerometer and compass calibrated (each other pair contributes the instance that
+    is not the primary's). ``params`` gives the old values no pair recorded."""
+    ai, mi = primary.accel[0].instance, primary.compass[0].instance
+    accel = list(primary.accel) + [m.accel[0] for m in others if m.accel[0].instance != ai]
+    compass = list(primary.compass) + [m.compass[0] for m in others if m.compass[0].instance != mi]
+    new: dict[str, float] = {}
+    for am in accel:
+        new.update(am.params())
+    for cm in compass:
+        new.update(cm.params())
+    old: dict[str, float | None] = {}
+    for m in (primary, *others):
+        old.update(m.old)
+    old = {n: old.get(n, params.get(n)) for n in new}
+    notes = list(primary.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compass[1:]]
+    return ParamMapping(accel=tuple(accel), compass=tuple(compass), new=new, old=old, notes=tuple(notes),
+                        reboot_required=any(c.reboot_required for c in compass))

@@ -16,18 +16,21 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
-from typing import Optional, TextIO
+from typing import TextIO
 
+from mavcal.commands.common import (
+    add_link_arguments,
+    check_new_backup,
+    parse_location,
+    write_outputs,
+    write_with_report,
+)
 from mavcal.errors import UsageError
 
 HELP = "guided live capture: says which pose to hold next, fits as it goes, then writes on confirmation"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from mavcal.commands.apply import add_link_arguments
-    from mavcal.commands.calibrate import _location
-
     add_link_arguments(p)  # --connect, --baud, --timeout, --param-timeout, --retries, --dry-run, --yes
     cap = p.add_argument_group("capture")
     cap.add_argument("--target-deg", type=float, default=0.5, metavar="DEG",
@@ -43,7 +46,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fit.add_argument("--accel", type=int, default=0, metavar="I", help="IMU instance (0-based, default 0)")
     fit.add_argument("--compass", type=int, default=0, metavar="I", help="compass instance (priority, 0-based)")
     fit.add_argument("--field-mgauss", type=float, help="Earth field magnitude to scale the compass to")
-    fit.add_argument("--location", type=_location, metavar="LAT,LON[,ALT]", help="position for the World Magnetic Model")
+    fit.add_argument("--location", type=parse_location, metavar="LAT,LON[,ALT]",
+                     help="position for the World Magnetic Model")
     out = p.add_argument_group("outputs")
     out.add_argument("--param-out", metavar="F", help="write the new parameters as a .param file")
     out.add_argument("--json", metavar="F", help="write the full JSON report ('-' for stdout)")
@@ -57,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 class StatusPrinter:
     """Shows capture statuses: one redrawn screen on a terminal, one line per change otherwise."""
 
-    def __init__(self, out: TextIO, target_deg: Optional[float] = None, tty: Optional[bool] = None) -> None:
+    def __init__(self, out: TextIO, target_deg: float | None = None, tty: bool | None = None) -> None:
         self.out = out
         self.target_deg = target_deg
         self.tty = bool(out.isatty()) if tty is None else tty
@@ -85,15 +89,12 @@ def _check(args: argparse.Namespace) -> None:
         raise UsageError("--max-poses and --min-poses must be at least 1")
     if not args.duration > 0 or not args.hold > 0 or not args.rate > 0:
         raise UsageError("--duration, --hold and --rate must be > 0")
-    if args.backup is not None and Path(args.backup).exists():
-        raise UsageError(f"backup file {args.backup!r} already exists; not overwriting it")
+    check_new_backup(args.backup)
 
 
 def run(args: argparse.Namespace) -> int:
     from mavcal import live_capture
     from mavcal.capture import CaptureConfig
-    from mavcal.commands.apply import write_with_report
-    from mavcal.commands.calibrate import write_outputs
     from mavcal.pipeline import Options
     from mavcal.segment import StillConfig
 

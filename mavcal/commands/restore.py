@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from mavcal.ardupilot.paramfile import read_param_file
-from mavcal.commands.apply import add_link_arguments, write_with_report
+from mavcal.commands.common import add_link_arguments, check_new_backup, write_with_report
 from mavcal.errors import UsageError
 
 HELP = "restore parameters from a backup written by 'mavcal apply' (same safe writer)"
@@ -28,8 +28,7 @@ def run(args: argparse.Namespace) -> int:
     if not changes:
         raise UsageError(f"{args.backup_file}: no parameters in the backup")
     if args.backup is not None:
-        if Path(args.backup).exists():
-            raise UsageError(f"backup file {args.backup!r} already exists; not overwriting it")
+        check_new_backup(args.backup)
         backup = args.backup
     else:
         src = Path(args.backup_file)

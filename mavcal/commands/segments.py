@@ -1,8 +1,10 @@
 """``mavcal segments SOURCE``: the still intervals of a recording and whether they suffice.
 
-Reads the source, undoes the calibration the vehicle applied (the raw readings), finds
-the intervals in which the vehicle was held still and prints them with the coverage
-diagnosis: text for people, ``--json`` for scripts.
+Reads the source and prepares it exactly as ``mavcal calibrate`` does
+(:func:`mavcal.pipeline.prepare`: integer truncation undone, the calibration the vehicle
+applied undone), finds the intervals in which the vehicle was held still with the same
+thresholds and options as ``calibrate`` and prints them with the coverage diagnosis: text
+for people, ``--json`` for scripts.
 
 Exit codes: 0 when at least one still interval was found (the diagnosis says when the data
 are insufficient for a full calibration), 3 for an unreadable source, 4 when no still
@@ -13,72 +15,38 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from typing import Any, Dict
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from mavcal.errors import SegmentationError, UsageError
+from mavcal.commands.common import add_still_arguments, still_config
+from mavcal.errors import SegmentationError
 
 HELP = "find the still intervals of a log and diagnose whether they can calibrate"
 
 
-def _cfg_defaults():
-    from mavcal.segment import StillConfig
-
-    return StillConfig()
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    d = _cfg_defaults()
     parser.add_argument("source", metavar="SOURCE", help="log file (.tlog, .bin, .csv) or MAVLink device")
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     parser.add_argument("--no-recover", action="store_true",
                         help="segment the readings as logged (skip undoing the vehicle's calibration)")
     parser.add_argument("--samples", action="store_true", help="with --json: include every interval's samples")
-    g = parser.add_argument_group("thresholds")
-    g.add_argument("--window", type=float, default=d.window_s, metavar="S",
-                   help=f"sliding window in seconds (default {d.window_s}; at least "
-                        f"{d.min_window_samples} samples)")
-    g.add_argument("--gyro", type=float, default=d.gyro_rad_s, metavar="RAD_S",
-                   help=f"RMS gyro rate of a still window, rad/s (default {d.gyro_rad_s})")
-    g.add_argument("--accel-std", type=float, default=d.accel_std_mps2, metavar="MPS2",
-                   help=f"per-axis accel std of a still window, m/s^2 (default {d.accel_std_mps2})")
-    g.add_argument("--mag-std", type=float, default=d.mag_std_mgauss, metavar="MGAUSS",
-                   help=f"per-axis mag std of a still window without gyro, mGauss (default {d.mag_std_mgauss})")
-    g.add_argument("--min-duration", type=float, default=d.min_duration_s, metavar="S",
-                   help=f"shortest interval, seconds (default {d.min_duration_s})")
-    g.add_argument("--min-samples", type=int, default=d.min_samples, metavar="N",
-                   help=f"fewest samples per interval (default {d.min_samples})")
-    g.add_argument("--trim", type=float, default=d.trim_s, metavar="S",
-                   help=f"time cut from each interval edge, seconds (default {d.trim_s})")
-    g.add_argument("--merge-deg", type=float, default=d.merge_deg, metavar="DEG",
-                   help=f"merge neighbouring intervals closer than this (default {d.merge_deg})")
-    g.add_argument("--cluster-deg", type=float, default=d.cluster_deg, metavar="DEG",
-                   help=f"gravity directions closer than this are one orientation (default {d.cluster_deg})")
-    g.add_argument("--no-gyro", action="store_true", help="decide stillness without the gyro")
-
-
-def _config(args):
-    from mavcal.segment import StillConfig
-
-    try:
-        return StillConfig(window_s=args.window, gyro_rad_s=args.gyro, accel_std_mps2=args.accel_std,
-                           mag_std_mgauss=args.mag_std, min_duration_s=args.min_duration,
-                           min_samples=args.min_samples, trim_s=args.trim, merge_deg=args.merge_deg,
-                           cluster_deg=args.cluster_deg, use_gyro=not args.no_gyro)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    parser.add_argument("--duration", type=float, default=10.0, metavar="S",
+                        help="live source: seconds to record (default 10)")
+    parser.add_argument("--baud", type=int, default=115200, help="live source: serial baud rate (default 115200)")
+    add_still_arguments(parser)
 
 
 def _num(x: float) -> Any:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _report(src: str, raw, seg, samples: bool) -> Dict[str, Any]:
+def _report(src: str, raw, seg, samples: bool) -> dict[str, Any]:
     from mavcal.segment import axis_label
 
     cov = seg.coverage
-    out: Dict[str, Any] = {
+    out: dict[str, Any] = {
         "source": src,
         "sample_rate_hz": _num(seg.sample_rate_hz),
         "window_samples": seg.window_samples,
@@ -120,7 +88,7 @@ def _report(src: str, raw, seg, samples: bool) -> Dict[str, Any]:
     return out
 
 
-def _print_text(rep: Dict[str, Any]) -> None:
+def _print_text(rep: dict[str, Any]) -> None:
     print(f"{rep['source']}: accel 0 at {rep['sample_rate_hz'] or 0:.1f} Hz, window {rep['window_samples']} "
           f"samples, stillness from accel{' + gyro' if rep['used_gyro'] else ''}"
           f"{' + mag' if rep['used_mag'] else ''}")
@@ -149,15 +117,27 @@ def _print_text(rep: Dict[str, Any]) -> None:
         print(f"  - {w}")
 
 
-def run(args) -> int:
-    from mavcal.ardupilot.recover import recover_raw
-    from mavcal.segment import find_still_intervals
-    from mavcal.sources import open_source
+def _segment(args, cfg):
+    """(log, raw or None, segmentation): the recording as ``calibrate`` prepares it
+    (:func:`mavcal.pipeline.prepare`), or, with ``--no-recover``, the readings as logged."""
+    from mavcal.pipeline import Options, open_source, prepare
+    from mavcal.sources.progress import auto_progress
+    from mavcal.sources.reader import is_device
 
-    cfg = _config(args)
-    log_ = open_source(args.source)
-    raw = None if args.no_recover else recover_raw(log_)
-    seg = find_still_intervals(log_ if raw is None else raw, cfg)
+    src = str(args.source)
+    progress = auto_progress("recording" if is_device(src) else f"reading {Path(src).name}")
+    log_ = open_source(src, baud=args.baud, duration_s=args.duration, progress=progress)
+    if args.no_recover:
+        from mavcal.segment import find_still_intervals
+
+        return log_, None, find_still_intervals(log_, cfg)
+    prep = prepare(log_, Options(still=cfg))
+    return prep.log, prep.raw, prep.segmentation
+
+
+def run(args) -> int:
+    cfg = still_config(args)
+    _, raw, seg = _segment(args, cfg)
     rep = _report(str(args.source), raw, seg, bool(args.samples))
     if args.json:
         print(json.dumps(rep, indent=1))

@@ -1,0 +1,196 @@
+"""What the subcommands share: arguments (link, still-interval thresholds, ``--location``),
+output writing, and the one flow that writes parameters to a vehicle.
+
+The texts come from :mod:`mavcal.report.text` (the MAVProxy module uses the same words).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, TextIO
+
+from mavcal.errors import GateError, UsageError
+
+__all__ = ["parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
+           "write_outputs", "confirm", "write_with_report", "check_new_backup"]
+
+
+# --------------------------------------------------------------------------- arguments
+
+def parse_location(text: str) -> tuple:
+    """argparse type of ``--location``: ``LAT,LON[,ALT]`` in degrees (and metres) -> (lat, lon, alt)."""
+    try:
+        parts = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected LAT,LON[,ALT] in degrees (and metres)") from None
+    if len(parts) not in (2, 3) or not (-90 <= parts[0] <= 90 and -180 <= parts[1] <= 180):
+        raise argparse.ArgumentTypeError("expected LAT,LON[,ALT] with -90 <= LAT <= 90, -180 <= LON <= 180")
+    return tuple(parts + [0.0] * (3 - len(parts)))
+
+
+def add_link_arguments(parser: argparse.ArgumentParser) -> None:
+    """The vehicle link and write options (apply, restore, capture)."""
+    parser.add_argument("--connect", required=True, metavar="DEVICE",
+                        help="MAVLink device: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or a serial port")
+    parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    parser.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                        help="seconds to wait for the vehicle's heartbeat (default 5)")
+    parser.add_argument("--param-timeout", type=float, default=1.0, metavar="S",
+                        help="seconds to wait for each parameter echo (default 1)")
+    parser.add_argument("--retries", type=int, default=3, help="PARAM_SET attempts per parameter (default 3)")
+    parser.add_argument("--dry-run", action="store_true", help="show what would change; write nothing")
+    parser.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation")
+
+
+class _DeprecatedAlias(argparse.Action):
+    """Stores into the new option's destination and says once that the spelling is old."""
+
+    def __init__(self, option_strings, dest, new: str = "", **kw) -> None:
+        self.new = new
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(f"mavcal: warning: {option_string} is deprecated, use {self.new}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def add_still_arguments(parser: Any) -> None:
+    """The still-interval thresholds (``calibrate`` and ``segments`` alike), defaults from
+    :class:`mavcal.segment.StillConfig`. ``--gyro`` is a hidden, deprecated alias of
+    ``--gyro-threshold``."""
+    from mavcal.segment import StillConfig
+
+    d = StillConfig()
+    g = parser.add_argument_group("still intervals")
+    g.add_argument("--window", type=float, default=d.window_s, metavar="S",
+                   help=f"sliding window in seconds (default {d.window_s}; at least {d.min_window_samples} samples)")
+    g.add_argument("--gyro-threshold", type=float, default=d.gyro_rad_s, metavar="RAD_S",
+                   help=f"RMS gyro rate of a still window, rad/s (default {d.gyro_rad_s})")
+    g.add_argument("--gyro", dest="gyro_threshold", type=float, action=_DeprecatedAlias, new="--gyro-threshold",
+                   help=argparse.SUPPRESS)
+    g.add_argument("--accel-std", type=float, default=d.accel_std_mps2, metavar="MPS2",
+                   help=f"per-axis accel std of a still window, m/s^2 (default {d.accel_std_mps2})")
+    g.add_argument("--mag-std", type=float, default=d.mag_std_mgauss, metavar="MGAUSS",
+                   help=f"per-axis mag std of a still window without gyro, mGauss (default {d.mag_std_mgauss})")
+    g.add_argument("--min-duration", type=float, default=d.min_duration_s, metavar="S",
+                   help=f"shortest interval, seconds (default {d.min_duration_s})")
+    g.add_argument("--min-samples", type=int, default=d.min_samples, metavar="N",
+                   help=f"fewest samples per interval (default {d.min_samples})")
+    g.add_argument("--trim", type=float, default=d.trim_s, metavar="S",
+                   help=f"time cut from each interval edge, seconds (default {d.trim_s})")
+    g.add_argument("--merge-deg", type=float, default=d.merge_deg, metavar="DEG",
+                   help=f"merge neighbouring intervals closer than this (default {d.merge_deg})")
+    g.add_argument("--cluster-deg", type=float, default=d.cluster_deg, metavar="DEG",
+                   help=f"gravity directions closer than this are one orientation (default {d.cluster_deg})")
+    g.add_argument("--no-gyro", action="store_true", help="decide stillness without the gyro")
+
+
+def still_config(args: argparse.Namespace):
+    """The :class:`mavcal.segment.StillConfig` of :func:`add_still_arguments`' options (UsageError if invalid)."""
+    from mavcal.segment import StillConfig
+
+    try:
+        return StillConfig(window_s=args.window, gyro_rad_s=args.gyro_threshold, accel_std_mps2=args.accel_std,
+                           mag_std_mgauss=args.mag_std, min_duration_s=args.min_duration,
+                           min_samples=args.min_samples, trim_s=args.trim, merge_deg=args.merge_deg,
+                           cluster_deg=args.cluster_deg, use_gyro=not args.no_gyro)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+# --------------------------------------------------------------------------- outputs
+
+def write_text_output(dest: str, text: str) -> None:
+    """Print ``text`` for ``dest == '-'``, else write it to the file ``dest`` (UsageError if it cannot)."""
+    if dest == "-":
+        print(text)
+        return
+    try:
+        Path(dest).write_text(text)
+    except OSError as exc:
+        raise UsageError(f"cannot write {dest}: {exc.strerror or exc}") from None
+
+
+def write_outputs(run, args: argparse.Namespace, title: str) -> None:
+    """Print the summary, write --json/--report, apply the gates, then write --param-out.
+
+    Shared by ``calibrate`` and ``capture``. Raises GateError (exit 4) when a quality gate
+    failed and ``--force`` was not given; the JSON and HTML reports are written first, so
+    the reasons are on disk either way.
+    """
+    from mavcal.ardupilot.paramfile import write_param_file
+    from mavcal.report.json import to_json
+    from mavcal.report.text import gate_refusal_text, summary_text
+
+    print(summary_text(run))
+    if args.json:
+        write_text_output(args.json, json.dumps(to_json(run), indent=1))
+    if args.report:
+        from mavcal.report import write_html
+        write_html(run, args.report)
+        print(f"report written to {args.report}")
+    if not run.accepted and not args.force:
+        if args.param_out or getattr(args, "write", False):
+            print(gate_refusal_text(run, "use --force"), file=sys.stderr, end="")
+        raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
+    if args.param_out:
+        write_param_file(args.param_out, run.mapping.new, header=[title, f"model {run.calibration.model}"])
+        print(f"parameters written to {args.param_out}")
+
+
+# --------------------------------------------------------------------------- the write flow
+
+def check_new_backup(path: str | None) -> None:
+    """UsageError when a backup file was named and already exists (never overwrite one)."""
+    if path is not None and Path(path).exists():
+        raise UsageError(f"backup file {path!r} already exists; not overwriting it")
+
+
+def confirm(prompt: str, assume_yes: bool) -> None:
+    """Ask on the terminal; refuse (UsageError) without a terminal unless ``assume_yes``."""
+    if assume_yes:
+        return
+    if not sys.stdin.isatty():
+        raise UsageError("not writing without confirmation: stdin is not a terminal (use --yes)")
+    answer = input(f"{prompt} [y/N] ").strip().lower()
+    if answer not in ("y", "yes"):
+        raise UsageError("cancelled; nothing was written")
+
+
+def write_with_report(args: argparse.Namespace, changes: dict, backup: str | None, what: str,
+                      out: TextIO | None = None) -> int:
+    """Connect to ``args.connect``, show the diff, confirm, write with the safe writer
+    (:func:`mavcal.link.writer.write_params`) and print the outcome (:mod:`mavcal.report.text`)."""
+    from mavcal.ardupilot.protocol import force_save_kinds
+    from mavcal.errors import ParamWriteError
+    from mavcal.link.connection import open_link
+    from mavcal.link.params import fetch_all_params
+    from mavcal.link.writer import default_backup_path, write_params
+    from mavcal.report.text import plan_text, write_done_text, write_failed_text
+
+    out = out or sys.stdout
+    link = open_link(args.connect, baud=args.baud, timeout_s=args.timeout)
+    try:
+        table = fetch_all_params(link, timeout_s=max(30.0, 10 * args.param_timeout),
+                                 retry_s=max(0.2, args.param_timeout / 2))
+        plan = write_params(link, changes, backup_path=None, params=table, dry_run=True,
+                            retries=args.retries, timeout_s=args.param_timeout)
+        out.write(plan_text(plan, dry_run=args.dry_run))
+        if not plan.changed or args.dry_run:
+            return 0
+        confirm(f"write {len(plan.changed)} parameter(s) to system {link.target_system}?", args.yes)
+        bpath = backup or str(default_backup_path())
+        try:
+            report = write_params(link, changes, backup_path=bpath, params=table,
+                                  force_save=force_save_kinds(r.name for r in plan.changed),
+                                  retries=args.retries, timeout_s=args.param_timeout,
+                                  link_timeout_s=max(3.0, 3 * args.param_timeout))
+        except ParamWriteError as exc:
+            out.write(write_failed_text(exc, what, bpath, args.connect))
+            raise
+        out.write(write_done_text(report))
+        return 0
+    finally:
+        link.close()

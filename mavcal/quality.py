@@ -1,0 +1,136 @@
+"""Quality stage: how good a calibration is, in the units a pilot cares about.
+
+* :func:`truth_functions`: raw-reading functions of an estimated sensor model (the
+  paper's Eq. ``sensor_reading_model``, ``u = K R g + b``) in the engine frame, so that
+  the written ArduPilot parameters can be judged against it;
+* :func:`quality_of`: the 95 % bounds of the heading and tilt error over the flight
+  envelope, propagating the parameter covariance (draws of
+  :func:`mavcal.core.uncertainty.sample_parameters`);
+* :func:`holdout_errors`: the leave-one-interval-out reconstruction error.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
+from mavcal.core.calibrate import calibrate, estimate_orientations
+from mavcal.core.constants import GRAVITY_MPS2
+from mavcal.core.models import MODELS
+from mavcal.core.types import Calibration
+from mavcal.core.uncertainty import sample_parameters
+from mavcal.errors import MavcalError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Quality", "quality_of", "truth_functions", "holdout_errors"]
+
+RawFn = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Quality:
+    """How good the result is, in the units a pilot cares about."""
+
+    heading_95_deg: float  # 95 % bound of the max heading error over the flight envelope
+    tilt_95_deg: float
+    heading_nominal_deg: float  # what the dropped terms alone cause (at the estimate)
+    tilt_nominal_deg: float
+    holdout_accel_mps2: float  # RMS leave-one-interval-out reconstruction error
+    holdout_mag_mgauss: float
+    chi2_dof: float
+
+
+def truth_functions(K_a: np.ndarray, b_a: np.ndarray, K_m: np.ndarray, b_m: np.ndarray, h: np.ndarray,
+                    board_rot: np.ndarray, R_old: np.ndarray, field_norm: float) -> tuple[RawFn, RawFn]:
+    """Raw-reading functions of a sensor model in the engine frame (for error propagation).
+
+    Returns ``(raw_accel(f_body m/s^2), raw_mag(B_body mGauss))``: the readings
+    ``K_a R g + b_a`` and ``K_m R h + b_m`` (paper Eq. ``sensor_reading_model``) for a
+    specific force / field given in the body frame, the compass ones in its sensor frame
+    (``R_old^T``), the field scaled from ``field_norm`` to the model's ``|h|``.
+    """
+    _, _, P = accel_frame(K_a)
+    to_E = (board_rot @ P).T  # body -> E
+    h_norm = float(np.linalg.norm(h))
+
+    def raw_accel(f_body: np.ndarray) -> np.ndarray:
+        return (f_body @ to_E.T / GRAVITY_MPS2) @ K_a.T + b_a
+
+    def raw_mag(B_body: np.ndarray) -> np.ndarray:
+        b = (B_body @ to_E.T) * (h_norm / field_norm) @ K_m.T + b_m
+        return b @ R_old  # R_old^T b, the sensor frame
+
+    return raw_accel, raw_mag
+
+
+def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
+               draws: int, seed: int, holdout: tuple[float, float]) -> Quality:
+    """Heading/tilt error bounds of the written parameters ``am``/``cm`` against ``cal``
+    and ``draws`` samples of its parameter distribution; ``holdout`` is
+    :func:`holdout_errors`' (accel m/s^2, compass mGauss)."""
+    grid = attitude_grid()
+    incl = np.radians(cm.inclination_deg)
+    B_ned = cm.field_mgauss * np.array([np.cos(incl), 0.0, np.sin(incl)])
+    R_old = cm.old.mount_matrix
+
+    def errs(d):
+        ra, rm = truth_functions(d["K_a"], d["b_a"], d["K_m"], d["b_m"], d["h"], board_rot, R_old, cm.field_mgauss)
+        return attitude_errors(ra, rm, am.new, cm.new, B_ned, grid)
+
+    nominal = errs({"K_a": cal.accel.gain, "b_a": cal.accel.bias, "K_m": cal.mag.gain, "b_m": cal.mag.bias,
+                    "h": cal.field})
+    hs, ts = [], []
+    for d in sample_parameters(cal, draws, np.random.default_rng(seed)):
+        e = errs(d)
+        hs.append(e.max_heading_deg)
+        ts.append(e.max_tilt_deg)
+    chi2 = cal.cost / cal.dof if cal.dof > 0 else float("nan")
+    return Quality(heading_95_deg=float(np.percentile(hs, 95)) if hs else nominal.max_heading_deg,
+                   tilt_95_deg=float(np.percentile(ts, 95)) if ts else nominal.max_tilt_deg,
+                   heading_nominal_deg=nominal.max_heading_deg, tilt_nominal_deg=nominal.max_tilt_deg,
+                   holdout_accel_mps2=holdout[0], holdout_mag_mgauss=holdout[1], chi2_dof=float(chi2))
+
+
+def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Calibration, *,
+                   method: str = "ncar", tol: float = 1e-4, seed: int = 0,
+                   noise_floor: tuple[float | None, float | None] = (None, None),
+                   cluster_deg: float = 30.0) -> tuple[float, float]:
+    """RMS leave-one-interval-out error: refit without interval j, predict j's means.
+
+    Only intervals whose gravity direction is seen again in another interval (within
+    ``cluster_deg``) are held out: leaving out the only pose on one side makes the rest
+    extrapolate, which measures the pose plan rather than the fit. NaN when none qualifies.
+    The prediction is the paper's model ``K R_j g + b`` (Eq. ``sensor_reading_model``)
+    with R_j estimated from interval j alone.
+    """
+
+    N = len(acc)
+    if N - 1 < MODELS[cal.model].min_intervals:
+        return float("nan"), float("nan")
+    dirs = np.array([a.mean(0) for a in acc])
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    close = (dirs @ dirs.T) > np.cos(np.radians(cluster_deg))
+    ea, em = [], []
+    for j in range(N):
+        if close[j].sum() < 2:
+            continue
+        keep = [i for i in range(N) if i != j]
+        try:
+            cj = calibrate([acc[i] for i in keep], [mag[i] for i in keep], method=method, tol=tol,
+                           seed=seed, model=cal.model, noise_floor=noise_floor)
+        except MavcalError:
+            continue
+        R = estimate_orientations(cj, [acc[j]], [mag[j]])[0]
+        pa = cj.accel.gain @ R @ cj.gravity + cj.accel.bias
+        pm = cj.mag.gain @ R @ cj.field + cj.mag.bias
+        ea.append(np.linalg.norm(acc[j].mean(0) - pa))
+        em.append(np.linalg.norm(mag[j].mean(0) - pm))
+    if not ea:
+        return float("nan"), float("nan")
+    return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))

@@ -1,0 +1,207 @@
+"""Text for people: the calibration summary, the parameter table and the outcome of a
+write to the vehicle (the same words from ``mavcal apply/restore/calibrate/capture`` and
+the MAVProxy module).
+
+Every function returns a string (no printing); an empty string means nothing to show.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from mavcal.ardupilot.paramfile import format_param_value
+
+__all__ = ["summary_text", "param_rows", "format_value", "gate_failures_by_sensor", "param_table",
+           "plan_text", "gate_refusal_text", "write_done_text", "write_failed_text", "in_doubt_text", "writing_text"]
+
+
+def format_value(v: float | None) -> str:
+    if v is None:
+        return "-"
+    try:
+        return format_param_value(v)
+    except Exception:  # non-finite
+        return str(v)
+
+
+def _changed(old: float | None, new: float) -> bool:
+    return old is None or np.float32(old) != np.float32(new)
+
+
+def param_rows(run) -> list[tuple[str, float | None, float, bool]]:
+    return [(n, run.mapping.old.get(n), float(v), _changed(run.mapping.old.get(n), v))
+            for n, v in sorted(run.mapping.new.items())]
+
+
+def _group_vectors(rows):
+    """Merge NAME_X/_Y/_Z rows into one (NAME_{X,Y,Z}) row: (label, olds, news, any changed)."""
+    out, i = [], 0
+    while i < len(rows):
+        n = rows[i][0]
+        if n.endswith("_X") and i + 2 < len(rows) and rows[i + 1][0] == n[:-1] + "Y" and rows[i + 2][0] == n[:-1] + "Z":
+            trio = rows[i:i + 3]
+            out.append((n[:-2] + "_XYZ", [r[1] for r in trio], [r[2] for r in trio], any(r[3] for r in trio)))
+            i += 3
+        else:
+            out.append((n, [rows[i][1]], [rows[i][2]], rows[i][3]))
+            i += 1
+    return out
+
+
+def gate_failures_by_sensor(run) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for g in run.gates.failures():
+        out.setdefault(g.sensor, []).append(f"{g.name}: {g.reason or 'failed (limit ' + g.limit + ')'}")
+    return out
+
+
+def summary_text(run) -> str:
+    """Short human summary of a run for a terminal.
+
+    Parameters
+    ----------
+    run : mavcal.pipeline.CalibrationRun
+
+    Returns
+    -------
+    str
+        A few lines: intervals, model, the 95 % heading and tilt error bounds, the
+        parameter table old -> new (changed values marked ``*``), the verdict of the
+        quality gates with the reasons per sensor, and the warnings.
+    """
+    q = run.quality
+    cal = run.calibration
+    seg = run.segmentation
+    cm = run.mapping.compass[0]
+    am = run.mapping.accel[0]
+    L = [f"{run.source}: {len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
+         f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})",
+         f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}",
+         f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
+         f"(95 % confidence, over the flight envelope)",
+         f"held-out error: accel {q.holdout_accel_mps2:.4f} m/s^2, compass {q.holdout_mag_mgauss:.2f} mGauss; "
+         f"fit chi2/dof {q.chi2_dof:.2f}",
+         f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt",
+         f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"]
+    rows = param_rows(run)
+    if rows:
+        grouped = _group_vectors(rows)
+        w = max(len(g[0]) for g in grouped)
+        L.append(f"  {'PARAMETER':<{w}}  OLD -> NEW   (* changed)")
+        for name, olds, news, ch in grouped:
+            if len(news) == 1:
+                L.append(f"  {name:<{w}}  {format_value(olds[0])} -> {format_value(news[0])}{'  *' if ch else ''}")
+            else:
+                L.append(f"  {name:<{w}}  ({', '.join(format_value(o) for o in olds)}) -> "
+                         f"({', '.join(format_value(v) for v in news)}){'  *' if ch else ''}")
+        n_ch = sum(r[3] for r in rows)
+        L.append(f"  ({n_ch} of {len(rows)} parameters change; _X/_Y/_Z shown together)")
+    fails = gate_failures_by_sensor(run)
+    if fails:
+        L.append("REJECTED by the quality gates:")
+        for sensor, why in fails.items():
+            L += [f"  {sensor} {w_}" for w_ in why]
+    else:
+        L.append("ACCEPTED: all quality gates passed")
+    if run.mapping.reboot_required:
+        L.append("reboot needed after writing (custom orientation)")
+    L += [f"warning: {m}" for m in run.warnings]
+    return "\n".join(L)
+
+
+# --------------------------------------------------------------------------- figures
+
+
+# --------------------------------------------------------------------------- writes
+
+def _status(r) -> str:
+    if not r.changed:
+        return "unchanged"
+    if r.restored is True:
+        return "restored"
+    if r.restored is False:
+        return "IN DOUBT"
+    if r.ok:
+        return "ok" if r.attempts else "to write"
+    return "FAILED" if r.attempts else "not written"
+
+
+def param_table(results: Iterable, *, show_status: bool = True) -> str:
+    """An old -> new table of :class:`~mavcal.link.writer.ParamResult` (one line each, with
+    a header; "" when there is none)."""
+    rows = [(r.name, format_param_value(r.old), format_param_value(r.expected), _status(r)) for r in results]
+    if not rows:
+        return ""
+    w = max(16, max(len(x[0]) for x in rows))
+    wo = max(10, max(len(x[1]) for x in rows))
+    wn = max(10, max(len(x[2]) for x in rows))
+    out = [f"{'PARAMETER':<{w}}  {'OLD':>{wo}}     {'NEW':<{wn}}" + ("  STATUS" if show_status else "")]
+    for name, old, new, status in rows:
+        out.append(f"{name:<{w}}  {old:>{wo}}  -> {new:<{wn}}" + (f"  {status}" if show_status else ""))
+    return "\n".join(out) + "\n"
+
+
+def _lines(lines: Sequence[str], prefix: str) -> str:
+    return "".join(f"{prefix}{x}\n" for x in lines)
+
+
+def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
+    """Why nothing is written: the quality gates that failed, and how to override."""
+    fails = "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures())
+    return _lines([f"nothing written: the calibration failed a quality gate ({fails}); {override_hint} to override"],
+                  prefix)
+
+
+def plan_text(plan, *, dry_run: bool = False, confirm_hint: str | None = None, prefix: str = "") -> str:
+    """The dry-run plan of a write (a :class:`~mavcal.link.writer.WriteReport`): the table,
+    then "nothing to change", the dry-run count, or how to confirm (``confirm_hint``)."""
+    n = len(plan.changed)
+    text = param_table(plan.results)
+    if n == 0:
+        return text + _lines(["nothing to change: the vehicle already holds every value"], prefix)
+    if dry_run:
+        return text + _lines([f"dry run: {n} of {len(plan.results)} parameters would change; nothing written"],
+                             prefix)
+    if confirm_hint:
+        return text + _lines([f"{n} parameter(s) would change; {confirm_hint}"], prefix)
+    return text
+
+
+def writing_text(n_changed: int, backup_path: str, *, prefix: str = "") -> str:
+    """Said just before the writes start."""
+    return _lines([f"writing {n_changed} parameter(s) (backup {backup_path})..."], prefix)
+
+
+def write_done_text(report, *, prefix: str = "") -> str:
+    """The outcome of a successful write (:class:`~mavcal.link.writer.WriteReport`)."""
+    lines = [f"{report.message}; backup of the old values in {report.backup_path}"]
+    if report.force_saved:
+        lines.append(f"calibration marked saved ({', '.join(report.force_saved)}), device ids stored")
+    if report.force_save_failed:
+        failed = ", ".join(report.force_save_failed)
+        lines.append(f"warning: the vehicle did not acknowledge the force-save of {failed}")
+    if report.reboot_required:
+        lines.append(f"reboot the vehicle for {', '.join(report.reboot_required)} to take effect")
+    return param_table(report.changed) + _lines(lines, prefix)
+
+
+def in_doubt_text(names: Sequence[str], backup_path: str, connect: str | None = None, *,
+                  prefix: str = "") -> str:
+    """The parameters whose value is unknown after a failed restore, and how to restore them."""
+    cmd = f"mavcal restore {backup_path}" + (f" --connect {connect}" if connect else "")
+    return (_lines(["parameters in doubt (value on the vehicle unknown):"], prefix)
+            + "".join(f"  {n}\n" for n in names)
+            + _lines([f"restore them when the vehicle answers again: {cmd}"], prefix))
+
+
+def write_failed_text(exc, what: str, backup_path: str, connect: str | None = None, *,
+                      prefix: str = "") -> str:
+    """The outcome of a failed write: a :class:`~mavcal.errors.ParamWriteError` (everything
+    restored) or a :class:`~mavcal.errors.RestoreFailedError` (parameters in doubt)."""
+    from mavcal.errors import RestoreFailedError
+
+    text = param_table(exc.report.results) if getattr(exc, "report", None) is not None else ""
+    if isinstance(exc, RestoreFailedError):
+        return text + in_doubt_text(exc.in_doubt, backup_path, connect, prefix=prefix)
+    return text + _lines([f"{what} failed; every value written was restored (backup kept in {backup_path})"], prefix)
