@@ -130,14 +130,15 @@ def write_outputs(run, args, title: str) -> None:
 
 
 def _single(args, source: str) -> int:
+    from mavcal.link.live import record_device
     from mavcal.pipeline import calibrate_source
-    from mavcal.sources import is_device, open_source
+    from mavcal.sources import is_device
     from mavcal.sources.progress import auto_progress
 
     opts = _options(args)
     device = is_device(source)
     if device:
-        log_ = open_source(source, baud=args.baud, duration_s=args.duration, progress=auto_progress("recording"))
+        log_ = record_device(source, baud=args.baud, duration_s=args.duration, progress=auto_progress("recording"))
         run = calibrate_source(log_, opts)
     else:
         run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))
