@@ -17,7 +17,7 @@ How it fits into MAVProxy:
 
 * ``mavlink_packet`` runs on MAVProxy's thread and only *files* messages from the primary
   vehicle: IMU messages into a buffer while capturing, and HEARTBEAT/PARAM_VALUE/
-  COMMAND_ACK/STATUSTEXT into a :class:`mavcal.live_capture.FedConnection` while a
+  COMMAND_ACK/STATUSTEXT into a :class:`mavcal.link.fed.FedConnection` while a
   parameter operation runs. It never reads the master (MAVProxy owns the read loop).
 * Everything slow runs in one worker thread (``mavcal-worker``): ``CaptureSession.update``
   about twice a second, ``result()``, the parameter download and the writes. The worker
@@ -187,7 +187,7 @@ class _Worker:
     def _link(self) -> Iterator[Any]:
         """A Link over a connection fed by mavlink_packet, sending through the outbox."""
         from mavcal.link.connection import Link
-        from mavcal.live_capture import FedConnection
+        from mavcal.link.fed import FedConnection
 
         sysid, compid = self._ids()
         conn = FedConnection(sysid, compid, address="mavproxy", outbox=self.outbox)
@@ -199,18 +199,18 @@ class _Worker:
             conn.close()
 
     def _stream_rates(self, rate_hz: Optional[float]) -> None:
-        from mavcal.live_capture import QueuedSender, stream_interval_commands
+        from mavcal.link.fed import QueuedSender
+        from mavcal.link.streams import send_message_intervals
 
         ids = self.vehicle_ids()
         if ids is not None:
-            stream_interval_commands(QueuedSender(self.outbox), ids[0], ids[1], rate_hz)
+            send_message_intervals(QueuedSender(self.outbox), ids[0], ids[1], rate_hz)
             self._stream_asked = time.monotonic()
 
     # -------------------------------------------------------------- jobs
     def _start(self, cfg: ModuleSettings) -> None:
-        from mavcal.capture import CaptureConfig, CaptureSession
+        from mavcal.capture import CaptureConfig, CaptureSession, status_line
         from mavcal.link.params import fetch_all_params
-        from mavcal.live_capture import status_line
         from mavcal.pipeline import Options
         from mavcal.segment import StillConfig
 
@@ -241,8 +241,8 @@ class _Worker:
                  f"counted\nmavcal: {self._last_line}")
 
     def _update(self) -> None:
-        from mavcal.sources.live import imu_batch_from_messages
-        from mavcal.live_capture import status_line
+        from mavcal.capture import status_line
+        from mavcal.link.live import imu_batch_from_messages
 
         now = time.monotonic()
         self._last_update = now
@@ -390,7 +390,7 @@ class MavcalModule(mp_module.MPModule):
     # ---------------------------------------------------------------- the command
     def cmd_mavcal(self, args: List[str]) -> None:
         """The ``mavcal`` command (runs on MAVProxy's thread: only quick work here)."""
-        from mavcal.live_capture import status_screen
+        from mavcal.capture import status_screen
 
         if not args or args[0] not in SUBCOMMANDS:
             print(self.usage())
@@ -455,7 +455,7 @@ class MavcalModule(mp_module.MPModule):
 
     def idle_task(self) -> None:
         """Send what the worker queued and print what it said (MAVProxy's thread)."""
-        from mavcal.live_capture import flush_outbox
+        from mavcal.link.fed import flush_outbox
 
         master = self.master
         if master is not None:
@@ -474,7 +474,7 @@ class MavcalModule(mp_module.MPModule):
         master = self.master
         if master is not None:
             try:  # the default stream rates, if the worker asked for others
-                from mavcal.live_capture import flush_outbox
+                from mavcal.link.fed import flush_outbox
                 flush_outbox(self.worker.outbox, master.mav)
             except Exception as exc:  # the link may be gone
                 log.debug("final sends failed: %s", exc)

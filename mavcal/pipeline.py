@@ -23,7 +23,6 @@ from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.types import Calibration
 from mavcal.errors import InsufficientDataError, MavcalError, SourceError
 from mavcal.quality import Quality, holdout_errors, quality_of
-from mavcal.quality import truth_functions as _truth_functions  # noqa: F401  (old name, mavcal.capture uses it)
 from mavcal.segment import Segmentation, StillConfig, find_still_intervals
 from mavcal.sources.progress import ProgressFn
 from mavcal.sources.types import ImuLog

@@ -81,3 +81,13 @@ def test_user_stop():
     sess.stop("stopped by the user")
     st = sess.update()
     assert st.done and st.reason == "stopped by the user" and not st.aborted
+
+
+def test_the_package_re_exports_the_session_the_screen_and_the_live_loop():
+    import mavcal.capture as cap
+    from mavcal.capture import live, screen, session
+
+    assert cap.CaptureSession is session.CaptureSession and cap.status_line is screen.status_line
+    assert cap.capture_live is live.capture_live and issubclass(cap.CaptureAbortedError, Exception)
+    with pytest.raises(AttributeError):
+        cap.no_such_name  # noqa: B018

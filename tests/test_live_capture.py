@@ -12,10 +12,12 @@ import time
 import numpy as np
 import pytest
 
-from mavcal import cli, live_capture
+from mavcal import cli
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.capture import CaptureConfig
+from mavcal.capture import live as live_capture
 from mavcal.link.connection import Link, open_link
+from mavcal.link.fed import FedConnection
 from mavcal.link.writer import write_params
 from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 from mavcal.segment import StillConfig
@@ -195,7 +197,7 @@ def test_safe_writer_over_a_fed_connection(vehicle, tmp_path):
     """The MAVProxy module's arrangement without MAVProxy: one thread owns the socket (reads, feeds,
     flushes the outbox), the writer runs in another on a Link over a FedConnection."""
     owner = open_link(vehicle.gcs_device, timeout_s=5)
-    fed = live_capture.FedConnection(owner.target_system, owner.target_component)
+    fed = FedConnection(owner.target_system, owner.target_component)
     halt = threading.Event()
 
     def own():

@@ -7,13 +7,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mav2
 
 from mavcal.errors import MavcalError, SourceError
-from mavcal.sources import read_log, open_source
+from mavcal.sources import open_source, read_log
+from mavcal.sources.assemble import REBOOT_BACKSTEP_S, TLOG_MESSAGES, _next_reboot
 from mavcal.sources.fast_tlog import _mark_path, _path_from, crc_x25, decode_tlog
-from mavcal.sources.reader import REBOOT_BACKSTEP_S, TLOG_MESSAGES, _next_reboot
 from mavcal.sources.progress import ProgressPrinter, auto_progress
 from mavcal.sources.wmm import field_at, field_ned
 

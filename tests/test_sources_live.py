@@ -1,4 +1,4 @@
-"""Live source against a small loopback MAVLink peer started and stopped by each test."""
+"""Live recording (mavcal.link.live) against a small loopback MAVLink peer started and stopped by each test."""
 from __future__ import annotations
 
 import socket
@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from mavcal.errors import LinkError, MavcalError
+from mavcal.errors import LinkError, MavcalError, SourceError
+from mavcal.link.live import imu_batch_from_messages, open_recorder, record_device
+from mavcal.link.params import fetch_all_params
+from mavcal.link.streams import send_message_intervals
 from mavcal.sources import open_source
-from mavcal.sources.live import LiveSource
 
 PARAMS = {f"COMPASS_OFS_{a}": v for a, v in zip("XYZ", (12.5, -40.0, 101.25))}
 PARAMS.update({f"INS_ACCOFFS_{a}": v for a, v in zip("XYZ", (0.01, -0.02, 0.3))})
@@ -31,14 +33,18 @@ class FakeVehicle(threading.Thread):
 
     ``ack_interval``: answer SET_MESSAGE_INTERVAL (else only REQUEST_DATA_STREAM works).
     ``drop_index``: a parameter index left out of the PARAM_REQUEST_LIST answer (must be
-    fetched with PARAM_REQUEST_READ).
+    fetched with PARAM_REQUEST_READ). ``lost_index``: an index never sent at all.
     """
 
-    def __init__(self, device: str, ack_interval: bool = True, drop_index: int = 2) -> None:
+    def __init__(self, device: str, ack_interval: bool = True, drop_index: int = 2,
+                 lost_index: int | None = None) -> None:
         super().__init__(daemon=True)
         self.conn = mavutil.mavlink_connection(device, source_system=1, source_component=1)
         self.ack_interval = ack_interval
         self.drop_index = drop_index
+        self.lost_index = lost_index
+        self.gcs_heartbeats = 0
+        self.intervals = []  # (message id, interval us) of every SET_MESSAGE_INTERVAL
         self.names = sorted(PARAMS)
         self.stop_evt = threading.Event()
         self.rate_hz = 0.0
@@ -46,6 +52,8 @@ class FakeVehicle(threading.Thread):
         self.boot = time.monotonic()
 
     def send_param(self, i: int) -> None:
+        if i == self.lost_index:
+            return
         n = self.names[i]
         self.conn.mav.param_value_send(n.encode(), PARAMS[n], 9, len(self.names), i)
 
@@ -76,8 +84,11 @@ class FakeVehicle(threading.Thread):
                 self.read_requests.append(m.param_index)
                 if 0 <= m.param_index < len(self.names):
                     self.send_param(m.param_index)
-            elif t == "COMMAND_LONG" and m.command == 511:
-                if self.ack_interval:
+            elif t == "HEARTBEAT" and m.type == mavutil.mavlink.MAV_TYPE_GCS:
+                self.gcs_heartbeats += 1
+            elif t == "COMMAND_LONG" and m.command == mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+                self.intervals.append((int(m.param1), int(m.param2)))
+                if self.ack_interval and m.param2 > 0:
                     self.conn.mav.command_ack_send(511, 0)
                     self.rate_hz = max(self.rate_hz, 1e6 / m.param2)
             elif t == "REQUEST_DATA_STREAM":
@@ -108,9 +119,9 @@ def vehicle_factory():
 def test_live_udpin_params_streams_and_snapshot(vehicle_factory):
     port = free_port()
     veh = vehicle_factory(f"udpout:127.0.0.1:{port}")
-    with LiveSource(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=5) as src:
+    with open_recorder(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=5) as src:
         assert src.target_system == 1 and src.target_component == 1
-        params = src.fetch_params(timeout_s=10, idle_s=0.3)
+        params = src.fetch_params(timeout_s=10, retry_s=0.3)
         assert params == pytest.approx(PARAMS)
         assert 2 in veh.read_requests  # the dropped index was re-requested
         assert src.start_streams(rate_hz=50) == "interval"
@@ -133,7 +144,7 @@ def test_live_udpin_params_streams_and_snapshot(vehicle_factory):
 def test_live_fallback_to_request_data_stream(vehicle_factory):
     port = free_port()
     veh = vehicle_factory(f"udpout:127.0.0.1:{port}", ack_interval=False)
-    with LiveSource(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=5) as src:
+    with open_recorder(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=5) as src:
         assert src.start_streams(rate_hz=25, ack_timeout_s=0.3) == "data_stream"
         assert veh.rate_hz == 25
         src.capture(0.3)
@@ -145,9 +156,9 @@ def test_live_udpout_side(vehicle_factory):
     port = free_port()
     vehicle_factory(f"udpin:127.0.0.1:{port}")
     # we talk first (heartbeat), the peer answers to our address
-    with LiveSource(f"udpout:127.0.0.1:{port}", heartbeat_timeout_s=5) as src:
+    with open_recorder(f"udpout:127.0.0.1:{port}", heartbeat_timeout_s=5) as src:
         assert src.target_system == 1
-        assert src.connection is not None  # usable by a later parameter writer
+        assert src.link.conn is not None  # usable by a later parameter writer
 
 
 @pytest.mark.timeout(20)
@@ -155,7 +166,7 @@ def test_silent_device_raises_link_error_quickly():
     port = free_port()
     t0 = time.monotonic()
     with pytest.raises(LinkError, match="no heartbeat"):
-        LiveSource(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=0.5)
+        open_recorder(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=0.5)
     assert time.monotonic() - t0 < 5
 
 
@@ -166,6 +177,85 @@ def test_unreachable_devices_are_link_errors():
     port = sock.getsockname()[1]
     sock.close()  # nothing listens there
     with pytest.raises(LinkError):
-        open_source(f"tcp:127.0.0.1:{port}", heartbeat_timeout_s=0.5)
+        record_device(f"tcp:127.0.0.1:{port}", heartbeat_timeout_s=0.5)
     with pytest.raises(MavcalError):
-        open_source("/dev/does-not-exist-mavcal", heartbeat_timeout_s=0.5)
+        record_device("/dev/does-not-exist-mavcal", heartbeat_timeout_s=0.5)
+
+
+@pytest.mark.timeout(30)
+def test_record_device_connects_fetches_streams_and_records(vehicle_factory):
+    port = free_port()
+    veh = vehicle_factory(f"udpout:127.0.0.1:{port}")
+    log_ = record_device(f"udpin:127.0.0.1:{port}", duration_s=1.2, rate_hz=50, param_timeout_s=10)
+    assert log_.kind == "live" and log_.source == f"udpin:127.0.0.1:{port}"
+    assert len(log_.get("accel", 0)) >= 30  # ~50 Hz for 1.2 s
+    assert log_.params.final("COMPASS_DEV_ID") == 97539.0
+    assert not any("parameters received" in w for w in log_.warnings)  # the table was complete
+    # SET_MESSAGE_INTERVAL for RAW_IMU, SCALED_IMU2, SCALED_IMU3 at 50 Hz, and a GCS heartbeat every second
+    assert sorted(veh.intervals) == [(27, 20000), (116, 20000), (129, 20000)]
+    assert veh.gcs_heartbeats >= 2
+
+
+@pytest.mark.timeout(30)
+def test_incomplete_parameter_table_is_a_warning_of_the_recording(vehicle_factory):
+    port = free_port()
+    vehicle_factory(f"udpout:127.0.0.1:{port}", lost_index=3)
+    with open_recorder(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=5) as rec:
+        params = rec.fetch_params(timeout_s=1.0, retry_s=0.2)
+        assert len(params) == len(PARAMS) - 1
+        with pytest.raises(LinkError, match="incomplete"):  # the strict download says so
+            fetch_all_params(rec.link, 0.5, retry_s=0.2)
+        rec.start_streams(rate_hz=25)
+        rec.capture(0.3)
+        log_ = rec.snapshot()
+    assert f"only {len(PARAMS) - 1} of {len(PARAMS)} parameters received within 1 s" in log_.warnings
+
+
+def test_file_reader_refuses_a_device():
+    with pytest.raises(SourceError, match="record_device"):
+        open_source("udpin:127.0.0.1:14550")
+
+
+class _Encoder:
+    def __init__(self):
+        self.sent = []
+
+    def command_long_send(self, *args):
+        self.sent.append(args)
+
+
+def test_message_intervals_and_their_reset():
+    mav = _Encoder()
+    send_message_intervals(mav, 1, 1, 50.0)
+    send_message_intervals(mav, 1, 1, None)
+    cmd = mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+    assert [(a[2], a[4], a[5]) for a in mav.sent] == [(cmd, 27, 20000), (cmd, 116, 20000), (cmd, 129, 20000),
+                                                      (cmd, 27, 0), (cmd, 116, 0), (cmd, 129, 0)]
+
+
+def test_imu_batch_from_messages_converts_units_and_instances():
+    A = mavutil.mavlink
+    raw = A.MAVLink_raw_imu_message(2_000_000, 10, -20, -1000, 1, 2, 3, 200, -50, 400)
+    imu2 = A.MAVLink_scaled_imu2_message(2000, 0, 0, 0, 0, 0, 0, 210, -60, 410)
+    hb = A.MAVLink_heartbeat_message(2, 3, 0, 0, 0, 3)
+    batch = imu_batch_from_messages([hb, imu2, raw])
+    got = {(s.sensor, s.instance, s.message): s for s in batch}
+    assert set(got) == {("accel", 0, "RAW_IMU"), ("gyro", 0, "RAW_IMU"), ("mag", 0, "RAW_IMU"),
+                        ("mag", 1, "SCALED_IMU2")}  # no accel/gyro for the all-zero SCALED_IMU2
+    np.testing.assert_allclose(got["accel", 0, "RAW_IMU"].values[0], np.array([10, -20, -1000]) * 9.80665e-3)
+    np.testing.assert_allclose(got["gyro", 0, "RAW_IMU"].values[0], [0.001, 0.002, 0.003])
+    assert got["mag", 1, "SCALED_IMU2"].time_s[0] == pytest.approx(2.0)
+    assert imu_batch_from_messages([raw], target_system=1) == ()  # built here: source system 0
+
+
+def test_sources_knows_nothing_of_devices():
+    import ast
+    from pathlib import Path
+
+    import mavcal.sources
+
+    for path in Path(mavcal.sources.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                assert not (node.module or "").startswith("mavcal.link"), path.name
+    assert not hasattr(mavcal.sources, "LiveSource")

@@ -83,7 +83,7 @@ def _single(args, source: str) -> int:
     opts = _options(args)
     device = is_device(source)
     if device:
-        log_ = open_source(source, baud=args.baud, duration_s=args.duration, progress=auto_progress("recording"))
+        log_ = open_source(source, baud=args.baud, duration_s=args.duration)
         run = calibrate_source(log_, opts)
     else:
         run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))

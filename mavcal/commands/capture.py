@@ -68,7 +68,7 @@ class StatusPrinter:
         self._last = ""
 
     def __call__(self, st) -> None:
-        from mavcal.live_capture import status_line, status_screen
+        from mavcal.capture import status_line, status_screen
 
         if self.tty:
             text = status_screen(st, self.target_deg)
@@ -93,8 +93,8 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mavcal import live_capture
     from mavcal.capture import CaptureConfig
+    from mavcal.capture import live as live_capture
     from mavcal.pipeline import Options
     from mavcal.segment import StillConfig
 

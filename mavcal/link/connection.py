@@ -17,7 +17,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable
 
 from pymavlink import mavutil
 
@@ -50,19 +50,23 @@ class Link:
         Device string, for messages only.
     """
 
-    def __init__(self, conn: Any, *, target_system: Optional[int] = None,
-                 target_component: Optional[int] = None, device: Optional[str] = None) -> None:
+    def __init__(self, conn: Any, *, target_system: int | None = None,
+                 target_component: int | None = None, device: str | None = None) -> None:
         self.conn = conn
         self.target_system = int(target_system if target_system is not None else conn.target_system)
         self.target_component = int(target_component if target_component is not None
                                     else (conn.target_component or 1))
         self.device = device or getattr(conn, "address", "") or "?"
-        self._handlers: Dict[str, Dict[int, Handler]] = {}
+        self._handlers: dict[str, dict[int, Handler]] = {}
         self._ids = itertools.count(1)
-        self.last_heartbeat_s: Optional[float] = None
+        self.last_heartbeat_s: float | None = None
         #: time.monotonic() of the last message from the vehicle (starts "now")
         self.last_rx_s: float = time.monotonic()
         self.messages_received = 0
+        #: send a GCS HEARTBEAT this often while pumping (None: never; :func:`open_link` sends
+        #: them while it waits for the vehicle either way)
+        self.heartbeat_period_s: float | None = None
+        self._last_hb_sent = float("-inf")
 
     # -- ids ---------------------------------------------------------------------------------
     @property
@@ -79,7 +83,7 @@ class Link:
         return m.get_srcSystem() == self.target_system and m.get_srcComponent() == self.target_component
 
     # -- handlers ----------------------------------------------------------------------------
-    def add_handler(self, msg_type: str, fn: Handler) -> Tuple[str, int]:
+    def add_handler(self, msg_type: str, fn: Handler) -> tuple[str, int]:
         """Call ``fn(msg)`` for every received message of ``msg_type`` (``"*"`` = all).
 
         Returns a token for :meth:`remove_handler`.
@@ -88,7 +92,7 @@ class Link:
         self._handlers.setdefault(msg_type, {})[key] = fn
         return (msg_type, key)
 
-    def remove_handler(self, token: Tuple[str, int]) -> None:
+    def remove_handler(self, token: tuple[str, int]) -> None:
         """Unregister a handler added with :meth:`add_handler` (unknown tokens are ignored)."""
         self._handlers.get(token[0], {}).pop(token[1], None)
 
@@ -107,7 +111,20 @@ class Link:
                     fn(m)
 
     # -- the receive loop --------------------------------------------------------------------
+    def _keepalive(self) -> None:
+        """A GCS HEARTBEAT when ``heartbeat_period_s`` has passed (best effort: a failed send is logged)."""
+        if self.heartbeat_period_s is None:
+            return
+        now = time.monotonic()
+        if now - self._last_hb_sent >= self.heartbeat_period_s:
+            self._last_hb_sent = now
+            try:
+                self.send_gcs_heartbeat()
+            except LinkError as exc:  # udpout to an unreachable host, a closed tcp peer...
+                log.debug("heartbeat not sent: %s", exc)
+
     def _recv(self, timeout_s: float) -> Any:
+        self._keepalive()
         try:
             if timeout_s <= 0:
                 return self.conn.recv_match(blocking=False)
@@ -162,7 +179,7 @@ class Link:
         except Exception:  # pragma: no cover - closing a broken socket
             pass
 
-    def __enter__(self) -> "Link":
+    def __enter__(self) -> Link:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -177,7 +194,7 @@ def _is_vehicle_heartbeat(m: Any) -> bool:
 
 def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
               source_system: int = GCS_SYSTEM_ID, source_component: int = GCS_COMPONENT_ID,
-              target_system: Optional[int] = None) -> Link:
+              target_system: int | None = None) -> Link:
     """Open ``device`` and wait for a vehicle HEARTBEAT.
 
     Parameters
@@ -205,7 +222,7 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
     """
     if not device:
         raise LinkError("no device given")
-    kwargs: Dict[str, Any] = dict(source_system=source_system, source_component=source_component,
+    kwargs: dict[str, Any] = dict(source_system=source_system, source_component=source_component,
                                   dialect="ardupilotmega", autoreconnect=False)
     if device.startswith("tcp:"):
         kwargs["retries"] = 0  # one connect attempt: pymavlink would otherwise sleep and print
@@ -216,7 +233,7 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
     except Exception as exc:  # socket / serial errors of many kinds
         raise LinkError(f"cannot open {device}: {exc}") from None
     link = Link(conn, target_system=target_system or 0, target_component=0, device=device)
-    found: List[Any] = []
+    found: list[Any] = []
 
     def on_heartbeat(m: Any) -> None:
         if not found and _is_vehicle_heartbeat(m) and (target_system is None or m.get_srcSystem() == target_system):

@@ -1,6 +1,7 @@
 """The MAVLink parameter protocol, as ArduPilot implements it (read side).
 
-* :func:`fetch_all_params`: PARAM_REQUEST_LIST, collect PARAM_VALUE by index, then fetch
+* :func:`fetch_all_params` (and :func:`download_params`, which also returns a partial table):
+  PARAM_REQUEST_LIST, collect PARAM_VALUE by index, then fetch
   the missing indices one by one with PARAM_REQUEST_READ, keeping a small window of
   requests in flight (ArduPilot queues at most 20 read requests and answers 5 per loop).
 * :func:`read_params`: PARAM_REQUEST_READ by name for a few parameters. ArduPilot answers a
@@ -15,17 +16,19 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Dict, Iterable, List, Tuple
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
 
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link, as_link
 
-__all__ = ["fetch_all_params", "read_params", "ParamTable"]
+__all__ = ["fetch_all_params", "download_params", "ParamDownload", "read_params", "ParamTable"]
 
 log = logging.getLogger(__name__)
 
 #: name -> (value, MAV_PARAM_TYPE)
-ParamTable = Dict[str, Tuple[float, int]]
+ParamTable = dict[str, tuple[float, int]]
 
 _NO_INDEX = 65535
 
@@ -35,6 +38,126 @@ def _param_name(m: Any) -> str:
     if isinstance(name, bytes):
         name = name.decode("ascii", "replace")
     return name.rstrip("\x00")
+
+
+@dataclass(frozen=True)
+class ParamDownload:
+    """The outcome of :func:`download_params`.
+
+    Attributes
+    ----------
+    table : dict of str to (float, int)
+        The parameters received by index, in index order: value and MAV_PARAM_TYPE (a later
+        PARAM_VALUE echo replaces the listed value).
+    count : int or None
+        How many parameters the vehicle announced (None: no PARAM_VALUE at all).
+    complete : bool
+        Every announced index was received.
+    elapsed_s : float
+    """
+
+    table: ParamTable
+    count: int | None
+    complete: bool
+    elapsed_s: float
+
+    def describe(self, device: str, timeout_s: float) -> str:
+        """``"DEVICE: parameter download incomplete after T s (GOT of COUNT)"``."""
+        count = self.count if self.count is not None else "?"
+        return f"{device}: parameter download incomplete after {timeout_s:g} s ({len(self.table)} of {count})"
+
+
+class _Download:
+    """State of one download: PARAM_VALUE by index, and the read requests in flight."""
+
+    def __init__(self, link: Link) -> None:
+        self.link = link
+        self.by_index: dict[int, str] = {}
+        self.values: ParamTable = {}
+        self.count: int | None = None
+        self.last_rx = time.monotonic()
+        self.list_sent = float("-inf")
+        self.outstanding: dict[int, float] = {}
+        self._token = link.add_handler("PARAM_VALUE", self._on_value)
+
+    def _on_value(self, m: Any) -> None:
+        if not self.link.is_from_vehicle(m):
+            return
+        name = _param_name(m)
+        self.last_rx = time.monotonic()
+        self.values[name] = (float(m.param_value), int(m.param_type))
+        idx, count = int(m.param_index), int(m.param_count)
+        if idx != _NO_INDEX and count > 0 and idx < count:
+            self.count = count
+            self.by_index[idx] = name
+
+    def complete(self) -> bool:
+        return self.count is not None and len(self.by_index) >= self.count
+
+    def request_list(self, now: float) -> None:
+        self.link.mav.param_request_list_send(self.link.target_system, self.link.target_component)
+        self.list_sent = now
+
+    def _request_index(self, idx: int, now: float) -> None:
+        self.link.mav.param_request_read_send(self.link.target_system, self.link.target_component, b"", idx)
+        self.outstanding[idx] = now
+
+    def step(self, now: float, retry_s: float, window: int) -> None:
+        """Repeat the list request while nothing is heard; once the list stream stops, fetch the holes."""
+        if self.count is None:
+            if now - max(self.last_rx, self.list_sent) > retry_s:
+                self.request_list(now)
+            return
+        if not (now - self.last_rx > retry_s / 2 or self.outstanding):
+            return  # the list is still streaming in
+        for idx in [i for i in self.outstanding if i in self.by_index]:
+            del self.outstanding[idx]
+        for idx, t in list(self.outstanding.items()):
+            if now - t > retry_s:
+                self._request_index(idx, now)
+        for idx in range(self.count):
+            if len(self.outstanding) >= window:
+                break
+            if idx not in self.by_index and idx not in self.outstanding:
+                self._request_index(idx, now)
+
+    def table(self) -> ParamTable:
+        return {self.by_index[i]: self.values[self.by_index[i]] for i in sorted(self.by_index)}
+
+    def close(self) -> None:
+        self.link.remove_handler(self._token)
+
+
+def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5, window: int = 10) -> ParamDownload:
+    """Download the vehicle's parameter table, as far as it gets within ``timeout_s``.
+
+    The one parameter download (PARAM_REQUEST_LIST, then PARAM_REQUEST_READ of the missing
+    indices, at most ``window`` in flight, each repeated after ``retry_s``); the list request
+    is repeated while nothing at all arrives for ``retry_s``. :func:`fetch_all_params` is this
+    with an incomplete table as an error.
+
+    Raises
+    ------
+    LinkError
+        The connection fails.
+    """
+    link: Link = as_link(conn)
+    dl = _Download(link)
+    start = time.monotonic()
+    deadline = start + timeout_s
+    try:
+        dl.request_list(time.monotonic())
+        while not dl.complete():
+            now = time.monotonic()
+            if now >= deadline:
+                break
+            dl.step(now, retry_s, window)
+            link.pump(min(0.02, max(deadline - time.monotonic(), 0.0)))
+    finally:
+        dl.close()
+    out = ParamDownload(dl.table(), dl.count, dl.complete(), time.monotonic() - start)
+    log.info("fetched %d of %s parameters in %.2f s", len(out.table), out.count, out.elapsed_s)
+    return out
 
 
 def fetch_all_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5,
@@ -65,63 +188,15 @@ def fetch_all_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5
         The table is still incomplete after ``timeout_s``.
     """
     link: Link = as_link(conn)
-    by_index: Dict[int, str] = {}
-    values: ParamTable = {}
-    state = {"count": None, "last_rx": time.monotonic()}
+    dl = download_params(link, timeout_s, retry_s=retry_s, window=window)
+    if not dl.complete:
+        raise LinkError(dl.describe(link.device, timeout_s))
+    return dl.table
 
-    def on_value(m: Any) -> None:
-        if not link.is_from_vehicle(m):
-            return
-        name = _param_name(m)
-        state["last_rx"] = time.monotonic()
-        values[name] = (float(m.param_value), int(m.param_type))
-        idx, count = int(m.param_index), int(m.param_count)
-        if idx != _NO_INDEX and count > 0 and idx < count:
-            state["count"] = count
-            by_index[idx] = name
 
-    token = link.add_handler("PARAM_VALUE", on_value)
-    start = time.monotonic()
-    deadline = start + timeout_s
-    outstanding: Dict[int, float] = {}
-    list_sent = 0.0
-    try:
-        link.mav.param_request_list_send(link.target_system, link.target_component)
-        list_sent = time.monotonic()
-        while True:
-            now = time.monotonic()
-            count = state["count"]
-            if count is not None and len(by_index) >= count:
-                break
-            if now >= deadline:
-                got = len(by_index)
-                raise LinkError(f"{link.device}: parameter download incomplete after {timeout_s:g} s "
-                                f"({got} of {count if count is not None else '?'})")
-            if count is None:
-                # nothing heard yet: repeat the list request when quiet
-                if now - max(state["last_rx"], list_sent) > retry_s:
-                    link.mav.param_request_list_send(link.target_system, link.target_component)
-                    list_sent = now
-            elif now - state["last_rx"] > retry_s / 2 or outstanding:
-                # the list stream has stopped (or we are already filling holes)
-                for idx in [i for i in outstanding if i in by_index]:
-                    del outstanding[idx]
-                for idx, t in list(outstanding.items()):
-                    if now - t > retry_s:
-                        link.mav.param_request_read_send(link.target_system, link.target_component, b"", idx)
-                        outstanding[idx] = now
-                for idx in range(count):
-                    if len(outstanding) >= window:
-                        break
-                    if idx not in by_index and idx not in outstanding:
-                        link.mav.param_request_read_send(link.target_system, link.target_component, b"", idx)
-                        outstanding[idx] = now
-            link.pump(min(0.02, max(deadline - time.monotonic(), 0.0)))
-    finally:
-        link.remove_handler(token)
-    names = [by_index[i] for i in range(state["count"] or 0)]
-    log.info("fetched %d parameters in %.2f s", len(names), time.monotonic() - start)
-    return {n: values[n] for n in names}
+def _all_answered(got: ParamTable, names: list[str]) -> Callable[[], bool]:
+    names = list(names)
+    return lambda: all(x in got for x in names)
 
 
 def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, attempts: int = 3,
@@ -148,10 +223,10 @@ def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, atte
         (unknown to the vehicle, or the link lost every attempt).
     """
     link: Link = as_link(conn)
-    wanted: List[str] = list(dict.fromkeys(names))
+    wanted: list[str] = list(dict.fromkeys(names))
     got: ParamTable = {}
-    sent_at: Dict[str, float] = {}
-    tries: Dict[str, int] = {n: 0 for n in wanted}
+    sent_at: dict[str, float] = {}
+    tries: dict[str, int] = {n: 0 for n in wanted}
     wanted_set = set(wanted)
 
     def on_value(m: Any) -> None:
@@ -179,7 +254,7 @@ def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, atte
                 sent_at[n] = now
                 tries[n] += 1
                 live.append(n)
-            link.pump(0.01) if not live else link.wait(lambda: all(x in got for x in live), 0.02)
+            link.pump(0.01) if not live else link.wait(_all_answered(got, live), 0.02)
     finally:
         link.remove_handler(token)
     missing = [n for n in wanted if n not in got]

@@ -36,9 +36,10 @@ import datetime as _dt
 import logging
 import math
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, NoReturn
 
 import numpy as np
 from pymavlink import mavutil
@@ -102,10 +103,10 @@ class ParamResult:
     old: float
     requested: float
     expected: float
-    echoed: Optional[float]
+    echoed: float | None
     ok: bool
     attempts: int
-    restored: Optional[bool] = None
+    restored: bool | None = None
     restore_attempts: int = 0
 
     @property
@@ -142,14 +143,14 @@ class WriteReport:
         One-line summary.
     """
 
-    results: Tuple[ParamResult, ...]
-    backup_path: Optional[str]
+    results: tuple[ParamResult, ...]
+    backup_path: str | None
     complete: bool
     restored: bool = False
-    in_doubt: Tuple[str, ...] = ()
-    reboot_required: Tuple[str, ...] = ()
-    force_saved: Tuple[str, ...] = ()
-    force_save_failed: Tuple[str, ...] = ()
+    in_doubt: tuple[str, ...] = ()
+    reboot_required: tuple[str, ...] = ()
+    force_saved: tuple[str, ...] = ()
+    force_save_failed: tuple[str, ...] = ()
     dry_run: bool = False
     message: str = ""
 
@@ -159,7 +160,7 @@ class WriteReport:
         return bool(self.reboot_required)
 
     @property
-    def changed(self) -> Tuple[ParamResult, ...]:
+    def changed(self) -> tuple[ParamResult, ...]:
         """Results of the parameters whose value had to change."""
         return tuple(r for r in self.results if r.changed)
 
@@ -186,7 +187,7 @@ def expected_stored_value(value: float, param_type: int) -> float:
     return float(np.float32(value))
 
 
-def _same(a: Optional[float], b: Optional[float]) -> bool:
+def _same(a: float | None, b: float | None) -> bool:
     """Equal as float32 values (the wire format), within one float32 ulp."""
     if a is None or b is None:
         return False
@@ -215,7 +216,7 @@ def _check_values(changes: Mapping[str, float], table: ParamTable) -> None:
         raise UsageError("refusing to write (nothing was written): " + "; ".join(bad))
 
 
-def plan_changes(changes: Mapping[str, float], table: ParamTable) -> List[ParamResult]:
+def plan_changes(changes: Mapping[str, float], table: ParamTable) -> list[ParamResult]:
     """Check ``changes`` against the vehicle's ``table`` and describe each change.
 
     Returns
@@ -255,8 +256,8 @@ class _EchoWatch:
 
     def __init__(self, link: Link) -> None:
         self.link = link
-        self.last: Dict[str, float] = {}
-        self.seen: Dict[str, List[float]] = {}
+        self.last: dict[str, float] = {}
+        self.seen: dict[str, list[float]] = {}
         self._token = link.add_handler("PARAM_VALUE", self._on)
 
     def _on(self, m: Any) -> None:
@@ -272,7 +273,7 @@ class _EchoWatch:
 
 
 def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, expected: float,
-                     retries: int, timeout_s: float, link_timeout_s: float) -> Tuple[bool, Optional[float], int]:
+                     retries: int, timeout_s: float, link_timeout_s: float) -> tuple[bool, float | None, int]:
     """PARAM_SET ``name`` until an echo equal to ``expected`` arrives. -> (ok, last echo, attempts).
 
     Raises LinkError when the vehicle has sent nothing at all for ``link_timeout_s``.
@@ -299,7 +300,7 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
 
 def _force_save(link: Link, kind: str, retries: int, timeout_s: float) -> bool:
     p2, p5 = FORCE_SAVE_KINDS[kind]
-    acks: List[int] = []
+    acks: list[int] = []
 
     def on_ack(m: Any) -> None:
         if link.is_from_vehicle(m) and m.command == _A.MAV_CMD_PREFLIGHT_CALIBRATION:
@@ -326,17 +327,196 @@ def _read_back(link: Link, names: Sequence[str], retries: int, timeout_s: float)
     return read_params(link, names, timeout_s=timeout_s, attempts=max(1, retries))
 
 
-def _default_header(link: Link, what: str) -> List[str]:
+def _default_header(link: Link, what: str) -> list[str]:
     now = _dt.datetime.now().astimezone().isoformat(timespec="seconds")
     return [f"mavcal {what}: values on system {link.target_system} before the write, {now}",
             f"undo with: mavcal restore THIS_FILE --connect {link.device}"]
 
 
-def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: Optional[str],
-                 params: Optional[ParamTable] = None, force_save: Sequence[str] = ("compass", "accel"),
-                 retries: int = 3, timeout_s: float = 1.0, restore_retries: Optional[int] = None,
+class _WriteRun:
+    """One write after the plan and the backup: steps 3-6 and their bookkeeping."""
+
+    def __init__(self, link: Link, table: ParamTable, plan: Sequence[ParamResult], backup: Path, *, retries: int,
+                 timeout_s: float, restore_retries: int, link_timeout_s: float) -> None:
+        self.link, self.table, self.plan, self.backup = link, table, list(plan), backup
+        self.retries, self.timeout_s = retries, timeout_s
+        self.restore_retries, self.link_timeout_s = restore_retries, link_timeout_s
+        self.watch = _EchoWatch(link)
+        self.results: dict[str, ParamResult] = {r.name: r for r in plan}
+        self.attempted: list[str] = []
+        self.force_saved: list[str] = []
+        self.force_failed: list[str] = []
+
+    def close(self) -> None:
+        self.watch.close()
+
+    def _final(self) -> tuple[ParamResult, ...]:
+        return tuple(self.results[r.name] for r in self.plan)
+
+    # 3. one at a time, confirmed by echo
+    def write_each(self, to_write: Sequence[ParamResult]) -> str | None:
+        """PARAM_SET every change until its echo confirms it; the failure, or None."""
+        for r in to_write:
+            self.attempted.append(r.name)
+            failure = None
+            try:
+                ok, echoed, attempts = _set_and_confirm(self.link, self.watch, r.name, r.requested, r.expected,
+                                                        self.retries, self.timeout_s, self.link_timeout_s)
+            except LinkError as exc:
+                ok, echoed, attempts = False, self.watch.last.get(r.name), max(1, self.retries)
+                failure = str(exc)
+            self.results[r.name] = replace(r, ok=ok, echoed=echoed, attempts=attempts)
+            if not ok:
+                return failure or (
+                    f"{r.name}: no echo after {attempts} attempts" if echoed is None
+                    else f"{r.name}: no echo of {r.expected!r} after {attempts} attempts (last heard {echoed!r})")
+            if vector_group(r.name):
+                log.debug("%s confirmed (vector echo of %s)", r.name, "/".join(vector_group(r.name) or ()))
+        return None
+
+    # 4. force-save, 5. read back
+    def save_and_verify(self, force_save: Sequence[str]) -> str | None:
+        """Force-save (a missing ACK is reported, not fatal), then read every written value back."""
+        for kind in force_save:
+            try:
+                ok = _force_save(self.link, kind, self.retries, self.timeout_s)
+            except LinkError:
+                ok = False
+            (self.force_saved if ok else self.force_failed).append(kind)
+        failure = None
+        try:
+            back = _read_back(self.link, self.attempted, self.restore_retries, self.timeout_s)
+        except LinkError as exc:
+            back, failure = {}, str(exc)
+        for name in self.attempted:
+            r = self.results[name]
+            if name in back:
+                self.results[name] = replace(r, echoed=back[name][0], ok=_same(back[name][0], r.expected))
+            else:
+                self.results[name] = replace(r, ok=False)
+        bad = [n for n in self.attempted if not self.results[n].ok]
+        if bad and failure is None:
+            failure = "read-back does not confirm " + ", ".join(
+                f"{n} (got {self.results[n].echoed!r}, expected {self.results[n].expected!r})" if n in back
+                else f"{n} (no answer)" for n in bad)
+        return failure
+
+    def success(self) -> WriteReport:
+        reboot = tuple(n for n in self.attempted if needs_reboot(n, self.results[n].requested))
+        msg = f"{len(self.attempted)} parameters written and verified"
+        if self.force_failed:
+            msg += f"; force-save of {'/'.join(self.force_failed)} not acknowledged"
+        return WriteReport(results=self._final(), backup_path=str(self.backup), complete=True,
+                           reboot_required=reboot, force_saved=tuple(self.force_saved),
+                           force_save_failed=tuple(self.force_failed), message=msg)
+
+    # 6. restore everything attempted (including the one in flight), newest first
+    def _restore_each(self) -> bool:
+        """PARAM_SET every attempted parameter back to its old value; False if the link was lost."""
+        link_ok = True
+        try:
+            self.link.pump(min(self.timeout_s, 0.5))  # let late echoes of the failed attempts arrive first
+        except LinkError:
+            link_ok = False
+        for name in reversed(self.attempted):
+            r = self.results[name]
+            if not link_ok:
+                self.results[name] = replace(r, restored=False)
+                continue
+            try:
+                ok, echoed, attempts = _set_and_confirm(
+                    self.link, self.watch, name, r.old, expected_stored_value(r.old, self.table[name][1]),
+                    self.restore_retries, self.timeout_s, self.link_timeout_s)
+            except LinkError:
+                ok, echoed, attempts, link_ok = False, None, 1, False
+            self.results[name] = replace(r, restored=ok, restore_attempts=attempts,
+                                         echoed=echoed if echoed is not None else r.echoed)
+        return link_ok
+
+    def _verify_restore(self) -> None:
+        """Read the restored parameters back; one that does not read back its old value is in doubt."""
+        confirmed = [n for n in self.attempted if self.results[n].restored]
+        if not confirmed:
+            return
+        try:
+            back = _read_back(self.link, confirmed, self.restore_retries, self.timeout_s)
+        except LinkError:
+            back = {}
+        for n in confirmed:
+            r = self.results[n]
+            good = n in back and _same(back[n][0], expected_stored_value(r.old, self.table[n][1]))
+            self.results[n] = replace(r, restored=good, echoed=back[n][0] if n in back else r.echoed)
+
+    def restore(self, failure: str) -> NoReturn:
+        """Undo the write, then raise ParamWriteError (restored) or RestoreFailedError (in doubt)."""
+        log.warning("write failed (%s); restoring %d parameters from %s", failure, len(self.attempted), self.backup)
+        if self._restore_each():
+            self._verify_restore()
+        in_doubt = tuple(n for n in self.attempted if not self.results[n].restored)
+        saved, failed = tuple(self.force_saved), tuple(self.force_failed)
+        if in_doubt:
+            report = WriteReport(results=self._final(), backup_path=str(self.backup), complete=False,
+                                 restored=False, in_doubt=in_doubt, force_saved=saved, force_save_failed=failed,
+                                 message=f"write failed ({failure}) and the restore failed")
+            raise RestoreFailedError(
+                f"write failed ({failure}); restore not verified for {', '.join(in_doubt)}; "
+                f"backup in {self.backup}", in_doubt=in_doubt, report=report)
+        report = WriteReport(results=self._final(), backup_path=str(self.backup), complete=False, restored=True,
+                             force_saved=saved, force_save_failed=failed,
+                             message=f"write failed ({failure}); {len(self.attempted)} parameters restored")
+        raise ParamWriteError(f"write failed ({failure}); restored {len(self.attempted)} parameters "
+                              f"from {self.backup}", report=report)
+
+
+def _vehicle_table(link: Link, changes: Mapping[str, float], params: ParamTable | None, fetch_timeout_s: float,
+                   timeout_s: float, read_retries: int) -> ParamTable:
+    """1. The vehicle's table: fetched whole, or ``params`` with fresh values of the names to change."""
+    if params is None:
+        return fetch_all_params(link, fetch_timeout_s, retry_s=max(timeout_s, 0.2))
+    table = dict(params)
+    plan_changes(changes, table)  # refuse unknown names before talking to the vehicle
+    fresh = _read_back(link, list(changes), read_retries, timeout_s)
+    missing = [n for n in changes if n not in fresh]
+    if missing:
+        raise LinkError(f"{link.device}: no answer reading {', '.join(missing)} (nothing was written)")
+    table.update(fresh)
+    return table
+
+
+def _checked_request(changes: Mapping[str, float], force_save: Sequence[str], backup_path: str | None,
+                     dry_run: bool) -> dict[str, float]:
+    """``changes`` as str -> float; refuses unknown force-save kinds and a missing backup path."""
+    bad_kinds = [k for k in force_save if k not in FORCE_SAVE_KINDS]
+    if bad_kinds:
+        raise UsageError(f"unknown force_save kind(s) {bad_kinds}; use 'compass' and/or 'accel'")
+    if not dry_run and backup_path is None:
+        raise UsageError("a backup path is required to write parameters")
+    return {str(k): float(v) for k, v in changes.items()}
+
+
+def _write_backup(link: Link, backup_path: str, to_write: Sequence[ParamResult],
+                  backup_header: Sequence[str] | None) -> Path:
+    """2. The backup of every value about to change, written and fsync'ed before the first PARAM_SET."""
+    header = list(backup_header) if backup_header is not None else _default_header(link, "backup")
+    bpath = write_param_file(backup_path, {r.name: r.old for r in to_write}, header=header, exclusive=True)
+    log.info("backup of %d values written to %s", len(to_write), bpath)
+    return Path(bpath)
+
+
+def _no_write_report(plan: Sequence[ParamResult], to_write: Sequence[ParamResult], dry_run: bool) -> WriteReport:
+    msg = ("dry run: " if dry_run else "") + (
+        f"{len(to_write)} of {len(plan)} parameters would change" if dry_run
+        else "nothing to change: the vehicle already holds every value")
+    return WriteReport(results=tuple(plan), backup_path=None, complete=not dry_run, dry_run=dry_run,
+                       reboot_required=tuple(r.name for r in to_write if needs_reboot(r.name, r.requested)),
+                       message=msg)
+
+
+def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | None,
+                 params: ParamTable | None = None, force_save: Sequence[str] = ("compass", "accel"),
+                 retries: int = 3, timeout_s: float = 1.0, restore_retries: int | None = None,
                  dry_run: bool = False, fetch_timeout_s: float = 30.0, link_timeout_s: float = 3.0,
-                 backup_header: Optional[Sequence[str]] = None) -> WriteReport:
+                 backup_header: Sequence[str] | None = None) -> WriteReport:
     """Write ``changes`` to the vehicle safely (see the module docstring for the sequence).
 
     Parameters
@@ -391,145 +571,25 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: Option
         the parameters whose value is unknown and ``.report`` the report.
     """
     link = as_link(conn)
-    if restore_retries is None:
-        restore_retries = max(20, 5 * retries)
-    changes = {str(k): float(v) for k, v in changes.items()}
-    bad_kinds = [k for k in force_save if k not in FORCE_SAVE_KINDS]
-    if bad_kinds:
-        raise UsageError(f"unknown force_save kind(s) {bad_kinds}; use 'compass' and/or 'accel'")
-    if not dry_run and backup_path is None:
-        raise UsageError("a backup path is required to write parameters")
-
-    # 1. the vehicle's table and fresh values
-    if params is None:
-        table = fetch_all_params(link, fetch_timeout_s, retry_s=max(timeout_s, 0.2))
-    else:
-        table = dict(params)
-        plan_changes(changes, table)  # refuse unknown names before talking to the vehicle
-        fresh = _read_back(link, list(changes), restore_retries, timeout_s)
-        missing = [n for n in changes if n not in fresh]
-        if missing:
-            raise LinkError(f"{link.device}: no answer reading {', '.join(missing)} (nothing was written)")
-        table.update(fresh)
+    restore_retries = max(20, 5 * retries) if restore_retries is None else restore_retries
+    changes = _checked_request(changes, force_save, backup_path, dry_run)
+    table = _vehicle_table(link, changes, params, fetch_timeout_s, timeout_s, restore_retries)
     plan = plan_changes(changes, table)
     to_write = [r for r in plan if not r.ok]
-
     if dry_run or not to_write:
-        msg = ("dry run: " if dry_run else "") + (
-            f"{len(to_write)} of {len(plan)} parameters would change" if dry_run
-            else "nothing to change: the vehicle already holds every value")
-        return WriteReport(results=tuple(plan), backup_path=None, complete=not dry_run, dry_run=dry_run,
-                           reboot_required=tuple(r.name for r in to_write if needs_reboot(r.name, r.requested)),
-                           message=msg)
-
-    # 2. backup before the first write
-    header = list(backup_header) if backup_header is not None else _default_header(link, "backup")
-    bpath = write_param_file(backup_path, {r.name: r.old for r in to_write}, header=header, exclusive=True)
-    log.info("backup of %d values written to %s", len(to_write), bpath)
-
-    watch = _EchoWatch(link)
-    results: Dict[str, ParamResult] = {r.name: r for r in plan}
-    attempted: List[str] = []
-    failure: Optional[str] = None
-    force_saved: List[str] = []
-    force_failed: List[str] = []
+        return _no_write_report(plan, to_write, dry_run)
+    bpath = _write_backup(link, str(backup_path), to_write, backup_header)
+    run = _WriteRun(link, table, plan, bpath, retries=retries, timeout_s=timeout_s,
+                    restore_retries=restore_retries, link_timeout_s=link_timeout_s)
     try:
-        # 3. write one at a time, confirm by echo
-        for r in to_write:
-            attempted.append(r.name)
-            try:
-                ok, echoed, attempts = _set_and_confirm(link, watch, r.name, r.requested, r.expected,
-                                                        retries, timeout_s, link_timeout_s)
-            except LinkError as exc:
-                ok, echoed, attempts = False, watch.last.get(r.name), max(1, retries)
-                failure = str(exc)
-            results[r.name] = replace(r, ok=ok, echoed=echoed, attempts=attempts)
-            if not ok:
-                failure = failure or (
-                    f"{r.name}: no echo after {attempts} attempts" if echoed is None
-                    else f"{r.name}: no echo of {r.expected!r} after {attempts} attempts (last heard {echoed!r})")
-                break
-            if vector_group(r.name):
-                log.debug("%s confirmed (vector echo of %s)", r.name, "/".join(vector_group(r.name) or ()))
-
-        # 4. force-save, 5. read back
+        failure = run.write_each(to_write)
         if failure is None:
-            for kind in force_save:
-                try:
-                    (force_saved if _force_save(link, kind, retries, timeout_s) else force_failed).append(kind)
-                except LinkError:
-                    force_failed.append(kind)
-            try:
-                back = _read_back(link, attempted, restore_retries, timeout_s)
-            except LinkError as exc:
-                back, failure = {}, str(exc)
-            for name in attempted:
-                r = results[name]
-                if name in back:
-                    results[name] = replace(r, echoed=back[name][0], ok=_same(back[name][0], r.expected))
-                else:
-                    results[name] = replace(r, ok=False)
-            bad = [n for n in attempted if not results[n].ok]
-            if bad and failure is None:
-                failure = "read-back does not confirm " + ", ".join(
-                    f"{n} (got {results[n].echoed!r}, expected {results[n].expected!r})" if n in back
-                    else f"{n} (no answer)" for n in bad)
-
+            failure = run.save_and_verify(force_save)
         if failure is None:
-            reboot = tuple(n for n in attempted if needs_reboot(n, results[n].requested))
-            msg = f"{len(attempted)} parameters written and verified"
-            if force_failed:
-                msg += f"; force-save of {'/'.join(force_failed)} not acknowledged"
-            return WriteReport(results=tuple(results[r.name] for r in plan), backup_path=str(bpath),
-                               complete=True, reboot_required=reboot, force_saved=tuple(force_saved),
-                               force_save_failed=tuple(force_failed), message=msg)
-
-        # 6. restore everything attempted (including the one in flight), newest first
-        log.warning("write failed (%s); restoring %d parameters from %s", failure, len(attempted), bpath)
-        link_ok = True
-        try:
-            link.pump(min(timeout_s, 0.5))  # let late echoes of the failed attempts arrive first
-        except LinkError:
-            link_ok = False
-        for name in reversed(attempted):
-            r = results[name]
-            if not link_ok:
-                results[name] = replace(r, restored=False)
-                continue
-            try:
-                ok, echoed, attempts = _set_and_confirm(link, watch, name, r.old, expected_stored_value(
-                    r.old, table[name][1]), restore_retries, timeout_s, link_timeout_s)
-            except LinkError:
-                ok, echoed, attempts, link_ok = False, None, 1, False
-            results[name] = replace(r, restored=ok, restore_attempts=attempts,
-                                    echoed=echoed if echoed is not None else r.echoed)
-        confirmed = [n for n in attempted if results[n].restored]
-        if confirmed and link_ok:
-            try:
-                back = _read_back(link, confirmed, restore_retries, timeout_s)
-            except LinkError:
-                back = {}
-            for n in confirmed:
-                r = results[n]
-                good = n in back and _same(back[n][0], expected_stored_value(r.old, table[n][1]))
-                results[n] = replace(r, restored=good, echoed=back[n][0] if n in back else r.echoed)
-        in_doubt = tuple(n for n in attempted if not results[n].restored)
-        final = tuple(results[r.name] for r in plan)
-        if in_doubt:
-            report = WriteReport(results=final, backup_path=str(bpath), complete=False, restored=False,
-                                 in_doubt=in_doubt, force_saved=tuple(force_saved),
-                                 force_save_failed=tuple(force_failed),
-                                 message=f"write failed ({failure}) and the restore failed")
-            raise RestoreFailedError(
-                f"write failed ({failure}); restore not verified for {', '.join(in_doubt)}; "
-                f"backup in {bpath}", in_doubt=in_doubt, report=report)
-        report = WriteReport(results=final, backup_path=str(bpath), complete=False, restored=True,
-                             force_saved=tuple(force_saved), force_save_failed=tuple(force_failed),
-                             message=f"write failed ({failure}); {len(attempted)} parameters restored")
-        raise ParamWriteError(f"write failed ({failure}); restored {len(attempted)} parameters "
-                              f"from {bpath}", report=report)
+            return run.success()
+        run.restore(failure)
     finally:
-        watch.close()
+        run.close()
 
 
 def default_backup_path(directory: str = ".", stem: str = "mavcal-backup") -> Path:

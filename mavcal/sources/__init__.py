@@ -1,8 +1,10 @@
-"""Log and live-link readers: the only layer (with :mod:`mavcal.link`) that imports pymavlink.
+"""Log file readers: the only layer (with :mod:`mavcal.link`) that imports pymavlink.
 
-Public entry points: :func:`open_source` (file or device string) and :func:`read_log`
-(file), both returning an :class:`ImuLog`; :class:`LiveSource` for a live link;
-:func:`field_at` / :func:`field_ned` for Earth's field.
+Public entry points: :func:`read_log` (a log file -> :class:`ImuLog`), :func:`read_csv`,
+:func:`is_device` (tells a device string from a file name), :func:`field_at` /
+:func:`field_ned` for Earth's field. ``open_source`` is :func:`read_log` for callers that
+use that name (files only). A live vehicle is recorded by :mod:`mavcal.link.live`; this
+package knows nothing of devices.
 """
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries  # noqa: F401
 
@@ -12,10 +14,6 @@ def __getattr__(name):  # lazy: importing the types must not import pymavlink
         from mavcal.sources import reader
 
         return getattr(reader, name)
-    if name == "LiveSource":
-        from mavcal.sources.live import LiveSource
-
-        return LiveSource
     if name in ("field_at", "field_ned"):
         from mavcal.sources import wmm
 
@@ -24,4 +22,4 @@ def __getattr__(name):  # lazy: importing the types must not import pymavlink
 
 
 __all__ = ["ImuLog", "LogEvent", "ParamTimeline", "SensorSeries", "open_source", "read_log", "read_csv",
-           "is_device", "LiveSource", "field_at", "field_ned"]
+           "is_device", "field_at", "field_ned"]

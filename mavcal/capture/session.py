@@ -26,8 +26,8 @@ module do that.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -52,7 +52,7 @@ class CaptureConfig:
     target_heading_deg: float = 0.5  # stop when the 95 % heading error bound is below this
     min_intervals: int = 8  # never stop with fewer still intervals
     max_intervals: int = 40
-    abort_field_mgauss: Tuple[float, float] = (60.0, 2500.0)  # "far outside" ArduPilot's 185-875
+    abort_field_mgauss: tuple[float, float] = (60.0, 2500.0)  # "far outside" ArduPilot's 185-875
     max_field_spread: float = 0.25  # calibrated |field| differing by more than this between intervals
     still: StillConfig = StillConfig(min_duration_s=1.0)
     uncertainty_draws: int = 150
@@ -67,7 +67,7 @@ class PoseAdvice:
     pitch_deg: float
     yaw_deg: float
     words: str
-    gravity_body: Tuple[float, float, float]  # where gravity points in the body frame (FRD)
+    gravity_body: tuple[float, float, float]  # where gravity points in the body frame (FRD)
     score: float = 0.0
 
     def matrix(self) -> np.ndarray:
@@ -81,16 +81,16 @@ class CaptureStatus:
     time_s: float
     still_now: bool
     n_intervals: int
-    gravity_dirs: Tuple[Tuple[float, float, float], ...]
-    heading_95_deg: Optional[float]
-    tilt_95_deg: Optional[float]
-    model: Optional[str]
-    next_pose: Optional[PoseAdvice]
+    gravity_dirs: tuple[tuple[float, float, float], ...]
+    heading_95_deg: float | None
+    tilt_95_deg: float | None
+    model: str | None
+    next_pose: PoseAdvice | None
     done: bool
     reason: str
     aborted: bool = False
-    field_mgauss: Optional[float] = None
-    messages: Tuple[str, ...] = ()
+    field_mgauss: float | None = None
+    messages: tuple[str, ...] = ()
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
@@ -105,7 +105,7 @@ def describe_pose(roll_deg: float, pitch_deg: float, yaw_deg: float) -> str:
     """Words a person holding the vehicle can follow, e.g. "nose down, rolled 45 deg left"."""
     C = euler_matrix(roll_deg, pitch_deg, yaw_deg)
     down_b = C.T @ np.array([0.0, 0.0, 1.0])  # the body direction that points down
-    parts: List[str] = []
+    parts: list[str] = []
     ax = int(np.argmax(np.abs(down_b)))
     if ax == 2 and down_b[2] > 0.7:
         parts.append("level" if down_b[2] > 0.97 else "upright")
@@ -137,7 +137,7 @@ def describe_pose(roll_deg: float, pitch_deg: float, yaw_deg: float) -> str:
     return ", ".join(parts)
 
 
-def candidate_poses() -> List[Tuple[float, float, float]]:
+def candidate_poses() -> list[tuple[float, float, float]]:
     """Attitudes a person can hold and name: roll, pitch and heading in 45 deg steps."""
     out = []
     for pitch in (-90, -45, 0, 45, 90):
@@ -158,10 +158,11 @@ def _advice(pose, score=0.0) -> PoseAdvice:
     r, p, y = pose
     C = euler_matrix(r, p, y)
     g = C.T @ np.array([0.0, 0.0, 1.0])
-    return PoseAdvice(float(r), float(p), float(y), describe_pose(r, p, y), tuple(float(x) for x in g), float(score))
+    return PoseAdvice(float(r), float(p), float(y), describe_pose(r, p, y), (float(g[0]), float(g[1]), float(g[2])),
+                      float(score))
 
 
-def _information(run: CalibrationRun, poses: Sequence[Tuple[float, float, float]], n_samples: float):
+def _information(run: CalibrationRun, poses: Sequence[tuple[float, float, float]], n_samples: float):
     """Information of the intervals so far and of one more interval at each candidate pose.
 
     Both are Schur complements of the Gauss-Newton normal equations
@@ -208,7 +209,7 @@ def heading_gradients(run: CalibrationRun, prob: JointProblem, p) -> np.ndarray:
     variance of the heading error at attitude k caused by the estimation uncertainty.
     """
     from mavcal.ardupilot.evaluate import attitude_grid, heading_errors_deg
-    from mavcal.pipeline import _truth_functions
+    from mavcal.quality import truth_functions
 
     am, cm = run.mapping.accel[0], run.mapping.compass[0]
     grid = attitude_grid(step_deg=30.0)
@@ -225,14 +226,14 @@ def heading_gradients(run: CalibrationRun, prob: JointProblem, p) -> np.ndarray:
             th = theta.copy()
             th[j] += sgn * 1e-3 * sd[j]
             q = prob.unpack(th, p.R)
-            ra, rm = _truth_functions(q.gains[0], q.biases[0], q.gains[1], q.biases[1],
+            ra, rm = truth_functions(q.gains[0], q.biases[0], q.gains[1], q.biases[1],
                                       np.array([1.0, 0.0, q.h_z]), R_A, cm.old.mount_matrix, cm.field_mgauss)
             errs.append(heading_errors_deg(ra, rm, am.new, cm.new, B_ned, grid))
         G[:, j] = (errs[0] - errs[1]) / (2e-3 * sd[j])
     return G
 
 
-def pose_scores(run: CalibrationRun, poses: Sequence[Tuple[float, float, float]], n_samples: float,
+def pose_scores(run: CalibrationRun, poses: Sequence[tuple[float, float, float]], n_samples: float,
                 criterion: str = "heading") -> np.ndarray:
     """Score of adding a still interval at each pose (higher is better).
 
@@ -270,7 +271,7 @@ class CaptureSession:
     """
 
     def __init__(self, params: Mapping[str, float], config: CaptureConfig = CaptureConfig(),
-                 options: Optional[Options] = None, *, position=None, source: str = "live") -> None:
+                 options: Options | None = None, *, position=None, source: str = "live") -> None:
         self.params = {k: float(v) for k, v in params.items()}
         self.config = config
         base = options or Options()
@@ -278,13 +279,13 @@ class CaptureSession:
         self.options = replace(base, still=config.still, uncertainty_draws=config.uncertainty_draws, holdout=False)
         self.position = position
         self.source = source
-        self._chunks: Dict[Tuple[str, int, str], List[Tuple[np.ndarray, np.ndarray]]] = {}
-        self._run: Optional[CalibrationRun] = None
+        self._chunks: dict[tuple[str, int, str], list[tuple[np.ndarray, np.ndarray]]] = {}
+        self._run: CalibrationRun | None = None
         self._run_n = 0
-        self._prep: Optional[Prepared] = None
-        self._status: Optional[CaptureStatus] = None
-        self._stopped: Optional[str] = None
-        self.poses_advised: List[PoseAdvice] = []
+        self._prep: Prepared | None = None
+        self._status: CaptureStatus | None = None
+        self._stopped: str | None = None
+        self.poses_advised: list[PoseAdvice] = []
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -309,12 +310,12 @@ class CaptureSession:
         self._stopped = reason
 
     @property
-    def run(self) -> Optional[CalibrationRun]:
+    def run(self) -> CalibrationRun | None:
         """The latest fit (None before enough intervals)."""
         return self._run
 
     @property
-    def status(self) -> Optional[CaptureStatus]:
+    def status(self) -> CaptureStatus | None:
         return self._status
 
     # ------------------------------------------------------------------ the loop body
@@ -333,7 +334,7 @@ class CaptureSession:
         ivs = seg.intervals
         t_last = max(float(s.time_s[-1]) for s in log_.series)
         still_now = bool(ivs) and ivs[-1].end_s >= t_last - 3.0 / max(seg.sample_rate_hz, 1.0) - cfg.still.trim_s
-        messages: List[str] = []
+        messages: list[str] = []
         aborted, reason = False, ""
         # impossible fields: raw field magnitude of every interval
         mi = self.options.mag_instance
@@ -376,7 +377,8 @@ class CaptureSession:
         if advice is not None:
             self.poses_advised.append(advice)
         st = CaptureStatus(time_s=t_last, still_now=still_now, n_intervals=n,
-                           gravity_dirs=tuple(tuple(float(x) for x in iv.gravity_dir) for iv in ivs),
+                           gravity_dirs=tuple((float(iv.gravity_dir[0]), float(iv.gravity_dir[1]),
+                                               float(iv.gravity_dir[2])) for iv in ivs),
                            heading_95_deg=heading, tilt_95_deg=tilt, model=model, next_pose=advice, done=done,
                            reason=reason or ("still: keep holding" if still_now else "move to the next pose"),
                            aborted=aborted, field_mgauss=fields[-1] if fields else None,
@@ -401,7 +403,7 @@ class CaptureSession:
         k = int(np.argmax(scores))
         return _advice(poses[k], scores[k])
 
-    def result(self, options: Optional[Options] = None) -> CalibrationRun:
+    def result(self, options: Options | None = None) -> CalibrationRun:
         """The final fit with the full quality analysis (held-out errors, more draws)."""
         if self._prep is None:
             self.update()

@@ -1,0 +1,52 @@
+"""The text of a capture status: one line (a log, a piped terminal) or one terminal screen.
+
+Shared by the ``capture`` command and the MAVProxy module.
+"""
+from __future__ import annotations
+
+from mavcal.capture.session import CaptureStatus, coverage_map
+
+__all__ = ["status_line", "status_screen"]
+
+
+def _fmt(x: float | None, nd: int = 2) -> str:
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def status_line(st: CaptureStatus) -> str:
+    """One line for a log or a piped terminal: intervals, bound, and the next pose in words.
+
+    The next pose also comes as angles, ``(roll R pitch P yaw Y deg magnetic)``, so a
+    program can follow it.
+    """
+    head = f"{st.n_intervals} intervals, {'still' if st.still_now else 'moving'}, heading {_fmt(st.heading_95_deg)} deg"
+    if st.done:
+        return f"{head}: {'ABORTED: ' if st.aborted else 'done: '}{st.reason}"
+    if st.next_pose is None:
+        return f"{head}: {st.reason}"
+    a = st.next_pose
+    return (f"{head}; next: {a.words} (roll {a.roll_deg:.0f} pitch {a.pitch_deg:.0f} yaw {a.yaw_deg:.0f} "
+            f"deg magnetic)")
+
+
+def status_screen(st: CaptureStatus, target_deg: float | None = None) -> str:
+    """A terminal screen of the capture state: still now?, intervals, coverage, bound, next pose."""
+    lines = ["mavcal guided capture (Ctrl-C stops and keeps what was captured)", ""]
+    lines.append(f"still now: {'yes' if st.still_now else 'no'}        intervals kept: {st.n_intervals}")
+    tgt = f" (target {target_deg:g})" if target_deg is not None else ""
+    lines.append(f"heading error bound 95 %: {_fmt(st.heading_95_deg)} deg{tgt}    tilt: {_fmt(st.tilt_95_deg, 3)} deg"
+                 f"    model: {st.model or '-'}")
+    if st.field_mgauss is not None:
+        lines.append(f"field: {st.field_mgauss:.0f} mGauss")
+    lines += ["", "gravity directions covered (body frame; columns: azimuth, rows: elevation):",
+              coverage_map(st.gravity_dirs), ""]
+    if st.done:
+        lines.append(("ABORTED: " if st.aborted else "DONE: ") + st.reason)
+    elif st.next_pose is not None:
+        a = st.next_pose
+        lines.append(f"NEXT POSE: {a.words}")
+        lines.append(f"           (roll {a.roll_deg:.0f}, pitch {a.pitch_deg:.0f}, yaw {a.yaw_deg:.0f} deg "
+                     f"from magnetic north)")
+        lines.append(st.reason)
+    lines += [f"note: {m}" for m in st.messages]
+    return "\n".join(lines)

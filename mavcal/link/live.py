@@ -1,0 +1,253 @@
+"""Record IMU data from a live vehicle over a :class:`~mavcal.link.connection.Link` into an ImuLog.
+
+Built on the link's one receive loop (:class:`~mavcal.link.connection.Link`), the one
+parameter download (:func:`mavcal.link.params.download_params`), the one stream request
+(:func:`mavcal.link.streams.start_streams`) and the assembly shared with the log files
+(:func:`mavcal.sources.assemble.assemble_tlog`). Typical use::
+
+    with open_recorder("udpin:0.0.0.0:14550") as rec:     # LinkError if no heartbeat
+        params = rec.fetch_params()                        # dict name -> value
+        rec.start_streams(rate_hz=50)                      # SET_MESSAGE_INTERVAL or fallback
+        for batch in rec.iter_batches(duration_s=30):      # tuples of SensorSeries
+            ...
+        imu_log = rec.snapshot()                           # everything so far as an ImuLog
+
+or, in one call, :func:`record_device`.
+
+Time: ``time_s`` of the batches is the vehicle boot time of each message; ``snapshot()``
+uses the same time base rules as tlogs (see :mod:`mavcal.sources.assemble`), with the host
+receive time (unix s) as ``log_time_s``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Iterator, Sequence
+from typing import Any, Callable
+
+import numpy as np
+
+from mavcal.errors import LinkError
+from mavcal.link.connection import Link, open_link
+from mavcal.link.params import download_params
+from mavcal.link.streams import start_streams
+from mavcal.sources.assemble import IMU_MESSAGES, SCALED_INSTANCE, TLOG_MESSAGES, assemble_tlog, imu_series
+from mavcal.sources.types import ImuLog, SensorSeries
+
+__all__ = ["LiveRecorder", "open_recorder", "record_device", "imu_batch_from_messages"]
+
+log = logging.getLogger(__name__)
+
+#: the order of a batch's series: instance 0 from RAW_IMU (SCALED_IMU last: the same data)
+_BATCH_ORDER = ("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SCALED_IMU")
+#: a GCS HEARTBEAT this often while recording, as a ground station does
+GCS_HEARTBEAT_PERIOD_S = 1.0
+
+Batch = tuple[SensorSeries, ...]
+
+
+class LiveRecorder:
+    """Keeps every message of interest a :class:`Link` receives, as rows, while registered on it.
+
+    Parameters
+    ----------
+    link : Link
+        An open link to the vehicle (its target ids known, e.g. from :func:`open_link`). The
+        recorder registers a handler on it and sends a GCS heartbeat every second while the
+        link is pumped.
+    owns_link : bool
+        Close the link with the recorder.
+    """
+
+    def __init__(self, link: Link, *, owns_link: bool = False) -> None:
+        self.link = link
+        self.device = link.device
+        self.owns_link = owns_link
+        self.warnings: list[str] = []
+        self.params: dict[str, float] = {}
+        self._rows: dict[str, list[tuple]] = {n: [] for n in TLOG_MESSAGES}
+        self._fields: dict[str, Sequence[str]] = {}
+        self._batch_mark: dict[str, int] = {n: 0 for n in IMU_MESSAGES}
+        self._index = 0
+        self._token = link.add_handler("*", self._record)
+        link.heartbeat_period_s = GCS_HEARTBEAT_PERIOD_S
+
+    @property
+    def target_system(self) -> int:
+        return self.link.target_system
+
+    @property
+    def target_component(self) -> int:
+        return self.link.target_component
+
+    def _record(self, m: Any) -> None:
+        self._index += 1
+        typ = m.get_type()
+        if typ in self._rows:
+            if typ not in self._fields:
+                self._fields[typ] = m.get_fieldnames()
+            self._rows[typ].append((self._index, time.time(), m.get_srcSystem(), m.get_srcComponent(),
+                                    tuple(getattr(m, f) for f in self._fields[typ])))
+
+    def pump(self, timeout_s: float = 0.05) -> int:
+        """Receive (and record) for ``timeout_s``; returns how many messages arrived."""
+        return self.link.pump(timeout_s)
+
+    # ------------------------------------------------------------------ parameters, streams
+    def fetch_params(self, timeout_s: float = 30.0, retry_s: float = 0.5) -> dict[str, float]:
+        """Fetch all parameters (:func:`~mavcal.link.params.download_params`); dict name -> value.
+
+        Incomplete after ``timeout_s``: a warning (in :attr:`warnings` and the snapshot);
+        nothing at all: :class:`LinkError`.
+        """
+        dl = download_params(self.link, timeout_s, retry_s=retry_s)
+        if not dl.table:
+            raise LinkError(f"no parameters received from {self.device} within {timeout_s:g} s")
+        if not dl.complete:
+            w = f"only {len(dl.table)} of {dl.count} parameters received within {timeout_s:g} s"
+            log.warning(w)
+            self.warnings.append(w)
+        self.params = {name: value for name, (value, _) in dl.table.items()}
+        return dict(self.params)
+
+    def start_streams(self, rate_hz: float = 50.0, ack_timeout_s: float = 1.0, data_timeout_s: float = 2.0) -> str:
+        """:func:`mavcal.link.streams.start_streams` on this link: ``"interval"`` or ``"data_stream"``."""
+        return start_streams(self.link, rate_hz, ack_timeout_s=ack_timeout_s, data_timeout_s=data_timeout_s)
+
+    # ------------------------------------------------------------------ samples
+    def _new_batch(self) -> Batch:
+        out: list[SensorSeries] = []
+        for name in _BATCH_ORDER:
+            rows = self._rows[name]
+            a, b = self._batch_mark[name], len(rows)
+            self._batch_mark[name] = b
+            rows = [r for r in rows[a:b] if r[2] == self.target_system]
+            if rows:
+                out.extend(imu_series(name, self._fields[name], [r[4] for r in rows], [r[1] for r in rows]))
+        return tuple(out)
+
+    def iter_batches(self, duration_s: float | None = None, batch_s: float = 0.2) -> Iterator[Batch]:
+        """Yield the new IMU samples every ``batch_s`` (tuples of SensorSeries, may be empty).
+
+        Runs for ``duration_s`` (forever if None; stop by breaking out of the loop).
+        """
+        end = None if duration_s is None else time.monotonic() + duration_s
+        while end is None or time.monotonic() < end:
+            left = batch_s if end is None else min(batch_s, end - time.monotonic())
+            self.pump(max(left, 0.0))
+            yield self._new_batch()
+
+    def capture(self, duration_s: float, callback: Callable[[Batch], None] | None = None,
+                batch_s: float = 0.2) -> None:
+        """Receive for ``duration_s``, passing each batch to ``callback`` if given."""
+        for batch in self.iter_batches(duration_s, batch_s):
+            if callback is not None:
+                callback(batch)
+
+    def snapshot(self) -> ImuLog:
+        """Everything received so far as an :class:`ImuLog` of kind ``"live"``."""
+        cols = {}
+        for name, rows in self._rows.items():
+            if not rows:
+                continue
+            c = {k: np.array([r[4][i] for r in rows]) for i, k in enumerate(self._fields[name])}
+            c["_index"] = np.array([r[0] for r in rows], dtype=np.int64)
+            c["_log_time_s"] = np.array([r[1] for r in rows], dtype=float)
+            c["_sysid"] = np.array([r[2] for r in rows])
+            c["_compid"] = np.array([r[3] for r in rows])
+            cols[name] = c
+        imu_log = assemble_tlog(cols, self.device, self.warnings)
+        return dataclasses.replace(imu_log, kind="live")
+
+    # ------------------------------------------------------------------ lifetime
+    def close(self) -> None:
+        """Stop recording (and close the link if the recorder owns it)."""
+        self.link.remove_handler(self._token)
+        self.link.heartbeat_period_s = None
+        if self.owns_link:
+            self.link.close()
+
+    def __enter__(self) -> LiveRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_recorder(device: str, *, baud: int = 115200, heartbeat_timeout_s: float = 5.0) -> LiveRecorder:
+    """Open ``device`` (:func:`~mavcal.link.connection.open_link`) and record from it.
+
+    Raises
+    ------
+    LinkError
+        The device cannot be opened or no vehicle heartbeat arrives within ``heartbeat_timeout_s``.
+    """
+    return LiveRecorder(open_link(device, baud=baud, timeout_s=heartbeat_timeout_s), owns_link=True)
+
+
+def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, heartbeat_timeout_s: float = 5.0,
+                  param_timeout_s: float = 30.0, rate_hz: float = 50.0,
+                  progress: Callable[[int, int], None] | None = None) -> ImuLog:
+    """Record ``duration_s`` seconds of IMU data from a live vehicle as an ImuLog of kind ``"live"``.
+
+    Connect (``LinkError`` when no heartbeat within ``heartbeat_timeout_s``), fetch all
+    parameters (bounded by ``param_timeout_s``; an incomplete table is a warning of the log),
+    stream the IMU messages at ``rate_hz`` and record.
+
+    Parameters
+    ----------
+    device : str
+        pymavlink device string (``udp:HOST:PORT``, ``udpin:``, ``udpout:``, ``tcp:HOST:PORT``,
+        a serial port with ``baud``).
+    progress : callable, optional
+        Accepted for symmetry with :func:`mavcal.sources.read_log` (a byte-count callback);
+        a recording takes ``duration_s`` and reports no progress.
+    """
+    del progress  # no byte count to report
+    with open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s) as rec:
+        rec.fetch_params(timeout_s=param_timeout_s)
+        rec.start_streams(rate_hz=rate_hz)
+        rec.capture(duration_s)
+        return rec.snapshot()
+
+
+def imu_batch_from_messages(messages: Sequence[Any], target_system: int | None = None) -> Batch:
+    """Convert received pymavlink IMU messages into a batch of :class:`SensorSeries`.
+
+    The same conversion as :meth:`LiveRecorder.iter_batches`, for code that receives the
+    messages itself (e.g. the MAVProxy module, where MAVProxy owns the read loop).
+
+    Parameters
+    ----------
+    messages : sequence of pymavlink messages
+        In receive order; types other than RAW_IMU, SCALED_IMU, SCALED_IMU2 and SCALED_IMU3
+        are ignored.
+    target_system : int, optional
+        Keep only messages from this system id.
+
+    Returns
+    -------
+    tuple of SensorSeries
+        accel/gyro/mag per instance (RAW_IMU and SCALED_IMU: 0, SCALED_IMU2: 1,
+        SCALED_IMU3: 2); host receive time (``m._timestamp``, else now) as ``log_time_s``.
+    """
+    groups: dict[str, list[Any]] = {}
+    for m in messages:
+        name = m.get_type()
+        if name not in SCALED_INSTANCE:
+            continue
+        if target_system is not None and m.get_srcSystem() != target_system:
+            continue
+        groups.setdefault(name, []).append(m)
+    out: list[SensorSeries] = []
+    now = time.time()
+    for name in _BATCH_ORDER:
+        msgs = groups.get(name)
+        if not msgs:
+            continue
+        fields = msgs[0].get_fieldnames()
+        values = [tuple(getattr(m, k) for k in fields) for m in msgs]
+        times = [float(getattr(m, "_timestamp", None) or now) for m in msgs]
+        out.extend(imu_series(name, fields, values, times))
+    return tuple(out)

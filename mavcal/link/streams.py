@@ -1,0 +1,122 @@
+"""The one place that asks a vehicle for message rates.
+
+ArduPilot streams the IMU messages a calibration needs (RAW_IMU, SCALED_IMU2, SCALED_IMU3)
+at the rate asked for with ``MAV_CMD_SET_MESSAGE_INTERVAL`` (param1 message id, param2
+interval in us; 0 = the default rate). Older firmware, or a vehicle behind a router that
+drops commands, only knows ``REQUEST_DATA_STREAM`` (``MAV_DATA_STREAM_RAW_SENSORS``):
+:func:`start_streams` falls back to it when the interval is not acknowledged or gives no
+data.
+
+:func:`send_message_intervals` only sends (it works on any encoder with ``command_long_send``,
+including :class:`mavcal.link.fed.QueuedSender` whose owner sends later), so the MAVProxy
+module, which does not own its read loop, uses it too.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+from pymavlink import mavutil
+
+from mavcal.errors import LinkError
+from mavcal.link.connection import Link
+
+__all__ = ["STREAM_MESSAGES", "STREAM_MESSAGE_IDS", "MIN_STREAM_RATE_HZ", "send_message_intervals",
+           "start_streams", "reset_streams"]
+
+log = logging.getLogger(__name__)
+
+_A = mavutil.mavlink
+
+#: the IMU messages a capture streams: name -> MAVLink message id
+STREAM_MESSAGES: dict[str, int] = {"RAW_IMU": _A.MAVLINK_MSG_ID_RAW_IMU,
+                                   "SCALED_IMU2": _A.MAVLINK_MSG_ID_SCALED_IMU2,
+                                   "SCALED_IMU3": _A.MAVLINK_MSG_ID_SCALED_IMU3}
+STREAM_MESSAGE_IDS: tuple[int, ...] = tuple(STREAM_MESSAGES.values())
+#: :func:`start_streams` never asks for less (the still-interval detector needs the samples)
+MIN_STREAM_RATE_HZ = 25.0
+
+
+def send_message_intervals(mav: Any, target_system: int, target_component: int, rate_hz: float | None,
+                           message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> None:
+    """Send one SET_MESSAGE_INTERVAL per message: ``rate_hz`` (at least 1 Hz), or None: the default rate.
+
+    ``mav`` is a pymavlink encoder (``conn.mav``) or anything with its ``command_long_send``.
+    """
+    interval_us = 0 if rate_hz is None else int(round(1e6 / max(float(rate_hz), 1.0)))
+    for mid in message_ids:
+        mav.command_long_send(target_system, target_component, _A.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                              mid, interval_us, 0, 0, 0, 0, 0)
+
+
+class _StreamWatch:
+    """Counts SET_MESSAGE_INTERVAL acks and RAW_IMU messages from the vehicle while registered."""
+
+    def __init__(self, link: Link) -> None:
+        self.link = link
+        self.acks: list[int] = []
+        self.raw_imu = 0
+        self._tokens = [link.add_handler("COMMAND_ACK", self._on_ack), link.add_handler("RAW_IMU", self._on_imu)]
+
+    def _on_ack(self, m: Any) -> None:
+        if m.get_srcSystem() == self.link.target_system and m.command == _A.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self.acks.append(int(m.result))
+
+    def _on_imu(self, m: Any) -> None:
+        if m.get_srcSystem() == self.link.target_system:
+            self.raw_imu += 1
+
+    def wait_data(self, rate_hz: float, timeout_s: float) -> bool:
+        """Wait until 0.2 s worth of RAW_IMU at ``rate_hz`` (at least 2) arrived."""
+        n0, need = self.raw_imu, max(2, int(rate_hz * 0.2))
+        return self.link.wait(lambda: self.raw_imu - n0 >= need, timeout_s)
+
+    def close(self) -> None:
+        for t in self._tokens:
+            self.link.remove_handler(t)
+
+
+def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1.0,
+                  data_timeout_s: float = 2.0) -> str:
+    """Ask for RAW_IMU, SCALED_IMU2 and SCALED_IMU3 at ``rate_hz`` (at least 25 Hz) and check data comes.
+
+    Uses MAV_CMD_SET_MESSAGE_INTERVAL; falls back to REQUEST_DATA_STREAM
+    (MAV_DATA_STREAM_RAW_SENSORS) when it is not acknowledged (within ``ack_timeout_s``) or
+    no RAW_IMU arrives (within ``data_timeout_s``).
+
+    Returns
+    -------
+    str
+        ``"interval"`` or ``"data_stream"``.
+
+    Raises
+    ------
+    LinkError
+        No RAW_IMU even after the fallback.
+    """
+    rate_hz = max(float(rate_hz), MIN_STREAM_RATE_HZ)
+    watch = _StreamWatch(link)
+    try:
+        send_message_intervals(link.mav, link.target_system, link.target_component, rate_hz)
+        link.wait(lambda: bool(watch.acks), ack_timeout_s)
+        accepted = _A.MAV_RESULT_ACCEPTED in watch.acks
+        if accepted and watch.wait_data(rate_hz, data_timeout_s):
+            return "interval"
+        log.info("SET_MESSAGE_INTERVAL %s; falling back to REQUEST_DATA_STREAM",
+                 "not accepted" if not accepted else "gave no data")
+        link.mav.request_data_stream_send(link.target_system, link.target_component,
+                                          _A.MAV_DATA_STREAM_RAW_SENSORS, int(round(rate_hz)), 1)
+        if not watch.wait_data(1.0, data_timeout_s):
+            raise LinkError(f"no RAW_IMU data from {link.device} after requesting it")
+        return "data_stream"
+    finally:
+        watch.close()
+
+
+def reset_streams(link: Link) -> None:
+    """Give the IMU messages back their default rates (best effort: the link may be dead)."""
+    try:
+        send_message_intervals(link.mav, link.target_system, link.target_component, None)
+    except Exception as exc:  # a dead socket, a closed connection: nothing to restore
+        log.debug("could not reset the stream rates: %s", exc)

@@ -1,0 +1,617 @@
+"""Message columns -> :class:`~mavcal.sources.types.ImuLog`: the one assembly of IMU data.
+
+Shared by the log readers (:mod:`mavcal.sources.reader`: fast decoders and pymavlink) and the
+live recorder (:mod:`mavcal.link.live`): all of them produce *columns* - per message type, a
+dict of field name -> numpy array, plus ``_index`` (receive order), and for MAVLink
+``_log_time_s`` (receive time, unix s), ``_sysid``, ``_compid`` - and this module turns them
+into sensor series, a parameter timeline, events and vehicle facts.
+
+Units and conventions (what goes into :class:`SensorSeries`)
+------------------------------------------------------------
+* RAW_IMU / SCALED_IMU / SCALED_IMU2 / SCALED_IMU3: accel milli-g x 9.80665/1000 -> m/s^2,
+  gyro mrad/s / 1000 -> rad/s, mag mGauss. Instance 0/0/1/2. RAW_IMU is preferred over
+  SCALED_IMU for instance 0 (ArduPilot sends the same data in both). Samples whose accel
+  and gyro are all exactly zero are dropped from accel/gyro (no IMU for that instance, e.g.
+  SCALED_IMU2 on a single-IMU board); samples whose mag is all zero from mag (no compass).
+* HIGHRES_IMU: float m/s^2, rad/s; mag is documented as gauss but ArduPilot before PR
+  #32286 sent mGauss x 1000. Decided per log by the median field magnitude (> 100 "gauss"
+  means the buggy unit) and converted to mGauss; the choice is stated in the warnings.
+  Used for an instance only when no RAW_IMU/SCALED_IMU* carries it.
+* DataFlash IMU/ACC/GYR (``I`` field) and old IMU2/IMU3/ACC1.. names; MAG (``I``) and old
+  MAG2/MAG3; MAG extras ``ofs_mgauss`` (OfsX..), ``motor_ofs_mgauss`` (MOX..), ``health``.
+  Time from TimeUS (or TimeMS in very old logs). IMU preferred over ACC/GYR.
+
+Time base of tlogs (and live captures)
+--------------------------------------
+``time_s`` is the vehicle's boot time from the message (time_usec / time_boot_ms);
+``log_time_s`` is the tlog receive timestamp (unix s). A vehicle reboot shows up as the boot
+time falling back by more than 2 s; each boot segment after the first is shifted so that
+it continues from the end of the previous one by the elapsed log (wall) time: ``time_s``
+stays monotonic, equals the boot time in the first segment, and the shift is reported in
+the warnings. Messages without a boot time (PARAM_VALUE, STATUSTEXT, COMMAND_*) are mapped
+from their receive time onto this time base with the median (receive - boot) delay of the
+IMU messages of their segment.
+"""
+from __future__ import annotations
+
+import re
+from collections import Counter
+from collections.abc import Iterator, Mapping, Sequence
+
+import numpy as np
+
+from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_SET_MESSAGE_INTERVAL
+from mavcal.core.constants import GRAVITY_MPS2
+from mavcal.errors import SourceError
+from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
+
+__all__ = ["assemble_tlog", "assemble_dataflash", "imu_series", "Columns", "IMU_MESSAGES", "TLOG_MESSAGES",
+           "DATAFLASH_MESSAGES", "SCALED_INSTANCE", "CALIBRATION_COMMANDS", "MG_TO_MS2", "REBOOT_BACKSTEP_S"]
+
+G0 = GRAVITY_MPS2
+MG_TO_MS2 = G0 / 1000.0
+
+#: MAVLink commands kept as LogEvents (calibration related): number -> name
+CALIBRATION_COMMANDS: dict[int, str] = {num: name for name, num in MAV_CMD.items()
+                                        if num != MAV_CMD_SET_MESSAGE_INTERVAL}
+#: MAV_AUTOPILOT_INVALID: the autopilot field of a ground station's HEARTBEAT
+MAV_AUTOPILOT_INVALID = 8
+
+IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU")
+TLOG_MESSAGES = IMU_MESSAGES + ("PARAM_VALUE", "STATUSTEXT", "COMMAND_LONG", "COMMAND_INT", "COMMAND_ACK",
+                                "GPS_RAW_INT", "GLOBAL_POSITION_INT", "HOME_POSITION", "HEARTBEAT")
+#: IMU instance carried by each integer IMU message
+SCALED_INSTANCE = {"RAW_IMU": 0, "SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
+DF_IMU_NAMES = ("IMU", "IMU2", "IMU3", "ACC", "ACC1", "ACC2", "ACC3", "GYR", "GYR1", "GYR2", "GYR3")
+DF_MAG_NAMES = ("MAG", "MAG2", "MAG3")
+DATAFLASH_MESSAGES = DF_IMU_NAMES + DF_MAG_NAMES + ("PARM", "MSG", "GPS", "ORGN", "POS")
+PARAM_COMPONENTS = (1, 190)
+_FIRMWARE_RE = re.compile(r"^((?:Ardu|APM:)\w*|Blimp|AP_Periph)\S*\s+V?\d+\.\d+\S*")
+REBOOT_BACKSTEP_S = 2.0
+HIGHRES_BUG_THRESHOLD = 100.0  # median |mag| in "gauss" above which the mGauss*1000 bug is assumed
+_SENSOR_ORDER = ("accel", "gyro", "mag")
+
+Columns = dict[str, dict[str, np.ndarray]]
+
+
+# --------------------------------------------------------------------------- helpers
+def _text(v) -> str:
+    if isinstance(v, (bytes, bytearray, np.bytes_)):
+        return bytes(v).split(b"\0", 1)[0].decode("utf-8", errors="replace")
+    return str(v).split("\0", 1)[0]
+
+
+def _vec(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
+    return np.column_stack([np.asarray(c[n], dtype=float) for n in names])
+
+
+def _n(c: Mapping[str, np.ndarray] | None) -> int:
+    if not c:
+        return 0
+    for _k, v in c.items():
+        return len(v)
+    return 0
+
+
+def _any_nonzero(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
+    """Per row: is any of the columns ``names`` non-zero."""
+    out = np.asarray(c[names[0]]) != 0
+    for n in names[1:]:
+        out |= np.asarray(c[n]) != 0
+    return out
+
+
+def _take(c: Mapping[str, np.ndarray], mask) -> dict[str, np.ndarray]:
+    return {k: np.asarray(v)[mask] for k, v in c.items()}
+
+
+def _build_timeline(names: Sequence[str], times: np.ndarray, values: np.ndarray) -> ParamTimeline:
+    """ParamTimeline from parallel arrays; keeps only value changes, sorted by time."""
+    if len(names) == 0:
+        return ParamTimeline()
+    names_arr = np.asarray(names, dtype=object)
+    times = np.asarray(times, dtype=float)
+    values = np.asarray(values, dtype=float)
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    order = np.argsort(times, kind="stable")
+    groups: dict[str, list[int]] = {}
+    for i in order.tolist():
+        groups.setdefault(names_arr[i], []).append(i)
+    for name, idx in groups.items():
+        if not name:
+            continue
+        t = times[idx]
+        v = values[idx]
+        keep = np.ones(len(v), dtype=bool)
+        keep[1:] = ~((v[1:] == v[:-1]) | (np.isnan(v[1:]) & np.isnan(v[:-1])))
+        out[name] = (t[keep], v[keep])
+    return ParamTimeline(out)
+
+
+def _dedupe_sorted(time_s: np.ndarray, *arrays) -> tuple[np.ndarray, int]:
+    """Index that sorts by time (stable) and drops repeated timestamps (duplicated packets)."""
+    order = np.argsort(time_s, kind="stable")
+    t = time_s[order]
+    keep = np.ones(len(t), dtype=bool)
+    keep[1:] = t[1:] != t[:-1]
+    return order[keep], int((~keep).sum())
+
+
+# --------------------------------------------------------------------------- tlog assembly
+def _boot_time(name: str, c: Mapping[str, np.ndarray]) -> np.ndarray:
+    if "time_boot_ms" in c:
+        return np.asarray(c["time_boot_ms"], dtype=float) * 1e-3
+    return np.asarray(c["time_usec"], dtype=float) * 1e-6
+
+
+def _next_reboot(boot: np.ndarray, i0: int) -> int | None:
+    """First ``i > i0`` with ``boot[i] < max(boot[i0:i]) - REBOOT_BACKSTEP_S``, else None.
+
+    Scans windows of doubling length, so that finding k reboots costs about the length of
+    the log rather than k times it.
+    """
+    n = len(boot)
+    i = i0 + 1
+    prior = boot[i0]
+    w = 4096
+    while i < n:
+        seg = boot[i:min(n, i + w)]
+        runmax = np.empty_like(seg)
+        runmax[0] = prior
+        np.maximum(np.maximum.accumulate(seg[:-1]), prior, out=runmax[1:])
+        drop = np.flatnonzero(seg < runmax - REBOOT_BACKSTEP_S)
+        if len(drop):
+            return i + int(drop[0])
+        prior = max(prior, seg.max())
+        i += len(seg)
+        w *= 2
+    return None
+
+
+class _TimeBase:
+    """Maps boot times and log times of a tlog onto one monotonic time base (see module doc)."""
+
+    def __init__(self, index: np.ndarray, boot: np.ndarray, logt: np.ndarray) -> None:
+        order = np.argsort(index, kind="stable")
+        index, boot, logt = index[order], boot[order], logt[order]
+        starts = [0]
+        nxt = _next_reboot(boot, 0)
+        while nxt is not None:
+            starts.append(nxt)
+            nxt = _next_reboot(boot, nxt)
+        bounds = starts + [len(boot)]
+        self.seg_index = np.array([index[s] for s in starts], dtype=np.int64)
+        self.delay = np.zeros(len(starts))
+        self.offset = np.zeros(len(starts))
+        prev_end_time = None
+        prev_end_log = None
+        for k in range(len(starts)):
+            a, b = bounds[k], bounds[k + 1]
+            self.delay[k] = float(np.median(logt[a:b] - boot[a:b]))
+            if k > 0:
+                self.offset[k] = prev_end_time + (logt[a] - prev_end_log) - boot[a]
+            seg_t = boot[a:b] + self.offset[k]
+            prev_end_time = float(seg_t.max())
+            prev_end_log = float(logt[a:b].max())
+        self.reboots = len(starts) - 1
+
+    def segment(self, index: np.ndarray) -> np.ndarray:
+        return np.clip(np.searchsorted(self.seg_index, index, side="right") - 1, 0, len(self.seg_index) - 1)
+
+    def from_boot(self, index: np.ndarray, boot: np.ndarray) -> np.ndarray:
+        return boot + self.offset[self.segment(index)]
+
+    def from_log(self, index: np.ndarray, logt: np.ndarray) -> np.ndarray:
+        k = self.segment(index)
+        return np.asarray(logt, dtype=float) - self.delay[k] + self.offset[k]
+
+
+class _SeriesSet:
+    """The sensor series being assembled: at most one per (sensor, instance), first come first kept."""
+
+    def __init__(self, warns: list[str]) -> None:
+        self.warns = warns
+        self.series: list[SensorSeries] = []
+        self.taken: set[tuple[str, int]] = set()
+
+    def has(self, sensor: str, inst: int) -> bool:
+        return (sensor, inst) in self.taken
+
+    def add(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray, lt: np.ndarray | None,
+            extra: Mapping[str, np.ndarray] | None = None, dup_label: str | None = None) -> None:
+        """Keep a series for (sensor, instance) unless there is one already or ``t`` is empty."""
+        if len(t) == 0 or self.has(sensor, inst):
+            return
+        self.keep(sensor, inst, msg, t, v, lt, extra, dup_label)
+
+    def keep(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray, lt: np.ndarray | None,
+             extra: Mapping[str, np.ndarray] | None = None, dup_label: str | None = None) -> None:
+        """Sort by time, drop repeated timestamps (stated in the warnings) and keep the series."""
+        order, ndup = _dedupe_sorted(t)
+        if ndup:
+            self.warns.append(f"dropped {ndup} duplicated {dup_label or msg} samples (same timestamp)")
+        self.series.append(SensorSeries(sensor, inst, msg, t[order], v[order], None if lt is None else lt[order],
+                                        {k: a[order] for k, a in (extra or {}).items()}))
+        self.taken.add((sensor, inst))
+
+    def sorted(self) -> tuple[SensorSeries, ...]:
+        return tuple(sorted(self.series, key=lambda s: _SENSOR_ORDER.index(s.sensor) * 100 + s.instance))
+
+
+def _tlog_vehicle_imu(cols: Columns, source: str, warns: list[str]) -> tuple[int, Columns]:
+    """The vehicle's system id (most IMU messages) and its IMU message columns."""
+    present = {n: cols[n] for n in IMU_MESSAGES if _n(cols.get(n))}
+    if not present:
+        raise SourceError(f"no IMU messages (RAW_IMU, SCALED_IMU*, HIGHRES_IMU) in {source}")
+    sys_counts: Counter = Counter()
+    for c in present.values():
+        ids, cnt = np.unique(np.asarray(c["_sysid"]), return_counts=True)
+        for i, n in zip(ids.tolist(), cnt.tolist()):
+            sys_counts[i] += n
+    sysid = sys_counts.most_common(1)[0][0]
+    other = sum(n for s, n in sys_counts.items() if s != sysid)
+    if other:
+        warns.append(f"ignored {other} IMU messages from other systems than sysid {sysid}")
+    imu: Columns = {}
+    for n, c in present.items():
+        m = np.asarray(c["_sysid"]) == sysid
+        if m.any():
+            imu[n] = _take(c, m)
+    return sysid, imu
+
+
+def _integer_imu_series(imu: Columns, tb: _TimeBase, out: _SeriesSet) -> None:
+    """RAW_IMU / SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 -> accel, gyro, mag series."""
+    for name in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"):
+        c = imu.get(name)
+        if c is None:
+            continue
+        if name == "SCALED_IMU" and "RAW_IMU" in imu:
+            out.warns.append("SCALED_IMU not used: RAW_IMU carries the same instance 0")
+            continue
+        inst = SCALED_INSTANCE[name]
+        t = tb.from_boot(c["_index"], _boot_time(name, c))
+        lt = np.asarray(c["_log_time_s"], float)
+        acc = _vec(c, ("xacc", "yacc", "zacc"))
+        gyr = _vec(c, ("xgyro", "ygyro", "zgyro"))
+        mag = _vec(c, ("xmag", "ymag", "zmag"))
+        # zero tests on the integer fields (same result as on the float copies, cheaper)
+        has_imu = _any_nonzero(c, ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro"))
+        has_mag = _any_nonzero(c, ("xmag", "ymag", "zmag"))
+        nz = int((~has_imu).sum())
+        if nz and has_imu.any():
+            out.warns.append(f"dropped {nz} {name} samples with all-zero accel and gyro")
+        elif nz:
+            out.warns.append(f"{name}: accel and gyro are all zero (no IMU {inst + 1}); used its mag only")
+        out.add("accel", inst, name, t[has_imu], acc[has_imu] * MG_TO_MS2, lt[has_imu])
+        out.add("gyro", inst, name, t[has_imu], gyr[has_imu] / 1000.0, lt[has_imu])
+        out.add("mag", inst, name, t[has_mag], mag[has_mag], lt[has_mag])
+
+
+def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _SeriesSet) -> None:
+    """HIGHRES_IMU -> series of the instances no integer IMU message carries (mag unit decided here)."""
+    t = tb.from_boot(c["_index"], _boot_time("HIGHRES_IMU", c))
+    lt = np.asarray(c["_log_time_s"], float)
+    inst_arr = np.asarray(c.get("id", np.zeros(len(t))), dtype=int)
+    mag = _vec(c, ("xmag", "ymag", "zmag"))
+    norm = np.linalg.norm(mag, axis=1)
+    med = float(np.median(norm[norm > 0])) if (norm > 0).any() else 0.0
+    if med > HIGHRES_BUG_THRESHOLD:
+        mag_mg = mag / 1000.0
+        out.warns.append(f"HIGHRES_IMU mag is in mGauss*1000 (ArduPilot bug before PR #32286; median |mag| "
+                         f"{med:.0f}); converted to mGauss")
+    else:
+        mag_mg = mag * 1000.0
+        if med > 0:
+            out.warns.append(f"HIGHRES_IMU mag is in gauss (median |mag| {med:.3f}); converted to mGauss")
+    for inst in np.unique(inst_arr).tolist():
+        m = inst_arr == inst
+        for sensor, v in (("accel", _vec(c, ("xacc", "yacc", "zacc"))),
+                          ("gyro", _vec(c, ("xgyro", "ygyro", "zgyro"))), ("mag", mag_mg)):
+            if out.has(sensor, inst):
+                continue
+            mm = m & ~(v == 0).all(axis=1) & np.isfinite(v).all(axis=1)
+            out.add(sensor, inst, "HIGHRES_IMU", t[mm], v[mm], lt[mm])
+
+
+def _tlog_params(cols: Columns, sysid: int, tb: _TimeBase, warns: list[str]) -> ParamTimeline:
+    """PARAM_VALUE of the vehicle (autopilot or companion component) as a timeline."""
+    pv = cols.get("PARAM_VALUE") or {}
+    if not _n(pv):
+        return ParamTimeline()
+    m = (np.asarray(pv["_sysid"]) == sysid) & np.isin(np.asarray(pv["_compid"]), PARAM_COMPONENTS)
+    if (~m).sum():
+        warns.append(f"ignored {int((~m).sum())} PARAM_VALUE from other systems/components")
+    pv = _take(pv, m)
+    if not _n(pv):
+        return ParamTimeline()
+    names = [_text(x) for x in pv["param_id"]]
+    times = tb.from_log(np.asarray(pv["_index"], np.int64), pv["_log_time_s"])
+    return _build_timeline(names, times, np.asarray(pv["param_value"], dtype=np.float32).astype(float))
+
+
+def _tlog_events(cols: Columns, sysid: int, tb: _TimeBase) -> tuple[list[LogEvent], str | None]:
+    """STATUSTEXT and calibration COMMAND_LONG/INT/ACK as events (time order), and the firmware banner."""
+    events: list[LogEvent] = []
+    firmware = None
+    st = cols.get("STATUSTEXT") or {}
+    if _n(st):
+        st = _take(st, np.asarray(st["_sysid"]) == sysid)
+        times = tb.from_log(np.asarray(st["_index"], np.int64), st["_log_time_s"])
+        for t, text, sev in zip(times.tolist(), st["text"], np.asarray(st["severity"]).tolist()):
+            txt = _text(text)
+            events.append(LogEvent(float(t), "statustext", txt, int(sev)))
+            if firmware is None and _FIRMWARE_RE.match(txt):
+                firmware = txt
+    for name in ("COMMAND_LONG", "COMMAND_INT"):
+        cm = cols.get(name) or {}
+        if not _n(cm):
+            continue
+        cm = _take(cm, np.isin(np.asarray(cm["command"]).astype(int), list(CALIBRATION_COMMANDS)))
+        times = tb.from_log(np.asarray(cm["_index"], np.int64), cm["_log_time_s"])
+        pnames = (["param1", "param2", "param3", "param4", "param5", "param6", "param7"] if name == "COMMAND_LONG"
+                  else ["param1", "param2", "param3", "param4", "x", "y", "z"])
+        pv_arr = _vec(cm, pnames) if _n(cm) else np.zeros((0, 7))
+        for t, code, p in zip(times.tolist(), np.asarray(cm["command"]).astype(int).tolist(), pv_arr.tolist()):
+            kind = "accelcal_pos" if code == MAV_CMD_ACCELCAL_VEHICLE_POS else "command"
+            events.append(LogEvent(float(t), kind, CALIBRATION_COMMANDS[code], code, tuple(float(x) for x in p)))
+    ack = cols.get("COMMAND_ACK") or {}
+    if _n(ack):
+        ack = _take(ack, np.isin(np.asarray(ack["command"]).astype(int), list(CALIBRATION_COMMANDS)))
+        times = tb.from_log(np.asarray(ack["_index"], np.int64), ack["_log_time_s"])
+        for t, code, res in zip(times.tolist(), np.asarray(ack["command"]).astype(int).tolist(),
+                                np.asarray(ack["result"]).astype(float).tolist()):
+            events.append(LogEvent(float(t), "command_ack", CALIBRATION_COMMANDS[code], code, (res,)))
+    events.sort(key=lambda e: e.time_s)
+    return events, firmware
+
+
+def _tlog_vehicle(cols: Columns, sysid: int, firmware: str | None) -> dict[str, object]:
+    """sysid, autopilot and vehicle type (most common vehicle HEARTBEAT) and the firmware banner."""
+    vehicle: dict[str, object] = {"sysid": int(sysid)}
+    hb = cols.get("HEARTBEAT") or {}
+    if _n(hb):
+        m = (np.asarray(hb["_sysid"]) == sysid) & (np.asarray(hb["autopilot"]) != MAV_AUTOPILOT_INVALID)
+        if m.any():
+            ci = Counter(zip(np.asarray(hb["autopilot"])[m].tolist(), np.asarray(hb["type"])[m].tolist()))
+            (ap, vt), _ = ci.most_common(1)[0]
+            vehicle["autopilot"] = int(ap)
+            vehicle["vehicle_type"] = int(vt)
+    if firmware:
+        vehicle["firmware"] = firmware
+    return vehicle
+
+
+def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
+    """Build an ImuLog from tlog message columns (fast decoder, pymavlink or a live recording).
+
+    ``cols[name]`` holds the message fields plus ``_log_time_s``, ``_index`` (frame order),
+    ``_sysid``, ``_compid``.
+    """
+    warns = list(warnings)
+    sysid, imu = _tlog_vehicle_imu(cols, source, warns)
+    # time base from all IMU messages of the vehicle
+    tb = _TimeBase(np.concatenate([imu[n]["_index"] for n in imu]).astype(np.int64),
+                   np.concatenate([_boot_time(n, imu[n]) for n in imu]),
+                   np.concatenate([np.asarray(imu[n]["_log_time_s"], float) for n in imu]))
+    if tb.reboots:
+        warns.append(f"vehicle rebooted {tb.reboots} time(s) during the log; time_s of later boots is "
+                     f"shifted by {', '.join(f'{o:+.3f}' for o in tb.offset[1:])} s to continue the log time")
+    out = _SeriesSet(warns)
+    _integer_imu_series(imu, tb, out)
+    if "HIGHRES_IMU" in imu:
+        _highres_imu_series(imu["HIGHRES_IMU"], tb, out)
+    if not out.series:
+        raise SourceError(f"no usable IMU samples in {source} (all IMU messages are empty)")
+    params = _tlog_params(cols, sysid, tb, warns)
+    events, firmware = _tlog_events(cols, sysid, tb)
+    return ImuLog(source=source, kind="tlog", series=out.sorted(), params=params, events=tuple(events),
+                  position=_tlog_position(cols, sysid), vehicle=_tlog_vehicle(cols, sysid, firmware),
+                  warnings=tuple(warns))
+
+
+def _median_position(c: Mapping[str, np.ndarray], m: np.ndarray, lat: str, lon: str, alt: str,
+                     scale: tuple[float, float]) -> tuple[float, float, float]:
+    """Median of the rows ``m`` of ``lat``/``lon``/``alt``, scaled to deg, deg, m by ``scale`` (deg, m)."""
+    return (float(np.median(np.asarray(c[lat])[m])) * scale[0], float(np.median(np.asarray(c[lon])[m])) * scale[0],
+            float(np.median(np.asarray(c[alt])[m])) * scale[1])
+
+
+def _tlog_position(cols: Columns, sysid: int) -> tuple[float, float, float] | None:
+    """HOME_POSITION (last), else the median GPS_RAW_INT with a 3D fix, else the median GLOBAL_POSITION_INT."""
+    hp = cols.get("HOME_POSITION") or {}
+    if _n(hp):
+        m = (np.asarray(hp["_sysid"]) == sysid) & ((np.asarray(hp["latitude"]) != 0)
+                                                   | (np.asarray(hp["longitude"]) != 0))
+        if m.any():
+            i = np.flatnonzero(m)[-1]
+            return (float(hp["latitude"][i]) * 1e-7, float(hp["longitude"][i]) * 1e-7, float(hp["altitude"][i]) * 1e-3)
+    gps = cols.get("GPS_RAW_INT") or {}
+    if _n(gps):
+        m = (np.asarray(gps["_sysid"]) == sysid) & (np.asarray(gps["fix_type"]) >= 3)
+        if m.any():
+            return _median_position(gps, m, "lat", "lon", "alt", (1e-7, 1e-3))
+    gp = cols.get("GLOBAL_POSITION_INT") or {}
+    if _n(gp):
+        m = (np.asarray(gp["_sysid"]) == sysid) & ((np.asarray(gp["lat"]) != 0) | (np.asarray(gp["lon"]) != 0))
+        if m.any():
+            return _median_position(gp, m, "lat", "lon", "alt", (1e-7, 1e-3))
+    return None
+
+
+# --------------------------------------------------------------------------- DataFlash assembly
+def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
+    if "TimeUS" in c:
+        return np.asarray(c["TimeUS"], dtype=float) * 1e-6
+    if "TimeMS" in c:
+        return np.asarray(c["TimeMS"], dtype=float) * 1e-3
+    raise SourceError("DataFlash message without TimeUS/TimeMS")
+
+
+def _df_instances(name: str, c: Mapping[str, np.ndarray]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
+    """Yield (instance, columns) of a DataFlash message (I field, or the digit in the name)."""
+    if "I" in c:
+        inst = np.asarray(c["I"]).astype(int)
+        for i in np.unique(inst).tolist():
+            yield i, _take(c, inst == i)
+    else:
+        digit = name[-1]
+        if digit.isdigit():  # IMU2 -> 1, MAG3 -> 2, ACC1 -> 0
+            yield int(digit) - 1, c
+        else:
+            yield 0, c
+
+
+def _df_add(out: _SeriesSet, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray,
+            extra: Mapping[str, np.ndarray] | None = None) -> None:
+    """Keep a DataFlash series without its non-finite samples (stated in the warnings)."""
+    if len(t) == 0 or out.has(sensor, inst):
+        return
+    ok = np.isfinite(v).all(axis=1)
+    if (~ok).any():
+        out.warns.append(f"dropped {int((~ok).sum())} {msg} samples with non-finite values")
+    out.keep(sensor, inst, msg, t[ok], v[ok], None, {k: a[ok] for k, a in (extra or {}).items()},
+             dup_label=f"{msg}[{inst}]")
+
+
+def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
+    """IMU/ACC/GYR -> accel and gyro, MAG -> mag (with offsets, motor offsets and health)."""
+    for name in DF_IMU_NAMES:
+        c = cols.get(name) or {}
+        if not _n(c):
+            continue
+        for inst, ci in _df_instances(name, c):
+            t = _df_time(ci)
+            if all(k in ci for k in ("AccX", "AccY", "AccZ")):
+                _df_add(out, "accel", inst, name, t, _vec(ci, ("AccX", "AccY", "AccZ")))
+            if all(k in ci for k in ("GyrX", "GyrY", "GyrZ")):
+                _df_add(out, "gyro", inst, name, t, _vec(ci, ("GyrX", "GyrY", "GyrZ")))
+    for name in DF_MAG_NAMES:
+        c = cols.get(name) or {}
+        if not _n(c):
+            continue
+        for inst, ci in _df_instances(name, c):
+            if not all(k in ci for k in ("MagX", "MagY", "MagZ")):
+                continue
+            extra = {}
+            if all(k in ci for k in ("OfsX", "OfsY", "OfsZ")):
+                extra["ofs_mgauss"] = _vec(ci, ("OfsX", "OfsY", "OfsZ"))
+            if all(k in ci for k in ("MOX", "MOY", "MOZ")):
+                extra["motor_ofs_mgauss"] = _vec(ci, ("MOX", "MOY", "MOZ"))
+            if "Health" in ci:
+                extra["health"] = np.asarray(ci["Health"], dtype=float)
+            _df_add(out, "mag", inst, name, _df_time(ci), _vec(ci, ("MagX", "MagY", "MagZ")), extra)
+
+
+class _DfRecordTime:
+    """Time of any DataFlash record: its TimeUS/TimeMS, or (old PARM, MSG without one) the time of the
+    latest timed record before it."""
+
+    def __init__(self, cols: Columns) -> None:
+        timed = [(np.asarray(c["_index"]), _df_time(c)) for n, c in cols.items()
+                 if _n(c) and ("TimeUS" in c or "TimeMS" in c) and "_index" in c]
+        if timed:
+            t_idx = np.concatenate([a for a, _ in timed])
+            t_val = np.concatenate([b for _, b in timed])
+            o = np.argsort(t_idx, kind="stable")
+            self.t_idx, self.t_val = t_idx[o], np.maximum.accumulate(t_val[o])
+        else:
+            self.t_idx, self.t_val = np.zeros(1, np.int64), np.zeros(1)
+
+    def __call__(self, c: Mapping[str, np.ndarray]) -> np.ndarray:
+        if "TimeUS" in c or "TimeMS" in c:
+            return _df_time(c)
+        k = np.searchsorted(self.t_idx, np.asarray(c["_index"]), side="right") - 1
+        return np.where(k >= 0, self.t_val[np.clip(k, 0, None)], self.t_val[0])
+
+
+def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
+    """Build an ImuLog from DataFlash message columns (fast decoder or DFReader)."""
+    warns = list(warnings)
+    out = _SeriesSet(warns)
+    _df_sensor_series(cols, out)
+    if not out.series:
+        raise SourceError(f"no IMU data (IMU/ACC/GYR/MAG records) in {source}")
+    rec_time = _DfRecordTime(cols)
+    params = ParamTimeline()
+    pm = cols.get("PARM") or {}
+    if _n(pm):
+        params = _build_timeline([_text(x) for x in pm["Name"]], rec_time(pm), np.asarray(pm["Value"], dtype=float))
+    events: list[LogEvent] = []
+    firmware = None
+    msg = cols.get("MSG") or {}
+    if _n(msg):
+        for t, text in zip(rec_time(msg).tolist(), msg["Message"]):
+            txt = _text(text)
+            events.append(LogEvent(float(t), "statustext", txt))
+            if firmware is None and _FIRMWARE_RE.match(txt):
+                firmware = txt
+    events.sort(key=lambda e: e.time_s)
+    vehicle: dict[str, object] = {}
+    if firmware:
+        vehicle["firmware"] = firmware
+    return ImuLog(source=source, kind="dataflash", series=out.sorted(), params=params, events=tuple(events),
+                  position=_df_position(cols), vehicle=vehicle, warnings=tuple(warns))
+
+
+def _df_position(cols: Columns) -> tuple[float, float, float] | None:
+    o = cols.get("ORGN") or {}
+    if _n(o) and all(k in o for k in ("Lat", "Lng", "Alt")):
+        m = (np.asarray(o["Lat"]) != 0) | (np.asarray(o["Lng"]) != 0)
+        if m.any():
+            i = np.flatnonzero(m)[0]
+            return (float(o["Lat"][i]), float(o["Lng"][i]), float(o["Alt"][i]))
+    g = cols.get("GPS") or {}
+    if _n(g) and all(k in g for k in ("Lat", "Lng", "Alt", "Status")):
+        m = np.asarray(g["Status"]) >= 3
+        if "I" in g:
+            m &= np.asarray(g["I"]) == 0
+        if m.any():
+            return (float(np.median(np.asarray(g["Lat"])[m])), float(np.median(np.asarray(g["Lng"])[m])),
+                    float(np.median(np.asarray(g["Alt"])[m])))
+    p = cols.get("POS") or {}
+    if _n(p) and all(k in p for k in ("Lat", "Lng", "Alt")):
+        m = (np.asarray(p["Lat"]) != 0) | (np.asarray(p["Lng"]) != 0)
+        if m.any():
+            return (float(np.median(np.asarray(p["Lat"])[m])), float(np.median(np.asarray(p["Lng"])[m])),
+                    float(np.median(np.asarray(p["Alt"])[m])))
+    return None
+
+
+# --------------------------------------------------------------------------- live IMU rows
+def imu_series(name: str, fields: Sequence[str], values: Sequence[tuple],
+               log_times: Sequence[float]) -> list[SensorSeries]:
+    """accel/gyro/mag :class:`SensorSeries` of rows of one integer IMU message type (SI units, mGauss).
+
+    The unit conversion of live IMU messages (the same as :func:`assemble_tlog`'s): milli-g
+    -> m/s^2, mrad/s -> rad/s, mGauss as sent; rows whose accel and gyro are all zero (no IMU)
+    or whose mag is all zero (no compass) are left out of that sensor's series.
+
+    Parameters
+    ----------
+    name : str
+        RAW_IMU, SCALED_IMU, SCALED_IMU2 or SCALED_IMU3 (instance 0, 0, 1, 2).
+    fields : sequence of str
+        The message's field names, in the order of each row of ``values``.
+    values : sequence of tuple
+        One row of field values per message.
+    log_times : sequence of float
+        Receive time of each message (unix s), the series' ``log_time_s``.
+    """
+    f = list(fields)
+    v = np.array(values, dtype=float)
+    t = v[:, f.index("time_boot_ms")] * 1e-3 if "time_boot_ms" in f else v[:, f.index("time_usec")] * 1e-6
+    lt = np.asarray(log_times, dtype=float)
+    acc = v[:, [f.index("xacc"), f.index("yacc"), f.index("zacc")]]
+    gyr = v[:, [f.index("xgyro"), f.index("ygyro"), f.index("zgyro")]]
+    mag = v[:, [f.index("xmag"), f.index("ymag"), f.index("zmag")]]
+    inst = SCALED_INSTANCE[name]
+    imu = ~((acc == 0).all(axis=1) & (gyr == 0).all(axis=1))
+    hm = ~(mag == 0).all(axis=1)
+    out: list[SensorSeries] = []
+    if imu.any():
+        out.append(SensorSeries("accel", inst, name, t[imu], acc[imu] * MG_TO_MS2, lt[imu]))
+        out.append(SensorSeries("gyro", inst, name, t[imu], gyr[imu] / 1000.0, lt[imu]))
+    if hm.any():
+        out.append(SensorSeries("mag", inst, name, t[hm], mag[hm], lt[hm]))
+    return out
