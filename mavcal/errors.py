@@ -17,7 +17,7 @@ Exit codes (CLI contract):
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 
 class MavcalError(Exception):

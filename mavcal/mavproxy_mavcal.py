@@ -38,10 +38,11 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
+from typing import Any, Callable
 
 from MAVProxy.modules.lib import mp_module, mp_settings
 
@@ -78,7 +79,7 @@ class ModuleSettings:
     verbose: bool = True
 
 
-def _settings_table() -> List[Any]:
+def _settings_table() -> list[Any]:
     d = ModuleSettings()
     S = mp_settings.MPSetting
     return [S("target_deg", float, d.target_deg, "heading error target (deg, 95 %)", range=(0.01, 20.0)),
@@ -104,19 +105,19 @@ class _Worker:
     and the fed connection of the parameter operation in progress.
     """
 
-    def __init__(self, vehicle_ids: Callable[[], Optional[Tuple[int, int]]]) -> None:
+    def __init__(self, vehicle_ids: Callable[[], tuple[int, int] | None]) -> None:
         self.vehicle_ids = vehicle_ids
-        self.out: "queue.Queue[str]" = queue.Queue()
-        self.outbox: "queue.Queue[Tuple[str, tuple, dict]]" = queue.Queue()
-        self.jobs: "queue.Queue[Tuple[Callable[..., None], tuple]]" = queue.Queue()
-        self._imu: List[Any] = []
+        self.out: queue.Queue[str] = queue.Queue()
+        self.outbox: queue.Queue[tuple[str, tuple, dict]] = queue.Queue()
+        self.jobs: queue.Queue[tuple[Callable[..., None], tuple]] = queue.Queue()
+        self._imu: list[Any] = []
         self._imu_lock = threading.Lock()
         self.fed = None  # the FedConnection of the parameter operation in progress
         self.capturing = False
         self.session = None
         self.status = None
         self.run = None
-        self.table: Optional[Dict[str, Tuple[float, int]]] = None
+        self.table: dict[str, tuple[float, int]] | None = None
         self.busy = ""
         self._cfg = ModuleSettings()
         self._last_update = 0.0
@@ -174,7 +175,7 @@ class _Worker:
         if self.capturing:
             self._stream_rates(None)
 
-    def _ids(self, wait_s: float = 3.0) -> Tuple[int, int]:
+    def _ids(self, wait_s: float = 3.0) -> tuple[int, int]:
         deadline = time.monotonic() + wait_s
         while True:
             ids = self.vehicle_ids()
@@ -198,7 +199,7 @@ class _Worker:
             self.fed = None
             conn.close()
 
-    def _stream_rates(self, rate_hz: Optional[float]) -> None:
+    def _stream_rates(self, rate_hz: float | None) -> None:
         from mavcal.link.fed import QueuedSender
         from mavcal.link.streams import send_message_intervals
 
@@ -320,7 +321,7 @@ class _Worker:
         self._write_params(cfg, changes, confirmed, "restore", f"mavcal restore {path} yes",
                            stem=f"{Path(path).stem}-before-restore")
 
-    def _write_params(self, cfg: ModuleSettings, changes: Dict[str, float], confirmed: bool, what: str,
+    def _write_params(self, cfg: ModuleSettings, changes: dict[str, float], confirmed: bool, what: str,
                       confirm_cmd: str, stem: str) -> None:
         """The safe writer over the fed link; every word from :mod:`mavcal.report.text`."""
         from mavcal.ardupilot.protocol import force_save_kinds
@@ -359,7 +360,7 @@ class MavcalModule(mp_module.MPModule):
     def __init__(self, mpstate: Any) -> None:
         super().__init__(mpstate, "mavcal", "guided accelerometer + compass calibration (mavcal)")
         self.mavcal_settings = mp_settings.MPSettings(_settings_table())
-        self._vehicle: Optional[Tuple[int, int]] = None
+        self._vehicle: tuple[int, int] | None = None
         self.worker = _Worker(self._vehicle_ids)
         self.add_command("mavcal", self.cmd_mavcal, "guided IMU/compass calibration",
                          ["<start|stop|status|next|fit|write|threads>", "restore (FILENAME)",
@@ -370,7 +371,7 @@ class MavcalModule(mp_module.MPModule):
     def usage(self) -> str:
         return "usage: mavcal <start|stop|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]|threads>"
 
-    def _vehicle_ids(self) -> Optional[Tuple[int, int]]:
+    def _vehicle_ids(self) -> tuple[int, int] | None:
         """(sysid, compid) of the primary vehicle: from its heartbeats, else what MAVProxy's master saw."""
         if self._vehicle is None:
             master = self.master
@@ -384,11 +385,11 @@ class MavcalModule(mp_module.MPModule):
         return ModuleSettings(**{k: s.get(k) for k in ModuleSettings.__dataclass_fields__})
 
     @staticmethod
-    def _threads() -> List[str]:
+    def _threads() -> list[str]:
         return sorted(t.name for t in threading.enumerate() if t.name.startswith(THREAD_PREFIX))
 
     # ---------------------------------------------------------------- the command
-    def cmd_mavcal(self, args: List[str]) -> None:
+    def cmd_mavcal(self, args: list[str]) -> None:
         """The ``mavcal`` command (runs on MAVProxy's thread: only quick work here)."""
         from mavcal.capture import status_screen
 

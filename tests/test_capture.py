@@ -5,8 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mavcal.capture import (CaptureConfig, CaptureSession, candidate_poses, coverage_map, describe_pose,
-                            euler_matrix)
+from mavcal.capture import CaptureConfig, CaptureSession, candidate_poses, coverage_map, describe_pose, euler_matrix
 from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))

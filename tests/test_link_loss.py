@@ -12,8 +12,8 @@ import pytest
 from mavcal.errors import ParamWriteError, RestoreFailedError
 from mavcal.link.connection import open_link
 from mavcal.link.params import fetch_all_params
-from mavcal.testing.vehicle import Faults
 from mavcal.link.writer import write_params
+from mavcal.testing.vehicle import Faults
 
 N_WRITES = 100
 GROUPS = [("COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z"),

@@ -19,8 +19,8 @@ from mavcal.capture import live as live_capture
 from mavcal.link.connection import Link, open_link
 from mavcal.link.fed import FedConnection
 from mavcal.link.writer import write_params
-from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 from mavcal.segment import StillConfig
+from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 
 HOLD = StillConfig(min_duration_s=0.6, window_s=0.4)
 
@@ -241,7 +241,8 @@ def test_status_screen_on_a_terminal_and_lines_when_piped():
     assert "NEXT POSE: level, nose towards magnetic north" in screen.getvalue()
     assert "intervals kept: 0" in screen.getvalue() and "level       " in screen.getvalue()  # the coverage map
     assert piped.getvalue().splitlines() == [
-        "0 intervals, moving, heading - deg; next: level, nose towards magnetic north (roll 0 pitch 0 yaw 0 deg magnetic)"]
+        "0 intervals, moving, heading - deg; next: level, nose towards magnetic north "
+        "(roll 0 pitch 0 yaw 0 deg magnetic)"]
 
 
 def test_ctrl_c_stops_the_capture_and_keeps_the_session(vehicle):

@@ -102,7 +102,8 @@ def test_dip_of_the_wrong_sign_means_a_mirrored_compass():
                     field_source="t", board_rotation=np.eye(3), inclination_model_deg=60.0)
 
 
-def _cal(R_true=np.eye(3)):
+def _cal(R_true=None):
+    R_true = np.eye(3) if R_true is None else R_true
     from mavcal.core.types import Calibration, SensorModel
 
     K_a, b_a, K_m, b_m, h_z = _engine_truth((0.99, 1.02, 0.97), (0.1, -0.2, 0.3), M_TRUE, (40.0, -60.0, 120.0), R_true)

@@ -14,10 +14,10 @@ import time
 
 import numpy as np
 import pytest
+from test_live_capture import AdviceHand
 
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.testing.vehicle import VehicleTruth
-from test_live_capture import AdviceHand
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,
                                 reason="MAVProxy is not installed (pip install mavcal[test])")

@@ -3,10 +3,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from mavcal.ardupilot.paramfile import (ParamFileError, format_param_value, parse_param_text,
-                                        read_param_file, write_param_file)
+from mavcal.ardupilot.paramfile import (
+    ParamFileError,
+    format_param_value,
+    parse_param_text,
+    read_param_file,
+    write_param_file,
+)
 from mavcal.ardupilot.protocol import force_save_kinds, needs_reboot, vector_group
 from mavcal.errors import SourceError, UsageError
 

@@ -98,7 +98,8 @@ def _signed_errors(raw_accel, raw_mag_sensor, accel_cal, compass_cal, field_ned_
     return a, m, f_body, B_body, dh, dc
 
 
-def heading_errors_deg(raw_accel: Callable[[np.ndarray], np.ndarray], raw_mag_sensor: Callable[[np.ndarray], np.ndarray],
+def heading_errors_deg(raw_accel: Callable[[np.ndarray], np.ndarray],
+                       raw_mag_sensor: Callable[[np.ndarray], np.ndarray],
                        accel_cal: fw.AccelCal, compass_cal: fw.CompassCal, field_ned_mgauss,
                        grid: np.ndarray | None = None) -> np.ndarray:
     """Signed heading error (deg) at every attitude of ``grid`` (see :func:`attitude_errors`)."""

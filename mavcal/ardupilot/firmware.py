@@ -26,13 +26,14 @@ the single place that spells them.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import TypedDict
 
 import numpy as np
 
-from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, rotation_matrix
+from mavcal.core.constants import GRAVITY_MPS2
 
 __all__ = [
     "GRAVITY_MSS",
@@ -69,7 +70,54 @@ _XYZ = ("X", "Y", "Z")
 
 # --------------------------------------------------------------------------- names
 
-def compass_param_names(instance: int) -> Dict[str, object]:
+Names3 = tuple[str, str, str]
+
+
+class CompassNames(TypedDict):
+    """The parameter names of one compass slot (see :func:`compass_param_names`)."""
+
+    ofs: Names3
+    dia: Names3
+    odi: Names3
+    mot: Names3
+    scale: str
+    orient: str
+    external: str
+    dev_id: str
+    prio_id: str
+    use: str
+
+
+class AccelNames(TypedDict):
+    """The parameter names of one accelerometer (see :func:`accel_param_names`)."""
+
+    ofs: Names3
+    scale: Names3
+    id: str
+
+
+class GyroNames(TypedDict):
+    """The parameter names of one gyroscope (see :func:`gyro_param_names`)."""
+
+    ofs: Names3
+    id: str
+
+
+class BoardNames(TypedDict):
+    """Vehicle-wide names (see :func:`board_param_names`)."""
+
+    orientation: str
+    custom1: Names3
+    custom2: Names3
+    trim: Names3
+    motct: str
+
+
+def _xyz(prefix: str) -> Names3:
+    return (f"{prefix}_X", f"{prefix}_Y", f"{prefix}_Z")
+
+
+def compass_param_names(instance: int) -> CompassNames:
     """Parameter names of compass ``instance`` (0-based priority/state slot).
 
     Returns
@@ -87,10 +135,10 @@ def compass_param_names(instance: int) -> Dict[str, object]:
         raise ValueError(f"compass instance must be 0..{MAX_COMPASSES - 1}, got {instance}")
     s = "" if k == 0 else str(k + 1)
     return {
-        "ofs": tuple(f"COMPASS_OFS{s}_{a}" for a in _XYZ),
-        "dia": tuple(f"COMPASS_DIA{s}_{a}" for a in _XYZ),
-        "odi": tuple(f"COMPASS_ODI{s}_{a}" for a in _XYZ),
-        "mot": tuple(f"COMPASS_MOT{s}_{a}" for a in _XYZ),
+        "ofs": _xyz(f"COMPASS_OFS{s}"),
+        "dia": _xyz(f"COMPASS_DIA{s}"),
+        "odi": _xyz(f"COMPASS_ODI{s}"),
+        "mot": _xyz(f"COMPASS_MOT{s}"),
         "scale": f"COMPASS_SCALE{s}",
         "orient": f"COMPASS_ORIENT{s}",
         "external": "COMPASS_EXTERNAL" if k == 0 else f"COMPASS_EXTERN{k + 1}",
@@ -100,7 +148,7 @@ def compass_param_names(instance: int) -> Dict[str, object]:
     }
 
 
-def accel_param_names(instance: int) -> Dict[str, object]:
+def accel_param_names(instance: int) -> AccelNames:
     """Parameter names of accelerometer ``instance`` (0-based IMU index).
 
     Returns
@@ -122,13 +170,13 @@ def accel_param_names(instance: int) -> Dict[str, object]:
     else:
         ofs, scal, ident = f"INS{i + 1}_ACCOFFS", f"INS{i + 1}_ACCSCAL", f"INS{i + 1}_ACC_ID"
     return {
-        "ofs": tuple(f"{ofs}_{a}" for a in _XYZ),
-        "scale": tuple(f"{scal}_{a}" for a in _XYZ),
+        "ofs": _xyz(ofs),
+        "scale": _xyz(scal),
         "id": ident,
     }
 
 
-def gyro_param_names(instance: int) -> dict[str, object]:
+def gyro_param_names(instance: int) -> GyroNames:
     """Parameter names of gyroscope ``instance`` (0-based IMU index), as
     :func:`accel_param_names` for the accelerometer of the same IMU.
 
@@ -150,10 +198,10 @@ def gyro_param_names(instance: int) -> dict[str, object]:
         ofs, ident = f"INS_GYR{i + 1}OFFS", f"INS_GYR{i + 1}_ID"
     else:
         ofs, ident = f"INS{i + 1}_GYROFFS", f"INS{i + 1}_GYR_ID"
-    return {"ofs": tuple(f"{ofs}_{a}" for a in _XYZ), "id": ident}
+    return {"ofs": _xyz(ofs), "id": ident}
 
 
-def board_param_names() -> Dict[str, object]:
+def board_param_names() -> BoardNames:
     """Vehicle-wide names: ``orientation`` (AHRS_ORIENTATION), ``custom1``/``custom2``
     (CUST_ROTn_ROLL/PIT/YAW), ``trim`` (AHRS_TRIM_X/Y/Z), ``motct`` (COMPASS_MOTCT)."""
     return {
@@ -167,14 +215,14 @@ def board_param_names() -> Dict[str, object]:
 
 # --------------------------------------------------------------------------- models
 
-def _vec3(v, name: str) -> Tuple[float, float, float]:
+def _vec3(v, name: str) -> tuple[float, float, float]:
     a = np.asarray(v, dtype=float).reshape(-1)
     if a.shape != (3,):
         raise ValueError(f"{name} must have 3 elements, got shape {np.shape(v)}")
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def _mount(orient: int, custom: Optional[Tuple[float, float, float]]) -> np.ndarray:
+def _mount(orient: int, custom: tuple[float, float, float] | None) -> np.ndarray:
     return rotation_matrix(orient, custom if int(orient) in (CUSTOM_1, CUSTOM_2) else None)
 
 
@@ -194,14 +242,14 @@ class CompassCal:
     mot : (3,) COMPASS_MOTn, informative (the logged motor offset is used to undo it).
     """
 
-    ofs_mgauss: Tuple[float, float, float] = (0.0, 0.0, 0.0)
-    dia: Tuple[float, float, float] = (1.0, 1.0, 1.0)
-    odi: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ofs_mgauss: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dia: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    odi: tuple[float, float, float] = (0.0, 0.0, 0.0)
     scale: float = 1.0
     orient: int = 0
-    external: Optional[bool] = None
-    custom_deg: Optional[Tuple[float, float, float]] = None
-    mot: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    external: bool | None = None
+    custom_deg: tuple[float, float, float] | None = None
+    mot: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         for n in ("ofs_mgauss", "dia", "odi", "mot"):
@@ -239,10 +287,10 @@ class AccelCal:
     custom_deg : custom rotation angles if ``board_orient`` is 101/102.
     """
 
-    ofs_mps2: Tuple[float, float, float] = (0.0, 0.0, 0.0)
-    scale: Tuple[float, float, float] = (1.0, 1.0, 1.0)
+    ofs_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
     board_orient: int = 0
-    custom_deg: Optional[Tuple[float, float, float]] = None
+    custom_deg: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ofs_mps2", _vec3(self.ofs_mps2, "ofs_mps2"))
@@ -370,7 +418,7 @@ def undo_accel(cal: AccelCal, corrected_mps2, calibrating: bool = False) -> np.n
 
 # --------------------------------------------------------------------------- from params
 
-def custom_rotation_angles(params: Mapping[str, float], orient: int) -> Optional[Tuple[float, float, float]]:
+def custom_rotation_angles(params: Mapping[str, float], orient: int) -> tuple[float, float, float] | None:
     """CUST_ROTn_ROLL/PIT/YAW (degrees) for ``orient`` 101/102, None otherwise or if missing."""
     o = int(round(float(orient)))
     if o not in (CUSTOM_1, CUSTOM_2):
@@ -381,7 +429,7 @@ def custom_rotation_angles(params: Mapping[str, float], orient: int) -> Optional
     return tuple(float(params[n]) for n in names)  # type: ignore[return-value]
 
 
-def _get3(params: Mapping[str, float], names, default) -> Tuple[Tuple[float, float, float], List[str]]:
+def _get3(params: Mapping[str, float], names, default) -> tuple[tuple[float, float, float], list[str]]:
     out, missing = [], []
     for n, d in zip(names, default):
         if n in params and params[n] is not None and np.isfinite(params[n]):
@@ -393,7 +441,7 @@ def _get3(params: Mapping[str, float], names, default) -> Tuple[Tuple[float, flo
 
 
 def compass_cal_from_params(params: Mapping[str, float], instance: int,
-                            missing: Optional[List[str]] = None) -> CompassCal:
+                            missing: list[str] | None = None) -> CompassCal:
     """Build the :class:`CompassCal` of compass ``instance`` from a name -> value mapping.
 
     Missing parameters take the firmware defaults (OFS 0, DIA 1, ODI 0, SCALE 1, ORIENT 0,
@@ -403,10 +451,13 @@ def compass_cal_from_params(params: Mapping[str, float], instance: int,
     taken as external if COMPASS_ORIENTn != 0, else internal.
     """
     names = compass_param_names(instance)
-    miss: List[str] = []
-    ofs, m = _get3(params, names["ofs"], (0.0, 0.0, 0.0)); miss += m
-    dia, m = _get3(params, names["dia"], (1.0, 1.0, 1.0)); miss += m
-    odi, m = _get3(params, names["odi"], (0.0, 0.0, 0.0)); miss += m
+    miss: list[str] = []
+    ofs, m = _get3(params, names["ofs"], (0.0, 0.0, 0.0))
+    miss += m
+    dia, m = _get3(params, names["dia"], (1.0, 1.0, 1.0))
+    miss += m
+    odi, m = _get3(params, names["odi"], (0.0, 0.0, 0.0))
+    miss += m
     mot, _ = _get3(params, names["mot"], (0.0, 0.0, 0.0))
     scale = params.get(names["scale"])
     if scale is None:
@@ -432,16 +483,18 @@ def compass_cal_from_params(params: Mapping[str, float], instance: int,
 
 
 def accel_cal_from_params(params: Mapping[str, float], instance: int,
-                          missing: Optional[List[str]] = None) -> AccelCal:
+                          missing: list[str] | None = None) -> AccelCal:
     """Build the :class:`AccelCal` of IMU ``instance`` from a name -> value mapping.
 
     Missing parameters take the defaults (OFFS 0, SCAL 1, AHRS_ORIENTATION 0) and are
     appended to ``missing`` if given.
     """
     names = accel_param_names(instance)
-    miss: List[str] = []
-    ofs, m = _get3(params, names["ofs"], (0.0, 0.0, 0.0)); miss += m
-    scale, m = _get3(params, names["scale"], (1.0, 1.0, 1.0)); miss += m
+    miss: list[str] = []
+    ofs, m = _get3(params, names["ofs"], (0.0, 0.0, 0.0))
+    miss += m
+    scale, m = _get3(params, names["scale"], (1.0, 1.0, 1.0))
+    miss += m
     bn = board_param_names()["orientation"]
     board = params.get(bn)
     if board is None:
@@ -453,23 +506,23 @@ def accel_cal_from_params(params: Mapping[str, float], instance: int,
                     custom_deg=custom_rotation_angles(params, int(round(board))))
 
 
-def compass_param_values(cal: CompassCal, instance: int) -> Dict[str, float]:
+def compass_param_values(cal: CompassCal, instance: int) -> dict[str, float]:
     """Inverse of :func:`compass_cal_from_params` for the calibration values (OFS, DIA, ODI,
     SCALE): name -> value. ORIENT/EXTERNAL are not included (they are configuration)."""
     names = compass_param_names(instance)
-    out: Dict[str, float] = {}
-    for key, vals in (("ofs", cal.ofs_mgauss), ("dia", cal.dia), ("odi", cal.odi)):
-        for n, v in zip(names[key], vals):  # type: ignore[arg-type]
+    out: dict[str, float] = {}
+    for keys, vals in ((names["ofs"], cal.ofs_mgauss), (names["dia"], cal.dia), (names["odi"], cal.odi)):
+        for n, v in zip(keys, vals):
             out[n] = float(v)
-    out[names["scale"]] = float(cal.scale)  # type: ignore[index]
+    out[names["scale"]] = float(cal.scale)
     return out
 
 
-def accel_param_values(cal: AccelCal, instance: int) -> Dict[str, float]:
+def accel_param_values(cal: AccelCal, instance: int) -> dict[str, float]:
     """name -> value of INS_ACCnOFFS/SCAL for ``cal``."""
     names = accel_param_names(instance)
-    out: Dict[str, float] = {}
-    for key, vals in (("ofs", cal.ofs_mps2), ("scale", cal.scale)):
-        for n, v in zip(names[key], vals):  # type: ignore[arg-type]
+    out: dict[str, float] = {}
+    for keys, vals in ((names["ofs"], cal.ofs_mps2), (names["scale"], cal.scale)):
+        for n, v in zip(keys, vals):
             out[n] = float(v)
     return out

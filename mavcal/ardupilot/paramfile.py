@@ -17,8 +17,9 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Dict, Iterable, Mapping, Optional, Union
+from typing import Union
 
 import numpy as np
 
@@ -39,7 +40,7 @@ class ParamFileError(SourceError, ValueError):
     ``line`` is the 1-based line number of the bad line, or None.
     """
 
-    def __init__(self, message: str, line: Optional[int] = None) -> None:
+    def __init__(self, message: str, line: int | None = None) -> None:
         super().__init__(message)
         self.line = line
 
@@ -87,7 +88,7 @@ def _parse_value(text: str, lineno: int, source: str) -> float:
     return v
 
 
-def parse_param_text(text: str, source: str = "<text>") -> Dict[str, float]:
+def parse_param_text(text: str, source: str = "<text>") -> dict[str, float]:
     """Parse the contents of a .param file.
 
     Parameters
@@ -109,7 +110,7 @@ def parse_param_text(text: str, source: str = "<text>") -> Dict[str, float]:
         On a malformed line (wrong field count, bad name, value not a finite number); the
         message carries ``source:line``.
     """
-    out: Dict[str, float] = {}
+    out: dict[str, float] = {}
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:
@@ -129,7 +130,7 @@ def parse_param_text(text: str, source: str = "<text>") -> Dict[str, float]:
     return out
 
 
-def read_param_file(path: PathLike) -> Dict[str, float]:
+def read_param_file(path: PathLike) -> dict[str, float]:
     """Read a .param file (see the module docstring for the format).
 
     Raises
@@ -150,7 +151,7 @@ def read_param_file(path: PathLike) -> Dict[str, float]:
     return params
 
 
-def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Optional[Iterable[str]] = None,
+def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Iterable[str] | None = None,
                      exclusive: bool = False) -> Path:
     """Write ``params`` as a .param file, sorted by name, durably (fsync).
 

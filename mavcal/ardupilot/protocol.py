@@ -14,7 +14,7 @@ live here, next to the rest of the ArduPilot knowledge:
 from __future__ import annotations
 
 import re
-from typing import Iterable, Optional, Tuple
+from collections.abc import Iterable
 
 __all__ = ["vector_group", "needs_reboot", "force_save_kinds", "valid_param_name", "CUSTOM_ROTATIONS", "MAV_CMD",
            "MAV_CMD_PREFLIGHT_CALIBRATION", "MAV_CMD_SET_MESSAGE_INTERVAL", "MAV_CMD_ACCELCAL_VEHICLE_POS"]
@@ -67,7 +67,7 @@ def valid_param_name(name: str) -> bool:
     return bool(_NAME_RE.match(name))
 
 
-def vector_group(name: str) -> Optional[Tuple[str, str, str]]:
+def vector_group(name: str) -> tuple[str, str, str] | None:
     """The three element names of the Vector3 parameter ``name`` belongs to, or None.
 
     Parameters
@@ -89,7 +89,7 @@ def vector_group(name: str) -> Optional[Tuple[str, str, str]]:
     return (prefix + "_X", prefix + "_Y", prefix + "_Z")
 
 
-def needs_reboot(name: str, value: Optional[float] = None) -> bool:
+def needs_reboot(name: str, value: float | None = None) -> bool:
     """True if a new value of ``name`` only takes effect after a reboot.
 
     Parameters
@@ -108,7 +108,7 @@ def needs_reboot(name: str, value: Optional[float] = None) -> bool:
     return False
 
 
-def force_save_kinds(names: Iterable[str]) -> Tuple[str, ...]:
+def force_save_kinds(names: Iterable[str]) -> tuple[str, ...]:
     """Which force-saves (``"compass"``, ``"accel"``) a set of changed parameters calls for.
 
     Writing ``COMPASS_*`` calibration values by PARAM_SET does not store ``COMPASS_DEV_ID``;

@@ -12,7 +12,7 @@ compass rotation (90, 68.8, 293.3). 101/102 are the custom rotations ``CUST_ROT1
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Sequence, Tuple
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -34,7 +34,7 @@ CUSTOM_1 = 101
 CUSTOM_2 = 102
 
 # value -> (name, roll_deg, pitch_deg, yaw_deg)
-_TABLE: Dict[int, Tuple[str, float, float, float]] = {
+_TABLE: dict[int, tuple[str, float, float, float]] = {
     0: ("NONE", 0, 0, 0),
     1: ("YAW_45", 0, 0, 45),
     2: ("YAW_90", 0, 0, 90),
@@ -85,13 +85,13 @@ _TABLE: Dict[int, Tuple[str, float, float, float]] = {
 #: Solo leg compass, 41 is "too close to NONE" (``CompassCalibrator::calculate_orientation``).
 AUTO_ROTATION_SKIP = frozenset({26, 27, 38, 41})
 
-ROTATION_NAMES: Dict[int, str] = {k: v[0] for k, v in _TABLE.items()}
+ROTATION_NAMES: dict[int, str] = {k: v[0] for k, v in _TABLE.items()}
 ROTATION_NAMES[CUSTOM_OLD] = "CUSTOM_OLD"
 ROTATION_NAMES[CUSTOM_1] = "CUSTOM_1"
 ROTATION_NAMES[CUSTOM_2] = "CUSTOM_2"
 
 #: Euler angles (roll, pitch, yaw) in degrees of every standard value 0..43.
-ROTATIONS: Dict[int, Tuple[float, float, float]] = {k: (float(v[1]), float(v[2]), float(v[3]))
+ROTATIONS: dict[int, tuple[float, float, float]] = {k: (float(v[1]), float(v[2]), float(v[3]))
                                                     for k, v in _TABLE.items()}
 
 
@@ -118,7 +118,7 @@ def euler_to_matrix(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.nda
     ])
 
 
-def matrix_to_euler(R: np.ndarray) -> Tuple[float, float, float]:
+def matrix_to_euler(R: np.ndarray) -> tuple[float, float, float]:
     """Inverse of :func:`euler_to_matrix` (ArduPilot ``Matrix3::to_euler``), radians.
 
     Pitch is in [-pi/2, pi/2]; roll and yaw in (-pi, pi].
@@ -137,7 +137,7 @@ def _clean(R: np.ndarray) -> np.ndarray:
     return R
 
 
-_MATRICES: Dict[int, np.ndarray] = {}
+_MATRICES: dict[int, np.ndarray] = {}
 for _k, (_r, _p, _y) in ROTATIONS.items():
     _m = _clean(euler_to_matrix(*np.radians([_r, _p, _y])))
     _m.setflags(write=False)
@@ -149,7 +149,7 @@ def is_valid_rotation(value: int) -> bool:
     return int(value) in _MATRICES or int(value) in (CUSTOM_1, CUSTOM_2)
 
 
-def rotation_matrix(value: int, custom: Optional[Sequence[float]] = None) -> np.ndarray:
+def rotation_matrix(value: int, custom: Sequence[float] | None = None) -> np.ndarray:
     """Matrix of ArduPilot rotation ``value``.
 
     Parameters
@@ -190,7 +190,7 @@ def rotation_angle_deg(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def nearest_rotation(R: np.ndarray, include_skipped: bool = False) -> Tuple[int, float]:
+def nearest_rotation(R: np.ndarray, include_skipped: bool = False) -> tuple[int, float]:
     """Standard rotation closest to matrix ``R``.
 
     Parameters

@@ -11,7 +11,6 @@ a 0.5 mGauss offset error on every axis.
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Dict, Tuple
 
 import numpy as np
 
@@ -19,8 +18,9 @@ from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.sources.types import ImuLog, SensorSeries
 
 # message -> sensor -> telemetry unit in the series' units
-TRUNCATED_UNITS: Dict[str, Dict[str, float]] = {
-    **{m: {"accel": GRAVITY_MPS2 / 1000.0, "gyro": 1e-3, "mag": 1.0} for m in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")},
+TRUNCATED_UNITS: dict[str, dict[str, float]] = {
+    **{m: {"accel": GRAVITY_MPS2 / 1000.0, "gyro": 1e-3, "mag": 1.0}
+       for m in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")},
     **{m: {"mag": 1.0} for m in ("MAG", "MAG2", "MAG3")},
 }
 
@@ -39,7 +39,7 @@ def untruncate(series: SensorSeries) -> SensorSeries:
     return replace(series, values=v + 0.5 * q * np.sign(v))
 
 
-def untruncate_log(log: ImuLog) -> Tuple[ImuLog, int]:
+def untruncate_log(log: ImuLog) -> tuple[ImuLog, int]:
     """Apply :func:`untruncate` to every series of ``log``; returns (log, series changed)."""
     out, n = [], 0
     for s in log.series:

@@ -9,7 +9,6 @@ intensity; altitude and date are not modelled (accepted for a stable signature, 
 from __future__ import annotations
 
 import math
-from typing import Optional, Tuple
 
 import numpy as np
 from pymavlink import mavextra
@@ -17,8 +16,8 @@ from pymavlink import mavextra
 from mavcal.errors import UsageError
 
 
-def field_at(lat_deg: float, lon_deg: float, alt_m: float = 0.0, when: Optional[object] = None
-             ) -> Tuple[float, float, float]:
+def field_at(lat_deg: float, lon_deg: float, alt_m: float = 0.0, when: object | None = None
+             ) -> tuple[float, float, float]:
     """Declination, inclination and intensity of Earth's field at a place.
 
     Parameters
@@ -52,7 +51,7 @@ def field_at(lat_deg: float, lon_deg: float, alt_m: float = 0.0, when: Optional[
     return float(dec), float(inc), float(intensity_gauss) * 1000.0
 
 
-def field_ned(lat_deg: float, lon_deg: float, alt_m: float = 0.0, when: Optional[object] = None) -> np.ndarray:
+def field_ned(lat_deg: float, lon_deg: float, alt_m: float = 0.0, when: object | None = None) -> np.ndarray:
     """Earth's field as a (3,) NED vector in mGauss (north, east, down) at a place.
 
     Same as pymavlink ``mavextra.expected_earth_field_lat_lon``.
