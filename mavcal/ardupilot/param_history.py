@@ -130,8 +130,10 @@ def scope_of(name: str) -> tuple[str, int]:
 def _concerns(ev: ChangeEvent, name: str, scope: tuple[str, int]) -> bool:
     if ev.name:
         return ev.name == name
-    if ev.scope == "all" or scope[0] == "all":
+    if ev.scope == "all":
         return True
+    if scope[0] == "all":   # board-wide names change only by a reboot or a PARAM_SET
+        return False
     return ev.scope == scope[0] and (ev.instance == _ALL or ev.instance == scope[1])
 
 
@@ -154,15 +156,14 @@ class KnownValues:
         return (t >= self.start_s[k]) & (t < self.end_s[k])
 
     def explain(self, time_s: float, params: ParamTimeline) -> str:
-        """Why the value is not known at ``time_s``, in words."""
+        """Why the value is not known at ``time_s``, in words (without the name)."""
         ts = params.changes[self.name][0]
         if time_s < self.start_s[0]:
-            return (f"{self.name} is first seen at {ts[0]:.1f} s, after a {self.why[0]} at {self.start_s[0]:.1f} s "
+            return (f"first seen at {ts[0]:.1f} s, after a {self.why[0]} at {self.start_s[0]:.1f} s "
                     f"that could have changed it")
         k = int(np.clip(np.searchsorted(self.start_s, time_s, side="right") - 1, 0, len(ts) - 2))
-        return (f"{self.name} changed from {self.value[k]:g} to {self.value[k + 1]:g} somewhere between "
-                f"{self.end_s[k]:.1f} s ({self.why_end[k] or 'its sighting'}) and {self.start_s[k + 1]:.1f} s "
-                f"({self.why[k + 1] or 'its sighting'})")
+        return (f"changed somewhere between {self.end_s[k]:.1f} s ({self.why_end[k] or 'its sighting'}) and "
+                f"{self.start_s[k + 1]:.1f} s ({self.why[k + 1] or 'its sighting'})")
 
     def at(self, time_s: np.ndarray) -> np.ndarray:
         """Values at ``time_s``; NaN where not known."""

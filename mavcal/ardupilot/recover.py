@@ -309,18 +309,18 @@ def _left_out(label: str, t: np.ndarray, mask: np.ndarray, pieces: Sequence[_Pie
     if not np.any(mask):
         return None
     idx = np.flatnonzero(mask)
-    why: list[str] = []
-    seen = set()
+    why: dict[str, list[str]] = {}   # reason -> parameter vectors (X/Y/Z share it)
     for p in pieces:
         if p.unknown and np.any(mask[p.i0:p.i1]):
-            for n in p.unknown:   # one reason per parameter vector (X/Y/Z share it)
-                key = (n.rstrip("XYZ"), float(known[n].start_s[0]) if p.i0 == 0 else p.i0)
-                if key not in seen:
-                    seen.add(key)
-                    why.append(known[n].explain(float(t[p.i0]), params))
+            for n in p.unknown:
+                names = why.setdefault(known[n].explain(float(t[p.i0]), params), [])
+                short = n[:-2] + "_X/Y/Z" if n[-2:] in ("_X", "_Y", "_Z") else n
+                if short not in names:
+                    names.append(short)
+    parts = [f"{', '.join(names)} {reason}" for reason, names in why.items()]
     return (f"{label}: {len(idx)} readings between {t[idx[0]]:.1f} and {t[idx[-1]]:.1f} s left out "
-            f"(the calibration in force then is not known): " + "; ".join(why[:4])
-            + (f" (and {len(why) - 4} more)" if len(why) > 4 else ""))
+            f"(the calibration in force then is not known): " + "; ".join(parts[:4])
+            + (f" (and {len(parts) - 4} more)" if len(parts) > 4 else ""))
 # --------------------------------------------------------------------------- main
 
 def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] | None = None,
