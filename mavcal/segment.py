@@ -26,8 +26,8 @@ cap) and says in words what the data cannot identify.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -113,7 +113,7 @@ class StillInterval:
     accel_mps2: Mapping[int, np.ndarray]
     mag_mgauss: Mapping[int, np.ndarray]
     accel_dir: np.ndarray
-    mag_dir: Optional[np.ndarray] = None
+    mag_dir: np.ndarray | None = None
     sample_period_s: float = 0.0
 
     @property
@@ -127,11 +127,11 @@ class StillInterval:
         return -self.accel_dir
 
     @property
-    def n_accel(self) -> Dict[int, int]:
+    def n_accel(self) -> dict[int, int]:
         return {k: int(v.shape[0]) for k, v in self.accel_mps2.items()}
 
     @property
-    def n_mag(self) -> Dict[int, int]:
+    def n_mag(self) -> dict[int, int]:
         return {k: int(v.shape[0]) for k, v in self.mag_mgauss.items()}
 
 
@@ -153,7 +153,7 @@ class Coverage:
     scatter_eigenvalues: np.ndarray
     largest_empty_cap_deg: float
     status: str
-    messages: Tuple[str, ...] = ()
+    messages: tuple[str, ...] = ()
 
     @property
     def min_eigenvalue(self) -> float:
@@ -176,43 +176,43 @@ class Segmentation:
     warnings : tuple of str (coverage messages plus input problems).
     """
 
-    intervals: Tuple[StillInterval, ...]
+    intervals: tuple[StillInterval, ...]
     coverage: Coverage
     config: StillConfig
     sample_rate_hz: float
     window_samples: int
     used_gyro: bool
     used_mag: bool
-    accel_instances: Tuple[int, ...] = ()
-    mag_instances: Tuple[int, ...] = ()
-    warnings: Tuple[str, ...] = ()
+    accel_instances: tuple[int, ...] = ()
+    mag_instances: tuple[int, ...] = ()
+    warnings: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.intervals)
 
-    def accel_arrays(self, instance: int = 0) -> List[np.ndarray]:
+    def accel_arrays(self, instance: int = 0) -> list[np.ndarray]:
         """Per interval the (n_i, 3) accel samples of ``instance`` (m/s^2)."""
         return [iv.accel_mps2.get(instance, np.empty((0, 3))) for iv in self.intervals]
 
-    def mag_arrays(self, instance: int = 0) -> List[np.ndarray]:
+    def mag_arrays(self, instance: int = 0) -> list[np.ndarray]:
         """Per interval the (n_i, 3) mag samples of ``instance`` (mGauss)."""
         return [iv.mag_mgauss.get(instance, np.empty((0, 3))) for iv in self.intervals]
 
 
 # --------------------------------------------------------------------------- helpers
 
-def _collect(data) -> Tuple[List[SensorSeries], List[SensorSeries], List[SensorSeries]]:
+def _collect(data) -> tuple[list[SensorSeries], list[SensorSeries], list[SensorSeries]]:
     """accel, mag, gyro series of a RawImu, an ImuLog, or a sequence of SensorSeries."""
     if hasattr(data, "accel") and hasattr(data, "mag"):
         return list(data.accel), list(data.mag), list(getattr(data, "gyro", ()))
     series = list(data.series) if hasattr(data, "series") else list(data)
-    by = {"accel": [], "mag": [], "gyro": []}  # type: Dict[str, List[SensorSeries]]
+    by: dict[str, list[SensorSeries]] = {"accel": [], "mag": [], "gyro": []}
     for s in series:
         by[s.sensor].append(s)
     return by["accel"], by["mag"], by["gyro"]
 
 
-def _rolling(x: np.ndarray, w: int) -> Tuple[np.ndarray, np.ndarray]:
+def _rolling(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
     """Mean and standard deviation of (n, d) x over windows x[i:i+w], i = 0..n-w."""
     c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
     c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
@@ -228,7 +228,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / n if n > 0 else v
 
 
-def _angle_deg(a: Optional[np.ndarray], b: Optional[np.ndarray]) -> float:
+def _angle_deg(a: np.ndarray | None, b: np.ndarray | None) -> float:
     if a is None or b is None:
         return 0.0
     return float(np.degrees(np.arccos(np.clip(np.dot(_unit(a), _unit(b)), -1.0, 1.0))))
@@ -259,6 +259,33 @@ _SPHERE = _fibonacci_sphere()
 
 # --------------------------------------------------------------------------- coverage
 
+def _count_clusters(g: np.ndarray, cluster_deg: float) -> int:
+    """Leader clustering of unit vectors in their order: a vector starts a new cluster when
+    no earlier cluster leader is within ``cluster_deg``. The first unassigned vector is
+    always a leader, and it claims every later vector within reach, so each pass is one
+    vectorised product (passes = clusters, bounded by how many caps fit on the sphere)."""
+    cos_c = np.cos(np.radians(cluster_deg))
+    free = np.ones(g.shape[0], dtype=bool)
+    n = 0
+    while True:
+        idx = np.flatnonzero(free)
+        if idx.size == 0:
+            return n
+        lead = idx[0]
+        n += 1
+        free[idx[g[idx] @ g[lead] >= cos_c]] = False
+        free[lead] = False
+
+
+def _largest_empty_cap_deg(g: np.ndarray, chunk: int = 1024) -> float:
+    """Radius (deg) of the largest spherical cap without any of the unit vectors ``g``
+    (over a fixed Fibonacci grid; memory bounded by ``chunk`` vectors at a time)."""
+    best = np.full(_SPHERE.shape[0], -np.inf)
+    for k in range(0, g.shape[0], chunk):
+        np.maximum(best, np.max(_SPHERE @ g[k:k + chunk].T, axis=1), out=best)
+    return float(np.degrees(np.arccos(np.clip(best, -1, 1))).max())
+
+
 def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Coverage:
     """Coverage of a set of unit gravity directions (one per interval).
 
@@ -269,20 +296,15 @@ def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Co
     """
     g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
     n = g.shape[0]
-    msgs: List[str] = []
+    msgs: list[str] = []
     if n == 0:
         return Coverage(0, 0, np.zeros(3), 180.0, "insufficient",
                         ("no still intervals were found: the vehicle never stayed still long enough "
                          "(or the thresholds are too strict)",))
     g = g / np.linalg.norm(g, axis=1, keepdims=True)
-    centers: List[np.ndarray] = []
-    cos_c = np.cos(np.radians(cluster_deg))
-    for v in g:
-        if not any(np.dot(v, c) >= cos_c for c in centers):
-            centers.append(v)
-    n_or = len(centers)
+    n_or = _count_clusters(g, cluster_deg)
     ev = np.sort(np.linalg.eigvalsh(g.T @ g / n))
-    cap = float(np.degrees(np.arccos(np.clip(np.max(_SPHERE @ g.T, axis=1), -1, 1))).max())
+    cap = _largest_empty_cap_deg(g)
     if n < FULL_MODEL_MIN_INTERVALS:
         msgs.append(f"{n} still interval{'s' if n != 1 else ''}: the full joint model needs "
                     f">= {FULL_MODEL_MIN_INTERVALS} intervals; a reduced model will be used")
@@ -317,8 +339,24 @@ def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Co
 
 # --------------------------------------------------------------------------- detection
 
-def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: Optional[Tuple[np.ndarray, np.ndarray]],
-                   mag: Optional[Tuple[np.ndarray, np.ndarray]], w: int, cfg: StillConfig) -> np.ndarray:
+def _covered(starts: np.ndarray, w: int, n: int) -> np.ndarray:
+    """(n,) bool: sample i lies in some window [s, s + w) of ``starts`` (difference array)."""
+    d = np.bincount(starts, minlength=n + 1) - np.bincount(np.minimum(starts + w, n), minlength=n + 1)
+    return np.cumsum(d[:n]) > 0
+
+
+def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Count, sum and sum of squares of the rows of ``v`` with ``t0 <= t <= t1`` (t sorted)."""
+    c1 = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v, axis=0)])
+    c2 = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v * v, axis=0)])
+    i0 = np.searchsorted(t, t0, side="left")
+    i1 = np.searchsorted(t, t1, side="right")
+    return i1 - i0, c1[i1] - c1[i0], c2[i1] - c2[i0]
+
+
+def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.ndarray] | None,
+                   mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig) -> np.ndarray:
     """Per window start i (window = samples i..i+w-1 of accel 0): is the window still."""
     n = len(t)
     if n < w:
@@ -329,44 +367,164 @@ def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: Optional[Tuple[np.ndarr
     t0, t1 = t[starts], t[starts + w - 1]
     if gyro is not None:
         tg, vg = gyro
-        c = np.concatenate([[0.0], np.cumsum(np.sum(vg * vg, axis=1))])
-        i0 = np.searchsorted(tg, t0, side="left")
-        i1 = np.searchsorted(tg, t1, side="right")
-        cnt = i1 - i0
-        ms = np.where(cnt > 0, (c[i1] - c[i0]) / np.maximum(cnt, 1), 0.0)
+        cnt, s1, _ = _window_sums(tg, np.sum(vg * vg, axis=1)[:, None], t0, t1)
+        ms = np.where(cnt > 0, s1[:, 0] / np.maximum(cnt, 1), 0.0)
         ok &= np.sqrt(ms) < cfg.gyro_rad_s
     if mag is not None:
-        tm, vm = mag
-        c1 = np.vstack([np.zeros((1, 3)), np.cumsum(vm, axis=0)])
-        c2 = np.vstack([np.zeros((1, 3)), np.cumsum(vm * vm, axis=0)])
-        i0 = np.searchsorted(tm, t0, side="left")
-        i1 = np.searchsorted(tm, t1, side="right")
-        cnt = (i1 - i0)[:, None]
-        m = (c1[i1] - c1[i0]) / np.maximum(cnt, 1)
-        var = np.maximum((c2[i1] - c2[i0]) / np.maximum(cnt, 1) - m * m, 0.0)
+        cnt, s1, s2 = _window_sums(mag[0], mag[1], t0, t1)
+        m = s1 / np.maximum(cnt, 1)[:, None]
+        var = np.maximum(s2 / np.maximum(cnt, 1)[:, None] - m * m, 0.0)
         # windows with < 2 mag samples carry no information: do not veto
-        ok &= np.where(cnt[:, 0] >= 2, np.sqrt(var).max(axis=1) < cfg.mag_std_mgauss, True)
+        ok &= np.where(cnt >= 2, np.sqrt(var).max(axis=1) < cfg.mag_std_mgauss, True)
     norm = np.linalg.norm(acc, axis=1)
     if np.any(ok):
-        cand = np.zeros(n, dtype=bool)
-        for s in starts[ok]:
-            cand[s:s + w] = True
-        med = float(np.median(norm[cand]))
+        med = float(np.median(norm[_covered(starts[ok], w, n)]))
         bad = np.abs(norm - med) > cfg.accel_norm_tol * med
         cb = np.concatenate([[0], np.cumsum(bad)])
         ok &= (cb[starts + w] - cb[starts]) == 0
     return ok
 
 
-def _runs(mask: np.ndarray) -> List[Tuple[int, int]]:
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[i0, i1) index ranges of True runs."""
     m = np.concatenate([[False], mask, [False]])
     d = np.diff(m.astype(int))
-    return list(zip(np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]))
+    return list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
+
+
+@dataclass(frozen=True, eq=False)
+class _Reference:
+    """Accelerometer 0 (time-sorted, finite samples): the time base of the detector."""
+
+    series: SensorSeries
+    t: np.ndarray
+    a: np.ndarray
+    dt: float
+    rate_hz: float
+    w: int
+
+
+def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
+    ref = min(accel, key=lambda s: s.instance)
+    order = np.argsort(ref.time_s, kind="stable")
+    t, a = ref.time_s[order], ref.values[order]
+    good = np.all(np.isfinite(a), axis=1)
+    t, a = t[good], a[good]
+    dt_all = np.diff(t)
+    dt = float(np.median(dt_all[dt_all > 0])) if np.any(dt_all > 0) else 1.0
+    rate = 1.0 / dt if dt > 0 else 0.0
+    w = max(int(cfg.min_window_samples), int(round(cfg.window_s * rate)))
+    return _Reference(ref, t, a, dt, rate, w)
+
+
+def _sorted_finite(s: SensorSeries) -> tuple[np.ndarray, np.ndarray]:
+    """Time-sorted (stable) times and values of the finite samples of ``s``."""
+    t, v = s.time_s, s.values
+    if len(t) > 1 and np.any(np.diff(t) < 0):
+        o = np.argsort(t, kind="stable")
+        t, v = t[o], v[o]
+    good = np.all(np.isfinite(v), axis=1)
+    return (t, v) if good.all() else (t[good], v[good])
+
+
+def _still_runs(ok: np.ndarray, w: int) -> list[tuple[int, int]]:
+    """Sample ranges [s0, s1) covered by runs of consecutive still windows.
+
+    Runs separated by a moving window overlap in samples: the later one starts where the
+    earlier one ends."""
+    runs: list[tuple[int, int]] = []
+    for r0, r1 in _runs(ok):
+        s0, s1 = int(r0), int(r1 - 1 + w)
+        if runs and s0 < runs[-1][1]:
+            s0 = runs[-1][1]
+        if s1 > s0:
+            runs.append((s0, s1))
+    return runs
+
+
+def _trimmed(runs: Sequence[tuple[int, int]], dt: float, cfg: StillConfig) -> list[tuple[int, int]]:
+    """Runs less ``trim_s`` at each edge that still hold enough samples and time."""
+    trim = int(np.floor(cfg.trim_s / dt + 1e-9)) if dt > 0 else 0
+    spans: list[tuple[int, int]] = []
+    for r0, r1 in runs:
+        i0, i1 = r0 + trim, r1 - trim
+        if i1 - i0 < cfg.min_samples or (i1 - i0) * dt < cfg.min_duration_s - 1e-9:
+            continue
+        spans.append((int(i0), int(i1)))
+    return spans
+
+
+class _Directions:
+    """Mean accel direction of a sample range and mean field direction of a time range,
+    in O(1) each from prefix sums (used to decide merges)."""
+
+    def __init__(self, ref: _Reference, R_b: np.ndarray, mag: tuple[np.ndarray, np.ndarray] | None) -> None:
+        self.R_b = R_b
+        self.ca = np.vstack([np.zeros((1, 3)), np.cumsum(ref.a, axis=0)])
+        self.half = ref.dt / 2
+        self.mag = mag
+        self.cm = None if mag is None else np.vstack([np.zeros((1, 3)), np.cumsum(mag[1], axis=0)])
+
+    def accel(self, i0: int, i1: int) -> np.ndarray:
+        return _unit(self.R_b @ ((self.ca[i1] - self.ca[i0]) / (i1 - i0)))
+
+    def field(self, t0: float, t1: float) -> np.ndarray | None:
+        if self.mag is None or self.cm is None:
+            return None
+        j0 = int(np.searchsorted(self.mag[0], t0 - self.half, side="left"))
+        j1 = int(np.searchsorted(self.mag[0], t1 + self.half, side="right"))
+        return None if j1 <= j0 else _unit((self.cm[j1] - self.cm[j0]) / (j1 - j0))
+
+
+def _merge(spans: Sequence[tuple[int, int]], t: np.ndarray, dirs: _Directions,
+           cfg: StillConfig) -> list[tuple[int, int]]:
+    """Merge neighbouring spans in the same orientation (gravity and field within
+    ``merge_deg``, gap at most ``merge_gap_s``)."""
+    merged: list[tuple[int, int]] = []
+    for sp in spans:
+        if merged:
+            p0, p1 = merged[-1]
+            gap = t[sp[0]] - t[p1 - 1]
+            if (gap <= cfg.merge_gap_s and _angle_deg(dirs.accel(p0, p1), dirs.accel(*sp)) < cfg.merge_deg
+                    and _angle_deg(dirs.field(t[p0], t[p1 - 1]),
+                                   dirs.field(t[sp[0]], t[sp[1] - 1])) < cfg.merge_deg):
+                merged[-1] = (p0, sp[1])
+                continue
+        merged.append(sp)
+    return merged
+
+
+def _between(ts: np.ndarray, vs: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Rows of ``vs`` whose time (sorted ``ts``) is within [lo, hi]."""
+    return vs[np.searchsorted(ts, lo, side="left"):np.searchsorted(ts, hi, side="right")]
+
+
+def _intervals(merged: Sequence[tuple[int, int]], ref: _Reference, still: np.ndarray,
+               accels: Mapping[int, tuple[np.ndarray, np.ndarray] | None],
+               mags: Mapping[int, tuple[np.ndarray, np.ndarray]], R_b: np.ndarray,
+               mag0: int | None) -> list[StillInterval]:
+    """The StillIntervals of the merged spans: the still samples of the reference (None in
+    ``accels``), the samples of the other instances within half a sample period of the span."""
+    t, a, dt = ref.t, ref.a, ref.dt
+    out: list[StillInterval] = []
+    for i0, i1 in merged:
+        t0, t1 = float(t[i0]), float(t[i1 - 1])
+        lo, hi = t0 - dt / 2, t1 + dt / 2
+        # merged spans may contain the still-mask gap between two runs: keep still samples
+        keep = still[i0:i1]
+        am: dict[int, np.ndarray] = {}
+        for inst, tv in accels.items():
+            am[inst] = (a[i0:i1] if keep.all() else a[i0:i1][keep]) if tv is None else _between(tv[0], tv[1], lo, hi)
+        mm = {inst: _between(ts, vs, lo, hi) for inst, (ts, vs) in mags.items()}
+        field = None
+        if mag0 is not None and len(mm[mag0]):
+            field = _unit(mm[mag0].mean(axis=0))
+        out.append(StillInterval(t0, t1, am, mm, _unit(R_b @ a[i0:i1].mean(axis=0)), field, dt))
+    return out
 
 
 def find_still_intervals(data, config: StillConfig = StillConfig(),
-                         board_rotation: Optional[np.ndarray] = None) -> Segmentation:
+                         board_rotation: np.ndarray | None = None) -> Segmentation:
     """Find the still intervals of a recording and diagnose their coverage.
 
     Parameters
@@ -374,6 +532,7 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     data : RawImu, ImuLog, or sequence of SensorSeries
         Accel (m/s^2), mag (mGauss) and optional gyro (rad/s) series of any instances.
         Raw data from :func:`mavcal.ardupilot.recover.recover_raw` is the usual input.
+        Non-finite samples (e.g. readings whose calibration was unknown) are left out.
     config : StillConfig
     board_rotation : (3, 3) array, optional
         Rotation from the accel frame to the body frame (R_A of AHRS_ORIENTATION for
@@ -394,95 +553,43 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     accel = [s for s in accel if len(s)]
     mag = [s for s in mag if len(s)]
     gyro = [s for s in gyro if len(s) and np.any(s.values != 0.0)]
-    warnings: List[str] = []
     if not accel:
         raise SegmentationError("no accelerometer data: still intervals cannot be detected")
     if board_rotation is None:
         board_rotation = getattr(data, "board_rotation", None)
     R_b = np.eye(3) if board_rotation is None else np.asarray(board_rotation, dtype=float)
-    ref = min(accel, key=lambda s: s.instance)
-    order = np.argsort(ref.time_s, kind="stable")
-    t = ref.time_s[order]
-    a = ref.values[order]
-    good = np.all(np.isfinite(a), axis=1)
-    t, a = t[good], a[good]
-    dt_all = np.diff(t)
-    dt = float(np.median(dt_all[dt_all > 0])) if np.any(dt_all > 0) else 1.0
-    rate = 1.0 / dt if dt > 0 else 0.0
-    w = max(int(cfg.min_window_samples), int(round(cfg.window_s * rate)))
-    g_ser = next((s for s in sorted(gyro, key=lambda s: s.instance)), None) if cfg.use_gyro else None
+    ref = _reference(accel, cfg)
+    g_ser = min(gyro, key=lambda s: s.instance) if (gyro and cfg.use_gyro) else None
     gy = (g_ser.time_s, g_ser.values) if g_ser is not None else None
-    m_ser = min(mag, key=lambda s: s.instance) if mag else None
-    mg = None
-    if cfg.use_mag and gy is None and m_ser is not None:
-        mo = np.argsort(m_ser.time_s, kind="stable")
-        mg = (m_ser.time_s[mo], m_ser.values[mo])
-    ok = _still_windows(t, a, gy, mg, w, cfg)
-    # a still run = consecutive still windows; it covers their samples. Runs separated by a
-    # moving window overlap in samples: the later one starts where the earlier one ends.
-    runs: List[Tuple[int, int]] = []
-    for r0, r1 in _runs(ok):
-        s0, s1 = int(r0), int(r1 - 1 + w)
-        if runs and s0 < runs[-1][1]:
-            s0 = runs[-1][1]
-        if s1 > s0:
-            runs.append((s0, s1))
-    still = np.zeros(len(t), dtype=bool)
+    mags = {s.instance: _sorted_finite(s) for s in mag}
+    mag0 = min(mags) if mags else None
+    mg = mags[mag0] if (cfg.use_mag and gy is None and mag0 is not None) else None
+    ok = _still_windows(ref.t, ref.a, gy, mg, ref.w, cfg)
+    runs = _still_runs(ok, ref.w)
+    still = _run_mask(runs, len(ref.t))
+    warnings: list[str] = []
+    if len(ref.t) < ref.w:
+        warnings.append(f"only {len(ref.t)} accelerometer samples ({len(ref.t) * ref.dt:.1f} s): too short for a "
+                        f"{ref.w}-sample window")
+    dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0])
+    merged = _merge(_trimmed(runs, ref.dt, cfg), ref.t, dirs, cfg)
+    others = {s.instance: None if s is ref.series else _sorted_finite(s) for s in accel}
+    intervals = _intervals(merged, ref, still, others, mags, R_b, mag0)
+    return _finish(intervals, cfg, ref, gy is not None, mg is not None, accel, mag, warnings)
+
+
+def _run_mask(runs: Sequence[tuple[int, int]], n: int) -> np.ndarray:
+    """(n,) bool, True on the sample ranges ``runs``."""
+    d = np.zeros(n + 1, dtype=np.int64)
     for s0, s1 in runs:
-        still[s0:s1] = True
-    if len(t) < w:
-        warnings.append(f"only {len(t)} accelerometer samples ({len(t) * dt:.1f} s): too short for a "
-                        f"{w}-sample window")
-    trim = int(np.floor(cfg.trim_s / dt + 1e-9)) if dt > 0 else 0
-    spans: List[Tuple[int, int]] = []
-    for i0, i1 in runs:
-        i0, i1 = i0 + trim, i1 - trim
-        if i1 - i0 < cfg.min_samples or (i1 - i0) * dt < cfg.min_duration_s - 1e-9:
-            continue
-        spans.append((int(i0), int(i1)))
+        d[s0] += 1
+        d[s1] -= 1
+    return np.cumsum(d[:n]) > 0
 
-    def mean_dir(i0: int, i1: int) -> np.ndarray:
-        return _unit(R_b @ a[i0:i1].mean(axis=0))
 
-    def mag_dir(t0: float, t1: float) -> Optional[np.ndarray]:
-        if m_ser is None:
-            return None
-        sel = (m_ser.time_s >= t0 - dt / 2) & (m_ser.time_s <= t1 + dt / 2)
-        if not np.any(sel):
-            return None
-        return _unit(m_ser.values[sel].mean(axis=0))
-
-    # merge neighbours in the same orientation
-    merged: List[Tuple[int, int]] = []
-    for sp in spans:
-        if merged:
-            p0, p1 = merged[-1]
-            gap = t[sp[0]] - t[p1 - 1]
-            if (gap <= cfg.merge_gap_s and _angle_deg(mean_dir(*merged[-1]), mean_dir(*sp)) < cfg.merge_deg
-                    and _angle_deg(mag_dir(t[p0], t[p1 - 1]), mag_dir(t[sp[0]], t[sp[1] - 1])) < cfg.merge_deg):
-                merged[-1] = (p0, sp[1])
-                continue
-        merged.append(sp)
-
-    intervals: List[StillInterval] = []
-    for i0, i1 in merged:
-        t0, t1 = float(t[i0]), float(t[i1 - 1])
-        lo, hi = t0 - dt / 2, t1 + dt / 2
-        am: Dict[int, np.ndarray] = {}
-        for s in accel:
-            if s is ref:
-                # merged spans may contain the still-mask gap between two runs: keep still samples
-                idx = np.arange(i0, i1)
-                am[s.instance] = a[idx[still[idx]]] if np.any(~still[idx]) else a[i0:i1]
-            else:
-                sel = (s.time_s >= lo) & (s.time_s <= hi) & np.all(np.isfinite(s.values), axis=1)
-                am[s.instance] = s.values[sel]
-        mm: Dict[int, np.ndarray] = {}
-        for s in mag:
-            sel = (s.time_s >= lo) & (s.time_s <= hi)
-            mm[s.instance] = s.values[sel]
-        intervals.append(StillInterval(t0, t1, am, mm, mean_dir(i0, i1), mag_dir(t0, t1), dt))
-
+def _finish(intervals: list[StillInterval], cfg: StillConfig, ref: _Reference, used_gyro: bool, used_mag: bool,
+            accel: Sequence[SensorSeries], mag: Sequence[SensorSeries], warnings: list[str]) -> Segmentation:
+    """Diagnose coverage, collect the warnings and build the Segmentation."""
     cov = diagnose_coverage(np.array([iv.gravity_dir for iv in intervals]).reshape(-1, 3), cfg.cluster_deg)
     for s in mag:
         empty = sum(1 for iv in intervals if iv.mag_mgauss.get(s.instance, np.empty((0, 3))).shape[0] == 0)
@@ -491,6 +598,5 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     all_w = tuple(warnings) + cov.messages
     for m in all_w:
         log.info("%s", m)
-    return Segmentation(tuple(intervals), cov, cfg, rate, w, gy is not None, mg is not None,
-                        tuple(sorted(s.instance for s in accel)), tuple(sorted(s.instance for s in mag)),
-                        all_w)
+    return Segmentation(tuple(intervals), cov, cfg, ref.rate_hz, ref.w, used_gyro, used_mag,
+                        tuple(sorted(s.instance for s in accel)), tuple(sorted(s.instance for s in mag)), all_w)

@@ -6,7 +6,7 @@ import pytest
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors
 from mavcal.pipeline import Options, calibrate_source
-from mavcal.testing.simlog import AccelErrorTruth as AccelTruth
+from mavcal.testing.simlog import AccelErrorTruth
 from mavcal.testing.simlog import MagTruth, SimConfig, simulate_session
 
 SOFT = ((1.04, 0.02, -0.01), (0.02, 0.97, 0.015), (-0.01, 0.015, 1.01))  # symmetric: ArduPilot can hold it
@@ -21,7 +21,7 @@ POSES = [(0, 0, 0), (90, 0, 30), (-90, 0, 200), (0, 90, 120), (0, -90, 300), (18
 @pytest.fixture(scope="module", params=["bin", "tlog"])
 def run(request, tmp_path_factory):
     kind = request.param
-    cfg = SimConfig(accels=(AccelTruth(bias_mps2=BIAS, gain=GAIN, noise_mps2=0.03),),
+    cfg = SimConfig(accels=(AccelErrorTruth(bias_mps2=BIAS, gain=GAIN, noise_mps2=0.03),),
                     mags=(MagTruth(hard_iron_mgauss=HARD, soft_iron=SOFT, noise_mgauss=1.5),),
                     compass_cals=(fw.CompassCal(ofs_mgauss=(10.0, 0.0, -5.0), external=True),),
                     earth_field_ned_mgauss=FIELD, poses_deg=tuple(POSES), hold_s=3.0, move_s=1.5, seed=7)

@@ -11,14 +11,14 @@ from mavcal.errors import MavcalError, SegmentationError
 from mavcal.segment import StillConfig, diagnose_coverage, find_still_intervals
 from mavcal.sources import open_source
 from mavcal.sources.types import SensorSeries
-from mavcal.testing.simlog import AccelErrorTruth as AccelTruth
+from mavcal.testing.simlog import AccelErrorTruth
 from mavcal.testing.simlog import MagTruth, SimConfig, simulate_session
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 REAL = SHARED / "data" / "real"
 SITL = SHARED / "sitl_logs"
 
-CFG = SimConfig(accels=(AccelTruth((0.2, -0.1, 0.1), (1.01, 0.98, 1.0)),),
+CFG = SimConfig(accels=(AccelErrorTruth((0.2, -0.1, 0.1), (1.01, 0.98, 1.0)),),
                 mags=(MagTruth((50.0, -20.0, 80.0)), MagTruth((5.0, 5.0, 5.0))), seed=3)
 
 
@@ -152,3 +152,46 @@ def test_axis_labels_follow_frd():
     assert axis_label(np.array([-1.0, 0.0, 0.0])) == "nose up"
     assert axis_label(np.array([0.0, 1.0, 0.0])) == "on its right side"
     assert axis_label(np.array([0.0, 0.0, -1.0])) == "on its back"
+
+
+EXPECTED = Path(__file__).resolve().parent / "data" / "still_intervals_sitl.json"
+BUNDLED = Path(__file__).resolve().parents[1] / "sitl_logs"
+
+
+@pytest.mark.parametrize("name", ["sitl01.tlog", "sitl02.tlog"])
+def test_bundled_logs_give_the_recorded_intervals(name):
+    """Bounds, sample counts and directions recorded with the per-interval-mask detector
+    before it was made linear: the faster one must find exactly the same."""
+    path = BUNDLED / name
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    expect = json.loads(EXPECTED.read_text())[name]
+    seg = find_still_intervals(recover_raw(open_source(str(path))))
+    got = [[iv.start_s, iv.end_s, {str(k): v for k, v in iv.n_accel.items()},
+            {str(k): v for k, v in iv.n_mag.items()}, list(iv.accel_dir)] for iv in seg.intervals]
+    assert len(got) == len(expect)
+    for g, e in zip(got, expect):
+        assert g[0] == pytest.approx(e[0], abs=1e-6) and g[1] == pytest.approx(e[1], abs=1e-6)
+        assert g[2] == e[2] and g[3] == e[3]
+        np.testing.assert_allclose(g[4], e[4], atol=1e-8)
+
+
+def test_coverage_clusters_in_order_like_the_leader_rule():
+    rng = np.random.default_rng(1)
+    g = rng.normal(size=(500, 3))
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    centers = []
+    for v in g:   # the rule, one vector at a time
+        if not any(v @ c >= np.cos(np.radians(20.0)) for c in centers):
+            centers.append(v)
+    cov = diagnose_coverage(g, 20.0)
+    assert cov.n_orientations == len(centers)
+    cap = np.degrees(np.arccos(np.clip((_sphere_points() @ g.T).max(axis=1), -1, 1))).max()
+    assert cov.largest_empty_cap_deg == pytest.approx(cap)
+
+
+def _sphere_points(n: int = 2000) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    return np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)])

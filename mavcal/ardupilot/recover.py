@@ -24,12 +24,15 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any
 
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
+from mavcal.ardupilot import param_history as ph
+from mavcal.ardupilot.protocol import MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_PREFLIGHT_CALIBRATION
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 
 log = logging.getLogger(__name__)
@@ -39,8 +42,6 @@ __all__ = ["RawImu", "recover_raw", "find_accel_cal_periods", "ACCEL_FRAME", "MA
 ACCEL_FRAME = "board frame (before AHRS_ORIENTATION)"
 MAG_FRAME = "body frame after COMPASS_ORIENT/AHRS_ORIENTATION"
 
-MAV_CMD_PREFLIGHT_CALIBRATION = 241
-MAV_CMD_ACCELCAL_VEHICLE_POS = 42429
 ACCELCAL_POS_SUCCESS = 16777215
 ACCELCAL_POS_FAILED = 16777216
 
@@ -77,29 +78,29 @@ class RawImu:
     """
 
     source: str
-    accel: Tuple[SensorSeries, ...]
-    mag: Tuple[SensorSeries, ...]
-    gyro: Tuple[SensorSeries, ...] = ()
-    params_used: Mapping[str, Tuple[Tuple[float, float], ...]] = field(default_factory=dict)
+    accel: tuple[SensorSeries, ...]
+    mag: tuple[SensorSeries, ...]
+    gyro: tuple[SensorSeries, ...] = ()
+    params_used: Mapping[str, tuple[tuple[float, float], ...]] = field(default_factory=dict)
     frames: Mapping[str, str] = field(default_factory=lambda: {"accel": ACCEL_FRAME, "mag": MAG_FRAME})
-    warnings: Tuple[str, ...] = ()
-    accel_cal_periods: Tuple[Tuple[float, float], ...] = ()
-    board_rotation: Optional[np.ndarray] = None
+    warnings: tuple[str, ...] = ()
+    accel_cal_periods: tuple[tuple[float, float], ...] = ()
+    board_rotation: np.ndarray | None = None
 
-    def accel_instances(self) -> List[int]:
+    def accel_instances(self) -> list[int]:
         return [s.instance for s in self.accel]
 
-    def mag_instances(self) -> List[int]:
+    def mag_instances(self) -> list[int]:
         return [s.instance for s in self.mag]
 
-    def get(self, sensor: str, instance: int = 0) -> Optional[SensorSeries]:
+    def get(self, sensor: str, instance: int = 0) -> SensorSeries | None:
         for s in {"accel": self.accel, "mag": self.mag, "gyro": self.gyro}[sensor]:
             if s.instance == instance:
                 return s
         return None
 
     @property
-    def time_span_s(self) -> Tuple[float, float]:
+    def time_span_s(self) -> tuple[float, float]:
         ts = [s.time_s for s in self.accel + self.mag if len(s)]
         if not ts:
             return (0.0, 0.0)
@@ -108,11 +109,11 @@ class RawImu:
 
 # --------------------------------------------------------------------------- cal periods
 
-def _event_windows(events: Sequence[LogEvent]) -> List[Tuple[float, float, float]]:
+def _event_windows(events: Sequence[LogEvent]) -> list[tuple[float, float, float]]:
     """(start_hint, end_hint, start_command) from events; end_hint = inf when no end seen."""
     evs = sorted(events, key=lambda e: e.time_s)
-    out: List[Tuple[float, float, float]] = []
-    start: Optional[float] = None
+    out: list[tuple[float, float, float]] = []
+    start: float | None = None
     cmd: float = np.nan
     for e in evs:
         is_cmd = (e.kind == "command" and e.code == MAV_CMD_PREFLIGHT_CALIBRATION
@@ -135,7 +136,7 @@ def _event_windows(events: Sequence[LogEvent]) -> List[Tuple[float, float, float
     return out
 
 
-def _best_split(u_before: np.ndarray, u_after: np.ndarray, min_step: float) -> Optional[int]:
+def _best_split(u_before: np.ndarray, u_after: np.ndarray, min_step: float) -> int | None:
     """Index k where the interpretation switches (samples [:k] from ``u_before``, [k:] from
     ``u_after``) so that the raw sequence is continuous; None if no switch is visible.
 
@@ -169,7 +170,7 @@ def _best_split(u_before: np.ndarray, u_after: np.ndarray, min_step: float) -> O
 
 
 def find_accel_cal_periods(log_: ImuLog, margin_s: float = 4.0, min_step_mps2: float = 0.05
-                           ) -> List[Tuple[float, float]]:
+                           ) -> list[tuple[float, float]]:
     """Periods during which ArduPilot's 6-position accelerometer calibration ran.
 
     The events give an approximate start (first "Place vehicle" prompt, or the first
@@ -189,7 +190,7 @@ def find_accel_cal_periods(log_: ImuLog, margin_s: float = 4.0, min_step_mps2: f
         return []
     acc = log_.get("accel", 0)
     min_step = float(min_step_mps2)
-    out: List[Tuple[float, float]] = []
+    out: list[tuple[float, float]] = []
     for start, end, cmd in wins:
         s_edge, e_edge = start, end
         if acc is not None and len(acc) > 2:
@@ -227,37 +228,58 @@ def find_accel_cal_periods(log_: ImuLog, margin_s: float = 4.0, min_step_mps2: f
 # --------------------------------------------------------------------------- helpers
 
 def _accel_cal_at(params: ParamTimeline, instance: int, time_s: float,
-                  missing: Optional[List[str]] = None) -> fw.AccelCal:
-    return fw.accel_cal_from_params(params.snapshot(float(time_s)), instance, missing)
+                  missing: list[str] | None = None) -> fw.AccelCal:
+    return fw.accel_cal_from_params(_values(params, _names_accel(instance), float(time_s)), instance, missing)
 
 
-def _compass_cal_at(params: ParamTimeline, instance: int, time_s: float,
-                    missing: Optional[List[str]] = None) -> fw.CompassCal:
-    return fw.compass_cal_from_params(params.snapshot(float(time_s)), instance, missing)
+def _values(params: ParamTimeline, names: Sequence[str], time_s: float) -> dict[str, float]:
+    """The values of ``names`` (those the log has) in force at ``time_s``."""
+    return {n: float(v[0]) for n, v in params.values_at(names, time_s).items()}
 
 
-def _names_accel(instance: int) -> List[str]:
-    n = fw.accel_param_names(instance)
-    b = fw.board_param_names()
+def _names_accel(instance: int) -> list[str]:
+    n: Mapping[str, Any] = fw.accel_param_names(instance)
+    b: Mapping[str, Any] = fw.board_param_names()
     return list(n["ofs"]) + list(n["scale"]) + [b["orientation"]] + list(b["custom1"]) + list(b["custom2"])
 
 
-def _names_compass(instance: int) -> List[str]:
-    n = fw.compass_param_names(instance)
-    b = fw.board_param_names()
+def _names_compass(instance: int) -> list[str]:
+    n: Mapping[str, Any] = fw.compass_param_names(instance)
+    b: Mapping[str, Any] = fw.board_param_names()
     return (list(n["ofs"]) + list(n["dia"]) + list(n["odi"]) + [n["scale"], n["orient"], n["external"]]
             + [b["orientation"]] + list(b["custom1"]) + list(b["custom2"]))
 
 
-def _segments(params: ParamTimeline, names: Sequence[str], t: np.ndarray) -> List[Tuple[int, int]]:
-    """Index ranges [i0, i1) of ``t`` over which none of ``names`` changes."""
-    ct = params.change_times(names)
-    cuts = np.searchsorted(t, ct, side="left") if len(ct) else np.array([], dtype=int)
-    edges = sorted({0, len(t), *[int(c) for c in cuts]})
-    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+@dataclass(frozen=True, eq=False)
+class _Piece:
+    """Samples [i0, i1) over which no parameter of a sensor changes (or becomes unknown)."""
+
+    i0: int
+    i1: int
+    values: dict[str, float]
+    unknown: tuple[str, ...]
 
 
-def _record(used: Dict[str, List[Tuple[float, float]]], params: ParamTimeline, names: Sequence[str],
+def _pieces(params: ParamTimeline, known: Mapping[str, ph.KnownValues], cut: Sequence[str],
+            extra: Sequence[str], t: np.ndarray) -> list[_Piece]:
+    """Split ``t`` where any of ``cut`` changes or becomes (un)known; per piece the values in
+    force of ``cut`` and ``extra`` (one vectorised lookup per name for all pieces)."""
+    edges_t = [params.change_times(cut)] + [known[n].edges for n in cut if n in known]
+    cuts = np.searchsorted(t, np.concatenate(edges_t), side="left")
+    edges = np.unique(np.concatenate([[0, len(t)], cuts]).astype(np.int64))
+    i0s, i1s = edges[:-1], edges[1:]
+    ts = t[i0s]
+    cols = {n: known[n].at(ts) for n in cut if n in known}
+    cols.update(params.values_at([n for n in extra if n not in cols], ts))
+    ok = {n: known[n].known(ts) for n in cut if n in known}
+    out: list[_Piece] = []
+    for j, (i0, i1) in enumerate(zip(i0s.tolist(), i1s.tolist())):
+        unknown = tuple(n for n, m in ok.items() if not m[j])
+        out.append(_Piece(i0, i1, {n: float(c[j]) for n, c in cols.items() if n not in unknown}, unknown))
+    return out
+
+
+def _record(used: dict[str, list[tuple[float, float]]], params: ParamTimeline, names: Sequence[str],
             t0: float, t1: float) -> None:
     """Add to ``used`` the values of ``names`` in force over [t0, t1] as (time, value) pairs."""
     for n in names:
@@ -267,25 +289,49 @@ def _record(used: Dict[str, List[Tuple[float, float]]], params: ParamTimeline, n
         pairs = used.get(n, []) + [(t0, float(params.value_at(n, t0)[0]))]
         pairs += [(float(tt), float(vv)) for tt, vv in zip(ts, vs) if t0 < tt <= t1]
         pairs.sort()
-        merged: List[Tuple[float, float]] = []
+        merged: list[tuple[float, float]] = []
         for p in pairs:
             if not merged or merged[-1][1] != p[1]:
                 merged.append(p)
         used[n] = merged
 
 
-def _in_periods(t: np.ndarray, periods: Sequence[Tuple[float, float]]) -> np.ndarray:
+def _in_periods(t: np.ndarray, periods: Sequence[tuple[float, float]]) -> np.ndarray:
     m = np.zeros(t.shape, dtype=bool)
     for a, b in periods:
         m |= (t >= a) & (t < b)
     return m
 
 
+def _left_out(label: str, t: np.ndarray, mask: np.ndarray, pieces: Sequence[_Piece],
+              known: Mapping[str, ph.KnownValues], params: ParamTimeline) -> str | None:
+    """Warning for the samples ``mask`` left out because their parameters were unknown."""
+    if not np.any(mask):
+        return None
+    idx = np.flatnonzero(mask)
+    why: dict[str, list[str]] = {}   # reason -> parameter vectors (X/Y/Z share it)
+    for p in pieces:
+        if p.unknown and np.any(mask[p.i0:p.i1]):
+            for n in p.unknown:
+                names = why.setdefault(known[n].explain(float(t[p.i0]), params), [])
+                short = n[:-2] + "_X/Y/Z" if n[-2:] in ("_X", "_Y", "_Z") else n
+                if short not in names:
+                    names.append(short)
+    parts = [f"{', '.join(names)} {reason}" for reason, names in why.items()]
+    return (f"{label}: {len(idx)} readings between {t[idx[0]]:.1f} and {t[idx[-1]]:.1f} s left out "
+            f"(the calibration in force then is not known): " + "; ".join(parts[:4])
+            + (f" (and {len(parts) - 4} more)" if len(parts) > 4 else ""))
 # --------------------------------------------------------------------------- main
 
-def recover_raw(log_: ImuLog, accel_cal_periods: Optional[Sequence[Tuple[float, float]]] = None,
+def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] | None = None,
                 drop_zero_series: bool = True) -> RawImu:
     """Invert ArduPilot's correction of every accel and compass series of ``log_``.
+
+    Each parameter set is applied to the whole span it is in force. A logged value counts
+    only where it is known to be in force (:mod:`mavcal.ardupilot.param_history`): from
+    the last event that could have changed it (a reboot, a calibration, a PARAM_SET)
+    before it was first seen. Readings whose parameters are not known are left out (NaN
+    values, ``extra["params_known"]`` 0) with a warning; outside an accel calibration.
 
     Parameters
     ----------
@@ -303,108 +349,27 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Optional[Sequence[Tuple[float, 
     RawImu
         Accel in m/s^2 (board frame), mag in mGauss (body frame after orientation).
     """
-    warnings: List[str] = list()
-    params = log_.params
-    used: Dict[str, List[Tuple[float, float]]] = {}
+    warnings: list[str] = list()
+    used: dict[str, list[tuple[float, float]]] = {}
     periods = list(find_accel_cal_periods(log_) if accel_cal_periods is None else accel_cal_periods)
     for a, b in periods:
         log.info("accelerometer calibration ran %.2f..%.2f s: offsets/scale not undone there", a, b)
-
-    board = fw.board_param_names()["orientation"]
-    accel_out: List[SensorSeries] = []
+    events = sorted(ph.change_events(log_.events) + ph.accel_cal_events(periods), key=lambda e: e.time_s)
+    accel_out: list[SensorSeries] = []
     for inst in log_.instances("accel"):
-        s = log_.get("accel", inst)
-        if s is None or len(s) == 0:
-            continue
-        if drop_zero_series and not np.any(s.values != 0.0):
-            warnings.append(f"accel {inst} ({s.message}) is all zero (no such IMU); dropped")
-            continue
-        t = s.time_s
-        names = _names_accel(inst)
-        an = fw.accel_param_names(inst)
-        have = [n for n in list(an["ofs"]) + list(an["scale"]) if n in params]
-        out = np.empty_like(s.values)
-        calib = _in_periods(t, periods)
-        if not have:
-            warnings.append(f"accel {inst}: the log has no {an['ofs'][0][:-2]}/{an['scale'][0][:-2]} "
-                            f"parameters; readings treated as raw"
-                            + ("" if board in params else " (and no AHRS_ORIENTATION: board frame = body frame)"))
-            bnames = [board] + list(fw.board_param_names()["custom1"]) + list(fw.board_param_names()["custom2"])
-            for i0, i1 in _segments(params, bnames, t):
-                cal = _accel_cal_at(params, inst, t[i0])
-                out[i0:i1] = fw.undo_accel(cal, s.values[i0:i1], calibrating=True)
-            _record(used, params, [board], float(t[0]), float(t[-1]))
-        else:
-            missing: List[str] = []
-            for i0, i1 in _segments(params, names, t):
-                cal = _accel_cal_at(params, inst, t[i0], missing)
-                if any(v == 0.0 for v in cal.scale):
-                    warnings.append(f"accel {inst}: scale parameter is zero (uncalibrated slot) from "
-                                    f"{t[i0]:.1f} s; those axes are NaN")
-                c = calib[i0:i1]
-                seg = s.values[i0:i1]
-                out[i0:i1] = np.where(c[:, None], fw.undo_accel(cal, seg, calibrating=True), fw.undo_accel(cal, seg))
-            if missing:
-                warnings.append(f"accel {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
-            _record(used, params, names, float(t[0]), float(t[-1]))
-        accel_out.append(SensorSeries("accel", inst, s.message, t, out, s.log_time_s,
-                                      {**dict(s.extra), "calibrating": calib.astype(float)}))
-
-    mag_out: List[SensorSeries] = []
+        s = _usable(log_.get("accel", inst), "accel", drop_zero_series, warnings)
+        if s is not None:
+            accel_out.append(_recover_accel(log_.params, s, periods, events, used, warnings))
+    mag_out: list[SensorSeries] = []
     for inst in log_.instances("mag"):
-        s = log_.get("mag", inst)
-        if s is None or len(s) == 0:
-            continue
-        if drop_zero_series and not np.any(s.values != 0.0):
-            warnings.append(f"mag {inst} ({s.message}) is all zero (no such compass); dropped")
+        s = _usable(log_.get("mag", inst), "mag", drop_zero_series, warnings)
+        if s is None:
             continue
         if inst >= fw.MAX_COMPASSES:
             warnings.append(f"mag {inst}: no parameter slot for compass {inst + 1}; readings treated as raw")
             mag_out.append(s)
             continue
-        t = s.time_s
-        names = _names_compass(inst)
-        cn = fw.compass_param_names(inst)
-        have = [n for n in list(cn["ofs"]) + list(cn["dia"]) + [cn["scale"]] if n in params]
-        motor = s.extra.get("motor_ofs_mgauss")
-        if motor is not None and np.asarray(motor).shape != s.values.shape:
-            motor = None
-        if not have:
-            ofs_logged = s.extra.get("ofs_mgauss")
-            if ofs_logged is not None and np.asarray(ofs_logged).shape == s.values.shape:
-                warnings.append(f"mag {inst}: the log has no COMPASS parameters for this compass; "
-                                f"used the logged MAG offsets (int16) and no matrix/scale")
-                out = s.values - np.asarray(ofs_logged)
-                if motor is not None:
-                    out = out - motor
-            else:
-                warnings.append(f"mag {inst}: the log has no {cn['ofs'][0][:-2]}/DIA/ODI/SCALE parameters; "
-                                f"readings treated as raw")
-                out = np.array(s.values)
-        else:
-            out = np.empty_like(s.values)
-            missing = []
-            for i0, i1 in _segments(params, names, t):
-                cal = _compass_cal_at(params, inst, t[i0], missing)
-                m = None if motor is None else motor[i0:i1]
-                out[i0:i1] = fw.undo_compass(cal, s.values[i0:i1], m)
-            if missing:
-                warnings.append(f"mag {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
-            _record(used, params, names, float(t[0]), float(t[-1]))
-            if motor is None:
-                motct = params.final(fw.board_param_names()["motct"], 0) or 0
-                mot = [params.final(n, 0) or 0 for n in cn["mot"]]
-                if int(motct) != 0 and any(abs(x) > 0 for x in mot):
-                    warnings.append(f"mag {inst}: COMPASS_MOTCT={int(motct)} with non-zero {cn['mot'][0][:-2]} "
-                                    f"but no logged motor offset; motor compensation assumed zero "
-                                    f"(true when disarmed with zero throttle/current)")
-            dev, prio = cn["dev_id"], cn["prio_id"]
-            if dev in params and prio in params and params.final(dev) != params.final(prio):
-                warnings.append(f"mag {inst}: {dev} != {prio} (compass order changed without a reboot?); "
-                                f"parameters may belong to another compass")
-        extra = {k: v for k, v in dict(s.extra).items()}
-        mag_out.append(SensorSeries("mag", inst, s.message, t, out, s.log_time_s, extra))
-
+        mag_out.append(_recover_mag(log_.params, s, events, used, warnings))
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
                  and not (drop_zero_series and not np.any(g.values != 0.0)))
     for w in warnings:
@@ -418,11 +383,142 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Optional[Sequence[Tuple[float, 
         frames={"accel": ACCEL_FRAME, "mag": MAG_FRAME},
         warnings=tuple(warnings),
         accel_cal_periods=tuple((float(a), float(b)) for a, b in periods),
-        board_rotation=_board_rotation(params),
+        board_rotation=_board_rotation(log_.params),
     )
 
 
-def _board_rotation(params: ParamTimeline) -> Optional[np.ndarray]:
+def _usable(s: SensorSeries | None, sensor: str, drop_zero: bool, warnings: list[str]) -> SensorSeries | None:
+    """The series, or None when it is empty or (``drop_zero``) all zero (with a warning)."""
+    if s is None or len(s) == 0:
+        return None
+    if drop_zero and not np.any(s.values != 0.0):
+        what = "no such IMU" if sensor == "accel" else "no such compass"
+        warnings.append(f"{sensor} {s.instance} ({s.message}) is all zero ({what}); dropped")
+        return None
+    return s
+
+
+def _with_known(s: SensorSeries, values: np.ndarray, extra: dict[str, np.ndarray], left_out: np.ndarray
+                ) -> SensorSeries:
+    """The recovered series; ``extra["params_known"]`` marks readings left out (NaN)."""
+    if np.any(left_out):
+        values = np.where(left_out[:, None], np.nan, values)
+        extra = {**extra, "params_known": (~left_out).astype(float)}
+    return SensorSeries(s.sensor, s.instance, s.message, s.time_s, values, s.log_time_s, extra)
+
+
+def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tuple[float, float]],
+                   events: Sequence[ph.ChangeEvent], used: dict[str, list[tuple[float, float]]],
+                   warnings: list[str]) -> SensorSeries:
+    """Undo offsets/scale (outside accel-cal periods) and the board rotation of one IMU."""
+    inst, t = s.instance, s.time_s
+    an: Mapping[str, Any] = fw.accel_param_names(inst)
+    bn: Mapping[str, Any] = fw.board_param_names()
+    board = [bn["orientation"]] + list(bn["custom1"]) + list(bn["custom2"])
+    have = [n for n in list(an["ofs"]) + list(an["scale"]) if n in params]
+    names = _names_accel(inst) if have else board
+    known = ph.known_table(params, names, events)
+    out = np.empty_like(s.values)
+    calib = _in_periods(t, periods)
+    left_out = np.zeros(len(t), dtype=bool)
+    missing: list[str] = []
+    pieces = _pieces(params, known, names, (), t)
+    for p in pieces:
+        sl = slice(p.i0, p.i1)
+        cal = fw.accel_cal_from_params(p.values, inst, missing if (have and not p.unknown) else None)
+        if not have or set(p.unknown) & set(board):
+            out[sl] = fw.undo_accel(cal, s.values[sl], calibrating=True)
+            left_out[sl] = bool(p.unknown)
+            continue
+        if any(v == 0.0 for v in cal.scale) and not p.unknown:
+            warnings.append(f"accel {inst}: scale parameter is zero (uncalibrated slot) from "
+                            f"{t[p.i0]:.1f} s; those axes are NaN")
+        c = calib[sl]
+        # offsets/scale do not matter where the firmware skipped them (accel calibration)
+        left_out[sl] = bool(p.unknown) & ~c
+        out[sl] = np.where(c[:, None], fw.undo_accel(cal, s.values[sl], calibrating=True),
+                           fw.undo_accel(cal, s.values[sl]))
+    if not have:
+        no_board = "" if bn["orientation"] in params else " (and no AHRS_ORIENTATION: board frame = body frame)"
+        warnings.append(f"accel {inst}: the log has no {an['ofs'][0][:-2]}/{an['scale'][0][:-2]} "
+                        f"parameters; readings treated as raw" + no_board)
+        _record(used, params, [bn["orientation"]], float(t[0]), float(t[-1]))
+    else:
+        if missing:
+            warnings.append(f"accel {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
+        _record(used, params, names, float(t[0]), float(t[-1]))
+    w = _left_out(f"accel {inst}", t, left_out, pieces, known, params)
+    if w:
+        warnings.append(w)
+    return _with_known(s, out, {**dict(s.extra), "calibrating": calib.astype(float)}, left_out)
+
+
+def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.ChangeEvent],
+                 used: dict[str, list[tuple[float, float]]], warnings: list[str]) -> SensorSeries:
+    """Undo the compass correction (offsets, soft iron, scale, motor offset) of one compass."""
+    inst, t = s.instance, s.time_s
+    cn: Mapping[str, Any] = fw.compass_param_names(inst)
+    motor = s.extra.get("motor_ofs_mgauss")
+    if motor is not None and np.asarray(motor).shape != s.values.shape:
+        motor = None
+    if not [n for n in list(cn["ofs"]) + list(cn["dia"]) + [cn["scale"]] if n in params]:
+        return _mag_without_params(s, cn, motor, warnings)
+    names = _names_compass(inst)
+    known = ph.known_table(params, names, events)
+    out = np.empty_like(s.values)
+    left_out = np.zeros(len(t), dtype=bool)
+    missing: list[str] = []
+    pieces = _pieces(params, known, names, list(cn["mot"]), t)
+    for p in pieces:
+        cal = fw.compass_cal_from_params(p.values, inst, None if p.unknown else missing)
+        out[p.i0:p.i1] = fw.undo_compass(cal, s.values[p.i0:p.i1], None if motor is None else motor[p.i0:p.i1])
+        left_out[p.i0:p.i1] = bool(p.unknown)
+    if missing:
+        warnings.append(f"mag {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
+    _record(used, params, names, float(t[0]), float(t[-1]))
+    warnings += _mag_param_warnings(params, inst, motor is None)
+    w = _left_out(f"mag {inst}", t, left_out, pieces, known, params)
+    if w:
+        warnings.append(w)
+    return _with_known(s, out, dict(s.extra), left_out)
+
+
+def _mag_without_params(s: SensorSeries, cn: Mapping[str, Any], motor: np.ndarray | None,
+                        warnings: list[str]) -> SensorSeries:
+    """A compass the log has no COMPASS parameters for: logged offsets if any, else as is."""
+    ofs_logged = s.extra.get("ofs_mgauss")
+    if ofs_logged is not None and np.asarray(ofs_logged).shape == s.values.shape:
+        warnings.append(f"mag {s.instance}: the log has no COMPASS parameters for this compass; "
+                        f"used the logged MAG offsets (int16) and no matrix/scale")
+        out = s.values - np.asarray(ofs_logged)
+        if motor is not None:
+            out = out - motor
+    else:
+        warnings.append(f"mag {s.instance}: the log has no {cn['ofs'][0][:-2]}/DIA/ODI/SCALE parameters; "
+                        f"readings treated as raw")
+        out = np.array(s.values)
+    return SensorSeries("mag", s.instance, s.message, s.time_s, out, s.log_time_s, dict(s.extra))
+
+
+def _mag_param_warnings(params: ParamTimeline, inst: int, no_motor_logged: bool) -> list[str]:
+    """Motor compensation assumed zero; device id and priority id disagree."""
+    cn: Mapping[str, Any] = fw.compass_param_names(inst)
+    out: list[str] = []
+    if no_motor_logged:
+        motct = params.final(str(fw.board_param_names()["motct"]), 0) or 0
+        mot = [params.final(n, 0) or 0 for n in cn["mot"]]
+        if int(motct) != 0 and any(abs(x) > 0 for x in mot):
+            out.append(f"mag {inst}: COMPASS_MOTCT={int(motct)} with non-zero {cn['mot'][0][:-2]} "
+                       f"but no logged motor offset; motor compensation assumed zero "
+                       f"(true when disarmed with zero throttle/current)")
+    dev, prio = cn["dev_id"], cn["prio_id"]
+    if dev in params and prio in params and params.final(dev) != params.final(prio):
+        out.append(f"mag {inst}: {dev} != {prio} (compass order changed without a reboot?); "
+                   f"parameters may belong to another compass")
+    return out
+
+
+def _board_rotation(params: ParamTimeline) -> np.ndarray | None:
     snap = params.snapshot()
     if fw.board_param_names()["orientation"] not in snap:
         return None

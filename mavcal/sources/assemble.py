@@ -183,6 +183,7 @@ class _TimeBase:
         self.seg_index = np.array([index[s] for s in starts], dtype=np.int64)
         self.delay = np.zeros(len(starts))
         self.offset = np.zeros(len(starts))
+        self.reboot_s = np.zeros(len(starts))  # just after the last IMU message of the boot before
         prev_end_time = None
         prev_end_log = None
         for k in range(len(starts)):
@@ -190,6 +191,7 @@ class _TimeBase:
             self.delay[k] = float(np.median(logt[a:b] - boot[a:b]))
             if k > 0:
                 self.offset[k] = prev_end_time + (logt[a] - prev_end_log) - boot[a]
+                self.reboot_s[k] = float(np.nextafter(prev_end_time, np.inf))
             seg_t = boot[a:b] + self.offset[k]
             prev_end_time = float(seg_t.max())
             prev_end_log = float(logt[a:b].max())
@@ -362,6 +364,7 @@ def _tlog_events(cols: Columns, sysid: int, tb: _TimeBase) -> tuple[list[LogEven
         for t, code, res in zip(times.tolist(), np.asarray(ack["command"]).astype(int).tolist(),
                                 np.asarray(ack["result"]).astype(float).tolist()):
             events.append(LogEvent(float(t), "command_ack", CALIBRATION_COMMANDS[code], code, (res,)))
+    events += [LogEvent(float(t), "reboot", "vehicle reboot") for t in tb.reboot_s[1:]]
     events.sort(key=lambda e: e.time_s)
     return events, firmware
 

@@ -8,8 +8,8 @@ which needs the parameter timeline carried here.
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -52,7 +52,7 @@ class SensorSeries:
     message: str
     time_s: np.ndarray
     values: np.ndarray
-    log_time_s: Optional[np.ndarray] = None
+    log_time_s: np.ndarray | None = None
     extra: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -84,25 +84,25 @@ class ParamTimeline:
     first record the first value is used.
     """
 
-    changes: Mapping[str, Tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    changes: Mapping[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     def __contains__(self, name: str) -> bool:
         return name in self.changes
 
-    def names(self) -> List[str]:
+    def names(self) -> list[str]:
         return sorted(self.changes)
 
-    def initial(self, name: str, default: Optional[float] = None) -> Optional[float]:
+    def initial(self, name: str, default: float | None = None) -> float | None:
         if name not in self.changes:
             return default
         return float(self.changes[name][1][0])
 
-    def final(self, name: str, default: Optional[float] = None) -> Optional[float]:
+    def final(self, name: str, default: float | None = None) -> float | None:
         if name not in self.changes:
             return default
         return float(self.changes[name][1][-1])
 
-    def value_at(self, name: str, time_s, default: Optional[float] = None) -> np.ndarray:
+    def value_at(self, name: str, time_s, default: float | None = None) -> np.ndarray:
         """Value in force at each of ``time_s`` (array). NaN where unknown and no default."""
         t = np.atleast_1d(np.asarray(time_s, dtype=float))
         if name not in self.changes:
@@ -111,9 +111,21 @@ class ParamTimeline:
         idx = np.searchsorted(ts, t, side="right") - 1
         return np.asarray(vs)[np.clip(idx, 0, len(vs) - 1)]
 
+    def values_at(self, names: Iterable[str], time_s) -> dict[str, np.ndarray]:
+        """Values of each of ``names`` the timeline has, in force at each of ``time_s``
+        (one vectorised lookup per name; names it lacks are left out)."""
+        t = np.atleast_1d(np.asarray(time_s, dtype=float))
+        return {n: self.value_at(n, t) for n in names if n in self.changes}
+
+    def first_seen(self, name: str) -> float | None:
+        """Time of the first record of ``name`` (None if it never appears)."""
+        if name not in self.changes:
+            return None
+        return float(self.changes[name][0][0])
+
     def change_times(self, names: Iterable[str]) -> np.ndarray:
         """Sorted times (after the first record) at which any of ``names`` changed value."""
-        out: List[float] = []
+        out: list[float] = []
         for n in names:
             if n in self.changes:
                 ts, vs = self.changes[n]
@@ -122,7 +134,7 @@ class ParamTimeline:
                         out.append(float(ts[k]))
         return np.array(sorted(set(out)))
 
-    def snapshot(self, time_s: Optional[float] = None) -> Dict[str, float]:
+    def snapshot(self, time_s: float | None = None) -> dict[str, float]:
         """All parameters as a dict: the values in force at ``time_s`` (default: the last)."""
         if time_s is None:
             return {n: float(v[-1]) for n, (t, v) in self.changes.items()}
@@ -135,14 +147,18 @@ class LogEvent:
 
     kind: "statustext" (STATUSTEXT / DataFlash MSG; ``text``), "command" (COMMAND_LONG/INT
     sent to the vehicle; ``code`` = command id, ``params`` = its params), "command_ack"
-    (``code`` = command, ``result`` in ``params[0]``), "accelcal_pos" (MAV_CMD_ACCELCAL_VEHICLE_POS).
+    (``code`` = command, ``result`` in ``params[0]``), "accelcal_pos" (MAV_CMD_ACCELCAL_VEHICLE_POS),
+    "reboot" (the vehicle restarted: ``time_s`` just after the last sample of the old boot),
+    "param_set" (PARAM_SET sent to the vehicle: ``text`` = parameter name, ``params`` = (value,)).
+    Raw recovery treats reboots, calibration reports and PARAM_SETs as events that may
+    change parameters (:mod:`mavcal.ardupilot.param_history`).
     """
 
     time_s: float
     kind: str
     text: str = ""
     code: int = 0
-    params: Tuple[float, ...] = ()
+    params: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,18 +180,18 @@ class ImuLog:
 
     source: str
     kind: str
-    series: Tuple[SensorSeries, ...]
+    series: tuple[SensorSeries, ...]
     params: ParamTimeline = field(default_factory=ParamTimeline)
-    events: Tuple[LogEvent, ...] = ()
-    position: Optional[Tuple[float, float, float]] = None
+    events: tuple[LogEvent, ...] = ()
+    position: tuple[float, float, float] | None = None
     vehicle: Mapping[str, object] = field(default_factory=dict)
-    warnings: Tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
 
-    def get(self, sensor: str, instance: int = 0) -> Optional[SensorSeries]:
+    def get(self, sensor: str, instance: int = 0) -> SensorSeries | None:
         for s in self.series:
             if s.sensor == sensor and s.instance == instance:
                 return s
         return None
 
-    def instances(self, sensor: str) -> List[int]:
+    def instances(self, sensor: str) -> list[int]:
         return sorted({s.instance for s in self.series if s.sensor == sensor})
