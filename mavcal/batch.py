@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.errors import GateError, MavcalError, UsageError
+from mavcal.errors import MavcalError, UsageError
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +60,8 @@ class BatchRow:
     error : str or None
         Why it did not run (``ok`` False).
     exit_code : int
-        What ``mavcal calibrate`` would return for this log alone: 0 accepted, 4 rejected
-        by the gates, else the :attr:`MavcalError.exit_code` of the error (1 for an
+        What ``mavcal calibrate`` would return for this log alone: 0 every sensor accepted,
+        7 some rejected, 4 none accepted, else the :attr:`MavcalError.exit_code` of the error (1 for an
         unexpected one).
     sysid, firmware : vehicle identity from the log (None when unknown).
     compass_dev_id, accel_id : COMPASS_DEV_ID(n) / INS_ACC(n)_ID of the calibrated instances.
@@ -172,26 +172,36 @@ def _identity(log_, params: dict[str, float], ai: int, mi: int) -> dict:
 
 
 def _row_from_run(source: str, run, ai: int, mi: int, elapsed: float) -> BatchRow:
-    am, cm = run.mapping.accel[0], run.mapping.compass[0]
+    am = run.mapping.accel[0] if run.mapping.accel else None
+    cm = run.mapping.compass[0] if run.mapping.compass else None
     old = dict(run.mapping.old)
-    an, cn = fw.accel_param_names(am.instance), fw.compass_param_names(cm.instance)
-    c_old, c_new = _old_vec(old, cn["ofs"]), _vec(cm.new.ofs_mgauss)
-    a_old, a_new = _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
-    s_old, s_new = _old_vec(old, an["scale"]), _vec(am.new.scale)
+    c_old = c_new = a_old = a_new = s_old = s_new = None
+    if cm is not None:
+        cn = fw.compass_param_names(cm.instance)
+        c_old, c_new = _old_vec(old, cn["ofs"]), _vec(cm.new.ofs_mgauss)
+    if am is not None:
+        an = fw.accel_param_names(am.instance)
+        a_old, a_new = _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
+        s_old, s_new = _old_vec(old, an["scale"]), _vec(am.new.scale)
     fails = tuple(f"{g.sensor} {g.name}: {g.reason}" if g.reason else f"{g.sensor} {g.name}"
                   for g in run.gates.failures())
     return BatchRow(
-        source=source, ok=True, exit_code=0 if run.accepted else GateError.exit_code,
+        source=source, ok=True, exit_code=int(run.exit_code),
         **_identity(run.log, dict(run.params_before), ai, mi),
-        accel_instance=am.instance, compass_instance=cm.instance, accepted=bool(run.accepted), failed_gates=fails,
+        accel_instance=am.instance if am else ai, compass_instance=cm.instance if cm else mi,
+        accepted=bool(run.accepted), failed_gates=fails,
         heading_95_deg=float(run.quality.heading_95_deg), tilt_95_deg=float(run.quality.tilt_95_deg),
         compass_ofs_old=c_old, compass_ofs_new=c_new,
-        compass_ofs_change_mgauss=None if c_old is None else float(np.linalg.norm(np.subtract(c_new, c_old))),
+        compass_ofs_change_mgauss=None if c_old is None or c_new is None else
+         float(np.linalg.norm(np.subtract(c_new, c_old))),
         accel_ofs_old=a_old, accel_ofs_new=a_new,
-        accel_ofs_change_mps2=None if a_old is None else float(np.linalg.norm(np.subtract(a_new, a_old))),
+        accel_ofs_change_mps2=None if a_old is None or a_new is None else
+         float(np.linalg.norm(np.subtract(a_new, a_old))),
         accel_scale_old=s_old, accel_scale_new=s_new,
-        accel_scale_change=None if s_old is None else float(np.max(np.abs(np.subtract(s_new, s_old)))),
-        model=run.calibration.model, n_intervals=len(run.intervals_used), warnings=tuple(run.warnings),
+        accel_scale_change=None if s_old is None or s_new is None else
+         float(np.max(np.abs(np.subtract(s_new, s_old)))),
+        model=run.calibration.model if run.calibration is not None else "accel alone",
+        n_intervals=len(run.intervals_used), warnings=tuple(run.warnings),
         elapsed_s=float(elapsed))
 
 

@@ -10,14 +10,17 @@ Exit codes (CLI contract):
 0   success
 2   usage error (bad command line, bad option value)
 3   unreadable source, no IMU data, device that does not answer
-4   calibration rejected by the gates, or too little/unusable data
+4   no sensor accepted by the gates, or too little/unusable data
 5   parameter write failed and the vehicle was restored
 6   parameter write failed and the restore failed too
+7   some sensors accepted (written / in the .param), some rejected
 ==  =========================================================
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
+
+EXIT_PARTIAL = 7  # calibrate: some sensors accepted, some rejected (not an error: outputs are written)
 
 
 class MavcalError(Exception):

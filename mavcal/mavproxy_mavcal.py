@@ -410,8 +410,11 @@ class MavcalModule(mp_module.MPModule):
             if w.status is not None:
                 print(status_screen(w.status, w.session.config.target_heading_deg if w.session else None))
             if w.run is not None:
-                print(f"fitted: model {w.run.calibration.model}, heading 95 % {w.run.quality.heading_95_deg:.2f} deg, "
-                      f"{'accepted' if w.run.accepted else 'REJECTED by a gate'}")
+                from mavcal.report.text import verdict_lines
+
+                print("\n".join(verdict_lines(w.run)))
+                model = w.run.calibration.model if w.run.calibration is not None else "accelerometers alone"
+                print(f"fitted: model {model}, heading 95 % {w.run.quality.heading_95_deg:.2f} deg")
         elif sub == "next":
             st = w.status
             if st is None or not w.capturing:

@@ -15,19 +15,23 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mavcal.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
+from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import ParamMapping, map_calibration, merge_mappings
+from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_accel, map_calibration
 from mavcal.ardupilot.recover import RawImu, recover_raw
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.types import Calibration
-from mavcal.errors import InsufficientDataError, MavcalError, SourceError
-from mavcal.quality import Quality, holdout_errors, quality_of
+from mavcal.errors import EXIT_PARTIAL, GateError, InsufficientDataError, MavcalError, SourceError
+from mavcal.quality import Quality, accel_tilt_bounds, holdout_errors, quality_of
 from mavcal.segment import Segmentation, StillConfig, find_still_intervals
 from mavcal.sources.progress import ProgressFn
 from mavcal.sources.types import ImuLog
 
 log = logging.getLogger(__name__)
+
+EXIT_ALL_ACCEPTED, EXIT_NONE_ACCEPTED = 0, GateError.exit_code
 
 __all__ = ["Options", "Prepared", "CalibrationRun", "Quality", "open_source", "prepare", "calibrate_source",
            "calibrate_prepared"]
@@ -54,6 +58,8 @@ class Options:
     uncertainty_draws: int = 200
     holdout: bool = True
     gates: gates_mod.GateConfig = gates_mod.GateConfig()
+    sensors: str = "both"  # "accel": accelerometers alone (no compass needed); "compass": compasses only
+    only_instances: tuple[int, ...] | None = None  # with sensors "accel"/"compass": just these instances
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,17 +71,46 @@ class CalibrationRun:
     raw: RawImu
     segmentation: Segmentation
     intervals_used: tuple[int, ...]
-    calibration: Calibration
+    calibration: Calibration | None  # None when the accelerometers were calibrated alone
     mapping: ParamMapping
     quality: Quality
     gates: gates_mod.GateReport
     params_before: dict[str, float]
     warnings: tuple[str, ...] = ()
     others: tuple[CalibrationRun, ...] = ()  # the fits of the other instances (all_instances)
+    accel_fits: tuple[tuple[int, AccelFit], ...] = ()  # each accelerometer's own fit (its verdict)
 
     @property
     def accepted(self) -> bool:
+        """Every sensor accepted."""
         return self.gates.passed
+
+    @property
+    def verdicts(self) -> tuple[gates_mod.SensorVerdict, ...]:
+        """One verdict per sensor with data (accepted, or rejected with reasons)."""
+        return self.gates.verdicts()
+
+    @property
+    def exit_code(self) -> int:
+        """0 every sensor accepted, 7 some accepted and some rejected, 4 none accepted."""
+        v = self.verdicts
+        n_ok = sum(x.accepted for x in v)
+        return EXIT_ALL_ACCEPTED if n_ok == len(v) else EXIT_PARTIAL if n_ok else EXIT_NONE_ACCEPTED
+
+    def params_to_write(self, force: bool = False) -> dict[str, float]:
+        """The accepted sensors' parameters (every sensor's with ``force``); a rejected sensor
+        keeps its current values on the vehicle."""
+        return dict(self.mapping.new) if force else self.mapping.restricted(self.gates.accepted_sensors())
+
+    def rejected_params(self) -> dict[str, str]:
+        """Parameter name -> the failed gates of its (rejected) sensor, e.g. ``"compass1 diagonal"``."""
+        by = self.mapping.by_sensor()
+        out: dict[str, str] = {}
+        for s, gs in self.gates.by_sensor().items():
+            failed = ", ".join(f"{s} {g.name}" for g in gs if not g.ok)
+            if failed:
+                out.update({n: failed for n in by.get(s, {})})
+        return out
 
     def to_json(self) -> dict:
         """The JSON report (:func:`mavcal.report.json.to_json`)."""
@@ -139,33 +174,166 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
 
 
 def calibrate_prepared(prep: Prepared, options: Options = Options()) -> CalibrationRun:
-    """The fit, mapping, quality and gates for a :class:`Prepared` recording.
+    """The fits, mapping, quality and per-sensor gates for a :class:`Prepared` recording.
 
-    With ``options.all_instances`` every other accelerometer is calibrated jointly with
-    compass ``mag_instance`` and every other compass jointly with accelerometer
-    ``accel_instance`` (so all compasses are expressed in the primary IMU's board frame);
-    their parameters and gates join the primary pair's. An instance without enough data
+    Every accelerometer is judged on its own fit (:mod:`mavcal.accel_fit`); it is written
+    from its joint fit with compass ``mag_instance`` when that compass is accepted, else
+    from its own fit. Every compass is fitted jointly with accelerometer ``accel_instance``
+    (so all compasses are in the primary IMU's board frame) and judged on that fit.
+    ``options.sensors`` "accel" calibrates the accelerometers alone (also what a log
+    without compass gets), "compass" only the compasses. An instance without enough data
     is skipped with a warning.
     """
-    primary = _calibrate_pair(prep, options)
-    if not options.all_instances:
-        return primary
-    ai, mi = options.accel_instance, options.mag_instance
-    pairs = [(a, mi) for a in prep.raw.accel_instances() if a != ai] + \
-            [(ai, m) for m in prep.raw.mag_instances() if m != mi]
-    others, warnings = [], list(primary.warnings)
+    opts, warnings = _resolve(prep, options)
+    if opts.sensors == "accel":
+        return _accel_only(prep, opts, warnings)
+    ai, mi = opts.accel_instance, opts.mag_instance
+    primary = _calibrate_pair(prep, opts)
+    warnings += list(primary.warnings)
+    pairs: list[tuple[int, int]] = []
+    if opts.all_instances:
+        pairs = [(ai, m) for m in _wanted(prep.raw.mag_instances(), opts, "compass") if m != mi]
+        if opts.sensors == "both":
+            pairs += [(a, mi) for a in prep.raw.accel_instances() if a != ai]
+    others = []
     for a, m in pairs:
         try:
-            others.append(_calibrate_pair(prep, replace(options, accel_instance=a, mag_instance=m, holdout=False)))
+            others.append(_calibrate_pair(prep, replace(options, accel_instance=a, mag_instance=m,
+                                                        holdout=opts.holdout and a == ai)))
         except MavcalError as exc:
             warnings.append(f"accelerometer {a} / compass {m} not calibrated: {exc}")
-    if not others:
-        return replace(primary, warnings=tuple(warnings))
-    mapping = merge_mappings(primary.mapping, [r.mapping for r in others], primary.params_before)
-    gates = gates_mod.merge_reports(primary.gates, [(r.mapping.accel[0].instance, r.mapping.compass[0].instance,
-                                                     r.gates) for r in others], accel_instance=ai, mag_instance=mi)
-    return replace(primary, mapping=mapping, gates=gates, others=tuple(others),
-                   warnings=tuple(dict.fromkeys(warnings)))
+    compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
+    gates = [g for r in compass_runs for g in r.gates.gates]
+    compasses = [r.mapping.compass[0] for r in compass_runs]
+    accels: list[AccelMapping] = []
+    accel_gates: list[gates_mod.Gate] = []
+    fits: list[tuple[int, AccelFit]] = []
+    quality = primary.quality
+    if opts.sensors == "both":
+        mi_ok = all(g.ok for g in primary.gates.gates)
+        joint = {r.mapping.accel[0].instance: r for r in [primary] + others if r.mapping.compass[0].instance == mi}
+        for a in prep.raw.accel_instances():
+            try:
+                am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, joint[a].mapping.accel[0]
+                                                     if a in joint and mi_ok else None)
+            except MavcalError as exc:
+                warnings.append(f"accelerometer {a} not calibrated: {exc}")
+                continue
+            accels.append(am)
+            fits.append((a, fit))
+            accel_gates += ag
+            if a == ai:
+                quality = replace(quality, tilt_95_deg=tilt[0], tilt_nominal_deg=tilt[1], holdout_accel_mps2=ho)
+            if a in joint and not mi_ok:
+                warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
+                                "was rejected")
+    notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
+    mapping = combine(accels, compasses, primary.params_before, notes)
+    return replace(primary, mapping=mapping, quality=quality, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
+                   others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+
+
+def _wanted(instances, opts: Options, kind: str) -> list[int]:
+    inst = list(instances)
+    if opts.sensors == kind and opts.only_instances is not None:
+        inst = [i for i in inst if i in opts.only_instances]
+    return inst
+
+
+def _resolve(prep: Prepared, options: Options) -> tuple[Options, list[str]]:
+    """The options as they apply to this log (a log without compass: accelerometers alone)."""
+    opts, warnings = options, []
+    if opts.sensors not in ("both", "accel", "compass"):
+        raise MavcalError(f"sensors must be both, accel or compass; got {opts.sensors!r}")
+    if opts.sensors == "both" and not prep.raw.mag_instances():
+        warnings.append("the log has no compass data: the accelerometers were calibrated alone")
+        opts = replace(opts, sensors="accel", only_instances=None)
+    if opts.sensors in ("accel", "compass") and opts.only_instances is not None:
+        have = prep.raw.accel_instances() if opts.sensors == "accel" else prep.raw.mag_instances()
+        missing = [i for i in opts.only_instances if i not in have]
+        if missing:
+            raise SourceError(f"{prep.log.source}: no {opts.sensors} {', '.join(map(str, missing))} data "
+                              f"(the log has {opts.sensors} {', '.join(map(str, have)) or 'none'})")
+        first = opts.only_instances[0]
+        opts = replace(opts, **({"accel_instance": first} if opts.sensors == "accel" else {"mag_instance": first}))
+    return opts, warnings
+
+
+def _accel_sets(prep: Prepared, a: int) -> tuple[list[int], list[np.ndarray]]:
+    none = np.empty((0, 3))
+    used = [k for k, iv in enumerate(prep.segmentation.intervals) if iv.accel_mps2.get(a, none).shape[0] >= 2]
+    if prep.raw.get("accel", a) is None:
+        raise SourceError(f"{prep.log.source}: no accelerometer {a} data")
+    if not used:
+        raise InsufficientDataError(f"{prep.log.source}: no still interval with accelerometer {a} data; "
+                                    + "; ".join(prep.segmentation.coverage.messages))
+    return used, [prep.segmentation.intervals[k].accel_mps2[a] for k in used]
+
+
+def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | None):
+    """Accelerometer ``a`` on its own: its fit, written values (``joint``'s when given, else
+    its own), gates, (tilt 95 %, nominal) and held-out error."""
+    used, acc = _accel_sets(prep, a)
+    q = prep.quantization.get(("accel", a), 0.0)
+    floor = q / np.sqrt(12) if q else None
+    fit = fit_accel(acc, noise_floor=floor)
+    am = joint if joint is not None else map_accel(fit.gain, fit.bias,
+                                                   fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
+    tilt = accel_tilt_bounds(fit, am, opts.uncertainty_draws, opts.seed)
+    ho = holdout_accel_mps2(acc, noise_floor=floor) if opts.holdout else float("nan")
+    dirs = np.array([prep.segmentation.intervals[k].gravity_dir for k in used])
+    n_orient = _n_orientations(dirs, prep.segmentation)
+    gates = gates_mod.accel_gates(am, n_intervals=len(used), n_orientations=n_orient, tilt_95_deg=tilt[0],
+                                  holdout_mps2=ho, config=opts.gates)
+    return am, gates, fit, tilt, ho
+
+
+def _n_orientations(dirs: np.ndarray, seg: Segmentation) -> int:
+    """Distinct gravity directions among ``dirs`` (greedy clusters of the segmentation's size)."""
+    if len(dirs) == len(seg.intervals):
+        return seg.coverage.n_orientations
+    cos_c = np.cos(np.radians(30.0))
+    centres: list[np.ndarray] = []
+    for d in dirs:
+        if not any(float(d @ c) > cos_c for c in centres):
+            centres.append(d)
+    return len(centres)
+
+
+def _accel_only(prep: Prepared, opts: Options, warnings: list[str]) -> CalibrationRun:
+    """Every wanted accelerometer calibrated from its own intervals alone."""
+    params_now = prep.log.params.snapshot()
+    accels, gates, fits = [], [], []
+    quality = None
+    first_used: tuple[int, ...] = ()
+    wanted = _wanted(prep.raw.accel_instances(), opts, "accel")
+    if not wanted:
+        raise SourceError(f"{prep.log.source}: no accelerometer data")
+    errors = []
+    for a in wanted:
+        try:
+            am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None)
+        except MavcalError as exc:
+            errors.append(exc)
+            warnings.append(f"accelerometer {a} not calibrated: {exc}")
+            continue
+        accels.append(am)
+        gates += ag
+        fits.append((a, fit))
+        if quality is None:
+            quality = Quality(float("nan"), tilt[0], float("nan"), tilt[1], ho, float("nan"),
+                              fit.cost / fit.dof if fit.dof > 0 else float("nan"))
+            first_used = tuple(_accel_sets(prep, a)[0])
+    if quality is None:
+        raise errors[0]
+    if not params_now:
+        warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
+    mapping = combine(accels, [], params_now, [f"accelerometer {am.instance} calibrated alone (no compass)"
+                                               for am in accels])
+    return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=prep.segmentation,
+                          intervals_used=first_used, calibration=None, mapping=mapping, quality=quality,
+                          gates=gates_mod.GateReport(tuple(gates)), params_before=params_now,
+                          warnings=tuple(dict.fromkeys(list(prep.warnings) + warnings)), accel_fits=tuple(fits))
 
 
 def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
@@ -215,10 +383,10 @@ def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
     ho = (holdout_errors(acc, mag, cal, method=opts.method, tol=opts.tol, seed=opts.seed, noise_floor=noise_floor)
           if opts.holdout else (float("nan"), float("nan")))
     quality = quality_of(cal, am, cm, am.old.board_matrix, opts.uncertainty_draws, opts.seed, ho)
-    report = gates_mod.check(mapping, params_now, n_intervals=len(used), n_orientations=seg.coverage.n_orientations,
-                             heading_95_deg=quality.heading_95_deg, tilt_95_deg=quality.tilt_95_deg,
-                             holdout_accel_mps2=0.0 if np.isnan(ho[0]) else ho[0],
-                             holdout_mag_mgauss=0.0 if np.isnan(ho[1]) else ho[1], config=opts.gates)
+    dirs = np.array([seg.intervals[k].gravity_dir for k in used])
+    report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
+        cm, params_now, n_intervals=len(used), n_orientations=_n_orientations(dirs, seg),
+        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates)))
     return CalibrationRun(source=log_.source, log=log_, raw=prep.raw, segmentation=seg, intervals_used=tuple(used),
                           calibration=cal, mapping=mapping, quality=quality, gates=report, params_before=params_now,
                           warnings=tuple(dict.fromkeys(warnings)))

@@ -6,7 +6,9 @@
 * :func:`quality_of`: the 95 % bounds of the heading and tilt error over the flight
   envelope, propagating the parameter covariance (draws of
   :func:`mavcal.core.uncertainty.sample_parameters`);
-* :func:`holdout_errors`: the leave-one-interval-out reconstruction error.
+* :func:`holdout_errors`: the leave-one-interval-out reconstruction error;
+* :func:`accel_tilt_bounds`: an accelerometer's own 95 % tilt bound, from its fit alone
+  (:mod:`mavcal.accel_fit`), so that no compass's misfit enters its verdict.
 """
 from __future__ import annotations
 
@@ -17,6 +19,8 @@ from typing import Callable
 
 import numpy as np
 
+from mavcal.accel_fit import AccelFit, sample_accel
+from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.calibrate import calibrate, estimate_orientations
@@ -28,7 +32,7 @@ from mavcal.errors import MavcalError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Quality", "quality_of", "truth_functions", "holdout_errors"]
+__all__ = ["Quality", "quality_of", "truth_functions", "holdout_errors", "accel_tilt_bounds"]
 
 RawFn = Callable[[np.ndarray], np.ndarray]
 
@@ -67,6 +71,31 @@ def truth_functions(K_a: np.ndarray, b_a: np.ndarray, K_m: np.ndarray, b_m: np.n
         return b @ R_old  # R_old^T b, the sensor frame
 
     return raw_accel, raw_mag
+
+
+def _max_tilt_deg(K_a: np.ndarray, b_a: np.ndarray, written: fw.AccelCal, board_rot: np.ndarray,
+                  f_body: np.ndarray) -> float:
+    """Largest angle between the specific force ``f_body`` and what ``written`` makes of the
+    readings ``K_a R g + b_a`` (paper Eq. ``sensor_reading_model``) of that force."""
+    _, _, P = accel_frame(K_a)
+    to_E = (board_rot @ P).T
+    a = fw.apply_accel(written, (f_body @ to_E.T / GRAVITY_MPS2) @ K_a.T + b_a)
+    cos_t = np.sum(a * f_body, 1) / (np.linalg.norm(a, axis=1) * GRAVITY_MPS2)
+    return float(np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0))).max())
+
+
+def accel_tilt_bounds(fit: AccelFit, am: AccelMapping, draws: int, seed: int) -> tuple[float, float]:
+    """(95 % bound, nominal) of the max tilt error over the flight envelope of the written
+    accelerometer values ``am.new``, against ``draws`` samples of the accelerometer's own fit
+    (tilt does not depend on heading: one yaw of the grid suffices)."""
+    grid = attitude_grid()
+    C = grid[::int(round(360 / 15))]  # yaw 0 of every roll/pitch
+    f_body = np.swapaxes(C, 1, 2) @ np.array([0.0, 0.0, -GRAVITY_MPS2])
+    board = am.old.board_matrix
+    nominal = _max_tilt_deg(fit.gain, fit.bias, am.new, board, f_body)
+    ts = [_max_tilt_deg(K, b, am.new, board, f_body) for K, b in sample_accel(fit, draws,
+                                                                               np.random.default_rng(seed))]
+    return (float(np.percentile(ts, 95)) if ts else nominal), nominal
 
 
 def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,

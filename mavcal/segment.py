@@ -307,7 +307,7 @@ def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Co
     cap = _largest_empty_cap_deg(g)
     if n < FULL_MODEL_MIN_INTERVALS:
         msgs.append(f"{n} still interval{'s' if n != 1 else ''}: the full joint model needs "
-                    f">= {FULL_MODEL_MIN_INTERVALS} intervals; a reduced model will be used")
+                    f">= {FULL_MODEL_MIN_INTERVALS} intervals; with fewer only a reduced model can be fitted")
     if n_or == 1:
         msgs.append("a single orientation: gravity was seen from one direction only, which identifies "
                     "neither accelerometer offsets/scales nor the compass soft iron; hold the vehicle "

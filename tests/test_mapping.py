@@ -137,8 +137,8 @@ def test_field_magnitude_choice():
     old = fw.compass_cal_from_params({}, 0)
     means = np.array([[300.0, 0.0, 400.0], [0.0, 500.0, 0.0]])
     assert field_magnitude(means, old, field_mgauss=420.0) == (420.0, "given", None)
-    f, src, incl = field_magnitude(means, old)  # no position: what the current calibration reads
-    assert f == pytest.approx(500.0) and src.startswith("kept from the current calibration") and incl is None
+    f, src, incl = field_magnitude(means, old)  # no position: not checked, never the calibration in force
+    assert f is None and src.startswith("not checked") and incl is None
     f, src, incl = field_magnitude(means, old, location=(47.4, 8.5, 400.0))
     assert 400 < f < 550 and src.startswith("World Magnetic Model") and 55 < incl < 70
     f, src, incl = field_magnitude(means, old, location=(47.4, 8.5), field_mgauss=420.0)

@@ -14,7 +14,7 @@ Accelerometer (INS_ACCnOFFS, INS_ACCnSCAL; corrected = R_A (S o (u - OFS))):
     tilt (deg) and magnitude (m/s^2) error it causes.
 
 Compass (COMPASS_OFSn, DIAn, ODIn, SCALEn, ORIENTn; corrected = M k (R_new s + OFS)):
-    with |B| the field magnitude (WMM or the current calibration's) and |h| = |[1, 0, h_z]|,
+    with |B| the field magnitude (World Magnetic Model or given) and |h| = |[1, 0, h_z]|,
     the correction that maps the raw field onto the body field is
         T = (|B| / |h|) R_A P K_m^-1 ,      OFS = -R_x b_m
     and T = S U (left polar decomposition): S symmetric -> M k (DIA/ODI and SCALE), U the
@@ -25,8 +25,12 @@ Compass (COMPASS_OFSn, DIAn, ODIn, SCALEn, ORIENTn; corrected = M k (R_new s + O
     AHRS_ORIENTATION and cannot be set alone; U is reported (angle, heading effect), and
     ``force_external`` writes COMPASS_EXTERNn = 2 so that COMPASS_ORIENTn applies.
 
-Still intervals do not determine |B|; a mirrored compass cannot be told from an inverted
-field dip (:mod:`mavcal.core.gauge`), so the estimated inclination is compared with the
+Still intervals do not determine |B|. Without a position or a given magnitude the
+sensor keeps its own scale, as ArduPilot's own calibrator does: COMPASS_SCALE unchanged and
+COMPASS_DIA normalised to geometric mean 1 (``field_checked`` False: the absolute field
+strength was not checked). It is never taken from the calibration in force. A mirrored
+compass cannot be told from an inverted field dip (:mod:`mavcal.core.gauge`), so the
+estimated inclination is compared with the
 World Magnetic Model when the position is known.
 """
 from __future__ import annotations
@@ -56,6 +60,8 @@ log = logging.getLogger(__name__)
 
 G0 = fw.GRAVITY_MSS
 CUST_ROT_ENABLE = "CUST_ROT_ENABLE"
+NO_FIELD_SOURCE = ("not checked: no position in the log and no --location; the sensor's own scale kept "
+                   "(COMPASS_SCALE unchanged, COMPASS_DIA normalised to geometric mean 1)")
 
 
 def _polar_left(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -118,6 +124,7 @@ class CompassMapping:
     reboot_required: bool = False
     inclination_deg: float = float("nan")
     inclination_model_deg: float | None = None
+    field_checked: bool = True  # False: no WMM/given magnitude, the sensor's own scale kept
 
     def params(self) -> dict[str, float]:
         out = fw.compass_param_values(self.new, self.instance)
@@ -135,6 +142,17 @@ class ParamMapping:
     old: Mapping[str, float | None]
     notes: tuple[str, ...] = ()
     reboot_required: bool = False
+
+    def by_sensor(self) -> dict[str, dict[str, float]]:
+        """The new values per sensor (``accel0``, ``compass1``, ... as the gates name them)."""
+        out = {f"accel{am.instance}": am.params() for am in self.accel}
+        out.update({f"compass{cm.instance}": cm.params() for cm in self.compass})
+        return out
+
+    def restricted(self, sensors) -> dict[str, float]:
+        """The new values of the given sensors only (names as :meth:`by_sensor`)."""
+        keep = set(sensors)
+        return {n: v for s, p in self.by_sensor().items() if s in keep for n, v in p.items()}
 
     def changed(self, rel: float = 1e-7) -> dict[str, float]:
         """Parameters whose new value differs from the old one (float32 comparison)."""
@@ -190,14 +208,18 @@ def _custom_slot(params: Mapping[str, float], current: int) -> int | None:
 
 
 def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np.ndarray, old: fw.CompassCal,
-                params: Mapping[str, float], *, instance: int = 0, field_mgauss: float,
-                field_source: str, board_rotation: np.ndarray, orient_tol_deg: float = 1.0,
+                params: Mapping[str, float], *, instance: int = 0,
+                field_mgauss: float | None, field_source: str, board_rotation: np.ndarray, orient_tol_deg: float = 1.0,
                 allow_custom: bool = True, force_external: bool = False,
                 inclination_model_deg: float | None = None) -> CompassMapping:
-    """ArduPilot compass parameters for an estimated K_m, b_m (see the module docstring)."""
+    """ArduPilot compass parameters for an estimated K_m, b_m (see the module docstring);
+    ``field_mgauss`` None keeps the sensor's own scale (COMPASS_SCALE unchanged, DIA with
+    geometric mean 1)."""
     names = fw.compass_param_names(instance)
     h_norm = float(np.sqrt(1.0 + h_z * h_z))
-    T = (field_mgauss / h_norm) * np.asarray(board_rotation) @ np.asarray(frame_rotation) @ np.linalg.inv(K_m)
+    checked = field_mgauss is not None
+    B = field_mgauss if field_mgauss is not None else 1.0
+    T = (B / h_norm) * np.asarray(board_rotation) @ np.asarray(frame_rotation) @ np.linalg.inv(K_m)
     if np.linalg.det(T) < 0:
         raise ParameterMappingError("the compass axes are mirrored relative to the accelerometer (det < 0): "
                                     "two axes swapped or one inverted in the wiring or the driver")
@@ -255,10 +277,8 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
     X = T @ R_x.T  # = M k, symmetric if R_x = U
     Mk = 0.5 * (X + X.T)
     residual = rotation_angle_deg(R_x, U)
-    k = float(np.linalg.det(Mk)) ** (1.0 / 3.0) if np.linalg.det(Mk) > 0 else 1.0
-    if not (fw.COMPASS_MIN_SCALE <= k <= fw.COMPASS_MAX_SCALE):
-        k = 1.0
-    M = Mk / k
+    M, k, implied = _split_scale(Mk, old.scale if not checked else None)
+    field_mgauss = field_mgauss if checked else implied
     ofs = -(R_x @ np.asarray(b_m, float))
     new = fw.CompassCal(ofs_mgauss=tuple(ofs), dia=(M[0, 0], M[1, 1], M[2, 2]), odi=(M[0, 1], M[0, 2], M[1, 2]),
                         scale=k, orient=orient, external=external or force_external, custom_deg=custom, mot=old.mot)
@@ -266,7 +286,23 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
                           field_mgauss=float(field_mgauss), field_source=field_source, rotation=U,
                           rotation_deg=float(rot_deg), orientation_note=note, residual_rotation_deg=float(residual),
                           custom_deg=custom, extra_params=extra, reboot_required=reboot, inclination_deg=incl,
-                          inclination_model_deg=inclination_model_deg)
+                          inclination_model_deg=inclination_model_deg, field_checked=checked)
+
+
+def _split_scale(Mk: np.ndarray, keep_scale: float | None) -> tuple[np.ndarray, float, float]:
+    """M k = Mk: (M, k, the field magnitude implied for a unit field). ``keep_scale`` None:
+    k = det(Mk)^(1/3) (1 outside ArduPilot's range); else k = ``keep_scale`` (COMPASS_SCALE
+    unchanged) and M's diagonal has geometric mean 1."""
+    if keep_scale is None:
+        k = float(np.linalg.det(Mk)) ** (1.0 / 3.0) if np.linalg.det(Mk) > 0 else 1.0
+        if not (fw.COMPASS_MIN_SCALE <= k <= fw.COMPASS_MAX_SCALE):
+            k = 1.0
+        return Mk / k, k, k
+    d = np.abs(np.diag(Mk))
+    gm = float(np.prod(d)) ** (1.0 / 3.0) if np.all(d > 0) else 1.0
+    k = float(keep_scale)
+    k_eff = k if fw.COMPASS_MIN_SCALE <= k <= fw.COMPASS_MAX_SCALE else 1.0
+    return Mk / gm, k, k_eff / gm
 
 
 def old_values(params: Mapping[str, float], names) -> dict[str, float | None]:
@@ -277,12 +313,15 @@ def old_values(params: Mapping[str, float], names) -> dict[str, float | None]:
 
 def field_magnitude(raw_mag_means: np.ndarray, old: fw.CompassCal, *,
                     location: Sequence[float] | None = None,
-                    field_mgauss: float | None = None) -> tuple[float, str, float | None]:
-    """The field magnitude |B| to scale the compass to: (mGauss, source in words, WMM inclination deg or None).
+                    field_mgauss: float | None = None) -> tuple[float | None, str, float | None]:
+    """The field magnitude |B| to scale the compass to: (mGauss or None, source in words,
+    WMM inclination deg or None).
 
     The World Magnetic Model at ``location`` (lat, lon[, alt]) when known and no
-    ``field_mgauss`` is given; else ``field_mgauss``; else what the current calibration
-    ``old`` makes of the raw interval means (still intervals do not determine |B|).
+    ``field_mgauss`` is given; else ``field_mgauss``; else None: the sensor keeps its own
+    scale and the absolute field strength is not checked (still intervals do not determine
+    |B|, and the calibration in force is what is being replaced). ``raw_mag_means`` and
+    ``old`` are kept for the signature's sake.
     """
     incl = None
     if location is not None:
@@ -297,8 +336,7 @@ def field_magnitude(raw_mag_means: np.ndarray, old: fw.CompassCal, *,
             return float(intensity), f"World Magnetic Model at {loc[0]:.4f}, {loc[1]:.4f}", incl
     if field_mgauss is not None:
         return float(field_mgauss), "given", incl
-    cur = fw.apply_compass(old, raw_mag_means, sensor_frame=False)
-    return float(np.mean(np.linalg.norm(cur, axis=1))), "kept from the current calibration (no position)", incl
+    return None, NO_FIELD_SOURCE, incl
 
 
 def map_calibration(cal: Calibration, params: Mapping[str, float], raw_mag_means: np.ndarray, *,
@@ -328,6 +366,19 @@ def map_calibration(cal: Calibration, params: Mapping[str, float], raw_mag_means
                      f"{am.dropped_magnitude_mps2:.3f} m/s^2")
     return ParamMapping(accel=(am,), compass=(cm,), new=new, old=old_values(params, new), notes=tuple(notes),
                         reboot_required=cm.reboot_required)
+
+
+def combine(accel: Sequence[AccelMapping], compass: Sequence[CompassMapping], params: Mapping[str, float],
+            notes: Sequence[str] = ()) -> ParamMapping:
+    """One :class:`ParamMapping` of per-sensor mappings (any of them may be empty);
+    ``params`` gives the old values."""
+    new: dict[str, float] = {}
+    for am in accel:
+        new.update(am.params())
+    for cm in compass:
+        new.update(cm.params())
+    return ParamMapping(accel=tuple(accel), compass=tuple(compass), new=new, old=old_values(params, new),
+                        notes=tuple(notes), reboot_required=any(c.reboot_required for c in compass))
 
 
 def merge_mappings(primary: ParamMapping, others: Sequence[ParamMapping],

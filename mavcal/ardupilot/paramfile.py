@@ -152,7 +152,7 @@ def read_param_file(path: PathLike) -> dict[str, float]:
 
 
 def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Iterable[str] | None = None,
-                     exclusive: bool = False) -> Path:
+                     exclusive: bool = False, comments: Mapping[str, str] | None = None) -> Path:
     """Write ``params`` as a .param file, sorted by name, durably (fsync).
 
     Parameters
@@ -165,6 +165,8 @@ def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Ite
         Comment lines written first (``# `` is prepended).
     exclusive : bool
         If True, refuse to overwrite an existing file (used for backups).
+    comments : mapping of str to str, optional
+        An end-of-line comment per parameter (``NAME,VALUE  # text``; readers strip it).
 
     Returns
     -------
@@ -183,7 +185,9 @@ def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Ite
     for name in sorted(params):
         if not valid_param_name(name):
             raise UsageError(f"bad parameter name {name!r}")
-        lines.append(f"{name},{format_param_value(params[name])}")
+        note = (comments or {}).get(name)
+        tail = "  # " + " ".join(str(note).split()) if note else ""
+        lines.append(f"{name},{format_param_value(params[name])}{tail}")
     data = ("\n".join(lines) + "\n").encode("utf-8")
     flags = os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC)
     try:

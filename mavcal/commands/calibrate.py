@@ -1,8 +1,9 @@
 """``mavcal calibrate SOURCE...``: read -> raw recovery -> intervals -> calibration ->
 ArduPilot parameters -> quality gates -> .param / JSON / HTML outputs -> optional safe write.
 
-Exit codes: 0 success; 2 usage; 3 unreadable source or no IMU data; 4 calibration rejected
-by the gates or too little data; 5 write failed and the vehicle was restored; 6 write
+Exit codes (see :data:`EPILOG`): 0 every sensor with data accepted; 7 some accepted (those
+written / in the .param), some rejected; 4 none accepted, or too little data; 2 usage;
+3 unreadable source or no IMU data; 5 write failed and the vehicle was restored; 6 write
 failed and the restore failed (the parameters in doubt are listed).
 """
 from __future__ import annotations
@@ -22,10 +23,26 @@ from mavcal.commands.common import (
 )
 from mavcal.errors import UsageError
 
+EPILOG = """\
+every accelerometer and compass with data gets its own verdict: accepted, or rejected with
+the reasons (gate, value, limit, what to do). Only the accepted sensors' parameters go into
+--param-out and --write; a rejected sensor keeps its current values (--force includes it,
+its lines marked with the failed gate in the .param file).
+
+exit codes:
+  0  every sensor with data accepted (all written)
+  7  some sensors accepted (written / in the .param), some rejected
+  4  no sensor accepted, or too little data to calibrate
+  2  usage error      3  unreadable source or no IMU data
+  5  write failed, vehicle restored      6  write failed and restore failed
+"""
+
 HELP = "calibrate from a log or a live link, check quality, write .param/JSON/HTML, optionally write the vehicle"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.epilog = EPILOG  # exit codes in --help
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("sources", nargs="+", metavar="SOURCE",
                    help="log file(s) (.tlog, .bin, .log, .csv) or one MAVLink device "
                         "(udpin:..., tcp:..., /dev/ttyACM0)")
@@ -43,7 +60,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fit.add_argument("--compass", type=int, default=0, metavar="I", help="primary compass instance (priority, 0-based)")
     fit.add_argument("--primary-only", action="store_true",
                      help="calibrate only the primary IMU and compass (default: every instance with data)")
-    fit.add_argument("--field-mgauss", type=float, help="Earth field magnitude to scale the compass to")
+    only = fit.add_mutually_exclusive_group()
+    only.add_argument("--accel-only", nargs="*", type=int, metavar="I",
+                      help="calibrate and write only accelerometers (all, or the instances I...), each from its "
+                           "own still poses; no compass needed")
+    only.add_argument("--compass-only", nargs="*", type=int, metavar="I",
+                      help="calibrate and write only compasses (all, or the instances I...); the accelerometer "
+                           "--accel is used as the reference and not written")
+    fit.add_argument("--field-mgauss", type=float,
+                     help="Earth field magnitude to scale the compass to (default: the World Magnetic Model at the "
+                          "logged position or --location; without either the compass keeps its own scale and the "
+                          "field strength is not checked)")
     fit.add_argument("--location", type=parse_location, metavar="LAT,LON[,ALT]",
                      help="position for the World Magnetic Model")
     fit.add_argument("--orient-tol", type=float, default=1.0, metavar="DEG",
@@ -69,10 +96,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _options(args):
     from mavcal.pipeline import Options
 
+    sensors, only = "both", None
+    for kind, given in (("accel", getattr(args, "accel_only", None)), ("compass", getattr(args, "compass_only", None))):
+        if given is not None:
+            sensors, only = kind, (tuple(given) or None)
     return Options(still=still_config(args), method=args.method, model=args.model, accel_instance=args.accel,
                    mag_instance=args.compass, all_instances=not args.primary_only, field_mgauss=args.field_mgauss,
                    location=args.location, orient_tol_deg=args.orient_tol, allow_custom=not args.no_custom_rotation,
-                   force_external=args.force_external)
+                   force_external=args.force_external, sensors=sensors, only_instances=only)
 
 
 def _single(args, source: str) -> int:
@@ -87,15 +118,15 @@ def _single(args, source: str) -> int:
         run = calibrate_source(log_, opts)
     else:
         run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))
-    write_outputs(run, args, f"mavcal calibration of {run.source}")
+    code = write_outputs(run, args, f"mavcal calibration of {run.source}")
     if args.write or args.dry_run:
         target = args.connect or (source if device else None)
         if target is None:
             raise UsageError("--write needs --connect DEVICE when SOURCE is a log")
         args.connect = target
         check_new_backup(args.backup)
-        return write_with_report(args, dict(run.mapping.new), args.backup, "calibration write")
-    return 0
+        return write_with_report(args, run.params_to_write(args.force), args.backup, "calibration write") or code
+    return code
 
 
 def run(args) -> int:

@@ -113,31 +113,45 @@ def write_text_output(dest: str, text: str) -> None:
         raise UsageError(f"cannot write {dest}: {exc.strerror or exc}") from None
 
 
-def write_outputs(run, args: argparse.Namespace, title: str) -> None:
-    """Print the summary, write --json/--report, apply the gates, then write --param-out.
+def write_outputs(run, args: argparse.Namespace, title: str) -> int:
+    """Print the summary, write --json/--report, apply the per-sensor verdicts, then write
+    --param-out with the accepted sensors' parameters (every sensor's with ``--force``, the
+    rejected ones' lines marked with the failed gate).
 
-    Shared by ``calibrate`` and ``capture``. Raises GateError (exit 4) when a quality gate
-    failed and ``--force`` was not given; the JSON and HTML reports are written first, so
-    the reasons are on disk either way.
+    Shared by ``calibrate`` and ``capture``. Returns the run's exit code (0 all accepted,
+    7 some rejected); raises GateError (exit 4) when no sensor was accepted and ``--force``
+    was not given; the JSON and HTML reports are written first, so the reasons are on disk
+    either way. With ``--json -`` the JSON alone goes to stdout (the summary to stderr).
     """
     from mavcal.ardupilot.paramfile import write_param_file
     from mavcal.report.json import to_json
     from mavcal.report.text import gate_refusal_text, summary_text
 
-    print(summary_text(run))
+    say = sys.stderr if args.json == "-" else sys.stdout
+    print(summary_text(run), file=say)
     if args.json:
         write_text_output(args.json, json.dumps(to_json(run), indent=1))
     if args.report:
         from mavcal.report import write_html
         write_html(run, args.report)
-        print(f"report written to {args.report}")
-    if not run.accepted and not args.force:
+        print(f"report written to {args.report}", file=say)
+    code = run.exit_code
+    if code == 4 and not args.force:
         if args.param_out or getattr(args, "write", False):
             print(gate_refusal_text(run, "use --force"), file=sys.stderr, end="")
         raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
     if args.param_out:
-        write_param_file(args.param_out, run.mapping.new, header=[title, f"model {run.calibration.model}"])
-        print(f"parameters written to {args.param_out}")
+        values = run.params_to_write(args.force)
+        marks = run.rejected_params() if args.force else {}
+        model = run.calibration.model if run.calibration is not None else "accelerometers alone"
+        write_param_file(args.param_out, values, header=[title, f"model {model}"],
+                         comments={n: f"REJECTED ({why}), written with --force" for n, why in marks.items()
+                                   if n in values})
+        left = sorted(set(run.mapping.new) - set(values))
+        print(f"parameters written to {args.param_out}"
+              + (f" ({len(left)} of rejected sensors left out: they keep their current values)" if left else ""),
+              file=say)
+    return 0 if args.force else code
 
 
 # --------------------------------------------------------------------------- the write flow

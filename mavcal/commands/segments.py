@@ -6,9 +6,11 @@ applied undone), finds the intervals in which the vehicle was held still with th
 thresholds and options as ``calibrate`` and prints them with the coverage diagnosis: text
 for people, ``--json`` for scripts.
 
-Exit codes: 0 when at least one still interval was found (the diagnosis says when the data
-are insufficient for a full calibration), 3 for an unreadable source, 4 when no still
-interval was found at all (nothing a calibration could use), 2 for bad options.
+Exit codes (one rule: 4 whenever ``calibrate`` could not use the intervals):
+0 the coverage is "ok" or "reduced" (a calibration can run, with a reduced model when
+"reduced"); 4 the coverage is "insufficient": no still interval at all, or too few /
+too few orientations for any model; 3 unreadable source; 2 bad options. The report
+(text or ``--json``) is printed first either way.
 """
 from __future__ import annotations
 
@@ -24,9 +26,17 @@ from mavcal.commands.common import add_still_arguments, still_config
 from mavcal.errors import SegmentationError
 
 HELP = "find the still intervals of a log and diagnose whether they can calibrate"
+EPILOG = """\
+exit codes:
+  0  coverage ok or reduced: a calibration can run (reduced model when "reduced")
+  4  coverage insufficient: no still interval, or too few intervals/orientations for any model
+  3  unreadable source      2  bad options
+"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = EPILOG  # exit codes in --help
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("source", metavar="SOURCE", help="log file (.tlog, .bin, .csv) or MAVLink device")
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     parser.add_argument("--no-recover", action="store_true",
@@ -148,4 +158,7 @@ def run(args) -> int:
         raise SegmentationError(f"no still intervals in {args.source}"
                                 + (f": {'; '.join(why)}" if why else " (the vehicle never stayed still "
                                    "long enough, or the thresholds are too strict)"))
+    if seg.coverage.status == "insufficient":
+        raise SegmentationError(f"{args.source}: the still intervals cannot calibrate: "
+                                + "; ".join(seg.coverage.messages))
     return 0

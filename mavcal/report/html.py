@@ -110,25 +110,43 @@ def _top(run) -> list[str]:
             f"<span id='interval-count'>{n_int} still intervals found, {n_used} used</span>, "
             f"{seg.coverage.n_orientations} distinct orientations; heading error &le; "
             f"<b>{_num(q.heading_95_deg, '.3f')}&deg;</b>, tilt error &le; <b>{_num(q.tilt_95_deg, '.3f')}&deg;</b> "
-            "(95 % confidence).</p>"]
+            "(95 % confidence).</p>"] + _verdicts(run)
+
+
+def _verdicts(run) -> list[str]:
+    """The per-sensor verdicts with their reasons, then the next step: the report's first screen."""
+    from mavcal.report.text import next_step
+
+    items = []
+    for v in run.verdicts:
+        why = "".join(f"<li>{_e(r)}</li>" for r in v.reasons)
+        items.append(f"<li data-sensor='{_e(v.sensor)}' data-sensor-accepted='{str(v.accepted).lower()}'>"
+                     f"<span class='verdict {'ok' if v.accepted else 'bad'}'>"
+                     f"{'accepted' if v.accepted else 'REJECTED'}</span> <b>{_e(v.sensor)}</b>"
+                     + (f"<ul>{why}</ul>" if why else "") + "</li>")
+    return ["<h2>Verdict per sensor</h2><ul id='verdicts'>" + "".join(items) + "</ul>",
+            f"<p id='next-step'><b>{_e(next_step(run))}</b></p>"]
 
 
 def _quality(run) -> list[str]:
-    cal, q, cm = run.calibration, run.quality, run.mapping.compass[0]
-    dip = _num(cm.inclination_deg, ".2f") + (
-        "" if cm.inclination_model_deg is None else f" (World Magnetic Model {_num(cm.inclination_model_deg, '.2f')})")
+    cal, q = run.calibration, run.quality
+    cm = run.mapping.compass[0] if run.mapping.compass else None
     kv = [("heading error, 95 % bound (deg)", _num(q.heading_95_deg, ".4f")),
           ("tilt error, 95 % bound (deg)", _num(q.tilt_95_deg, ".4f")),
           ("heading / tilt error of the written parameters at the estimate (deg)",
            f"{_num(q.heading_nominal_deg, '.4f')} / {_num(q.tilt_nominal_deg, '.4f')}"),
           ("held-out error, accel (m/s^2) / compass (mGauss)",
            f"{_num(q.holdout_accel_mps2, '.4f')} / {_num(q.holdout_mag_mgauss, '.3f')}"),
-          ("fit chi2 / dof", _num(q.chi2_dof, ".3f")),
-          ("model", _e(cal.model)), ("why this model", _e(cal.model_reason or "-")),
-          ("estimator", f"{_e(cal.method)}, {'converged' if cal.converged else 'NOT converged'}: {_e(cal.message)}"),
-          ("field magnitude (mGauss)", f"{_num(cm.field_mgauss, '.1f')} ({_e(cm.field_source)})"),
-          ("field dip (deg)", dip),
-          ("compass orientation", _e(cm.orientation_note))]
+          ("fit chi2 / dof", _num(q.chi2_dof, ".3f"))]
+    if cal is not None:
+        kv += [("model", _e(cal.model)), ("why this model", _e(cal.model_reason or "-")),
+               ("estimator",
+                f"{_e(cal.method)}, {'converged' if cal.converged else 'NOT converged'}: {_e(cal.message)}")]
+    if cm is not None:
+        dip = _num(cm.inclination_deg, ".2f") + ("" if cm.inclination_model_deg is None else
+                                                 f" (World Magnetic Model {_num(cm.inclination_model_deg, '.2f')})")
+        kv += [("field magnitude (mGauss)", f"{_num(cm.field_mgauss, '.1f')} ({_e(cm.field_source)})"),
+               ("field dip (deg)", dip), ("compass orientation", _e(cm.orientation_note))]
     return ["<h2>Quality and model</h2>",
             "<table class='kv'>" + "".join(f"<tr><td>{_e(k)}</td><td class='l'>{v}</td></tr>" for k, v in kv)
             + "</table>"]
@@ -147,16 +165,18 @@ def _parameters(run) -> list[str]:
 
 
 def _dropped(run) -> list[str]:
-    am, cm = run.mapping.accel[0], run.mapping.compass[0]
-    ca = np.asarray(am.cross_axis)
-    largest = np.max(np.abs(ca - np.diag(np.diag(ca)))) if ca.size else float("nan")
-    return ["<h2>What ArduPilot cannot hold (dropped terms)</h2><ul>"
-            f"<li>accelerometer {am.instance} cross-axis terms (no off-diagonal INS_ACC parameters): largest "
-            f"{_num(largest, '.2e')}, causing up to "
-            f"{_num(am.dropped_tilt_deg, '.4f')} deg tilt and {_num(am.dropped_magnitude_mps2, '.4f')} m/s^2</li>"
-            f"<li>compass {cm.instance} rotation left uncorrected: {_num(cm.residual_rotation_deg, '.3f')} deg "
-            f"(estimated misalignment to the accelerometer {_num(cm.rotation_deg, '.3f')} deg)</li>"
-            "<li>compass motor compensation: unchanged (still poses cannot observe it)</li></ul>"]
+    items = []
+    for am in run.mapping.accel[:1]:
+        ca = np.asarray(am.cross_axis)
+        largest = np.max(np.abs(ca - np.diag(np.diag(ca)))) if ca.size else float("nan")
+        items.append(f"<li>accelerometer {am.instance} cross-axis terms (no off-diagonal INS_ACC parameters): "
+                     f"largest {_num(largest, '.2e')}, causing up to {_num(am.dropped_tilt_deg, '.4f')} deg tilt "
+                     f"and {_num(am.dropped_magnitude_mps2, '.4f')} m/s^2</li>")
+    for cm in run.mapping.compass[:1]:
+        items.append(f"<li>compass {cm.instance} rotation left uncorrected: {_num(cm.residual_rotation_deg, '.3f')} "
+                     f"deg (estimated misalignment to the accelerometer {_num(cm.rotation_deg, '.3f')} deg)</li>")
+    return (["<h2>What ArduPilot cannot hold (dropped terms)</h2><ul>"] + items
+            + ["<li>compass motor compensation: unchanged (still poses cannot observe it)</li></ul>"])
 
 
 def _figures(images: dict[str, bytes], n_spans: int) -> list[str]:
@@ -181,7 +201,8 @@ def _gates(run) -> list[str]:
         P.append("<p>All gates passed.</p>")
     grows, gcls = [], []
     for g in run.gates.gates:
-        grows.append([_e(g.sensor), _e(g.name), "pass" if g.ok else "<b>FAIL</b>", _num(g.value, ".4g"), _e(g.limit),
+        result = "not run" if not g.ran else "pass" if g.ok else "<b>FAIL</b>"
+        grows.append([_e(g.sensor), _e(g.name), result, _num(g.value, ".4g") if g.ran else "-", _e(g.limit),
                       _e(g.reason)])
         gcls.append("" if g.ok else "fail")
     P.append(_table(["sensor", "gate", "result", "value", "limit", "reason"], grows, gcls, left=(0, 1, 4, 5)))
@@ -225,11 +246,12 @@ def _notes(run) -> list[str]:
     return P
 
 
-def html_page(run, st: IntervalNumbers, images: dict[str, bytes], n_spans: int) -> str:
+def html_page(run, st: IntervalNumbers | None, images: dict[str, bytes], n_spans: int) -> str:
     """The whole HTML page: verdict, quality, parameters, dropped terms, figures, gates,
     intervals, coverage/notes/warnings."""
+    full = st is not None
     P = (_top(run) + _quality(run) + _parameters(run) + _dropped(run) + _figures(images, n_spans) + _gates(run)
-         + _intervals(run, st) + _notes(run))
+         + (_intervals(run, st) if full else []) + _notes(run))
     P.append("</body></html>\n")
     return "\n".join(P)
 
@@ -274,6 +296,13 @@ def write_html(run, path, *, png_dir=None) -> Path:
         return fig
 
     path = Path(path)
+    if not (run.mapping.accel and run.mapping.compass and run.calibration is not None):
+        # one kind of sensor only (--accel-only / --compass-only): verdicts, quality, parameters, gates
+        try:
+            path.write_text(html_page(run, None, {}, 0))
+        except OSError as exc:
+            raise UsageError(f"cannot write {path}: {exc.strerror or exc}") from None
+        return path
     st = interval_numbers(run)
     fig_t, n_spans = fig_timeline(Figure, run)
     figs = {"timeline": fig_t, "magnitudes": fig_magnitudes(Figure, st), "residuals": fig_residuals(Figure, st),

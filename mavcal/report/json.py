@@ -63,7 +63,7 @@ class SavedCalibration:
     source: str
     mavcal_version: str
     accepted: bool
-    calibration: Calibration
+    calibration: Calibration | None  # None: accelerometers calibrated alone
     mapping: ParamMapping
     quality: Quality
     gates: GateReport
@@ -111,8 +111,8 @@ def _compass(cm) -> dict[str, Any]:
 
 
 def _instances(run) -> dict[str, Any]:
-    am, cm = run.mapping.accel[0], run.mapping.compass[0]
-    return {"accel": am.instance, "compass": cm.instance,
+    return {"accel": run.mapping.accel[0].instance if run.mapping.accel else None,
+            "compass": run.mapping.compass[0].instance if run.mapping.compass else None,
             "accel_present": list(run.raw.accel_instances()), "compass_present": list(run.raw.mag_instances()),
             "accel_calibrated": [{"instance": a.instance, "offsets_mps2": _f(np.array(a.new.ofs_mps2)),
                                   "scales": _f(np.array(a.new.scale)), "dropped_tilt_deg": a.dropped_tilt_deg}
@@ -120,20 +120,41 @@ def _instances(run) -> dict[str, Any]:
             "compass_calibrated": [{"instance": c.instance, "external": c.external,
                                     "offsets_mgauss": _f(np.array(c.new.ofs_mgauss)),
                                     "orientation": c.orientation_note, "rotation_deg": c.rotation_deg,
-                                    "residual_rotation_deg": c.residual_rotation_deg}
+                                    "residual_rotation_deg": c.residual_rotation_deg,
+                                    "field_mgauss": c.field_mgauss, "field_checked": c.field_checked,
+                                    "field_source": c.field_source}
                                    for c in run.mapping.compass],
             "pairs": [{"accel": r.mapping.accel[0].instance, "compass": r.mapping.compass[0].instance,
                        "model": r.calibration.model, "heading_95_deg": r.quality.heading_95_deg,
-                       "tilt_95_deg": r.quality.tilt_95_deg} for r in (run,) + tuple(run.others)]}
+                       "tilt_95_deg": r.quality.tilt_95_deg} for r in (run,) + tuple(run.others)
+                      if r.mapping.accel and r.mapping.compass and r.calibration is not None]}
 
 
 def _changed(old: float | None, new: float) -> bool:
     return bool(old is None or np.float32(new) != np.float32(old))
 
 
+def sensors_json(gates: GateReport) -> list[dict[str, Any]]:
+    """``[{"sensor": "accel0", "accepted": true, "reasons": []}, ...]``: exactly these keys."""
+    return [{"sensor": v.sensor, "accepted": v.accepted, "reasons": list(v.reasons)} for v in gates.verdicts()]
+
+
+def _dropped(run) -> dict[str, Any]:
+    out: dict[str, Any] = {"compass_motor_compensation": "unchanged (still poses cannot observe it)"}
+    if run.mapping.accel:
+        am = run.mapping.accel[0]
+        out.update({"accel_cross_axis": _f(am.cross_axis), "accel_tilt_deg": am.dropped_tilt_deg,
+                    "accel_magnitude_mps2": am.dropped_magnitude_mps2})
+    if run.mapping.compass:
+        out["compass_residual_rotation_deg"] = run.mapping.compass[0].residual_rotation_deg
+    return out
+
+
 def to_json(run) -> dict[str, Any]:
-    """The JSON report of a :class:`mavcal.pipeline.CalibrationRun` (a dict for :func:`json.dump`)."""
-    am, cm = run.mapping.accel[0], run.mapping.compass[0]
+    """The JSON report of a :class:`mavcal.pipeline.CalibrationRun` (a dict for :func:`json.dump`).
+
+    ``"sensors"`` holds the per-sensor verdicts and ``"exit_code"`` the CLI's (0, 7 or 4);
+    ``"calibration"`` and ``"compass"`` are null when the accelerometers were calibrated alone."""
     seg = run.segmentation
     old = run.mapping.old
     return {
@@ -142,20 +163,17 @@ def to_json(run) -> dict[str, Any]:
         "mavcal_version": mavcal.__version__,
         "source": run.source,
         "accepted": run.accepted,
+        "sensors": sensors_json(run.gates),
+        "exit_code": run.exit_code,
         "parameters": {n: {"old": _f(old.get(n)), "new": _f(v), "changed": _changed(old.get(n), v)}
                        for n, v in sorted(run.mapping.new.items())},
         "reboot_required": run.mapping.reboot_required,
         "quality": {k: _f(v) for k, v in run.quality.__dict__.items()},
         "gates": [{"sensor": g.sensor, "name": g.name, "ok": g.ok, "value": _f(g.value), "limit": g.limit,
-                   "reason": g.reason} for g in run.gates.gates],
-        "dropped": {
-            "accel_cross_axis": _f(am.cross_axis), "accel_tilt_deg": am.dropped_tilt_deg,
-            "accel_magnitude_mps2": am.dropped_magnitude_mps2,
-            "compass_residual_rotation_deg": cm.residual_rotation_deg,
-            "compass_motor_compensation": "unchanged (still poses cannot observe it)",
-        },
-        "compass": _compass(cm),
-        "calibration": _calibration(run.calibration),
+                   "reason": g.reason, "ran": g.ran} for g in run.gates.gates],
+        "dropped": _dropped(run),
+        "compass": _compass(run.mapping.compass[0]) if run.mapping.compass else None,
+        "calibration": None if run.calibration is None else _calibration(run.calibration),
         "intervals": [{"index": k, "start_s": iv.start_s, "end_s": iv.end_s, "duration_s": iv.duration_s,
                        "samples_accel": iv.n_accel, "samples_mag": iv.n_mag, "gravity_dir": _f(iv.gravity_dir),
                        "used": k in run.intervals_used} for k, iv in enumerate(seg.intervals)],
@@ -247,9 +265,9 @@ def from_json(doc: Mapping[str, Any]) -> SavedCalibration:
         q = doc["quality"]
         quality = Quality(**{f.name: _num(q[f.name]) for f in fields(Quality)})
         gates = GateReport(tuple(Gate(g["sensor"], g["name"], bool(g["ok"]), _num(g["value"]), g["limit"],
-                                      g.get("reason", "")) for g in doc["gates"]))
+                                      g.get("reason", ""), bool(g.get("ran", True))) for g in doc["gates"]))
         intervals = tuple(_interval_from(d) for d in doc["intervals"])
-        cal = _calibration_from(doc["calibration"])
+        cal = None if doc["calibration"] is None else _calibration_from(doc["calibration"])
     except (KeyError, TypeError, ValueError) as exc:
         raise SourceError(f"JSON report incomplete or damaged: {type(exc).__name__}: {exc}") from None
     return SavedCalibration(format_version=version, source=str(doc.get("source", "")),

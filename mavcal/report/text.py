@@ -12,8 +12,9 @@ import numpy as np
 
 from mavcal.ardupilot.paramfile import format_param_value
 
-__all__ = ["summary_text", "param_rows", "format_value", "gate_failures_by_sensor", "param_table",
-           "plan_text", "gate_refusal_text", "write_done_text", "write_failed_text", "in_doubt_text", "writing_text"]
+__all__ = ["summary_text", "verdict_lines", "next_step", "param_rows", "format_value", "gate_failures_by_sensor",
+           "param_table", "plan_text", "gate_refusal_text", "write_done_text", "write_failed_text", "in_doubt_text",
+           "writing_text"]
 
 
 def format_value(v: float | None) -> str:
@@ -56,6 +57,28 @@ def gate_failures_by_sensor(run) -> dict[str, list[str]]:
     return out
 
 
+def verdict_lines(run) -> list[str]:
+    """One line per sensor, accepted or REJECTED with its reasons (the first thing a user reads)."""
+    out = []
+    for v in run.verdicts:
+        out.append(f"{v.sensor}: {'accepted' if v.accepted else 'REJECTED'}")
+        out += [f"    {r}" for r in v.reasons]
+    return out
+
+
+def next_step(run, *, force_hint: str = "--force") -> str:
+    """What to do now, from the verdicts."""
+    code = run.exit_code
+    if code == 0:
+        return "next: write the parameters (--write, or load the .param file), then reboot the vehicle"
+    if code == 7:
+        bad = ", ".join(run.gates.rejected_sensors())
+        return (f"next: write the accepted sensors' parameters; {bad} keep their current values: fix the cause "
+                f"named above and record again (or --accel-only / --compass-only, or {force_hint} to write them "
+                "anyway)")
+    return f"next: nothing is written; fix the causes named above and record again ({force_hint} writes anyway)"
+
+
 def summary_text(run) -> str:
     """Short human summary of a run for a terminal.
 
@@ -73,17 +96,24 @@ def summary_text(run) -> str:
     q = run.quality
     cal = run.calibration
     seg = run.segmentation
-    cm = run.mapping.compass[0]
-    am = run.mapping.accel[0]
-    L = [f"{run.source}: {len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
-         f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})",
-         f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}",
-         f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
-         f"(95 % confidence, over the flight envelope)",
-         f"held-out error: accel {q.holdout_accel_mps2:.4f} m/s^2, compass {q.holdout_mag_mgauss:.2f} mGauss; "
-         f"fit chi2/dof {q.chi2_dof:.2f}",
-         f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt",
-         f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"]
+    n_ok = sum(v.accepted for v in run.verdicts)
+    L = [f"{run.source}: {n_ok} of {len(run.verdicts)} sensors accepted"] + verdict_lines(run) + [next_step(run)]
+    L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
+          f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
+    if cal is None:
+        L.append("model: accelerometers calibrated alone (no compass)")
+    else:
+        L.append(f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}")
+        if not cal.converged:
+            L.append("the fit did NOT converge: treat the result with caution")
+    L += [f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
+          f"(95 % confidence, over the flight envelope)",
+          f"held-out error (a pose left out and predicted): accel {q.holdout_accel_mps2:.4f} m/s^2, "
+          f"compass {q.holdout_mag_mgauss:.2f} mGauss; fit chi2/dof {q.chi2_dof:.2f}"]
+    L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
+          for am in run.mapping.accel[:1]]
+    L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
+          for cm in run.mapping.compass[:1]]
     rows = param_rows(run)
     if rows:
         grouped = _group_vectors(rows)
