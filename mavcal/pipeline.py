@@ -192,9 +192,9 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
     warnings += list(primary.warnings)
     pairs: list[tuple[int, int]] = []
     if opts.all_instances:
-        pairs = [(ai, m) for m in _wanted(prep.raw.mag_instances(), opts, "compass") if m != mi]
         if opts.sensors == "both":
             pairs += [(a, mi) for a in prep.raw.accel_instances() if a != ai]
+        pairs += [(ai, m) for m in _wanted(prep.raw.mag_instances(), opts, "compass") if m != mi]
     others = []
     for a, m in pairs:
         try:
@@ -208,7 +208,6 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
     accels: list[AccelMapping] = []
     accel_gates: list[gates_mod.Gate] = []
     fits: list[tuple[int, AccelFit]] = []
-    quality = primary.quality
     if opts.sensors == "both":
         mi_ok = all(g.ok for g in primary.gates.gates)
         joint = {r.mapping.accel[0].instance: r for r in [primary] + others if r.mapping.compass[0].instance == mi}
@@ -222,14 +221,12 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
             accels.append(am)
             fits.append((a, fit))
             accel_gates += ag
-            if a == ai:
-                quality = replace(quality, tilt_95_deg=tilt[0], tilt_nominal_deg=tilt[1], holdout_accel_mps2=ho)
             if a in joint and not mi_ok:
                 warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
                                 "was rejected")
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
-    return replace(primary, mapping=mapping, quality=quality, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
+    return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
 
 

@@ -106,9 +106,10 @@ def summary_text(run) -> str:
         L.append(f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}")
         if not cal.converged:
             L.append("the fit did NOT converge: treat the result with caution")
+    joint = "" if cal is None else " of the joint fit (each sensor's own numbers are in its gates)"
     L += [f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
-          f"(95 % confidence, over the flight envelope)",
-          f"held-out error (a pose left out and predicted): accel {q.holdout_accel_mps2:.4f} m/s^2, "
+          f"(95 % confidence, over the flight envelope{joint})",
+          f"held-out error (a pose left out and predicted){joint}: accel {q.holdout_accel_mps2:.4f} m/s^2, "
           f"compass {q.holdout_mag_mgauss:.2f} mGauss; fit chi2/dof {q.chi2_dof:.2f}"]
     L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
           for am in run.mapping.accel[:1]]
