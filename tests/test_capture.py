@@ -156,3 +156,57 @@ def test_a_stall_changes_the_advice_and_says_why():
     assert any("no new still interval for 3 advices" in m for m in seen[-1].messages)
     assert (st.next_pose.roll_deg, st.next_pose.pitch_deg, st.next_pose.yaw_deg) != \
         (stuck.roll_deg, stuck.pitch_deg, stuck.yaw_deg)
+
+
+class _FakeStdin:
+    def __init__(self, text: str, tty: bool = True):
+        self.text, self.tty = text, tty
+
+    def isatty(self) -> bool:
+        return self.tty
+
+    def readline(self) -> str:
+        return self.text
+
+
+def test_the_confirmation_prompt_is_on_the_terminal_not_stderr(monkeypatch, capsys):
+    from mavcal.commands import common
+    from mavcal.errors import UsageError
+
+    monkeypatch.delenv("CI", raising=False)
+    # a controlling terminal: prompt and answer go through it (seen even with `> f 2> g`)
+    import io
+
+    class Tty(io.StringIO):
+        def close(self) -> None:
+            self.shown = self.getvalue()
+            super().close()
+
+    tty = Tty()
+    monkeypatch.setattr(common, "_open_tty", lambda: tty)
+    monkeypatch.setattr(Tty, "readline", lambda self, *a: "y\n")
+    monkeypatch.setattr("sys.stdin", _FakeStdin("n\n"))
+    common.confirm("write 3 parameter(s)?", False)
+    assert tty.shown == "write 3 parameter(s)? [y/N] "
+    out, err = capsys.readouterr()
+    assert err == "" and out == ""
+
+    # no /dev/tty: the prompt goes to stdout, the answer comes from stdin
+    def no_tty():
+        raise OSError("no tty")
+
+    monkeypatch.setattr(common, "_open_tty", no_tty)
+    with pytest.raises(UsageError, match="cancelled"):
+        common.confirm("write 3 parameter(s)?", False)
+    out, err = capsys.readouterr()
+    assert out == "write 3 parameter(s)? [y/N] " and err == ""
+    # nobody to answer: refused without asking
+    monkeypatch.setattr("sys.stdin", _FakeStdin("y\n", tty=False))
+    with pytest.raises(UsageError, match="stdin is not a terminal"):
+        common.confirm("write?", False)
+    monkeypatch.setattr("sys.stdin", _FakeStdin("y\n"))
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(UsageError, match="CI is set"):
+        common.confirm("write?", False)
+    common.confirm("write?", True)  # --yes
+    assert capsys.readouterr() == ("", "")
