@@ -210,3 +210,20 @@ def test_the_confirmation_prompt_is_on_the_terminal_not_stderr(monkeypatch, caps
         common.confirm("write?", False)
     common.confirm("write?", True)  # --yes
     assert capsys.readouterr() == ("", "")
+
+
+def test_the_summary_says_why_the_held_out_error_was_not_run():
+    """8 intervals, each pose once: no held-out error, and the summary says why instead of nan."""
+    from mavcal.report.text import summary_text
+
+    v, hand, decl = _rotated(seed=5, orient=0)
+    sess = CaptureSession(v.params, CaptureConfig(target_heading_deg=0.01, max_intervals=8))
+    st = sess.update()
+    while not st.done:
+        sess.add(_go(hand, decl, (st.next_pose.roll_deg, st.next_pose.pitch_deg, st.next_pose.yaw_deg)))
+        st = sess.update()
+    run = sess.result()
+    assert np.isnan(run.quality.holdout_accel_mps2)
+    text = summary_text(run)
+    assert "nan" not in text
+    assert "held-out error: not run (" in text and ("held twice" in text or "leaving one of" in text)

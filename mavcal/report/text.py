@@ -56,6 +56,25 @@ def gate_failures_by_sensor(run) -> dict[str, list[str]]:
     return out
 
 
+def _holdout_text(run) -> str:
+    """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
+    q = run.quality
+    if np.isfinite(q.holdout_accel_mps2) and np.isfinite(q.holdout_mag_mgauss):
+        return f"held-out error: accel {q.holdout_accel_mps2:.4f} m/s^2, compass {q.holdout_mag_mgauss:.2f} mGauss"
+    from mavcal.core.models import MODELS
+
+    n, need = len(run.intervals_used), MODELS[run.calibration.model].min_intervals
+    if n - 1 < need:
+        why = f"leaving one of {n} intervals out leaves fewer than the {need} the {run.calibration.model} model needs"
+    else:
+        g = np.array([run.segmentation.intervals[k].gravity_dir for k in run.intervals_used])
+        twice = ((g @ g.T) > np.cos(np.radians(30.0))).sum(axis=1) >= 2
+        why = "disabled or no refit succeeded" if twice.any() else (
+            "no pose was held twice: each interval is alone within 30 deg of its gravity direction, so leaving it "
+            "out would measure extrapolation, not the fit")
+    return f"held-out error: not run ({why})"
+
+
 def summary_text(run) -> str:
     """Short human summary of a run for a terminal.
 
@@ -80,8 +99,7 @@ def summary_text(run) -> str:
          f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}",
          f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
          f"(95 % confidence, over the flight envelope)",
-         f"held-out error: accel {q.holdout_accel_mps2:.4f} m/s^2, compass {q.holdout_mag_mgauss:.2f} mGauss; "
-         f"fit chi2/dof {q.chi2_dof:.2f}",
+         f"{_holdout_text(run)}; fit chi2/dof {q.chi2_dof:.2f}",
          f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt",
          f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"]
     rows = param_rows(run)
