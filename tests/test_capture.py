@@ -227,3 +227,22 @@ def test_the_summary_says_why_the_held_out_error_was_not_run():
     text = summary_text(run)
     assert "nan" not in text
     assert "held-out error: not run (" in text and ("held twice" in text or "leaving one of" in text)
+
+
+def test_the_status_screen_shows_the_calibrated_field_and_the_raw_one_as_raw():
+    from mavcal.capture import status_screen
+
+    v, hand, decl = _rotated(seed=3, orient=0)
+    sess = CaptureSession(v.params, CaptureConfig(target_heading_deg=0.01))
+    st = sess.update()
+    sess.add(_go(hand, decl, (0, 0, 0)))
+    st = sess.update()
+    assert st.field_calibrated_mgauss is None and "mGauss raw (not calibrated yet)" in status_screen(st)
+    for _ in range(8):
+        sess.add(_go(hand, decl, (st.next_pose.roll_deg, st.next_pose.pitch_deg, st.next_pose.yaw_deg)))
+        st = sess.update()
+    mapped = sess.run.mapping.compass[0].field_mgauss  # the magnitude the written calibration gives
+    assert abs(st.field_calibrated_mgauss - mapped) < 0.01 * mapped
+    assert abs(st.field_mgauss - mapped) > 0.05 * mapped  # the raw reading is off (offsets, soft iron)
+    screen = status_screen(st)
+    assert f"field: {st.field_calibrated_mgauss:.0f} mGauss calibrated (raw reading {st.field_mgauss:.0f}" in screen

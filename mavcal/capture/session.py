@@ -96,8 +96,9 @@ class CaptureStatus:
     done: bool
     reason: str
     aborted: bool = False
-    field_mgauss: float | None = None
+    field_mgauss: float | None = None  # raw (as read, before any calibration) |field| of the last interval
     messages: tuple[str, ...] = ()
+    field_calibrated_mgauss: float | None = None  # the same with the current fit applied (None before a fit)
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
@@ -421,6 +422,8 @@ class CaptureSession:
                            heading_95_deg=heading, tilt_95_deg=tilt, model=model, next_pose=advice, done=done,
                            reason=reason or ("still: keep holding" if still_now else "move to the next pose"),
                            aborted=aborted, field_mgauss=fields[-1] if fields else None,
+                           field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if run is not None and ivs
+                           else None,
                            messages=tuple(messages))
         self._status = st
         return st
@@ -506,6 +509,18 @@ class CaptureSession:
                                                                   mag_instance=self.options.mag_instance,
                                                                   location=self.options.location,
                                                                   field_mgauss=self.options.field_mgauss))
+
+
+def _calibrated_field(run: CalibrationRun, iv) -> float | None:
+    """|field| (mGauss) of interval ``iv``'s mean compass reading with the fit applied:
+    |K_m^-1 (m - b_m)| scaled from the model's field (1, 0, h_z) to the mapped magnitude."""
+    mi = run.mapping.compass[0].instance
+    m = iv.mag_mgauss.get(mi)
+    if m is None or not len(m):
+        return None
+    cal = run.calibration
+    z = np.linalg.solve(cal.mag.gain, m.mean(0) - cal.mag.bias)
+    return float(np.linalg.norm(z) / np.linalg.norm(cal.field) * run.mapping.compass[0].field_mgauss)
 
 
 def _field_spread(run: CalibrationRun) -> float:
