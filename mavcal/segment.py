@@ -14,9 +14,11 @@ still poses. :func:`find_still_intervals` finds them in a recording:
 3. Runs of still samples, less ``trim_s`` at each edge, that last ``min_duration_s``
    and hold ``min_samples`` samples are intervals; adjacent intervals in the same
    orientation (gravity and field directions within ``merge_deg``, gap below
-   ``merge_gap_s``) are merged.
+   ``merge_gap_s``) are merged: the interval is the union of their spans, the motion
+   between them is left out.
 4. Samples of the other instances (accel and mag come at their own rates and times) are
-   assigned to an interval by their time.
+   assigned to an interval by their time: those within half a sample period of one of its
+   spans (one stillness mask for every sensor).
 
 The diagnosis counts distinct gravity directions (clusters ``cluster_deg`` apart),
 measures how they span the sphere (smallest eigenvalue of the scatter of unit gravity
@@ -106,6 +108,11 @@ class StillInterval:
     accel_dir : (3,) unit mean specific force of accel 0 in the body frame (what the
         accelerometer reads: level = (0, 0, -1)); gravity points the other way.
     mag_dir : (3,) unit mean field of mag 0 (body frame) or None.
+    sample_period_s : accel-0 sample period (s).
+    pieces_s : ((start_s, end_s), ...) the still spans the interval is made of, in time order:
+        one, or several when returns to the same orientation within ``merge_gap_s`` were
+        merged. Every sensor's samples lie within these spans (none from the motion between
+        them).
     """
 
     start_s: float
@@ -115,6 +122,7 @@ class StillInterval:
     accel_dir: np.ndarray
     mag_dir: np.ndarray | None = None
     sample_period_s: float = 0.0
+    pieces_s: tuple[tuple[float, float], ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -455,7 +463,7 @@ def _trimmed(runs: Sequence[tuple[int, int]], dt: float, cfg: StillConfig) -> li
 
 
 class _Directions:
-    """Mean accel direction of a sample range and mean field direction of a time range,
+    """Sums of the accel-0 samples of a sample range and of the mag-0 samples of a time range,
     in O(1) each from prefix sums (used to decide merges)."""
 
     def __init__(self, ref: _Reference, R_b: np.ndarray, mag: tuple[np.ndarray, np.ndarray] | None) -> None:
@@ -465,61 +473,78 @@ class _Directions:
         self.mag = mag
         self.cm = None if mag is None else np.vstack([np.zeros((1, 3)), np.cumsum(mag[1], axis=0)])
 
-    def accel(self, i0: int, i1: int) -> np.ndarray:
-        return _unit(self.R_b @ ((self.ca[i1] - self.ca[i0]) / (i1 - i0)))
+    def accel_sum(self, i0: int, i1: int) -> np.ndarray:
+        return self.ca[i1] - self.ca[i0]
 
-    def field(self, t0: float, t1: float) -> np.ndarray | None:
+    def field_sum(self, t0: float, t1: float) -> np.ndarray | None:
+        """Sum of the mag-0 samples within half a sample period of [t0, t1] (None: no compass)."""
         if self.mag is None or self.cm is None:
             return None
         j0 = int(np.searchsorted(self.mag[0], t0 - self.half, side="left"))
         j1 = int(np.searchsorted(self.mag[0], t1 + self.half, side="right"))
-        return None if j1 <= j0 else _unit((self.cm[j1] - self.cm[j0]) / (j1 - j0))
+        return self.cm[j1] - self.cm[j0]
+
+
+def _field_angle_deg(a: np.ndarray | None, b: np.ndarray | None) -> float:
+    """Angle between two field sums; 0 (no veto) when either has no samples."""
+    if a is None or b is None or not np.any(a) or not np.any(b):
+        return 0.0
+    return _angle_deg(a, b)
 
 
 def _merge(spans: Sequence[tuple[int, int]], t: np.ndarray, dirs: _Directions,
-           cfg: StillConfig) -> list[tuple[int, int]]:
-    """Merge neighbouring spans in the same orientation (gravity and field within
-    ``merge_deg``, gap at most ``merge_gap_s``)."""
-    merged: list[tuple[int, int]] = []
+           cfg: StillConfig) -> list[list[tuple[int, int]]]:
+    """Group neighbouring spans in the same orientation (gravity and field within
+    ``merge_deg``, gap at most ``merge_gap_s``): one list of spans per interval.
+
+    The spans of a group stay apart, so that the motion between them is in no sensor's
+    samples; a span is compared with the still samples of the group so far (running sums,
+    O(1) per span)."""
+    groups: list[list[tuple[int, int]]] = []
+    sums: list[tuple[np.ndarray, np.ndarray | None]] = []  # per group: accel-0 sum, mag-0 sum
     for sp in spans:
-        if merged:
-            p0, p1 = merged[-1]
-            gap = t[sp[0]] - t[p1 - 1]
-            if (gap <= cfg.merge_gap_s and _angle_deg(dirs.accel(p0, p1), dirs.accel(*sp)) < cfg.merge_deg
-                    and _angle_deg(dirs.field(t[p0], t[p1 - 1]),
-                                   dirs.field(t[sp[0]], t[sp[1] - 1])) < cfg.merge_deg):
-                merged[-1] = (p0, sp[1])
+        a_sp, m_sp = dirs.accel_sum(*sp), dirs.field_sum(t[sp[0]], t[sp[1] - 1])
+        if groups:
+            a_g, m_g = sums[-1]
+            gap = t[sp[0]] - t[groups[-1][-1][1] - 1]
+            if (gap <= cfg.merge_gap_s and _angle_deg(dirs.R_b @ a_g, dirs.R_b @ a_sp) < cfg.merge_deg
+                    and _field_angle_deg(m_g, m_sp) < cfg.merge_deg):
+                groups[-1].append(sp)
+                sums[-1] = (a_g + a_sp, None if m_g is None or m_sp is None else m_g + m_sp)
                 continue
-        merged.append(sp)
-    return merged
+        groups.append([sp])
+        sums.append((a_sp, m_sp))
+    return groups
 
 
-def _between(ts: np.ndarray, vs: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Rows of ``vs`` whose time (sorted ``ts``) is within [lo, hi]."""
-    return vs[np.searchsorted(ts, lo, side="left"):np.searchsorted(ts, hi, side="right")]
+def _pieces(ts: np.ndarray, vs: np.ndarray, bounds: Sequence[tuple[float, float]]) -> np.ndarray:
+    """Rows of ``vs`` whose time (sorted ``ts``) lies within one of the [lo, hi] ``bounds``
+    (sorted, disjoint): the same time mask for every sensor."""
+    parts = [vs[np.searchsorted(ts, lo, side="left"):np.searchsorted(ts, hi, side="right")] for lo, hi in bounds]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
-def _intervals(merged: Sequence[tuple[int, int]], ref: _Reference, still: np.ndarray,
+def _intervals(groups: Sequence[Sequence[tuple[int, int]]], ref: _Reference,
                accels: Mapping[int, tuple[np.ndarray, np.ndarray] | None],
                mags: Mapping[int, tuple[np.ndarray, np.ndarray]], R_b: np.ndarray,
                mag0: int | None) -> list[StillInterval]:
-    """The StillIntervals of the merged spans: the still samples of the reference (None in
-    ``accels``), the samples of the other instances within half a sample period of the span."""
+    """The StillIntervals of the merged span groups. Every sensor keeps only the samples of
+    the still spans of its group: the reference (None in ``accels``) its samples of the spans,
+    the other accelerometers and the compasses theirs within half a sample period of a span;
+    the motion between merged spans is in no sensor's samples."""
     t, a, dt = ref.t, ref.a, ref.dt
     out: list[StillInterval] = []
-    for i0, i1 in merged:
-        t0, t1 = float(t[i0]), float(t[i1 - 1])
-        lo, hi = t0 - dt / 2, t1 + dt / 2
-        # merged spans may contain the still-mask gap between two runs: keep still samples
-        keep = still[i0:i1]
-        am: dict[int, np.ndarray] = {}
-        for inst, tv in accels.items():
-            am[inst] = (a[i0:i1] if keep.all() else a[i0:i1][keep]) if tv is None else _between(tv[0], tv[1], lo, hi)
-        mm = {inst: _between(ts, vs, lo, hi) for inst, (ts, vs) in mags.items()}
+    for spans in groups:
+        bounds = [(float(t[s0]) - dt / 2, float(t[s1 - 1]) + dt / 2) for s0, s1 in spans]
+        a_ref = a[spans[0][0]:spans[0][1]] if len(spans) == 1 else np.concatenate([a[s0:s1] for s0, s1 in spans])
+        am = {inst: a_ref if tv is None else _pieces(tv[0], tv[1], bounds) for inst, tv in accels.items()}
+        mm = {inst: _pieces(ts, vs, bounds) for inst, (ts, vs) in mags.items()}
         field = None
         if mag0 is not None and len(mm[mag0]):
             field = _unit(mm[mag0].mean(axis=0))
-        out.append(StillInterval(t0, t1, am, mm, _unit(R_b @ a[i0:i1].mean(axis=0)), field, dt))
+        pieces = tuple((float(t[s0]), float(t[s1 - 1])) for s0, s1 in spans)
+        out.append(StillInterval(pieces[0][0], pieces[-1][1], am, mm, _unit(R_b @ a_ref.mean(axis=0)), field, dt,
+                                 pieces))
     return out
 
 
@@ -566,25 +591,15 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     mg = mags[mag0] if (cfg.use_mag and gy is None and mag0 is not None) else None
     ok = _still_windows(ref.t, ref.a, gy, mg, ref.w, cfg)
     runs = _still_runs(ok, ref.w)
-    still = _run_mask(runs, len(ref.t))
     warnings: list[str] = []
     if len(ref.t) < ref.w:
         warnings.append(f"only {len(ref.t)} accelerometer samples ({len(ref.t) * ref.dt:.1f} s): too short for a "
                         f"{ref.w}-sample window")
     dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0])
-    merged = _merge(_trimmed(runs, ref.dt, cfg), ref.t, dirs, cfg)
+    groups = _merge(_trimmed(runs, ref.dt, cfg), ref.t, dirs, cfg)
     others = {s.instance: None if s is ref.series else _sorted_finite(s) for s in accel}
-    intervals = _intervals(merged, ref, still, others, mags, R_b, mag0)
+    intervals = _intervals(groups, ref, others, mags, R_b, mag0)
     return _finish(intervals, cfg, ref, gy is not None, mg is not None, accel, mag, warnings)
-
-
-def _run_mask(runs: Sequence[tuple[int, int]], n: int) -> np.ndarray:
-    """(n,) bool, True on the sample ranges ``runs``."""
-    d = np.zeros(n + 1, dtype=np.int64)
-    for s0, s1 in runs:
-        d[s0] += 1
-        d[s1] -= 1
-    return np.cumsum(d[:n]) > 0
 
 
 def _finish(intervals: list[StillInterval], cfg: StillConfig, ref: _Reference, used_gyro: bool, used_mag: bool,

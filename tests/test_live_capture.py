@@ -67,6 +67,44 @@ class AdviceHand(threading.Thread):
             self.join(timeout=5)
 
 
+class QuickReturnHand(AdviceHand):
+    """A hand that comes back to poses quickly: after every counted interval it first turns away
+    for ``move_s`` and returns to the pose it held (back within 3 s: merged into that interval),
+    then holds the advised pose; when an advice does not change for ``patience_s`` it turns away
+    and returns to it again."""
+
+    def __init__(self, vehicle: TestVehicle, advice, *, move_s: float = 0.3, patience_s: float = 1.5):
+        super().__init__(vehicle, advice, move_s=move_s)
+        self.patience_s = patience_s
+        self.returns = 0
+
+    def _hold(self, pose) -> bool:
+        self.v.set_moving(True)
+        if self.halt.wait(self.move_s):
+            return False
+        self.v.set_attitude(roll=pose[0], pitch=pose[1], yaw=pose[2] + self.decl)
+        return True
+
+    def run(self) -> None:
+        held_n, held, since = None, None, time.monotonic()
+        while not self.halt.is_set():
+            n, pose, done = self.advice()
+            if done:
+                return
+            if pose is not None and (held_n is None or n > held_n or time.monotonic() - since > self.patience_s):
+                if held is not None and (held_n is None or n > held_n):  # back to the pose just counted
+                    if not self._hold(held) or self.halt.wait(1.0):
+                        return
+                    self.returns += 1
+                elif held == pose:
+                    self.returns += 1
+                if not self._hold(pose):
+                    return
+                self.poses.append(pose)
+                held_n, held, since = n, pose, time.monotonic()
+            self.halt.wait(0.05)
+
+
 class StatusFeed:
     """Latest CaptureStatus, as the hand's advice."""
 
@@ -257,3 +295,40 @@ def test_ctrl_c_stops_the_capture_and_keeps_the_session(vehicle):
                                      max_duration_s=30)
     assert len(seen) == 3 and seen[-1] is sess.status
     assert sess.status.done and sess.status.reason == "stopped by the user"
+
+
+def test_rotated_compass_and_quick_returns_reach_the_target(start_vehicle):
+    """Issue 13: a rotated compass (COMPASS_ORIENT 6), random sensor errors and a hand that returns
+    to poses within 3 s. Returns merge into their interval, but no interval keeps moving samples
+    and the advice moves on: the capture reaches its target."""
+    import dataclasses
+
+    t = VehicleTruth.random(3)
+    comp = dataclasses.replace(t.compasses[0], orientation=6)
+    v = start_vehicle(truth=dataclasses.replace(t, compasses=(comp,) + t.compasses[1:]), seed=3, heartbeat_hz=5,
+                      params={"COMPASS_ORIENT": 6})
+    feed = StatusFeed()
+    hand = QuickReturnHand(v, feed.advice)
+    hand.start()
+    try:
+        sess = live_capture.capture_live(v.gcs_device, config=CaptureConfig(still=HOLD), on_status=feed,
+                                         max_duration_s=60)
+    finally:
+        hand.stop()
+    st = sess.status
+    assert st.done and not st.aborted and "target" in st.reason, st.reason
+    assert st.heading_95_deg <= 0.5 and st.n_intervals >= 8
+    assert hand.returns >= 3
+    ivs = sess.run.segmentation.intervals
+    assert any(len(iv.pieces_s) > 1 for iv in ivs)  # returns did merge
+    for iv in ivs:  # RAW_IMU carries accel 0 and mag 0: the same still pieces, the same samples
+        assert abs(iv.n_mag[0] - iv.n_accel[0]) <= len(iv.pieces_s)
+    # consecutive advices after the plan never name the pose of an interval already counted
+    counted = {}
+    for s_ in feed.all:
+        a = s_.next_pose
+        if a is None or s_.n_intervals < 6:
+            continue
+        counted.setdefault(s_.n_intervals, (a.roll_deg, a.pitch_deg, a.yaw_deg))
+    advised_in_order = list(counted.values())
+    assert all(x != y for x, y in zip(advised_in_order, advised_in_order[1:]))

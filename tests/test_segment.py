@@ -11,8 +11,7 @@ from mavcal.errors import MavcalError, SegmentationError
 from mavcal.segment import StillConfig, diagnose_coverage, find_still_intervals
 from mavcal.sources import open_source
 from mavcal.sources.types import SensorSeries
-from mavcal.testing.simlog import AccelErrorTruth
-from mavcal.testing.simlog import MagTruth, SimConfig, simulate_session
+from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 REAL = SHARED / "data" / "real"
@@ -195,3 +194,83 @@ def _sphere_points(n: int = 2000) -> np.ndarray:
     phi = np.arccos(1 - 2 * i / n)
     theta = np.pi * (1 + 5 ** 0.5) * i
     return np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)])
+
+
+def _return_to_pose_log(rate=50.0, mag_rate=20.0):
+    """Still 4 s, a 1 s excursion (0.5 s out at 120 deg/s about x, 0.5 s back), still 4 s
+    in the same pose: accel 0 and 1 (at their own times), mag 0 and 1, gyro. Returns the
+    series and the excursion (t0, t1)."""
+    rng = np.random.default_rng(5)
+    g = np.array([0.0, 0.0, -9.80665])
+    B = np.array([200.0, 20.0, 420.0])
+
+    def rot_x(th):
+        c, s = np.cos(th), np.sin(th)
+        return np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+
+    def angle(t):  # radians about x; 0 while still
+        w = np.radians(120.0)
+        return np.where((t >= 4) & (t < 4.5), w * (t - 4), np.where((t >= 4.5) & (t < 5), w * (5 - t), 0.0))
+
+    def rate_x(t):
+        w = np.radians(120.0)
+        return np.where((t >= 4) & (t < 4.5), w, np.where((t >= 4.5) & (t < 5), -w, 0.0))
+
+    series = []
+    for inst, off in ((0, 0.0), (1, 0.37 / rate)):
+        t = np.arange(0, 9, 1 / rate) + off
+        a = np.array([rot_x(th) @ g for th in angle(t)]) + rng.normal(0, 0.01, (len(t), 3))
+        series.append(SensorSeries("accel", inst, "sim", t, a))
+        if inst == 0:
+            gy = np.column_stack([rate_x(t), 0 * t, 0 * t]) + rng.normal(0, 0.001, (len(t), 3))
+            series.append(SensorSeries("gyro", 0, "sim", t, gy))
+    for inst, bias in ((0, np.array([30.0, -10.0, 5.0])), (1, np.zeros(3))):
+        t = np.arange(0, 9, 1 / mag_rate) + 0.013 * (inst + 1)
+        m = np.array([rot_x(th) @ B for th in angle(t)]) + bias + rng.normal(0, 1.0, (len(t), 3))
+        series.append(SensorSeries("mag", inst, "sim", t, m))
+    return series, (4.0, 5.0)
+
+
+def test_a_quick_return_merges_and_no_sensor_keeps_the_motion():
+    """A return to the same pose within merge_gap_s is one interval (two pieces), and every
+    sensor (not only accel 0) keeps only the samples of the still spans."""
+    series, (m0, m1) = _return_to_pose_log()
+    seg = find_still_intervals(series)
+    assert len(seg) == 1
+    iv = seg.intervals[0]
+    assert len(iv.pieces_s) == 2
+    (a0, a1), (b0, b1) = iv.pieces_s
+    assert a1 < m0 and b0 > m1  # the motion lies between the pieces
+    still = {s.sensor + str(s.instance): s for s in series}
+    for key, arr in (("accel0", iv.accel_mps2[0]), ("accel1", iv.accel_mps2[1]),
+                     ("mag0", iv.mag_mgauss[0]), ("mag1", iv.mag_mgauss[1])):
+        s = still[key]
+        in_motion = (s.time_s >= m0) & (s.time_s < m1)
+        vals = s.values[~in_motion]
+        # every kept sample is one of the still samples, and the mean is the still mean
+        assert all(np.any(np.all(vals == row, axis=1)) for row in arr), key
+        mean_still = vals.mean(axis=0)
+        scale = 9.80665 if key.startswith("accel") else 470.0
+        assert np.linalg.norm(arr.mean(axis=0) - mean_still) < 0.01 * scale, key
+    # the same stillness mask for all: counts in proportion to the rates
+    assert abs(iv.n_accel[1] - iv.n_accel[0]) <= 2
+    assert abs(iv.n_mag[0] - iv.n_accel[0] * 20 / 50) <= 4 and abs(iv.n_mag[1] - iv.n_mag[0]) <= 2
+
+
+def test_merging_stays_linear_in_the_number_of_returns():
+    """Many quick returns to one pose: one interval, its pieces in order, no moving sample."""
+    base, _ = _return_to_pose_log()
+    reps = 40
+    series = []
+    for s in base:  # the 9 s pattern repeated; each repetition ends and starts still
+        t = np.concatenate([s.time_s + 9.0 * k for k in range(reps)])
+        series.append(SensorSeries(s.sensor, s.instance, "sim", t, np.tile(s.values, (reps, 1))))
+    seg = find_still_intervals(series)
+    assert len(seg) == 1
+    iv = seg.intervals[0]
+    assert len(iv.pieces_s) == reps + 1  # the still end of one repetition joins the next one's start
+    starts = np.array([p[0] for p in iv.pieces_s])
+    assert np.all(np.diff(starts) > 0)
+    t_mag = np.concatenate([base[-1].time_s + 9.0 * k for k in range(reps)])
+    moving = ((t_mag % 9.0) >= 4.0) & ((t_mag % 9.0) < 5.0)
+    assert iv.n_mag[1] <= int((~moving).sum())

@@ -36,8 +36,11 @@ def status_screen(st: CaptureStatus, target_deg: float | None = None) -> str:
     tgt = f" (target {target_deg:g})" if target_deg is not None else ""
     lines.append(f"heading error bound 95 %: {_fmt(st.heading_95_deg)} deg{tgt}    tilt: {_fmt(st.tilt_95_deg, 3)} deg"
                  f"    model: {st.model or '-'}")
-    if st.field_mgauss is not None:
-        lines.append(f"field: {st.field_mgauss:.0f} mGauss")
+    if st.field_calibrated_mgauss is not None:
+        raw = f" (raw reading {st.field_mgauss:.0f} mGauss)" if st.field_mgauss is not None else ""
+        lines.append(f"field: {st.field_calibrated_mgauss:.0f} mGauss calibrated{raw}")
+    elif st.field_mgauss is not None:
+        lines.append(f"field: {st.field_mgauss:.0f} mGauss raw (not calibrated yet)")
     lines += ["", "gravity directions covered (body frame; columns: azimuth, rows: elevation):",
               coverage_map(st.gravity_dirs), ""]
     if st.done:

@@ -57,6 +57,13 @@ class CaptureConfig:
     still: StillConfig = StillConfig(min_duration_s=1.0)
     uncertainty_draws: int = 150
     criterion: str = "heading"  # or "d-optimal"
+    # a candidate whose predicted accel and compass directions are both within this of a
+    # recorded interval's is that pose again: never advised (held again it only adds samples to
+    # that pose, or merges into the last interval when the hand is back within merge_gap_s)
+    repeat_deg: float = 15.0
+    # advices in a row without a new interval: then the advised pose is given up (the next best
+    # one is advised) and the status says what is wrong
+    stall_advices: int = 30
 
 
 @dataclass(frozen=True)
@@ -89,8 +96,9 @@ class CaptureStatus:
     done: bool
     reason: str
     aborted: bool = False
-    field_mgauss: float | None = None
+    field_mgauss: float | None = None  # raw (as read, before any calibration) |field| of the last interval
     messages: tuple[str, ...] = ()
+    field_calibrated_mgauss: float | None = None  # the same with the current fit applied (None before a fit)
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
@@ -191,14 +199,31 @@ def _information(run: CalibrationRun, poses: Sequence[tuple[float, float, float]
         return Hgg - np.einsum("npr,nrs,nqs->npq", Hgr, np.linalg.inv(Hrr), Hgr), prob, p
 
     S_parts, prob, p = info(mu_a, mu_m, n_a, n_m, cal.orientations)
+    pa, pm, R = _predicted(run, poses)
+    nn = np.full(len(poses), float(n_samples))
+    dS, _, _ = info(pa, pm, nn, nn, R)
+    return S_parts.sum(axis=0), dS, prob, p
+
+
+def _predicted(run: CalibrationRun, poses: Sequence[tuple[float, float, float]]
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Accel and compass means (K, 3) the current model predicts at each pose, and the
+    rotations (K, 3, 3) inertial (NED, magnetic) -> engine frame E."""
+    cal = run.calibration
     board = run.mapping.accel[0].old.board_matrix @ run.mapping.accel[0].frame_rotation  # E -> body
     Cs = np.array([euler_matrix(*q) for q in poses])
     R = np.einsum("ji,nkj->nik", board, Cs)  # (board)^T C^T: inertial (NED, magnetic) -> E
     pa = (cal.accel.gain @ (R @ cal.gravity)[..., None])[..., 0] + cal.accel.bias
     pm = (cal.mag.gain @ (R @ cal.field)[..., None])[..., 0] + cal.mag.bias
-    nn = np.full(len(poses), float(n_samples))
-    dS, _, _ = info(pa, pm, nn, nn, R)
-    return S_parts.sum(axis=0), dS, prob, p
+    return pa, pm, R
+
+
+def predicted_means(run: CalibrationRun, poses: Sequence[tuple[float, float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 3) accel (m/s^2) and (K, 3) compass (mGauss) means the current fit predicts for a
+    still interval at each pose (roll, pitch, magnetic yaw in degrees), in the frames of the
+    recovered readings the fit used."""
+    pa, pm, _ = _predicted(run, poses)
+    return pa, pm
 
 
 def heading_gradients(run: CalibrationRun, prob: JointProblem, p) -> np.ndarray:
@@ -286,6 +311,11 @@ class CaptureSession:
         self._status: CaptureStatus | None = None
         self._stopped: str | None = None
         self.poses_advised: list[PoseAdvice] = []
+        self._pieces = 0  # pieces of the last interval at the last update (a merge adds one)
+        self._n_seen = 0  # intervals at the last update
+        self._since_new = 0  # advices since the interval count last grew
+        self._given_up: list[tuple[float, float, float]] = []  # poses advised through a stall
+        self.stalls = 0
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -348,7 +378,14 @@ class CaptureSession:
                       f"185-875 mGauss): a magnet or steel is next to the compass; move away and start again")
         n = len(ivs)
         n_min = MODELS[MODEL_CHAIN[-1]].min_intervals
-        if not aborted and n >= n_min and (self._run is None or n != self._run_n):
+        pieces = len(ivs[-1].pieces_s) if ivs else 0
+        merged = n == self._n_seen and pieces > self._pieces
+        self._pieces = pieces
+        if merged:  # a return to the last pose: its interval changed (more still samples), not the count
+            messages.append(f"the pose held was the same as interval {n}'s and followed it within "
+                            f"{cfg.still.merge_gap_s:g} s: it was merged into that interval, not counted as a new "
+                            "one; hold the advised pose")
+        if not aborted and n >= n_min and (self._run is None or n != self._run_n or merged):
             try:
                 self._run = calibrate_prepared(prep, self.options)
                 self._run_n = n
@@ -373,7 +410,10 @@ class CaptureSession:
             done, reason = True, f"heading error bound {heading:.2f} deg <= target {cfg.target_heading_deg} deg"
         elif n >= cfg.max_intervals:
             done, reason = True, f"{n} intervals: the maximum"
-        advice = None if done else self.next_pose()
+        advice = None
+        if not done:
+            messages += self._stall_check(n, still_now)
+            advice = self.next_pose()
         if advice is not None:
             self.poses_advised.append(advice)
         st = CaptureStatus(time_s=t_last, still_now=still_now, n_intervals=n,
@@ -382,26 +422,80 @@ class CaptureSession:
                            heading_95_deg=heading, tilt_95_deg=tilt, model=model, next_pose=advice, done=done,
                            reason=reason or ("still: keep holding" if still_now else "move to the next pose"),
                            aborted=aborted, field_mgauss=fields[-1] if fields else None,
+                           field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if run is not None and ivs
+                           else None,
                            messages=tuple(messages))
         self._status = st
         return st
 
+    def _stall_check(self, n: int, still_now: bool) -> list[str]:
+        """Count advices since the interval count last grew; after ``stall_advices`` of them give
+        the advised pose up (the next advice is another one) and say what is wrong."""
+        if n > self._n_seen:
+            self._n_seen, self._since_new = n, 0
+            return []
+        self._n_seen = n
+        self._since_new += 1
+        if self._since_new < self.config.stall_advices or not self.poses_advised:
+            return []
+        last = self.poses_advised[-1]
+        self._given_up.append((last.roll_deg, last.pitch_deg, last.yaw_deg))
+        self._since_new = 0
+        self.stalls += 1
+        why = ("the vehicle was held still but no new interval came: the pose held is one already recorded, or it "
+               "was not held within the still thresholds" if still_now else
+               "the vehicle was never still long enough: hold it completely still")
+        log.info("capture stalled at %d intervals: %s", n, why)
+        return [f"no new still interval for {self.config.stall_advices} advices ({why}); advising another pose "
+                f"instead of {last.words}"]
+
     def next_pose(self) -> PoseAdvice:
-        """The most informative next pose (or the next of the initial plan before a fit)."""
+        """The most informative next pose (or the next of the initial plan before a fit).
+
+        Never a pose already recorded (see ``CaptureConfig.repeat_deg``) nor one given up
+        after a stall.
+        """
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
         if self._run is None or len(dirs) < PLAN_FIRST:
-            for pose in INITIAL_PLAN:
+            plan = [q for q in INITIAL_PLAN if q not in self._given_up] or INITIAL_PLAN
+            for pose in plan:
                 g = euler_matrix(*pose).T @ np.array([0.0, 0.0, 1.0])
                 if not len(dirs) or np.max(dirs @ g) < np.cos(np.radians(30)):
                     return _advice(pose)
-            return _advice(INITIAL_PLAN[len(dirs) % len(INITIAL_PLAN)])
+            return _advice(plan[len(dirs) % len(plan)])
         poses = candidate_poses()
         n_typ = float(np.median([len(self._run.segmentation.intervals[k].accel_mps2[self.options.accel_instance])
                                  for k in self._run.intervals_used]))
         scores = pose_scores(self._run, poses, n_typ, self.config.criterion)
+        out = self._excluded(poses)
+        if not out.all():
+            scores = np.where(out, -np.inf, scores)
         k = int(np.argmax(scores))
         return _advice(poses[k], scores[k])
+
+    def _excluded(self, poses: Sequence[tuple[float, float, float]]) -> np.ndarray:
+        """(K,) bool: the candidate repeats a recorded interval (predicted accel and compass
+        means both within ``repeat_deg`` of its means) or was given up after a stall."""
+        assert self._run is not None and self._prep is not None
+        ivs = self._prep.segmentation.intervals
+        ai, mi = self._run.mapping.accel[0].instance, self._run.mapping.compass[0].instance
+        rec = [(iv.accel_mps2[ai].mean(0), iv.mag_mgauss[mi].mean(0)) for iv in ivs
+               if len(iv.accel_mps2.get(ai, ())) and len(iv.mag_mgauss.get(mi, ()))]
+        out = np.array([q in self._given_up for q in poses])
+        if not rec:
+            return out
+        pa, pm = predicted_means(self._run, poses)
+        mu_a = np.array([r[0] for r in rec])
+        mu_m = np.array([r[1] for r in rec])
+        cos_r = np.cos(np.radians(self.config.repeat_deg))
+
+        def cos(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+            x = x / np.linalg.norm(x, axis=1, keepdims=True)
+            y = y / np.linalg.norm(y, axis=1, keepdims=True)
+            return x @ y.T
+
+        return out | np.any((cos(pa, mu_a) >= cos_r) & (cos(pm, mu_m) >= cos_r), axis=1)
 
     def result(self, options: Options | None = None) -> CalibrationRun:
         """The final fit with the full quality analysis (held-out errors, more draws)."""
@@ -415,6 +509,18 @@ class CaptureSession:
                                                                   mag_instance=self.options.mag_instance,
                                                                   location=self.options.location,
                                                                   field_mgauss=self.options.field_mgauss))
+
+
+def _calibrated_field(run: CalibrationRun, iv) -> float | None:
+    """|field| (mGauss) of interval ``iv``'s mean compass reading with the fit applied:
+    |K_m^-1 (m - b_m)| scaled from the model's field (1, 0, h_z) to the mapped magnitude."""
+    mi = run.mapping.compass[0].instance
+    m = iv.mag_mgauss.get(mi)
+    if m is None or not len(m):
+        return None
+    cal = run.calibration
+    z = np.linalg.solve(cal.mag.gain, m.mean(0) - cal.mag.bias)
+    return float(np.linalg.norm(z) / np.linalg.norm(cal.field) * run.mapping.compass[0].field_mgauss)
 
 
 def _field_spread(run: CalibrationRun) -> float:

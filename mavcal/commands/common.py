@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any, TextIO
@@ -162,14 +163,37 @@ def check_new_backup(path: str | None) -> None:
         raise UsageError(f"backup file {path!r} already exists; not overwriting it")
 
 
+def _open_tty() -> TextIO:
+    """The controlling terminal, read and write (OSError without one)."""
+    return open("/dev/tty", "r+", encoding="utf-8")  # noqa: SIM115 (closed by the caller)
+
+
 def confirm(prompt: str, assume_yes: bool) -> None:
-    """Ask on the terminal; refuse (UsageError) without a terminal unless ``assume_yes``."""
+    """Ask y/N on the terminal the user sees; refuse (UsageError) when nobody can answer.
+
+    The prompt goes to the controlling terminal (``/dev/tty``), else to stdout, never to
+    stderr (with ``2> file`` it would be invisible, as ``input()`` does on a console). No
+    terminal on stdin, or ``CI`` set (CI runners may give a pseudo-terminal nobody reads):
+    refused unless ``assume_yes`` (``--yes``).
+    """
     if assume_yes:
         return
+    if os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no"):
+        raise UsageError("not writing without confirmation: CI is set, nobody can answer (use --yes)")
     if not sys.stdin.isatty():
         raise UsageError("not writing without confirmation: stdin is not a terminal (use --yes)")
-    answer = input(f"{prompt} [y/N] ").strip().lower()
-    if answer not in ("y", "yes"):
+    try:
+        tty = _open_tty()
+    except OSError:
+        sys.stdout.write(f"{prompt} [y/N] ")
+        sys.stdout.flush()
+        answer = sys.stdin.readline()
+    else:
+        with tty:
+            tty.write(f"{prompt} [y/N] ")
+            tty.flush()
+            answer = tty.readline()
+    if answer.strip().lower() not in ("y", "yes"):
         raise UsageError("cancelled; nothing was written")
 
 

@@ -79,6 +79,27 @@ def next_step(run, *, force_hint: str = "--force") -> str:
     return f"next: nothing is written; fix the causes named above and record again ({force_hint} writes anyway)"
 
 
+def _holdout_text(run) -> str:
+    """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
+    q = run.quality
+    if np.isfinite(q.holdout_accel_mps2) and np.isfinite(q.holdout_mag_mgauss):
+        return f"held-out error: accel {q.holdout_accel_mps2:.4f} m/s^2, compass {q.holdout_mag_mgauss:.2f} mGauss"
+    from mavcal.core.models import MODELS
+
+    if run.calibration is None:
+        return "held-out error: not run (no joint fit: accelerometers calibrated alone)"
+    n, need = len(run.intervals_used), MODELS[run.calibration.model].min_intervals
+    if n - 1 < need:
+        why = f"leaving one of {n} intervals out leaves fewer than the {need} the {run.calibration.model} model needs"
+    else:
+        g = np.array([run.segmentation.intervals[k].gravity_dir for k in run.intervals_used])
+        twice = ((g @ g.T) > np.cos(np.radians(30.0))).sum(axis=1) >= 2
+        why = "disabled or no refit succeeded" if twice.any() else (
+            "no pose was held twice: each interval is alone within 30 deg of its gravity direction, so leaving it "
+            "out would measure extrapolation, not the fit")
+    return f"held-out error: not run ({why})"
+
+
 def summary_text(run) -> str:
     """Short human summary of a run for a terminal.
 
@@ -109,8 +130,7 @@ def summary_text(run) -> str:
     joint = "" if cal is None else " of the joint fit (each sensor's own numbers are in its gates)"
     L += [f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
           f"(95 % confidence, over the flight envelope{joint})",
-          f"held-out error (a pose left out and predicted){joint}: accel {q.holdout_accel_mps2:.4f} m/s^2, "
-          f"compass {q.holdout_mag_mgauss:.2f} mGauss; fit chi2/dof {q.chi2_dof:.2f}"]
+          f"{_holdout_text(run)}{joint}; fit chi2/dof {q.chi2_dof:.2f}"]
     L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
           for am in run.mapping.accel[:1]]
     L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
