@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.limits import sensor_of
 
-__all__ = ["SlotMap", "parse_slot_map", "device_id_problems", "remap_changes"]
+__all__ = ["SlotMap", "parse_slot_map", "device_id_problems", "remap_changes", "id_names"]
 
 #: log slot -> vehicle slot (0-based)
 SlotMap = Mapping[int, int]
@@ -50,6 +50,16 @@ def parse_slot_map(text: str, kind: str) -> tuple[int, int]:
 
 def _id_name(kind: str, k: int) -> str:
     return fw.compass_param_names(k)["dev_id"] if kind == "compass" else fw.accel_param_names(k)["id"]
+
+
+def id_names() -> list[str]:
+    """The compass device id and priority names and the accelerometer id names every ArduPilot
+    table holds (3 compass slots, IMUs 1-3; INS4/INS5 names exist only on boards with them)."""
+    out = []
+    for k in range(fw.MAX_COMPASSES):
+        cn = fw.compass_param_names(k)
+        out += [cn["dev_id"], cn["prio_id"]]
+    return out + [fw.accel_param_names(i)["id"] for i in range(3)]
 
 
 def _get_id(params: Mapping[str, float], name: str) -> int | None:

@@ -188,7 +188,8 @@ class _Download:
 
 
 def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5, window: int = 10,
-                    per_param_s: float = 0.05, silent_s: float = 10.0, need: Iterable[str] = ()) -> ParamDownload:
+                    per_param_s: float = 0.05, silent_s: float = 10.0, need: Iterable[str] = (),
+                    until_needed: bool = False) -> ParamDownload:
     """Download the vehicle's parameter table, as far as it gets within its time budget.
 
     The one parameter download (PARAM_REQUEST_LIST, then PARAM_REQUEST_READ of the missing
@@ -207,6 +208,8 @@ def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5,
         Give up when the vehicle sent nothing at all for this long (a dead link).
     need : iterable of str
         Names to ask for by name as well when the index pass has not brought them.
+    until_needed : bool
+        Stop as soon as every name in ``need`` is known (the table may then be partial).
 
     Raises
     ------
@@ -219,7 +222,7 @@ def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5,
     deadline = start + timeout_s
     try:
         dl.request_list(time.monotonic())
-        while not (dl.complete() and dl.needed_done()):
+        while not (dl.complete() or until_needed and bool(dl.need) and dl.needed_done()):
             now = time.monotonic()
             if dl.count is not None:
                 deadline = start + max(timeout_s, per_param_s * dl.count)

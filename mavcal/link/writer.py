@@ -58,10 +58,18 @@ from mavcal.ardupilot.paramfile import write_param_file
 from mavcal.ardupilot.protocol import needs_reboot, valid_param_name, vector_group
 from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UsageError
 from mavcal.link.connection import Link, as_link
-from mavcal.link.params import ParamTable, fetch_all_params, read_params, vehicle_param_error
+from mavcal.link.params import (
+    ParamTable,
+    download_params,
+    fetch_all_params,
+    read_params,
+    read_params_by_name,
+    vehicle_param_error,
+)
 
 __all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "UnknownParameterError",
-           "OutOfRangeError", "expected_stored_value", "FORCE_SAVE_KINDS", "DEFAULT_BUDGET_FACTOR", "result_words"]
+           "OutOfRangeError", "expected_stored_value", "FORCE_SAVE_KINDS", "DEFAULT_BUDGET_FACTOR", "result_words",
+           "fetch_for_write"]
 
 log = logging.getLogger(__name__)
 
@@ -439,6 +447,18 @@ class _WriteRun:
     def close(self) -> None:
         self.watch.close()
 
+    def execute(self, to_write: Sequence[ParamResult], force_save: Sequence[str]) -> WriteReport:
+        """Steps 3-6: the report of a complete write, or ParamWriteError / RestoreFailedError."""
+        try:
+            failure = self.write_each(to_write)
+            if failure is None:
+                failure = self.save_and_verify(force_save)
+            if failure is None:
+                return self.success()
+            self.restore(failure)
+        finally:
+            self.close()
+
     def _final(self) -> tuple[ParamResult, ...]:
         return tuple(self.results[r.name] for r in self.plan)
 
@@ -701,16 +721,46 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
     run = _WriteRun(link, table, plan, bpath, retries=retries, timeout_s=timeout_s,
                     restore_retries=restore_retries, link_timeout_s=link_timeout_s, budget_s=budget_s)
     run.force_skipped, run.out_of_range = skipped, out_of_range
-    force_save = [k for k in force_save if k not in skipped]
-    try:
-        failure = run.write_each(to_write)
-        if failure is None:
-            failure = run.save_and_verify(force_save)
-        if failure is None:
-            return run.success()
-        run.restore(failure)
-    finally:
-        run.close()
+    return run.execute(to_write, [k for k in force_save if k not in skipped])
+
+
+def fetch_for_write(conn: Any, names: Sequence[str], *, context: Sequence[str] = (), timeout_s: float = 1.0,
+                    attempts: int = 5, fetch_timeout_s: float = 30.0) -> ParamTable:
+    """The part of the vehicle's table a write of ``names`` needs, without a full download when
+    the names answer.
+
+    ``names`` (and ``context``, optional names such as device ids and limits) are read by name;
+    a name the vehicle refuses with PARAM_ERROR is unknown at once. Only when some of ``names``
+    do not answer is the table downloaded (re-requesting the holes by index and the names by
+    name, with a budget that grows with the count), until they are known or the table is
+    complete (then the missing ones do not exist: :func:`write_params` refuses them).
+
+    Raises
+    ------
+    UnknownParameterError
+        The vehicle said (PARAM_ERROR) that some of ``names`` do not exist.
+    LinkError
+        Some of ``names`` could not be read and the download did not complete.
+    """
+    link = as_link(conn)
+    wanted = list(dict.fromkeys(names))
+    extra = [c for c in dict.fromkeys(context) if c not in wanted]
+    got = read_params_by_name(link, wanted + extra, timeout_s=timeout_s, attempts=attempts)
+    unknown = [n for n in wanted if n in got.errors]
+    if unknown:
+        raise UnknownParameterError(unknown)
+    table = dict(got.values)
+    missing = [n for n in wanted if n not in table]
+    if not missing:
+        return table
+    log.info("%d names did not answer by name; downloading the table", len(missing))
+    dl = download_params(link, fetch_timeout_s, retry_s=max(timeout_s / 2, 0.2), need=missing, until_needed=True)
+    table.update(dl.table)
+    still = [n for n in missing if n not in table]
+    if still and not dl.complete:
+        raise LinkError(f"{link.device}: no answer reading {', '.join(still)}; "
+                        + dl.describe(link.device, dl.elapsed_s).split(": ", 1)[1] + " (nothing was written)")
+    return table
 
 
 def default_backup_path(directory: str = ".", stem: str = "mavcal-backup") -> Path:
