@@ -1,6 +1,7 @@
 """``mavcal apply FILE --connect DEVICE``: write a .param file to the vehicle, safely.
 
-Every value about to change is saved to a backup .param file first; each write is
+Values outside ArduPilot's limits (:mod:`mavcal.ardupilot.limits`) are refused before any
+write unless ``--force``. Every value about to change is saved to a backup .param file first; each write is
 confirmed by the vehicle's echo; on any failure everything written is restored from the
 backup (exit 5), or the parameters in doubt are listed (exit 6).
 """
@@ -20,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_link_arguments(parser)
     parser.add_argument("--backup", metavar="F", default=None,
                         help="where to save the current values first (default mavcal-backup-DATE-TIME.param)")
+    parser.add_argument("--force", action="store_true",
+                        help="write values outside ArduPilot's limits anyway (loudly; those sensors are not "
+                             "marked calibrated)")
 
 
 def run(args: argparse.Namespace) -> int:

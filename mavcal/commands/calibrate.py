@@ -13,7 +13,9 @@ import json
 from pathlib import Path
 
 from mavcal.commands.common import (
+    add_device_map_arguments,
     add_still_arguments,
+    add_write_budget_argument,
     check_new_backup,
     parse_location,
     still_config,
@@ -87,10 +89,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--dry-run", action="store_true", help="show the parameter diff; write nothing")
     w.add_argument("--backup", metavar="F", help="backup .param of the old values (default mavcal-backup-DATE.param)")
     w.add_argument("--baud", type=int, default=115200)
-    w.add_argument("--timeout", type=float, default=5.0, metavar="S", help="heartbeat timeout")
+    w.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for the vehicle's heartbeat (live SOURCE and --write; default 5)")
     w.add_argument("--param-timeout", type=float, default=1.0, metavar="S", help="wait for each parameter echo")
     w.add_argument("--retries", type=int, default=3)
     w.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation before writing")
+    add_write_budget_argument(w)
+    add_device_map_arguments(w)
 
 
 def _options(args):
@@ -114,7 +119,7 @@ def _single(args, source: str) -> int:
     opts = _options(args)
     device = is_device(source)
     if device:
-        log_ = open_source(source, baud=args.baud, duration_s=args.duration)
+        log_ = open_source(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout)
         run = calibrate_source(log_, opts)
     else:
         run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))
@@ -125,7 +130,8 @@ def _single(args, source: str) -> int:
             raise UsageError("--write needs --connect DEVICE when SOURCE is a log")
         args.connect = target
         check_new_backup(args.backup)
-        return write_with_report(args, run.params_to_write(args.force), args.backup, "calibration write") or code
+        return write_with_report(args, run.params_to_write(args.force), args.backup, "calibration write",
+                                 log_params=dict(run.params_before)) or code
     return code
 
 

@@ -15,7 +15,8 @@ from typing import Any, TextIO
 from mavcal.errors import GateError, UsageError
 
 __all__ = ["parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
-           "write_outputs", "confirm", "write_with_report", "check_new_backup"]
+           "write_outputs", "confirm", "write_with_report", "check_new_backup", "add_device_map_arguments",
+           "add_write_budget_argument"]
 
 
 # --------------------------------------------------------------------------- arguments
@@ -40,9 +41,28 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seconds to wait for the vehicle's heartbeat (default 5)")
     parser.add_argument("--param-timeout", type=float, default=1.0, metavar="S",
                         help="seconds to wait for each parameter echo (default 1)")
-    parser.add_argument("--retries", type=int, default=3, help="PARAM_SET attempts per parameter (default 3)")
+    parser.add_argument("--retries", type=int, default=3,
+                        help="PARAM_SET attempts per parameter at least (default 3; see --write-budget)")
+    add_write_budget_argument(parser)
     parser.add_argument("--dry-run", action="store_true", help="show what would change; write nothing")
     parser.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation")
+
+
+def add_write_budget_argument(parser: Any) -> None:
+    """``--write-budget S``: how long each PARAM_SET / force-save / read keeps being retried."""
+    parser.add_argument("--write-budget", type=float, default=None, metavar="S",
+                        help="seconds to keep retrying each PARAM_SET, force-save and read on a lossy link "
+                             "(default 15 x --param-timeout)")
+
+
+def add_device_map_arguments(parser: Any) -> None:
+    """``--map-compass`` / ``--map-imu LOGSLOT:VEHICLESLOT``: write a log's sensor to another vehicle slot."""
+    parser.add_argument("--map-compass", action="append", default=[], metavar="LOG:VEHICLE",
+                        help="write the log's compass LOG (1-based priority slot) to the vehicle's slot VEHICLE, "
+                             "even if their device ids differ (repeatable)")
+    parser.add_argument("--map-imu", action="append", default=[], metavar="LOG:VEHICLE",
+                        help="write the log's IMU LOG (1-based) to the vehicle's IMU VEHICLE, even if their "
+                             "INS_ACC*_ID differ (repeatable)")
 
 
 class _DeprecatedAlias(argparse.Action):
@@ -197,25 +217,78 @@ def confirm(prompt: str, assume_yes: bool) -> None:
         raise UsageError("cancelled; nothing was written")
 
 
+def _slot_maps(args: argparse.Namespace) -> tuple[dict[int, int], dict[int, int]]:
+    from mavcal.ardupilot.devices import parse_slot_map
+
+    maps: tuple[dict[int, int], dict[int, int]] = ({}, {})
+    for m, kind, texts in ((maps[0], "compass", getattr(args, "map_compass", None) or []),
+                           (maps[1], "imu", getattr(args, "map_imu", None) or [])):
+        for t in texts:
+            try:
+                a, b = parse_slot_map(t, kind)
+            except ValueError as exc:
+                raise UsageError(f"--map-{kind}: {exc}") from None
+            m[a] = b
+    return maps
+
+
+def _matched_changes(args: argparse.Namespace, changes: dict, log_params: dict | None, table: dict) -> dict:
+    """The log's calibration checked against the vehicle's device ids (UsageError on a
+    mismatch) and moved to the vehicle slots the user mapped."""
+    from mavcal.ardupilot.devices import device_id_problems, remap_changes
+
+    if log_params is None:
+        return changes
+    cmap, imap = _slot_maps(args)
+    values = {n: v for n, (v, _) in table.items()}
+    problems = device_id_problems(changes, log_params, values, compass_map=cmap, imu_map=imap)
+    if problems:
+        raise UsageError("; ".join(problems))
+    try:
+        return remap_changes(changes, compass_map=cmap, imu_map=imap)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _vehicle_values(link, args: argparse.Namespace, names: list) -> dict:
+    """The part of the vehicle's table the write needs (:func:`mavcal.link.writer.fetch_for_write`)."""
+    from mavcal.ardupilot.devices import id_names
+    from mavcal.ardupilot.limits import related_names
+    from mavcal.link.writer import fetch_for_write
+
+    context = related_names(names) + id_names()
+    return fetch_for_write(link, names, context=context, timeout_s=args.param_timeout,
+                           fetch_timeout_s=max(30.0, 10 * args.param_timeout))
+
+
 def write_with_report(args: argparse.Namespace, changes: dict, backup: str | None, what: str,
-                      out: TextIO | None = None) -> int:
+                      out: TextIO | None = None, log_params: dict | None = None) -> int:
     """Connect to ``args.connect``, show the diff, confirm, write with the safe writer
-    (:func:`mavcal.link.writer.write_params`) and print the outcome (:mod:`mavcal.report.text`)."""
+    (:func:`mavcal.link.writer.write_params`) and print the outcome (:mod:`mavcal.report.text`).
+
+    ``log_params``: the parameters of the log the calibration comes from; its compasses and
+    IMUs must be the vehicle's by device id (``--map-compass`` / ``--map-imu`` to override).
+    Values outside ArduPilot's limits are refused before any write unless ``args.force``.
+    """
     from mavcal.ardupilot.protocol import force_save_kinds
     from mavcal.errors import ParamWriteError
     from mavcal.link.connection import open_link
-    from mavcal.link.params import fetch_all_params
     from mavcal.link.writer import default_backup_path, write_params
     from mavcal.report.text import plan_text, write_done_text, write_failed_text
 
     out = out or sys.stdout
+    force = bool(getattr(args, "force", False))
+    opts = dict(retries=args.retries, timeout_s=args.param_timeout, budget_s=getattr(args, "write_budget", None),
+                allow_out_of_range=force)
     link = open_link(args.connect, baud=args.baud, timeout_s=args.timeout)
     try:
-        table = fetch_all_params(link, timeout_s=max(30.0, 10 * args.param_timeout),
-                                 retry_s=max(0.2, args.param_timeout / 2))
-        plan = write_params(link, changes, backup_path=None, params=table, dry_run=True,
-                            retries=args.retries, timeout_s=args.param_timeout)
+        table = _vehicle_values(link, args, list(changes))
+        changes = _matched_changes(args, changes, log_params, table)
+        if set(changes) - set(table):
+            table.update(_vehicle_values(link, args, list(changes)))
+        plan = write_params(link, changes, backup_path=None, params=table, dry_run=True, **opts)
         out.write(plan_text(plan, dry_run=args.dry_run))
+        _warn_out_of_range(changes, table, force)
         if not plan.changed or args.dry_run:
             return 0
         confirm(f"write {len(plan.changed)} parameter(s) to system {link.target_system}?", args.yes)
@@ -223,8 +296,7 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
         try:
             report = write_params(link, changes, backup_path=bpath, params=table,
                                   force_save=force_save_kinds(r.name for r in plan.changed),
-                                  retries=args.retries, timeout_s=args.param_timeout,
-                                  link_timeout_s=max(3.0, 3 * args.param_timeout))
+                                  link_timeout_s=max(3.0, 3 * args.param_timeout), **opts)
         except ParamWriteError as exc:
             out.write(write_failed_text(exc, what, bpath, args.connect))
             raise
@@ -232,3 +304,19 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
         return 0
     finally:
         link.close()
+
+
+def _warn_out_of_range(changes: dict, table: dict, force: bool) -> None:
+    """With --force, say loudly (stderr) which values break ArduPilot's limits and what is not
+    marked calibrated."""
+    from mavcal.ardupilot.limits import check_limits, failing_kinds
+
+    values = {n: v for n, (v, _) in table.items()}
+    bad = check_limits(changes, values)
+    if not (force and bad):
+        return
+    for v in bad:
+        print(f"mavcal: WARNING: --force: writing {v.message}", file=sys.stderr)
+    kinds = sorted(failing_kinds(changes, values))
+    if kinds:
+        print(f"mavcal: WARNING: {'/'.join(kinds)} will NOT be marked calibrated (no force-save)", file=sys.stderr)

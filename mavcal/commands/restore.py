@@ -1,6 +1,7 @@
 """``mavcal restore BACKUP --connect DEVICE``: put back the values saved by ``mavcal apply``.
 
-It uses the same safe writer: the vehicle's current values are saved to a new backup first
+It uses the same safe writer and the same limits as ``apply`` (``--force`` to override):
+the vehicle's current values are saved to a new backup first
 (so a restore can itself be undone), every value is confirmed by echo and read back.
 """
 from __future__ import annotations
@@ -21,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_link_arguments(parser)
     parser.add_argument("--backup", metavar="F", default=None,
                         help="where to save the current values first (default BACKUP-before-restore-DATE-TIME.param)")
+    parser.add_argument("--force", action="store_true",
+                        help="restore values outside ArduPilot's limits anyway (loudly; those sensors are not "
+                             "marked calibrated)")
 
 
 def run(args: argparse.Namespace) -> int:

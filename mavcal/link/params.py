@@ -4,9 +4,16 @@
   PARAM_REQUEST_LIST, collect PARAM_VALUE by index, then fetch
   the missing indices one by one with PARAM_REQUEST_READ, keeping a small window of
   requests in flight (ArduPilot queues at most 20 read requests and answers 5 per loop).
-* :func:`read_params`: PARAM_REQUEST_READ by name for a few parameters. ArduPilot answers a
-  read by name with ``param_index = -1`` (65535 on the wire) and does not answer at all for an
-  unknown name, so a name that never answers is reported as missing after its attempts.
+  Once the count is known the budget grows with it (``per_param_s`` per parameter): a slow or
+  lossy link gets time in proportion to the work, and a dead one (nothing heard for
+  ``silent_s``) ends the download at once. Names in ``need`` still missing after the index pass
+  are also asked for by name.
+* :func:`read_params` / :func:`read_params_by_name`: PARAM_REQUEST_READ by name for a few
+  parameters. ArduPilot answers a read by name with ``param_index = -1`` (65535 on the wire).
+  For an unknown name ArduPilot up to 4.6 does not answer at all (a name that never answers is
+  reported as missing after its attempts); master since PR #31062 (2025-10) answers with
+  PARAM_ERROR ``MAV_PARAM_ERROR_DOES_NOT_EXIST``, which ends the reads of that name at once and
+  is reported in the vehicle's words.
 
 Values are returned as ``(value, param_type)`` with ``param_type`` a ``MAV_PARAM_TYPE``
 (ArduPilot: INT8=2, INT16=4, INT32=6, REAL32=9). ArduPilot sends integers as plain float
@@ -20,10 +27,13 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
+from pymavlink import mavutil
+
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link, as_link
 
-__all__ = ["fetch_all_params", "download_params", "ParamDownload", "read_params", "ParamTable"]
+__all__ = ["fetch_all_params", "download_params", "ParamDownload", "read_params", "read_params_by_name",
+           "NameRead", "ParamTable", "param_error_words", "vehicle_param_error"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +48,23 @@ def _param_name(m: Any) -> str:
     if isinstance(name, bytes):
         name = name.decode("ascii", "replace")
     return name.rstrip("\x00")
+
+
+def param_error_words(code: int) -> str:
+    """A PARAM_ERROR code in MAVLink's words: ``"MAV_PARAM_ERROR_DOES_NOT_EXIST (Parameter does not exist)"``."""
+    entry = mavutil.mavlink.enums.get("MAV_PARAM_ERROR", {}).get(int(code))
+    if entry is None:
+        return f"PARAM_ERROR {int(code)}"
+    return f"{entry.name} ({entry.description.strip().rstrip('.')})" if entry.description else entry.name
+
+
+def vehicle_param_error(link: Link, m: Any) -> tuple[str, str] | None:
+    """``(name, words)`` of a PARAM_ERROR from the vehicle addressed to us, else None."""
+    if not link.is_from_vehicle(m):
+        return None
+    if getattr(m, "target_system", 0) not in (0, link.conn.mav.srcSystem):
+        return None
+    return _param_name(m), param_error_words(int(m.error))
 
 
 @dataclass(frozen=True)
@@ -70,7 +97,7 @@ class ParamDownload:
 class _Download:
     """State of one download: PARAM_VALUE by index, and the read requests in flight."""
 
-    def __init__(self, link: Link) -> None:
+    def __init__(self, link: Link, need: Iterable[str] = ()) -> None:
         self.link = link
         self.by_index: dict[int, str] = {}
         self.values: ParamTable = {}
@@ -78,7 +105,11 @@ class _Download:
         self.last_rx = time.monotonic()
         self.list_sent = float("-inf")
         self.outstanding: dict[int, float] = {}
-        self._token = link.add_handler("PARAM_VALUE", self._on_value)
+        self.need = list(dict.fromkeys(need))
+        self.named: dict[str, float] = {}  # by-name requests in flight
+        self.errors: dict[str, str] = {}  # PARAM_ERROR by name
+        self._tokens = [link.add_handler("PARAM_VALUE", self._on_value),
+                        link.add_handler("PARAM_ERROR", self._on_error)]
 
     def _on_value(self, m: Any) -> None:
         if not self.link.is_from_vehicle(m):
@@ -91,8 +122,17 @@ class _Download:
             self.count = count
             self.by_index[idx] = name
 
+    def _on_error(self, m: Any) -> None:
+        hit = vehicle_param_error(self.link, m)
+        if hit is not None and hit[0]:
+            self.errors[hit[0]] = hit[1]
+
     def complete(self) -> bool:
         return self.count is not None and len(self.by_index) >= self.count
+
+    def needed_done(self) -> bool:
+        """Every name in ``need`` is known (by index or by name) or refused by the vehicle."""
+        return all(n in self.values or n in self.errors for n in self.need)
 
     def request_list(self, now: float) -> None:
         self.link.mav.param_request_list_send(self.link.target_system, self.link.target_component)
@@ -102,8 +142,21 @@ class _Download:
         self.link.mav.param_request_read_send(self.link.target_system, self.link.target_component, b"", idx)
         self.outstanding[idx] = now
 
+    def _request_names(self, now: float, retry_s: float, room: int) -> None:
+        """PARAM_REQUEST_READ by name for needed names the index pass has not brought."""
+        for n in self.need:
+            if room <= 0:
+                return
+            if n in self.values or n in self.errors or now - self.named.get(n, float("-inf")) <= retry_s:
+                continue
+            self.link.mav.param_request_read_send(self.link.target_system, self.link.target_component,
+                                                  n.encode("ascii"), -1)
+            self.named[n] = now
+            room -= 1
+
     def step(self, now: float, retry_s: float, window: int) -> None:
-        """Repeat the list request while nothing is heard; once the list stream stops, fetch the holes."""
+        """Repeat the list request while nothing is heard; once the list stream stops, fetch the
+        holes by index and the needed names by name, at most ``window`` requests in flight."""
         if self.count is None:
             if now - max(self.last_rx, self.list_sent) > retry_s:
                 self.request_list(now)
@@ -120,21 +173,43 @@ class _Download:
                 break
             if idx not in self.by_index and idx not in self.outstanding:
                 self._request_index(idx, now)
+        self._request_names(now, retry_s, max(1, window - len(self.outstanding)))
 
     def table(self) -> ParamTable:
-        return {self.by_index[i]: self.values[self.by_index[i]] for i in sorted(self.by_index)}
+        out = {self.by_index[i]: self.values[self.by_index[i]] for i in sorted(self.by_index)}
+        for n in self.need:  # needed names that came by name only
+            if n in self.values and n not in out:
+                out[n] = self.values[n]
+        return out
 
     def close(self) -> None:
-        self.link.remove_handler(self._token)
+        for t in self._tokens:
+            self.link.remove_handler(t)
 
 
-def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5, window: int = 10) -> ParamDownload:
-    """Download the vehicle's parameter table, as far as it gets within ``timeout_s``.
+def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5, window: int = 10,
+                    per_param_s: float = 0.05, silent_s: float = 10.0, need: Iterable[str] = (),
+                    until_needed: bool = False) -> ParamDownload:
+    """Download the vehicle's parameter table, as far as it gets within its time budget.
 
     The one parameter download (PARAM_REQUEST_LIST, then PARAM_REQUEST_READ of the missing
     indices, at most ``window`` in flight, each repeated after ``retry_s``); the list request
     is repeated while nothing at all arrives for ``retry_s``. :func:`fetch_all_params` is this
     with an incomplete table as an error.
+
+    Parameters
+    ----------
+    timeout_s : float
+        The budget before the count is known, and the least budget in total.
+    per_param_s : float
+        Once the vehicle announced ``count`` parameters the budget is
+        ``max(timeout_s, per_param_s * count)``: re-requests go on while it lasts.
+    silent_s : float
+        Give up when the vehicle sent nothing at all for this long (a dead link).
+    need : iterable of str
+        Names to ask for by name as well when the index pass has not brought them.
+    until_needed : bool
+        Stop as soon as every name in ``need`` is known (the table may then be partial).
 
     Raises
     ------
@@ -142,14 +217,16 @@ def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5,
         The connection fails.
     """
     link: Link = as_link(conn)
-    dl = _Download(link)
+    dl = _Download(link, need)
     start = time.monotonic()
     deadline = start + timeout_s
     try:
         dl.request_list(time.monotonic())
-        while not dl.complete():
+        while not (dl.complete() or until_needed and bool(dl.need) and dl.needed_done()):
             now = time.monotonic()
-            if now >= deadline:
+            if dl.count is not None:
+                deadline = start + max(timeout_s, per_param_s * dl.count)
+            if now >= deadline or link.silent_for() > silent_s:
                 break
             dl.step(now, retry_s, window)
             link.pump(min(0.02, max(deadline - time.monotonic(), 0.0)))
@@ -161,7 +238,7 @@ def download_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5,
 
 
 def fetch_all_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5,
-                     window: int = 10) -> ParamTable:
+                     window: int = 10, per_param_s: float = 0.05) -> ParamTable:
     """Download the vehicle's whole parameter table.
 
     Parameters
@@ -169,12 +246,14 @@ def fetch_all_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5
     conn : Link or pymavlink connection
         A link to the vehicle (a bare pymavlink connection must have seen a HEARTBEAT).
     timeout_s : float
-        Give up after this long in total.
+        The least time budget (see :func:`download_params`: it grows with the count).
     retry_s : float
         A request without an answer for this long is sent again; the list request is
         repeated when nothing at all arrives for this long.
     window : int
         At most this many PARAM_REQUEST_READ in flight.
+    per_param_s : float
+        Budget per announced parameter.
 
     Returns
     -------
@@ -185,22 +264,36 @@ def fetch_all_params(conn: Any, timeout_s: float = 30.0, *, retry_s: float = 0.5
     Raises
     ------
     LinkError
-        The table is still incomplete after ``timeout_s``.
+        The table is still incomplete when the budget runs out.
     """
     link: Link = as_link(conn)
-    dl = download_params(link, timeout_s, retry_s=retry_s, window=window)
+    dl = download_params(link, timeout_s, retry_s=retry_s, window=window, per_param_s=per_param_s)
     if not dl.complete:
-        raise LinkError(dl.describe(link.device, timeout_s))
+        raise LinkError(dl.describe(link.device, dl.elapsed_s))
     return dl.table
 
 
-def _all_answered(got: ParamTable, names: list[str]) -> Callable[[], bool]:
-    names = list(names)
-    return lambda: all(x in got for x in names)
+@dataclass(frozen=True)
+class NameRead:
+    """The outcome of :func:`read_params_by_name`.
+
+    Attributes
+    ----------
+    values : dict of str to (float, int)
+        The names that answered.
+    errors : dict of str to str
+        Names the vehicle refused with PARAM_ERROR, in its words.
+    missing : tuple of str
+        Names that neither answered nor were refused (unknown on ArduPilot <= 4.6, or lost).
+    """
+
+    values: ParamTable
+    errors: dict[str, str]
+    missing: tuple[str, ...]
 
 
-def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, attempts: int = 3,
-                window: int = 10) -> ParamTable:
+def read_params_by_name(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, attempts: int = 3,
+                        window: int = 10, budget_s: float = 0.0) -> NameRead:
     """Read a few parameters by name (PARAM_REQUEST_READ), in parallel, with retries.
 
     Parameters
@@ -212,22 +305,20 @@ def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, atte
     timeout_s : float
         Wait this long for each answer before asking again.
     attempts : int
-        Requests per name before giving up on it.
+        Requests per name before giving up on it (at least; see ``budget_s``).
     window : int
         At most this many requests in flight.
-
-    Returns
-    -------
-    dict of str to (float, int)
-        The parameters that answered. A name missing from the result did not answer
-        (unknown to the vehicle, or the link lost every attempt).
+    budget_s : float
+        Keep asking for a name until ``attempts`` were sent *and* this long has passed.
     """
     link: Link = as_link(conn)
     wanted: list[str] = list(dict.fromkeys(names))
     got: ParamTable = {}
+    errors: dict[str, str] = {}
     sent_at: dict[str, float] = {}
     tries: dict[str, int] = {n: 0 for n in wanted}
     wanted_set = set(wanted)
+    start = time.monotonic()
 
     def on_value(m: Any) -> None:
         if link.is_from_vehicle(m):
@@ -235,29 +326,56 @@ def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, atte
             if name in wanted_set and name in sent_at:  # only answers to our requests
                 got[name] = (float(m.param_value), int(m.param_type))
 
-    token = link.add_handler("PARAM_VALUE", on_value)
+    def on_error(m: Any) -> None:
+        hit = vehicle_param_error(link, m)
+        if hit is not None and hit[0] in wanted_set and hit[0] in sent_at:
+            errors[hit[0]] = hit[1]
+
+    def given_up(n: str, now: float) -> bool:
+        return tries[n] >= attempts and now - start >= budget_s
+
+    tokens = [link.add_handler("PARAM_VALUE", on_value), link.add_handler("PARAM_ERROR", on_error)]
     try:
         while True:
             now = time.monotonic()
-            pending = [n for n in wanted if n not in got]
+            pending = [n for n in wanted if n not in got and n not in errors]
             live = [n for n in pending if n in sent_at and now - sent_at[n] <= timeout_s]
-            exhausted = [n for n in pending if tries[n] >= attempts and n not in live]
-            if len(exhausted) == len(pending):
+            if all(given_up(n, now) and n not in live for n in pending):
                 break
             for n in pending:
                 if len(live) >= window:
                     break
-                if n in live or tries[n] >= attempts:
+                if n in live or given_up(n, now):
                     continue
                 link.mav.param_request_read_send(link.target_system, link.target_component,
                                                  n.encode("ascii"), -1)
                 sent_at[n] = now
                 tries[n] += 1
                 live.append(n)
-            link.pump(0.01) if not live else link.wait(_all_answered(got, live), 0.02)
+            link.pump(0.01) if not live else link.wait(_all_answered(got, errors, live), 0.02)
     finally:
-        link.remove_handler(token)
-    missing = [n for n in wanted if n not in got]
+        for t in tokens:
+            link.remove_handler(t)
+    missing = tuple(n for n in wanted if n not in got and n not in errors)
     if missing:
         log.debug("no answer for %s", ", ".join(missing))
-    return got
+    return NameRead(got, errors, missing)
+
+
+def _all_answered(got: ParamTable, errors: dict[str, str], names: list[str]) -> Callable[[], bool]:
+    names = list(names)
+    return lambda: all(x in got or x in errors for x in names)
+
+
+def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, attempts: int = 3,
+                window: int = 10, budget_s: float = 0.0) -> ParamTable:
+    """Read a few parameters by name; see :func:`read_params_by_name`.
+
+    Returns
+    -------
+    dict of str to (float, int)
+        The parameters that answered. A name missing from the result did not answer
+        (unknown to the vehicle, or the link lost every attempt).
+    """
+    return read_params_by_name(conn, names, timeout_s=timeout_s, attempts=attempts, window=window,
+                               budget_s=budget_s).values

@@ -3,8 +3,16 @@
 Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; research note
 section 8):
 
-* PARAM_SET of an unknown name (or NaN/Inf) is silently ignored: only a timeout shows it.
-  So names are checked against the vehicle's own table *before* anything is written.
+* PARAM_SET of an unknown name (or NaN/Inf) is silently ignored up to ArduPilot 4.6: only a
+  timeout shows it. So names are checked against the vehicle's own table *before* anything is
+  written. ArduPilot master (PR #31062, 2025-10) answers them with PARAM_ERROR; a write-denied
+  parameter gets STATUSTEXT "Param write denied (NAME)" (since 4.0.4, PR #13823), an echo of the
+  unchanged value, and on master a PARAM_ERROR ``MAV_PARAM_ERROR_PERMISSION_DENIED``. Either
+  ends the attempts at once and the failure is reported in the vehicle's words.
+* Values outside ArduPilot's limits (:mod:`mavcal.ardupilot.limits`) are refused before any
+  write unless ``allow_out_of_range``; a sensor kind whose values fail is never force-saved.
+* Retries are bounded by time (``budget_s`` per parameter / force-save, after at least
+  ``retries`` attempts), not by a fixed count: a lossy link gets as many attempts as fit.
 * The vehicle converts the float to the stored type (integers: +/-0.01 in float32, clamp,
   truncate) and echoes PARAM_VALUE (``param_index`` 65535) after storing it; setting one
   element of a Vector3 echoes all three. An echo with the right name and the expected value
@@ -21,7 +29,8 @@ Sequence of :func:`write_params`:
    PARAM_SET (never overwriting an existing file);
 3. one parameter at a time: PARAM_SET, wait for the matching echo, retry;
 4. force-save (``MAV_CMD_PREFLIGHT_CALIBRATION`` param2=76 compass, param5=76 accel) so the
-   device ids are stored with the calibration; a missing ACK is reported, not fatal;
+   device ids are stored with the calibration; a missing ACK is reported, not fatal, and a
+   refusal in the COMMAND_ACK's result words;
 5. read every written parameter back once more (PARAM_REQUEST_READ) and compare;
 6. on any failure in 3-5: restore every parameter a PARAM_SET was sent for (including the
    one in flight) from the backup values, verify the restore by echo and read-back, then raise
@@ -44,14 +53,23 @@ from typing import Any, NoReturn
 import numpy as np
 from pymavlink import mavutil
 
+from mavcal.ardupilot.limits import LimitViolation, check_limits, failing_kinds
 from mavcal.ardupilot.paramfile import write_param_file
 from mavcal.ardupilot.protocol import needs_reboot, valid_param_name, vector_group
 from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UsageError
 from mavcal.link.connection import Link, as_link
-from mavcal.link.params import ParamTable, fetch_all_params, read_params
+from mavcal.link.params import (
+    ParamTable,
+    download_params,
+    fetch_all_params,
+    read_params,
+    read_params_by_name,
+    vehicle_param_error,
+)
 
 __all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "UnknownParameterError",
-           "expected_stored_value", "FORCE_SAVE_KINDS"]
+           "OutOfRangeError", "expected_stored_value", "FORCE_SAVE_KINDS", "DEFAULT_BUDGET_FACTOR", "result_words",
+           "fetch_for_write"]
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +81,15 @@ _TYPE_NAMES = {_A.MAV_PARAM_TYPE_INT8: "INT8", _A.MAV_PARAM_TYPE_INT16: "INT16",
 
 #: kind -> (param2, param5) of MAV_CMD_PREFLIGHT_CALIBRATION that force-saves it
 FORCE_SAVE_KINDS = {"compass": (76.0, 0.0), "accel": (0.0, 76.0)}
+#: default time budget per PARAM_SET / force-save, in units of the per-attempt timeout
+DEFAULT_BUDGET_FACTOR = 15.0
+_DENIED_PREFIX = "Param write denied ("
+
+
+def result_words(result: int) -> str:
+    """A MAV_RESULT in MAVLink's words, e.g. ``"MAV_RESULT_DENIED"``."""
+    entry = _A.enums.get("MAV_RESULT", {}).get(int(result))
+    return entry.name if entry is not None else f"MAV_RESULT {int(result)}"
 
 
 class UnknownParameterError(UsageError):
@@ -71,6 +98,15 @@ class UnknownParameterError(UsageError):
     def __init__(self, names: Sequence[str]) -> None:
         self.names = list(names)
         super().__init__("the vehicle has no parameter " + ", ".join(self.names) + " (nothing was written)")
+
+
+class OutOfRangeError(UsageError):
+    """Some values break ArduPilot's limits (nothing was written); ``violations`` lists them."""
+
+    def __init__(self, violations: Sequence[LimitViolation]) -> None:
+        self.violations = list(violations)
+        super().__init__("refusing to write (nothing was written): "
+                         + "; ".join(v.message for v in self.violations) + " (--force writes anyway)")
 
 
 @dataclass(frozen=True)
@@ -136,7 +172,11 @@ class WriteReport:
     force_saved : tuple of str
         Force-saves acknowledged by the vehicle (``"compass"``, ``"accel"``).
     force_save_failed : tuple of str
-        Force-saves not acknowledged.
+        Force-saves not acknowledged (or refused: the words are in ``message``).
+    force_save_skipped : tuple of str
+        Force-saves not sent because that sensor kind's values break a limit.
+    out_of_range : tuple of str
+        One line per value outside its limit that was written anyway (``allow_out_of_range``).
     dry_run : bool
         Nothing was written.
     message : str
@@ -153,6 +193,8 @@ class WriteReport:
     force_save_failed: tuple[str, ...] = ()
     dry_run: bool = False
     message: str = ""
+    force_save_skipped: tuple[str, ...] = ()
+    out_of_range: tuple[str, ...] = ()
 
     @property
     def needs_reboot(self) -> bool:
@@ -252,13 +294,16 @@ def plan_changes(changes: Mapping[str, float], table: ParamTable) -> list[ParamR
 # the write loop
 # ----------------------------------------------------------------------------------------------
 class _EchoWatch:
-    """Remembers the last PARAM_VALUE per name from the vehicle while registered."""
+    """Remembers, while registered, the PARAM_VALUEs per name from the vehicle and its refusals
+    (PARAM_ERROR, STATUSTEXT "Param write denied (NAME)") per name."""
 
     def __init__(self, link: Link) -> None:
         self.link = link
         self.last: dict[str, float] = {}
         self.seen: dict[str, list[float]] = {}
-        self._token = link.add_handler("PARAM_VALUE", self._on)
+        self.refused: dict[str, list[str]] = {}
+        self._tokens = [link.add_handler("PARAM_VALUE", self._on), link.add_handler("PARAM_ERROR", self._on_error),
+                        link.add_handler("STATUSTEXT", self._on_text)]
 
     def _on(self, m: Any) -> None:
         if not self.link.is_from_vehicle(m):
@@ -268,37 +313,74 @@ class _EchoWatch:
         self.last[name] = float(m.param_value)
         self.seen.setdefault(name, []).append(float(m.param_value))
 
+    def _on_error(self, m: Any) -> None:
+        hit = vehicle_param_error(self.link, m)
+        if hit is not None:
+            self.refused.setdefault(hit[0], []).append(f"PARAM_ERROR {hit[1]}")
+
+    def _on_text(self, m: Any) -> None:
+        text = m.text.decode("ascii", "replace") if isinstance(m.text, bytes) else str(m.text)
+        text = text.rstrip("\x00")
+        if self.link.is_from_vehicle(m) and text.startswith(_DENIED_PREFIX) and text.endswith(")"):
+            self.refused.setdefault(text[len(_DENIED_PREFIX):-1], []).append(f'"{text}"')
+
     def close(self) -> None:
-        self.link.remove_handler(self._token)
+        for t in self._tokens:
+            self.link.remove_handler(t)
+
+
+@dataclass(frozen=True)
+class _SetOutcome:
+    ok: bool
+    echoed: float | None
+    attempts: int
+    refusal: str | None = None  # the vehicle's own words when it refused the value
 
 
 def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, expected: float,
-                     retries: int, timeout_s: float, link_timeout_s: float) -> tuple[bool, float | None, int]:
-    """PARAM_SET ``name`` until an echo equal to ``expected`` arrives. -> (ok, last echo, attempts).
+                     retries: int, timeout_s: float, budget_s: float, link_timeout_s: float) -> _SetOutcome:
+    """PARAM_SET ``name`` until an echo equal to ``expected`` arrives, the vehicle refuses it, or
+    at least ``retries`` attempts were sent and ``budget_s`` has passed.
 
     Raises LinkError when the vehicle has sent nothing at all for ``link_timeout_s``.
     """
     attempts = 0
     wire_value = float(np.float32(value))
     mark = len(watch.seen.get(name, []))
-    for _ in range(max(1, retries)):
+    rmark = len(watch.refused.get(name, []))
+    start = time.monotonic()
+
+    def confirmed() -> bool:
+        return any(_same(v, expected) for v in watch.seen.get(name, [])[mark:])
+
+    def refused() -> bool:
+        return len(watch.refused.get(name, [])) > rmark
+
+    while attempts < max(1, retries) or time.monotonic() - start < budget_s:
         if link.silent_for() > link_timeout_s:
             raise LinkError(f"{link.device}: vehicle silent for {link.silent_for():.1f} s")
         attempts += 1
         link.mav.param_set_send(link.target_system, link.target_component, name.encode("ascii"),
                                 wire_value, _A.MAV_PARAM_TYPE_REAL32)
-
-        def confirmed() -> bool:
-            return any(_same(v, expected) for v in watch.seen.get(name, [])[mark:])
-
-        if link.wait(confirmed, timeout_s):
-            return True, expected, attempts
+        if link.wait(lambda: confirmed() or refused(), timeout_s) and confirmed():
+            return _SetOutcome(True, expected, attempts)
+        seen = watch.seen.get(name, [])[mark:]
+        if refused():  # the echo of the value it kept follows the refusal: it may be what we want
+            if link.wait(confirmed, timeout_s):
+                return _SetOutcome(True, expected, attempts)
+            seen = watch.seen.get(name, [])[mark:]
+            return _SetOutcome(False, seen[-1] if seen else None, attempts, watch.refused[name][-1])
         log.debug("%s: no matching echo (attempt %d, last %r)", name, attempts, watch.last.get(name))
     seen = watch.seen.get(name, [])[mark:]
-    return False, (seen[-1] if seen else None), attempts
+    return _SetOutcome(False, seen[-1] if seen else None, attempts)
 
 
-def _force_save(link: Link, kind: str, retries: int, timeout_s: float) -> bool:
+def _force_save(link: Link, kind: str, retries: int, timeout_s: float, budget_s: float) -> str | None:
+    """Send the force-save until the vehicle acknowledges it (or the budget runs out).
+
+    Returns None when accepted, else the reason (the COMMAND_ACK result in MAVLink's words, or
+    "no COMMAND_ACK ...").
+    """
     p2, p5 = FORCE_SAVE_KINDS[kind]
     acks: list[int] = []
 
@@ -307,20 +389,32 @@ def _force_save(link: Link, kind: str, retries: int, timeout_s: float) -> bool:
             acks.append(int(m.result))
 
     token = link.add_handler("COMMAND_ACK", on_ack)
+    sent = 0
+    start = time.monotonic()
     try:
-        for confirmation in range(max(1, retries)):
+        while not acks and (sent < max(1, retries) or time.monotonic() - start < budget_s):
             link.mav.command_long_send(link.target_system, link.target_component,
-                                       _A.MAV_CMD_PREFLIGHT_CALIBRATION, confirmation,
+                                       _A.MAV_CMD_PREFLIGHT_CALIBRATION, min(sent, 255),
                                        0, p2, 0, 0, p5, 0, 0)
-            if link.wait(lambda: bool(acks), timeout_s):
-                break
+            sent += 1
+            link.wait(lambda: bool(acks), timeout_s)
     finally:
         link.remove_handler(token)
-    ok = bool(acks) and acks[0] == _A.MAV_RESULT_ACCEPTED
-    if not ok:
-        log.warning("force-save of the %s calibration not acknowledged (%s)", kind,
-                    "no COMMAND_ACK" if not acks else f"result {acks[0]}")
-    return ok
+    if acks and acks[0] == _A.MAV_RESULT_ACCEPTED:
+        return None
+    reason = (f"the vehicle answered {result_words(acks[0])}" if acks
+              else f"no COMMAND_ACK after {sent} attempts in {time.monotonic() - start:.1f} s")
+    log.warning("force-save of the %s calibration not acknowledged (%s)", kind, reason)
+    return reason
+
+
+def _set_failure(r: ParamResult, out: _SetOutcome) -> str:
+    """Why a PARAM_SET failed, in the vehicle's words when it said something."""
+    if out.refusal is not None:
+        return f"{r.name}: the vehicle refused {r.requested:g}: {out.refusal}"
+    if out.echoed is None:
+        return f"{r.name}: no echo after {out.attempts} attempts"
+    return f"{r.name}: no echo of {r.expected!r} after {out.attempts} attempts (last heard {out.echoed!r})"
 
 
 def _read_back(link: Link, names: Sequence[str], retries: int, timeout_s: float) -> ParamTable:
@@ -337,18 +431,33 @@ class _WriteRun:
     """One write after the plan and the backup: steps 3-6 and their bookkeeping."""
 
     def __init__(self, link: Link, table: ParamTable, plan: Sequence[ParamResult], backup: Path, *, retries: int,
-                 timeout_s: float, restore_retries: int, link_timeout_s: float) -> None:
+                 timeout_s: float, restore_retries: int, link_timeout_s: float, budget_s: float) -> None:
         self.link, self.table, self.plan, self.backup = link, table, list(plan), backup
-        self.retries, self.timeout_s = retries, timeout_s
+        self.retries, self.timeout_s, self.budget_s = retries, timeout_s, budget_s
         self.restore_retries, self.link_timeout_s = restore_retries, link_timeout_s
         self.watch = _EchoWatch(link)
         self.results: dict[str, ParamResult] = {r.name: r for r in plan}
         self.attempted: list[str] = []
         self.force_saved: list[str] = []
         self.force_failed: list[str] = []
+        self.force_reasons: list[str] = []
+        self.force_skipped: tuple[str, ...] = ()
+        self.out_of_range: tuple[str, ...] = ()
 
     def close(self) -> None:
         self.watch.close()
+
+    def execute(self, to_write: Sequence[ParamResult], force_save: Sequence[str]) -> WriteReport:
+        """Steps 3-6: the report of a complete write, or ParamWriteError / RestoreFailedError."""
+        try:
+            failure = self.write_each(to_write)
+            if failure is None:
+                failure = self.save_and_verify(force_save)
+            if failure is None:
+                return self.success()
+            self.restore(failure)
+        finally:
+            self.close()
 
     def _final(self) -> tuple[ParamResult, ...]:
         return tuple(self.results[r.name] for r in self.plan)
@@ -360,16 +469,15 @@ class _WriteRun:
             self.attempted.append(r.name)
             failure = None
             try:
-                ok, echoed, attempts = _set_and_confirm(self.link, self.watch, r.name, r.requested, r.expected,
-                                                        self.retries, self.timeout_s, self.link_timeout_s)
+                out = _set_and_confirm(self.link, self.watch, r.name, r.requested, r.expected,
+                                       self.retries, self.timeout_s, self.budget_s, self.link_timeout_s)
             except LinkError as exc:
-                ok, echoed, attempts = False, self.watch.last.get(r.name), max(1, self.retries)
+                out = _SetOutcome(False, self.watch.last.get(r.name), max(1, self.retries))
                 failure = str(exc)
+            ok, echoed, attempts = out.ok, out.echoed, out.attempts
             self.results[r.name] = replace(r, ok=ok, echoed=echoed, attempts=attempts)
             if not ok:
-                return failure or (
-                    f"{r.name}: no echo after {attempts} attempts" if echoed is None
-                    else f"{r.name}: no echo of {r.expected!r} after {attempts} attempts (last heard {echoed!r})")
+                return failure or _set_failure(r, out)
             if vector_group(r.name):
                 log.debug("%s confirmed (vector echo of %s)", r.name, "/".join(vector_group(r.name) or ()))
         return None
@@ -379,10 +487,12 @@ class _WriteRun:
         """Force-save (a missing ACK is reported, not fatal), then read every written value back."""
         for kind in force_save:
             try:
-                ok = _force_save(self.link, kind, self.retries, self.timeout_s)
-            except LinkError:
-                ok = False
-            (self.force_saved if ok else self.force_failed).append(kind)
+                reason = _force_save(self.link, kind, self.retries, self.timeout_s, self.budget_s)
+            except LinkError as exc:
+                reason = str(exc)
+            (self.force_saved if reason is None else self.force_failed).append(kind)
+            if reason is not None:
+                self.force_reasons.append(f"force-save of {kind} failed: {reason}")
         failure = None
         try:
             back = _read_back(self.link, self.attempted, self.restore_retries, self.timeout_s)
@@ -404,11 +514,14 @@ class _WriteRun:
     def success(self) -> WriteReport:
         reboot = tuple(n for n in self.attempted if needs_reboot(n, self.results[n].requested))
         msg = f"{len(self.attempted)} parameters written and verified"
-        if self.force_failed:
-            msg += f"; force-save of {'/'.join(self.force_failed)} not acknowledged"
+        if self.force_reasons:
+            msg += "; " + "; ".join(self.force_reasons)
+        if self.force_skipped:
+            msg += f"; {'/'.join(self.force_skipped)} not marked calibrated (values outside ArduPilot's limits)"
         return WriteReport(results=self._final(), backup_path=str(self.backup), complete=True,
                            reboot_required=reboot, force_saved=tuple(self.force_saved),
-                           force_save_failed=tuple(self.force_failed), message=msg)
+                           force_save_failed=tuple(self.force_failed), message=msg,
+                           force_save_skipped=self.force_skipped, out_of_range=self.out_of_range)
 
     # 6. restore everything attempted (including the one in flight), newest first
     def _restore_each(self) -> bool:
@@ -424,9 +537,10 @@ class _WriteRun:
                 self.results[name] = replace(r, restored=False)
                 continue
             try:
-                ok, echoed, attempts = _set_and_confirm(
+                out = _set_and_confirm(
                     self.link, self.watch, name, r.old, expected_stored_value(r.old, self.table[name][1]),
-                    self.restore_retries, self.timeout_s, self.link_timeout_s)
+                    self.restore_retries, self.timeout_s, self.budget_s, self.link_timeout_s)
+                ok, echoed, attempts = out.ok, out.echoed, out.attempts
             except LinkError:
                 ok, echoed, attempts, link_ok = False, None, 1, False
             self.results[name] = replace(r, restored=ok, restore_attempts=attempts,
@@ -469,18 +583,34 @@ class _WriteRun:
 
 
 def _vehicle_table(link: Link, changes: Mapping[str, float], params: ParamTable | None, fetch_timeout_s: float,
-                   timeout_s: float, read_retries: int) -> ParamTable:
+                   timeout_s: float, read_retries: int, budget_s: float) -> ParamTable:
     """1. The vehicle's table: fetched whole, or ``params`` with fresh values of the names to change."""
     if params is None:
         return fetch_all_params(link, fetch_timeout_s, retry_s=max(timeout_s, 0.2))
     table = dict(params)
     plan_changes(changes, table)  # refuse unknown names before talking to the vehicle
-    fresh = _read_back(link, list(changes), read_retries, timeout_s)
+    fresh = read_params(link, list(changes), timeout_s=timeout_s, attempts=max(1, read_retries), budget_s=budget_s)
     missing = [n for n in changes if n not in fresh]
     if missing:
         raise LinkError(f"{link.device}: no answer reading {', '.join(missing)} (nothing was written)")
     table.update(fresh)
     return table
+
+
+def _limit_check(changes: Mapping[str, float], table: ParamTable, force_save: Sequence[str],
+                 allow: bool) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Refuse values outside ArduPilot's limits (OutOfRangeError) unless ``allow``.
+
+    Returns the violations written anyway (one line each) and the force-save kinds to skip.
+    """
+    values = {n: v for n, (v, _) in table.items()}
+    violations = check_limits(changes, values)
+    if violations and not allow:
+        raise OutOfRangeError(violations)
+    for v in violations:
+        log.warning("writing a value outside ArduPilot's limits (forced): %s", v.message)
+    skipped = tuple(k for k in force_save if k in failing_kinds(changes, values))
+    return tuple(v.message for v in violations), skipped
 
 
 def _checked_request(changes: Mapping[str, float], force_save: Sequence[str], backup_path: str | None,
@@ -516,6 +646,7 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
                  params: ParamTable | None = None, force_save: Sequence[str] = ("compass", "accel"),
                  retries: int = 3, timeout_s: float = 1.0, restore_retries: int | None = None,
                  dry_run: bool = False, fetch_timeout_s: float = 30.0, link_timeout_s: float = 3.0,
+                 budget_s: float | None = None, allow_out_of_range: bool = False,
                  backup_header: Sequence[str] | None = None) -> WriteReport:
     """Write ``changes`` to the vehicle safely (see the module docstring for the sequence).
 
@@ -535,9 +666,9 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
     force_save : sequence of {"compass", "accel"}
         Force-saves to send after the writes (empty: none).
     retries : int
-        PARAM_SETs per parameter before giving up on the write.
+        PARAM_SETs (and force-saves) sent at least, per parameter, before giving up.
     timeout_s : float
-        Wait for each echo / answer.
+        Wait for each echo / answer before sending again.
     restore_retries : int, optional
         PARAM_SETs per parameter when restoring, and read requests per parameter when
         reading values (reads change nothing, so they may insist); default ``5 * retries``,
@@ -551,6 +682,12 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
         1 Hz on ArduPilot) for this long; writing and restoring stop at once.
     backup_header : sequence of str, optional
         Comment lines for the backup file.
+    budget_s : float, optional
+        Time budget per PARAM_SET / force-save / read: keep retrying (after ``retries``
+        attempts) until it runs out. Default ``DEFAULT_BUDGET_FACTOR * timeout_s``.
+    allow_out_of_range : bool
+        Write values outside ArduPilot's limits anyway (reported in ``out_of_range``); the
+        sensor kinds whose values fail are still not force-saved.
 
     Returns
     -------
@@ -559,7 +696,7 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
 
     Raises
     ------
-    UnknownParameterError, UsageError
+    UnknownParameterError, OutOfRangeError, UsageError
         Refused before any write.
     LinkError
         The vehicle does not answer before any write (nothing was written).
@@ -572,24 +709,58 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
     """
     link = as_link(conn)
     restore_retries = max(20, 5 * retries) if restore_retries is None else restore_retries
+    budget_s = DEFAULT_BUDGET_FACTOR * timeout_s if budget_s is None else budget_s
     changes = _checked_request(changes, force_save, backup_path, dry_run)
-    table = _vehicle_table(link, changes, params, fetch_timeout_s, timeout_s, restore_retries)
+    table = _vehicle_table(link, changes, params, fetch_timeout_s, timeout_s, restore_retries, budget_s)
     plan = plan_changes(changes, table)
+    out_of_range, skipped = _limit_check(changes, table, force_save, allow_out_of_range)
     to_write = [r for r in plan if not r.ok]
     if dry_run or not to_write:
         return _no_write_report(plan, to_write, dry_run)
     bpath = _write_backup(link, str(backup_path), to_write, backup_header)
     run = _WriteRun(link, table, plan, bpath, retries=retries, timeout_s=timeout_s,
-                    restore_retries=restore_retries, link_timeout_s=link_timeout_s)
-    try:
-        failure = run.write_each(to_write)
-        if failure is None:
-            failure = run.save_and_verify(force_save)
-        if failure is None:
-            return run.success()
-        run.restore(failure)
-    finally:
-        run.close()
+                    restore_retries=restore_retries, link_timeout_s=link_timeout_s, budget_s=budget_s)
+    run.force_skipped, run.out_of_range = skipped, out_of_range
+    return run.execute(to_write, [k for k in force_save if k not in skipped])
+
+
+def fetch_for_write(conn: Any, names: Sequence[str], *, context: Sequence[str] = (), timeout_s: float = 1.0,
+                    attempts: int = 5, fetch_timeout_s: float = 30.0) -> ParamTable:
+    """The part of the vehicle's table a write of ``names`` needs, without a full download when
+    the names answer.
+
+    ``names`` (and ``context``, optional names such as device ids and limits) are read by name;
+    a name the vehicle refuses with PARAM_ERROR is unknown at once. Only when some of ``names``
+    do not answer is the table downloaded (re-requesting the holes by index and the names by
+    name, with a budget that grows with the count), until they are known or the table is
+    complete (then the missing ones do not exist: :func:`write_params` refuses them).
+
+    Raises
+    ------
+    UnknownParameterError
+        The vehicle said (PARAM_ERROR) that some of ``names`` do not exist.
+    LinkError
+        Some of ``names`` could not be read and the download did not complete.
+    """
+    link = as_link(conn)
+    wanted = list(dict.fromkeys(names))
+    extra = [c for c in dict.fromkeys(context) if c not in wanted]
+    got = read_params_by_name(link, wanted + extra, timeout_s=timeout_s, attempts=attempts)
+    unknown = [n for n in wanted if n in got.errors]
+    if unknown:
+        raise UnknownParameterError(unknown)
+    table = dict(got.values)
+    missing = [n for n in wanted if n not in table]
+    if not missing:
+        return table
+    log.info("%d names did not answer by name; downloading the table", len(missing))
+    dl = download_params(link, fetch_timeout_s, retry_s=max(timeout_s / 2, 0.2), need=missing, until_needed=True)
+    table.update(dl.table)
+    still = [n for n in missing if n not in table]
+    if still and not dl.complete:
+        raise LinkError(f"{link.device}: no answer reading {', '.join(still)}; "
+                        + dl.describe(link.device, dl.elapsed_s).split(": ", 1)[1] + " (nothing was written)")
+    return table
 
 
 def default_backup_path(directory: str = ".", stem: str = "mavcal-backup") -> Path:

@@ -16,7 +16,14 @@ thread:
     range and truncated; floats are stored as float32) and echoed as PARAM_VALUE with
     ``param_index`` 65535; setting one element of a Vector3 parameter echoes all three;
   - internal-use-only parameters (device ids) are refused with STATUSTEXT
-    "Param write denied" and an echo of the unchanged value.
+    "Param write denied" and an echo of the unchanged value;
+  - with ``param_errors=True`` the vehicle behaves as ArduPilot master since PR #31062
+    (2025-10): PARAM_ERROR (to the sender) for a PARAM_SET of an unknown name
+    (``MAV_PARAM_ERROR_DOES_NOT_EXIST``), of NaN/Inf (``VALUE_OUT_OF_RANGE``), of a denied
+    parameter (``PERMISSION_DENIED``, besides the STATUSTEXT and the echo), and for a
+    PARAM_REQUEST_READ of an unknown name or index (``DOES_NOT_EXIST``);
+  - ``deny_params`` names parameters to deny like the device ids (a scripting lock or a
+    read-only defaults entry on a real vehicle).
 
 * COMMAND_LONG: MAV_CMD_PREFLIGHT_CALIBRATION param2=76 / param5=76 (force-save compass /
   accel calibration, recorded in :attr:`TestVehicle.force_saves`), MAV_CMD_SET_MESSAGE_INTERVAL,
@@ -134,6 +141,10 @@ class TestVehicle:
         Initial fault injection (see :meth:`set_faults`).
     sysid, compid : int
         The vehicle's MAVLink ids.
+    param_errors : bool
+        Answer refused parameter requests with PARAM_ERROR (ArduPilot master), not silence (4.6).
+    deny_params : iterable of str
+        More parameters whose PARAM_SET is denied.
     """
 
     __test__ = False  # not a pytest test class
@@ -142,7 +153,8 @@ class TestVehicle:
                  truth: VehicleTruth | None = None, params: Mapping[str, float] | None = None,
                  seed: int = 0, heartbeat_hz: float = 1.0, reboot_s: float = 0.5,
                  die_after_n_sets: int | None = None, faults: Faults | None = None,
-                 sysid: int = 1, compid: int = 1) -> None:
+                 sysid: int = 1, compid: int = 1, param_errors: bool = False,
+                 deny_params: Sequence[str] = ()) -> None:
         if transport not in ("udpout", "udpin", "tcp"):
             raise ValueError(f"transport must be 'udpout', 'udpin' or 'tcp', got {transport!r}")
         self.transport = transport
@@ -158,7 +170,10 @@ class TestVehicle:
         self._np_rng = np.random.default_rng(seed + 1)
         self._lock = threading.RLock()
 
-        self._store = ParamStore(params)
+        self._store = ParamStore(params, deny=deny_params)
+        self.param_errors = param_errors
+        #: COMMAND_ACK result of a force-save (a test may set MAV_RESULT_DENIED, as an armed vehicle)
+        self.force_save_result = mavlink2.MAV_RESULT_ACCEPTED
         self._values = self._store.values  # the live name -> stored value mapping
 
         # event records (for tests)
@@ -610,10 +625,14 @@ class TestVehicle:
             if m.param_index != -1:
                 if 0 <= m.param_index < len(self._store.names):
                     self._send_param(self._store.names[m.param_index], m.param_index)
+                else:
+                    self._param_error(m, "", m.param_index, mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST)
             else:
                 name = _name(m.param_id)
                 if name in self._values:
                     self._send_param(name, 65535)
+                else:
+                    self._param_error(m, name, -1, mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST)
         elif mtype == "PARAM_REQUEST_LIST" and self._for_us(m):
             self._list_cursor = 0
         elif mtype == "COMMAND_LONG" and self._for_us(m):
@@ -635,9 +654,14 @@ class TestVehicle:
         received = float(m.param_value)
         out = self._store.param_set(name, received)
         self.param_sets.append((name, received, out.stored))
+        if name not in self._values:
+            self._param_error(m, name, -1, mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST)
+        elif math.isnan(received) or math.isinf(received):
+            self._param_error(m, name, -1, mavlink2.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE)
         if out.denied:
             self._send(self._enc.statustext_encode(mavlink2.MAV_SEVERITY_WARNING,
                                                    f"Param write denied ({name})".encode()))
+            self._param_error(m, name, -1, mavlink2.MAV_PARAM_ERROR_PERMISSION_DENIED)
         if out.stored is not None:
             self.accepted_sets += 1
             if self.die_after_n_sets is not None and self.accepted_sets >= self.die_after_n_sets:
@@ -645,6 +669,12 @@ class TestVehicle:
                 return
         for n in out.echo:
             self._send_param(n, 65535)
+
+    def _param_error(self, m: Any, name: str, index: int, error: int) -> None:
+        """PARAM_ERROR to the sender (``GCS_MAVLINK::send_param_error``), only with ``param_errors``."""
+        if self.param_errors:
+            self._send(self._enc.param_error_encode(m.get_srcSystem(), m.get_srcComponent(), name.encode("ascii"),
+                                                    index, error))
 
     def _ack(self, m: Any, result: int) -> None:
         self._send(self._enc.command_ack_encode(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()))
@@ -656,12 +686,11 @@ class TestVehicle:
         A = mavlink2
         if cmd == A.MAV_CMD_PREFLIGHT_CALIBRATION:
             # GCS_MAVLINK::_handle_command_preflight_calibration: param5 arrives as an int
-            if math.isclose(m.param2, 76.0):
-                self.force_saves.append("compass")
-                self._ack(m, A.MAV_RESULT_ACCEPTED)
-            elif int(m.param5) == 76:
-                self.force_saves.append("accel")
-                self._ack(m, A.MAV_RESULT_ACCEPTED)
+            kind = "compass" if math.isclose(m.param2, 76.0) else "accel" if int(m.param5) == 76 else None
+            if kind is not None:
+                if self.force_save_result == A.MAV_RESULT_ACCEPTED:
+                    self.force_saves.append(kind)
+                self._ack(m, self.force_save_result)
             else:
                 self._ack(m, A.MAV_RESULT_UNSUPPORTED)
         elif cmd == A.MAV_CMD_SET_MESSAGE_INTERVAL:

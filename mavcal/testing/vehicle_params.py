@@ -222,7 +222,7 @@ class ParamStore:
     Not thread-safe: the vehicle holds its lock around every call.
     """
 
-    def __init__(self, overrides: Mapping[str, float] | None = None) -> None:
+    def __init__(self, overrides: Mapping[str, float] | None = None, deny: Sequence[str] = ()) -> None:
         table = default_param_table()
         self.names: list[str] = [r.name for r in table]
         self.types: dict[str, int] = {r.name: r.param_type for r in table}
@@ -230,6 +230,7 @@ class ParamStore:
         for r in table:
             self.values[r.name] = self._stored(r.default, r.param_type)
         self._vector_of: dict[str, tuple[str, str, str]] = {r.name: r.vector for r in table if r.vector}
+        self.denied = _INTERNAL_USE_ONLY | frozenset(deny)
         for n, v in (overrides or {}).items():
             if n not in self.values:
                 raise KeyError(f"unknown parameter {n!r}")
@@ -252,7 +253,7 @@ class ParamStore:
         """A PARAM_SET from a GCS (``GCS_MAVLINK::handle_param_set``; its param_type is ignored)."""
         if name not in self.values or math.isnan(value) or math.isinf(value):
             return SetOutcome(None)  # silently ignored: no reply
-        if name in _INTERNAL_USE_ONLY:
+        if name in self.denied:
             return SetOutcome(None, denied=True, echo=(name,))
         stored = self.set_local(name, value)
         return SetOutcome(stored, echo=self._vector_of.get(name, (name,)))
