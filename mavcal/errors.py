@@ -19,6 +19,7 @@ Exit codes (CLI contract):
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 EXIT_PARTIAL = 7  # calibrate: some sensors accepted, some rejected (not an error: outputs are written)
 
@@ -33,6 +34,24 @@ class UsageError(MavcalError, ValueError):
     """The caller asked for something that does not make sense (bad option, bad value)."""
 
     exit_code = 2
+
+
+class UnknownParameterError(UsageError):
+    """Some requested names do not exist on the vehicle (nothing was written)."""
+
+    def __init__(self, names: Sequence[str]) -> None:
+        self.names = list(names)
+        super().__init__("the vehicle has no parameter " + ", ".join(self.names) + " (nothing was written)")
+
+
+class OutOfRangeError(UsageError):
+    """Some values break ArduPilot's limits (nothing was written); ``violations`` lists them
+    (each with a one-line ``message``, see :class:`mavcal.ardupilot.limits.LimitViolation`)."""
+
+    def __init__(self, violations: Sequence[Any]) -> None:
+        self.violations = list(violations)
+        super().__init__("refusing to write (nothing was written): "
+                         + "; ".join(v.message for v in self.violations) + " (--force writes anyway)")
 
 
 class SourceError(MavcalError):

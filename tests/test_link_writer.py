@@ -6,10 +6,10 @@ import pytest
 from pymavlink import mavutil
 
 from mavcal.ardupilot.paramfile import read_param_file
-from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UsageError
+from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UnknownParameterError, UsageError
 from mavcal.link.connection import as_link, open_link
 from mavcal.link.params import fetch_all_params
-from mavcal.link.writer import UnknownParameterError, write_params
+from mavcal.link.writer import write_params
 
 FAST = dict(timeout_s=0.2, link_timeout_s=1.0)
 

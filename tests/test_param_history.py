@@ -10,10 +10,10 @@ from mavcal.ardupilot.param_history import change_events, known_values
 from mavcal.ardupilot.protocol import MAV_CMD
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.segment import find_still_intervals
-from mavcal.testing.simlog import G, MagTruth, SimConfig, simulate_session
 from mavcal.sources import open_source
 from mavcal.sources.types import LogEvent, ParamTimeline
 from mavcal.testing.logwriters import TlogWriter
+from mavcal.testing.simlog import G, MagTruth, SimConfig, simulate_session
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 

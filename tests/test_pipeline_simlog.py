@@ -6,8 +6,7 @@ import pytest
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors
 from mavcal.pipeline import Options, calibrate_source
-from mavcal.testing.simlog import AccelErrorTruth
-from mavcal.testing.simlog import MagTruth, SimConfig, simulate_session
+from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
 
 SOFT = ((1.04, 0.02, -0.01), (0.02, 0.97, 0.015), (-0.01, 0.015, 1.01))  # symmetric: ArduPilot can hold it
 HARD = (120.0, -80.0, 45.0)

@@ -11,10 +11,10 @@ from pymavlink import mavutil
 from mavcal.ardupilot import gates
 from mavcal.ardupilot import limits as L
 from mavcal.cli import main
-from mavcal.errors import ParamWriteError, RestoreFailedError
+from mavcal.errors import ParamWriteError, RestoreFailedError, UnknownParameterError
 from mavcal.link.connection import open_link
 from mavcal.link.params import fetch_all_params
-from mavcal.link.writer import UnknownParameterError, fetch_for_write, write_params
+from mavcal.link.writer import fetch_for_write, write_params
 
 A = mavutil.mavlink
 FAST = ["--param-timeout", "0.2", "--timeout", "3"]

@@ -18,15 +18,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mavcal.ardupilot import limits as L
+
 
 @dataclass(frozen=True)
 class GateConfig:
-    accel_offset_max_mps2: float = 3.5
-    accel_scale_range: tuple[float, float] = (0.8, 1.2)
-    compass_offset_max_mgauss: float | None = None  # None: COMPASS_OFFS_MAX from the vehicle, else 1800
-    dia_range: tuple[float, float] = (0.2, 5.0)
-    odi_max: float = 1.0
-    field_range_mgauss: tuple[float, float] = (185.0, 875.0)
+    """The gates' thresholds. ArduPilot's own limits default to :mod:`mavcal.ardupilot.limits`,
+    the one table that ``apply``/``restore`` check too; the rest are mavcal's."""
+
+    accel_offset_max_mps2: float = L.ACCEL_OFFSET_MAX_MPS2
+    accel_scale_range: tuple[float, float] = L.ACCEL_SCALE_RANGE
+    compass_offset_max_mgauss: float | None = None  # None: COMPASS_OFFS_MAX from the vehicle, else its default
+    dia_range: tuple[float, float] = L.DIA_RANGE
+    odi_max: float = L.ODI_MAX
+    field_range_mgauss: tuple[float, float] = L.FIELD_RANGE_MGAUSS
     min_intervals: int = 6
     heading_95_max_deg: float = 2.0
     tilt_95_max_deg: float = 0.5
@@ -146,7 +151,7 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int, n_orient
     add, c = _adder(gates), config
     s = f"compass{cm.instance}"
     names = fw.compass_param_names(cm.instance)
-    omax = c.compass_offset_max_mgauss or float(params.get("COMPASS_OFFS_MAX", 1800.0))
+    omax = c.compass_offset_max_mgauss or L.compass_offset_max(params)
     ol = float(np.linalg.norm(cm.new.ofs_mgauss))
     add(s, "offsets", ol <= omax, ol, f"<= {omax:g} mGauss (COMPASS_OFFS_MAX)",
         f"compass offset length {ol:.0f} mGauss exceeds COMPASS_OFFS_MAX: a magnet or steel near the compass, "

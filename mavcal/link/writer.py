@@ -53,10 +53,17 @@ from typing import Any, NoReturn
 import numpy as np
 from pymavlink import mavutil
 
-from mavcal.ardupilot.limits import LimitViolation, check_limits, failing_kinds
+from mavcal.ardupilot.limits import check_limits, failing_kinds
 from mavcal.ardupilot.paramfile import write_param_file
 from mavcal.ardupilot.protocol import needs_reboot, valid_param_name, vector_group
-from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UsageError
+from mavcal.errors import (
+    LinkError,
+    OutOfRangeError,
+    ParamWriteError,
+    RestoreFailedError,
+    UnknownParameterError,
+    UsageError,
+)
 from mavcal.link.connection import Link, as_link
 from mavcal.link.params import (
     ParamTable,
@@ -90,23 +97,6 @@ def result_words(result: int) -> str:
     """A MAV_RESULT in MAVLink's words, e.g. ``"MAV_RESULT_DENIED"``."""
     entry = _A.enums.get("MAV_RESULT", {}).get(int(result))
     return entry.name if entry is not None else f"MAV_RESULT {int(result)}"
-
-
-class UnknownParameterError(UsageError):
-    """Some requested names do not exist on the vehicle (nothing was written)."""
-
-    def __init__(self, names: Sequence[str]) -> None:
-        self.names = list(names)
-        super().__init__("the vehicle has no parameter " + ", ".join(self.names) + " (nothing was written)")
-
-
-class OutOfRangeError(UsageError):
-    """Some values break ArduPilot's limits (nothing was written); ``violations`` lists them."""
-
-    def __init__(self, violations: Sequence[LimitViolation]) -> None:
-        self.violations = list(violations)
-        super().__init__("refusing to write (nothing was written): "
-                         + "; ".join(v.message for v in self.violations) + " (--force writes anyway)")
 
 
 @dataclass(frozen=True)
