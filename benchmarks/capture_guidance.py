@@ -134,4 +134,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from bench_output import output_dir  # --save / --out: where the results go (benchmarks/README.md)
+
+    OUT, _argv = output_dir(sys.argv[1:])
+    sys.exit(main(_argv))

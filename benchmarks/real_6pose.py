@@ -75,4 +75,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    from bench_output import output_dir  # --save / --out: where the results go (benchmarks/README.md)
+
+    OUT, _ = output_dir(sys.argv[1:], strict=True)
     sys.exit(main())

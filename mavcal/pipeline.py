@@ -39,7 +39,50 @@ __all__ = ["Options", "Prepared", "CalibrationRun", "Quality", "open_source", "p
 
 @dataclass(frozen=True)
 class Options:
-    """Everything :func:`calibrate_source` can be told (all optional)."""
+    """Everything :func:`calibrate_source` can be told; every field is optional.
+
+    ``Options()`` is what ``mavcal calibrate`` uses by default; change fields with
+    ``Options(model="ardupilot")`` or :func:`dataclasses.replace`.
+
+    Attributes
+    ----------
+    still : StillConfig
+        Thresholds of the still-interval detector (:class:`mavcal.segment.StillConfig`).
+    method : str
+        The paper's block-step variant: ``"ncdr"``, ``"ncar"``, ``"fcar"`` or ``"dcar"``.
+    tol : float
+        Stop rule of the block steps, J'_{k-1} - J'_k < tol.
+    model : str
+        ``"auto"`` (model selection by Wald tests), or one of ``"full"``, ``"diag-accel"``,
+        ``"ardupilot"``, ``"offsets-scales"`` (:mod:`mavcal.core.models`).
+    seed : int
+        Seed of the random restarts and of the uncertainty draws (results are repeatable).
+    accel_instance, mag_instance : int
+        The primary pair: its accelerometer defines the board frame, its quality numbers are
+        :attr:`CalibrationRun.quality`.
+    all_instances : bool
+        Also calibrate every other IMU (jointly with compass ``mag_instance``) and every other
+        compass (with IMU ``accel_instance``); False: the primary pair only.
+    field_mgauss : float or None
+        Earth's field magnitude in mGauss; None: the World Magnetic Model at ``location``
+        (or the log's position), else the current calibration's.
+    location : (lat_deg, lon_deg, alt_m) or None
+        Where the log was recorded, when the log has no position.
+    orient_tol_deg : float
+        Largest misalignment for a standard COMPASS_ORIENT value.
+    allow_custom : bool
+        Allow a custom rotation (CUST_ROT, orientation 101/102) beyond ``orient_tol_deg``.
+    force_external : bool
+        Treat every compass as external (write its orientation).
+    untruncate : bool
+        Undo the integer truncation of RAW_IMU / SCALED_IMU readings.
+    uncertainty_draws : int
+        Parameter draws for the 95 % heading/tilt bounds (fewer: faster, coarser).
+    holdout : bool
+        Compute the leave-one-interval-out (held-out) errors; costs one refit per interval.
+    gates : GateConfig
+        Limits of the quality gates (:class:`mavcal.ardupilot.gates.GateConfig`).
+    """
 
     still: StillConfig = StillConfig()
     method: str = "ncar"
@@ -64,7 +107,49 @@ class Options:
 
 @dataclass(frozen=True, eq=False)
 class CalibrationRun:
-    """Everything one run produced."""
+    """Everything one run of :func:`calibrate_source` produced (read-only).
+
+    Attributes
+    ----------
+    source : str
+        The log path or device string.
+    log : ImuLog
+        The readings as read (:class:`mavcal.sources.types.ImuLog`).
+    raw : RawImu
+        The readings with ArduPilot's correction undone (:class:`mavcal.ardupilot.recover.RawImu`).
+    segmentation : Segmentation
+        The still intervals found and their coverage (:class:`mavcal.segment.Segmentation`).
+    intervals_used : tuple of int
+        Indices into ``segmentation.intervals`` of the intervals the primary fit used.
+    calibration : Calibration
+        The fitted sensor models of the primary pair, in the paper's symbols
+        (:class:`mavcal.core.types.Calibration`: ``accel.gain`` K_a, ``accel.bias`` b_a,
+        ``mag.gain`` K_m, ``field`` h, ``orientations`` R_i, ``param_cov``, ``model``).
+    mapping : ParamMapping
+        The ArduPilot parameters (:class:`mavcal.ardupilot.mapping.ParamMapping`).
+        ``mapping.new`` is a mapping **keyed by parameter name**, one entry per axis
+        (``"COMPASS_OFS_X"``, ``"INS_ACCSCAL_Z"``, ``"COMPASS_ORIENT"`` ...) to the value to
+        write, for every sensor calibrated; ``mapping.old`` holds the values in force in the
+        log under the same names (None when unknown); ``mapping.changed()`` only the names
+        whose value changes; ``mapping.notes`` what was decided and why, in words.
+    quality : Quality
+        The primary pair's quality numbers (:class:`mavcal.quality.Quality`):
+        ``heading_95_deg`` / ``tilt_95_deg`` (95 % bound of the worst heading/tilt error the
+        written parameters leave over the flight envelope, degrees),
+        ``holdout_accel_mps2`` / ``holdout_mag_mgauss`` (held-out error, NaN when not
+        computed) and ``chi2_dof`` (J'/dof, about 1 when the noise model explains the data).
+    gates : GateReport
+        Every quality gate (:class:`mavcal.ardupilot.gates.GateReport`): ``gates.passed``,
+        ``gates.failures()`` (each with ``sensor``, ``name``, ``value``, ``limit``, ``reason``)
+        and ``gates.by_sensor()`` (keyed ``"accel0"``, ``"compass1"``, ``"data"`` ...).
+    params_before : dict of str to float
+        Every parameter in force at the end of the log, keyed by name.
+    warnings : tuple of str
+        What was skipped or assumed, in words.
+    others : tuple of CalibrationRun
+        The fits of the other accelerometer/compass pairs (``Options.all_instances``);
+        their parameters and gates are already merged into ``mapping`` and ``gates``.
+    """
 
     source: str
     log: ImuLog
@@ -135,8 +220,33 @@ class Prepared:
 def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbeat_timeout_s: float = 5.0,
                 param_timeout_s: float = 30.0, rate_hz: float = 50.0,
                 progress: ProgressFn | None = None) -> ImuLog:
-    """A log file (:func:`mavcal.sources.reader.read_log`) or ``duration_s`` seconds recorded
-    from a MAVLink device string (:func:`mavcal.link.live.record_device`)."""
+    """Read a log file, or record from a live vehicle.
+
+    Parameters
+    ----------
+    source : str or path-like
+        A ``.tlog``, DataFlash ``.bin``/``.log`` or ``.csv`` path (read by
+        :func:`mavcal.sources.reader.read_log`), or a MAVLink device string
+        (``udpin:0.0.0.0:14550``, ``tcp:HOST:PORT``, ``/dev/ttyACM0``), from which
+        ``duration_s`` seconds are recorded (:func:`mavcal.link.live.record_device`).
+    baud, duration_s, heartbeat_timeout_s, param_timeout_s, rate_hz
+        Only for a device: serial baud rate, recording length, how long to wait for a
+        heartbeat and for the parameters, and the IMU stream rate requested.
+    progress : callable(done, total), optional
+        Called as the file is read.
+
+    Returns
+    -------
+    ImuLog
+        Every sensor series (readings as sent, i.e. corrected by the calibration in force),
+        the parameter timeline, events, position and warnings
+        (:class:`mavcal.sources.types.ImuLog`).
+
+    Raises
+    ------
+    SourceError
+        Unreadable file, no IMU data, or a device that does not answer.
+    """
     from mavcal.sources.reader import is_device, read_log
 
     src = str(source)
@@ -149,8 +259,32 @@ def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbe
 
 
 def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
-    """Read (path, device string or ImuLog), undo integer truncation, recover raw readings
-    and find the still intervals."""
+    """Read a source and make it ready for the fit (everything before the estimation).
+
+    Undoes the integer truncation of the telemetry, undoes ArduPilot's correction with the
+    parameters in force at each sample (raw readings) and finds the still intervals.
+
+    Parameters
+    ----------
+    source : str, path-like or ImuLog
+        What :func:`open_source` accepts, or an already read :class:`ImuLog`.
+    options : Options
+        Only ``options.untruncate`` and ``options.still`` are used here.
+    progress : callable(done, total), optional
+        Passed to :func:`open_source`.
+
+    Returns
+    -------
+    Prepared
+        ``log``, ``raw``, ``segmentation``, ``quantization`` (the telemetry step per
+        ``(sensor, instance)``, e.g. ``("accel", 0)``; 0 when not quantised) and
+        ``warnings``. Pass it to :func:`calibrate_prepared`, as many times as needed.
+
+    Raises
+    ------
+    SourceError
+        As :func:`open_source`.
+    """
     from mavcal.sources.quantization import quantization_step, untruncate_log
 
     opts = options
@@ -169,7 +303,49 @@ def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
 # --------------------------------------------------------------------------- chain
 
 def calibrate_source(source, options: Options = Options(), *, progress=None) -> CalibrationRun:
-    """Run the whole chain on a log path, a device string or an already read :class:`ImuLog`."""
+    """Calibrate from a log or a live vehicle: the whole chain, without writing anything.
+
+    read -> undo truncation -> raw recovery -> still intervals -> joint fit (paper's
+    algorithm, refinement, model selection, uncertainty) -> ArduPilot parameters ->
+    quality numbers -> quality gates. This is what ``mavcal calibrate`` runs.
+
+    Parameters
+    ----------
+    source : str, path-like or ImuLog
+        A log path (``.tlog``, ``.bin``/``.log``, ``.csv``), a MAVLink device string or an
+        already read :class:`ImuLog` (see :func:`open_source`).
+    options : Options, optional
+        Fit, mapping and gate settings; the defaults are the command line's.
+    progress : callable(done, total), optional
+        Called as the file is read.
+
+    Returns
+    -------
+    CalibrationRun
+        ``run.mapping.new`` maps each ArduPilot parameter name (``"COMPASS_OFS_X"``,
+        ``"INS_ACCSCAL_Y"`` ...) to its new value, for every accelerometer and compass with
+        enough data; ``run.quality`` the heading/tilt 95 % bounds and held-out errors;
+        ``run.gates`` the quality gates (``run.accepted`` is ``run.gates.passed``);
+        ``run.to_json()`` the JSON report as a dict. Write a ``.param`` file with
+        :func:`mavcal.ardupilot.paramfile.write_param_file` (``run.mapping.new``) and a
+        vehicle with :mod:`mavcal.link.writer`; this function never writes.
+
+    Raises
+    ------
+    SourceError
+        Unreadable source, no IMU data, no data of the requested instance.
+    InsufficientDataError
+        Too few still intervals for any model (the message says which poses are missing).
+    MavcalError
+        The base of both, and of estimation failures (:mod:`mavcal.errors`).
+
+    Examples
+    --------
+    >>> from mavcal.pipeline import calibrate_source
+    >>> run = calibrate_source("sitl_logs/sitl02.tlog")        # doctest: +SKIP
+    >>> run.accepted, round(run.mapping.new["COMPASS_OFS_X"])  # doctest: +SKIP
+    (True, -141)
+    """
     return calibrate_prepared(prepare(source, options, progress=progress), options)
 
 
@@ -183,6 +359,25 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
     ``options.sensors`` "accel" calibrates the accelerometers alone (also what a log
     without compass gets), "compass" only the compasses. An instance without enough data
     is skipped with a warning.
+
+    Parameters
+    ----------
+    prep : Prepared
+        From :func:`prepare`; it is not changed, so one recording can be fitted with several
+        ``options`` (a different model, other gate limits) without reading it again.
+    options : Options, optional
+        Everything except ``still`` and ``untruncate`` (those act in :func:`prepare`).
+
+    Returns
+    -------
+    CalibrationRun
+        As :func:`calibrate_source`: ``mapping.new`` keyed by ArduPilot parameter name,
+        ``quality``, ``gates``.
+
+    Raises
+    ------
+    SourceError, InsufficientDataError
+        As :func:`calibrate_source`, for the primary pair.
     """
     opts, warnings = _resolve(prep, options)
     if opts.sensors == "accel":
