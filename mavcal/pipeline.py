@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mavcal.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
+from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
 from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_accel, map_calibration
@@ -352,7 +352,7 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
 def calibrate_prepared(prep: Prepared, options: Options = Options()) -> CalibrationRun:
     """The fits, mapping, quality and per-sensor gates for a :class:`Prepared` recording.
 
-    Every accelerometer is judged on its own fit (:mod:`mavcal.accel_fit`); it is written
+    Every accelerometer is judged on its own fit (:mod:`mavcal.core.accel_fit`); it is written
     from its joint fit with compass ``mag_instance`` when that compass is accepted, else
     from its own fit. Every compass is fitted jointly with accelerometer ``accel_instance``
     (so all compasses are in the primary IMU's board frame) and judged on that fit.

@@ -8,7 +8,7 @@
   :func:`mavcal.core.uncertainty.sample_parameters`);
 * :func:`holdout_errors`: the leave-one-interval-out reconstruction error;
 * :func:`accel_tilt_bounds`: an accelerometer's own 95 % tilt bound, from its fit alone
-  (:mod:`mavcal.accel_fit`), so that no compass's misfit enters its verdict.
+  (:mod:`mavcal.core.accel_fit`), so that no compass's misfit enters its verdict.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from typing import Callable
 
 import numpy as np
 
-from mavcal.accel_fit import AccelFit, sample_accel
+from mavcal.core.accel_fit import AccelFit, sample_accel
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
