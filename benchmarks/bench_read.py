@@ -1,7 +1,7 @@
 """Reading speed: vectorised decoders vs pymavlink on ~50 MB logs.
 
 Builds, in a temporary directory under /tmp, a ~50 MB tlog and a ~50 MB .bin of time-shifted
-copies of ``sitl_logs/sitl02.tlog`` and ``00000124.BIN`` (:mod:`benchmarks.biglogs`: every
+copies of ``sitl_logs/sitl02.tlog`` and ``00000124.BIN`` (``benchmarks/biglogs.py``: every
 time field shifted so the copies follow each other, whole records only), and times
 
 * pymavlink: ``mavutil.mavlink_connection`` + ``recv_match(type=[IMU messages...])`` loop
@@ -34,10 +34,11 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
+import biglogs  # noqa: E402  (benchmarks/ is this script's directory)
 from pymavlink import mavutil  # noqa: E402
 
-from benchmarks import biglogs  # noqa: E402
 from mavcal.sources import read_log  # noqa: E402
 from mavcal.sources.fast_dataflash import decode_dataflash  # noqa: E402
 from mavcal.sources.fast_tlog import decode_tlog  # noqa: E402

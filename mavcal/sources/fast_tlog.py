@@ -28,11 +28,11 @@ import os
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
 from mavcal.sources.framing import ColumnBuffer, file_chunks, first_at_or_after, path_from
+from mavcal.sources.progress import ProgressFn
 
 try:  # the dialect mavutil uses by default (superset of ardupilotmega)
     from pymavlink.dialects.v20 import all as _dialect
@@ -49,7 +49,6 @@ _TS_MAX_US = 4102444800 * 10**6  # 2100-01-01
 _MAX_FRAME = 10 + 255 + 2 + 13
 DEFAULT_CHUNK = 4 * 1024 * 1024  # small enough for the temporaries to stay cached/reused (faster than 32 MiB)
 
-ProgressFn = Callable[[int, int], None]
 
 
 def _make_crc_table() -> np.ndarray:
