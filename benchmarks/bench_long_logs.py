@@ -39,6 +39,7 @@ import biglogs  # noqa: E402  (benchmarks/ is this script's directory)
 RESULTS = REPO / "benchmarks" / "results"
 TLOG_TYPES = ["RAW_IMU", "SCALED_IMU2"]
 DF_TYPES = ["IMU", "MAG"]
+TOOLS = ("mavcal calibrate", "mavcal segments", "pymavlink read")
 
 # the reference reader, run as ``python -c PYMAVLINK_READER LOG``
 PYMAVLINK_READER = rf"""
@@ -91,7 +92,7 @@ def run(cmd: list, timeout_s: float, stdout=subprocess.DEVNULL) -> dict:
     return out
 
 
-def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float) -> list:
+def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, tools) -> list:
     py = sys.executable
     size_mb = path.stat().st_size / 1e6
     cmds = {
@@ -101,12 +102,14 @@ def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float) -
     }
     rows = []
     for tool, cmd in cmds.items():
+        if tool not in tools:
+            continue
         r = run(cmd, timeout_s)
         r.update(kind=kind, size_mb=round(size_mb, 1), copies=copies, tool=tool,
                  rss_per_file=round(r["peak_rss_mb"] / size_mb, 2) if r["peak_rss_mb"] else None)
         rows.append(r)
         print(r, file=sys.stderr, flush=True)
-    ref = rows[-1]["wall_s"]
+    ref = rows[-1]["wall_s"] if rows and rows[-1]["tool"] == "pymavlink read" else None
     for r in rows:
         r["time_vs_pymavlink"] = round(r["wall_s"] / ref, 3) if r["wall_s"] and ref else None
     return rows
@@ -115,7 +118,8 @@ def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float) -
 def add_scaling(rows: list) -> None:
     """time(size) / time(smallest size) and the size ratio, per kind and tool."""
     for r in rows:
-        base = min((q for q in rows if q["kind"] == r["kind"] and q["tool"] == r["tool"]), key=lambda q: q["size_mb"])
+        same = [q for q in rows if q["kind"] == r["kind"] and q["tool"] == r["tool"]]
+        base = min(same, key=lambda q: q["size_mb"])
         r["size_x"] = round(r["size_mb"] / base["size_mb"], 1)
         r["time_x"] = round(r["wall_s"] / base["wall_s"], 1) if r["wall_s"] and base["wall_s"] else None
 
@@ -149,6 +153,7 @@ def main(argv=None) -> int:
     ap.add_argument("--full", action="store_true", help="also 1 GB (1000 MB)")
     ap.add_argument("--kinds", nargs="+", default=["tlog", "bin"], choices=["tlog", "bin"])
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
+    ap.add_argument("--tools", nargs="+", default=list(TOOLS), choices=list(TOOLS))
     args = ap.parse_args(argv)
     sizes = list(args.sizes_mb) + ([1000.0] if args.full else [])
     import numpy as np
@@ -162,8 +167,10 @@ def main(argv=None) -> int:
                 path = tmp / f"big_{int(size)}MB.{kind}"
                 build = biglogs.build_tlog if kind == "tlog" else biglogs.build_bin
                 copies = build(path, size * 1e6)
-                rows += bench_log(kind, path, copies, tmp, args.timeout)
+                rows += bench_log(kind, path, copies, tmp, args.timeout, args.tools)
                 path.unlink()
+                add_scaling(rows)
+                write_results(rows, env)  # after every log: a long run interrupted keeps what it measured
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     add_scaling(rows)
