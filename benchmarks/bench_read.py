@@ -1,26 +1,30 @@
 """Reading speed: vectorised decoders vs pymavlink on ~50 MB logs.
 
-Builds a ~50 MB tlog by concatenating ``sitl_logs/sitl01.tlog`` with shifted timestamps,
-and a ~50 MB .bin by concatenating the body of a real DataFlash log (the FMT records of the
-first copy define all types), in a temporary directory. Times
+Builds, in a temporary directory under /tmp, a ~50 MB tlog and a ~50 MB .bin of time-shifted
+copies of ``sitl_logs/sitl02.tlog`` and ``00000124.BIN`` (``benchmarks/biglogs.py``: every
+time field shifted so the copies follow each other, whole records only), and times
 
 * pymavlink: ``mavutil.mavlink_connection`` + ``recv_match(type=[IMU messages...])`` loop
   (DFReader for the .bin), collecting the IMU values, and
 * mavcal: ``fast_tlog.decode_tlog`` / ``fast_dataflash.decode_dataflash`` of the same
   messages (IMU only; plus full ``read_log``),
 
-checks that the decoded values are identical and writes ``benchmarks/results/read_speed.md``
-and ``.json``.
+checks that the decoded values are identical and that ``read_log`` keeps every IMU sample of
+every copy, counts the lines pymavlink printed (e.g. "bad header"; 0 on these clean inputs,
+the count goes to the results instead of the terminal) and writes
+``benchmarks/results/read_speed.md`` and ``.json`` (``--name`` changes the file name, never
+the directory).
 
-    python benchmarks/bench_read.py [--size-mb 50] [--bin PATH]
+    python benchmarks/bench_read.py [--size-mb 50] [--name read_speed]
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import os
 import platform
-import struct
 import sys
 import tempfile
 import time
@@ -30,48 +34,23 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
+import biglogs  # noqa: E402  (benchmarks/ is this script's directory)
 from pymavlink import mavutil  # noqa: E402
 
 from mavcal.sources import read_log  # noqa: E402
 from mavcal.sources.fast_dataflash import decode_dataflash  # noqa: E402
 from mavcal.sources.fast_tlog import decode_tlog  # noqa: E402
 
+RESULTS = REPO / "benchmarks" / "results"
 TLOG_IMU = ["RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"]
 DF_IMU = ["IMU", "MAG"]
 
 
-def build_tlog(src: Path, dst: Path, size_mb: float) -> None:
-    data = src.read_bytes()
-    # split into (ts, frame) records by walking the file (sitl01 is clean)
-    recs = []
-    p = 0
-    while p + 10 <= len(data):
-        stx = data[p + 8]
-        plen = data[p + 9]
-        flen = (6 if stx == 0xFE else 10) + plen + 2 + (13 if stx == 0xFD and data[p + 10] & 1 else 0)
-        recs.append((struct.unpack(">Q", data[p:p + 8])[0], data[p + 8:p + 8 + flen]))
-        p += 8 + flen
-    span = recs[-1][0] - recs[0][0] + 1_000_000
-    with open(dst, "wb") as fh:
-        k = 0
-        while fh.tell() < size_mb * 1e6:
-            off = k * span
-            fh.write(b"".join(struct.pack(">Q", t + off) + f for t, f in recs))
-            k += 1
-
-
-def build_bin(src: Path, dst: Path, size_mb: float) -> None:
-    data = src.read_bytes()
-    with open(dst, "wb") as fh:
-        fh.write(data)
-        while fh.tell() < size_mb * 1e6:
-            fh.write(data)
-
-
 def ref_tlog(path: Path):
     m = mavutil.mavlink_connection(str(path))
-    out = {n: [] for n in TLOG_IMU}
+    out: dict[str, list] = {n: [] for n in TLOG_IMU}
     while True:
         msg = m.recv_match(type=TLOG_IMU)
         if msg is None:
@@ -87,14 +66,14 @@ def fast_tlog(path: Path):
     out = {}
     for k, c in cols.items():
         t = c["time_boot_ms"] if "time_boot_ms" in c else c["time_usec"]
-        out[k] = np.column_stack([c["_log_time_s"], t] + [c[f] for f in
-                                 ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro", "xmag", "ymag", "zmag")]).astype(float)
+        fields = ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro", "xmag", "ymag", "zmag")
+        out[k] = np.column_stack([c["_log_time_s"], t] + [c[f] for f in fields]).astype(float)
     return out
 
 
 def ref_bin(path: Path):
     m = mavutil.mavlink_connection(str(path))
-    out = {n: [] for n in DF_IMU}
+    out: dict[str, list] = {n: [] for n in DF_IMU}
     while True:
         msg = m.recv_match(type=DF_IMU)
         if msg is None:
@@ -123,48 +102,79 @@ def timed(fn, *a, repeat=1):
     return r, best
 
 
+def quiet(fn, *a):
+    """Run ``fn(*a)`` with its stdout captured; returns (result, number of lines printed)."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        r = fn(*a)
+    return r, len(buf.getvalue().splitlines())
+
+
+def accel_samples(path: Path) -> int:
+    lg = read_log(path)
+    return sum(len(s) for s in lg.series if s.sensor == "accel")
+
+
+def bench_one(label: str, path: Path, copies: int, source: Path, ref, fast) -> dict:
+    (r, printed), t_ref = timed(quiet, ref, path)
+    f, t_fast = timed(fast, path, repeat=3)
+    _, t_full = timed(read_log, path, repeat=3)
+    same = set(r) == set(f) and all(np.array_equal(r[k].reshape(-1, f[k].shape[1]) if r[k].size else
+                                                   np.zeros((0, f[k].shape[1])), f[k]) for k in r)
+    kept, per_copy = accel_samples(path), accel_samples(source)
+    n = sum(len(v) for v in f.values())
+    return dict(file=label, size_mb=round(path.stat().st_size / 1e6, 1), copies=copies, imu_messages=n,
+                pymavlink_s=round(t_ref, 2), fast_s=round(t_fast, 3), read_log_s=round(t_full, 3),
+                speedup=round(t_ref / t_fast, 1), speedup_read_log=round(t_ref / t_full, 1),
+                identical=bool(same), accel_samples_kept=kept, accel_samples_expected=copies * per_copy,
+                pymavlink_lines_printed=printed)
+
+
+def write_results(rows: list, name: str) -> str:
+    md = ["| file | size MB | copies | IMU msgs | pymavlink s | fast decode s | read_log s | speed-up (decode) |"
+          " speed-up (read_log) | identical | accel samples kept / expected | pymavlink printed |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| {r['file']} | {r['size_mb']} | {r['copies']} | {r['imu_messages']} | {r['pymavlink_s']} | "
+                  f"{r['fast_s']} | {r['read_log_s']} | {r['speedup']}x | {r['speedup_read_log']}x | "
+                  f"{r['identical']} | {r['accel_samples_kept']} / {r['accel_samples_expected']} | "
+                  f"{r['pymavlink_lines_printed']} lines |")
+    env = f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}, {os.cpu_count()} CPUs"
+    text = ("# Reading speed (benchmarks/bench_read.py)\n\n" + "\n".join(md) +
+            "\n\nInputs: time-shifted copies of sitl_logs/sitl02.tlog and 00000124.BIN (benchmarks/biglogs.py),"
+            " so every copy's samples are kept. pymavlink = `recv_match(type=IMU messages)` loop (DFReader for .bin),"
+            " collecting the values; fast decode = `decode_tlog`/`decode_dataflash` of the same messages;"
+            " read_log = full ImuLog (also params, events, position; tlog CRCs checked for the decoded message"
+            " types, as `read_log` does by default). Best of 3 for the fast paths, pymavlink once."
+            f" Machine shared with other jobs: timings vary between runs. {env}.\n")
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{name}.md").write_text(text)
+    (RESULTS / f"{name}.json").write_text(json.dumps({"environment": env, "rows": rows}, indent=1))
+    return text
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size-mb", type=float, default=50.0)
-    ap.add_argument("--tlog", type=Path, default=REPO / "sitl_logs" / "sitl01.tlog")
-    ap.add_argument("--bin", type=Path, default=REPO.parent / "shared" / "data" / "real" / "00000124.BIN")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "read_speed")
+    ap.add_argument("--tlog", type=Path, default=biglogs.DEFAULT_TLOG)
+    ap.add_argument("--bin", type=Path, default=biglogs.DEFAULT_BIN)
+    ap.add_argument("--name", default="read_speed", help="results file name (under benchmarks/results/)")
     args = ap.parse_args(argv)
+    if Path(args.name).name != args.name:
+        ap.error("--name is a file name, not a path: results go to benchmarks/results/")
     rows = []
-    with tempfile.TemporaryDirectory(prefix="mavcal-bench-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="mavcal-bench-", dir="/tmp") as tmp:
         tl = Path(tmp) / "big.tlog"
         bn = Path(tmp) / "big.bin"
-        build_tlog(args.tlog, tl, args.size_mb)
-        build_bin(args.bin, bn, args.size_mb)
-        for label, path, ref, fast in (("tlog", tl, ref_tlog, fast_tlog), ("bin", bn, ref_bin, fast_bin)):
-            r, t_ref = timed(ref, path)
-            f, t_fast = timed(fast, path, repeat=3)
-            _, t_full = timed(read_log, path, repeat=3)
-            same = set(r) == set(f) and all(np.array_equal(r[k].reshape(-1, f[k].shape[1]) if r[k].size else
-                                                           np.zeros((0, f[k].shape[1])), f[k]) for k in r)
-            n = sum(len(v) for v in f.values())
-            rows.append(dict(file=label, size_mb=round(path.stat().st_size / 1e6, 1), imu_messages=n,
-                             pymavlink_s=round(t_ref, 2), fast_s=round(t_fast, 3), read_log_s=round(t_full, 3),
-                             speedup=round(t_ref / t_fast, 1), speedup_read_log=round(t_ref / t_full, 1),
-                             identical=bool(same)))
+        nt = biglogs.build_tlog(tl, args.size_mb * 1e6, args.tlog)
+        nb = biglogs.build_bin(bn, args.size_mb * 1e6, args.bin)
+        for label, path, copies, src, ref, fast in (("tlog", tl, nt, args.tlog, ref_tlog, fast_tlog),
+                                                    ("bin", bn, nb, args.bin, ref_bin, fast_bin)):
+            rows.append(bench_one(label, path, copies, src, ref, fast))
             print(rows[-1], file=sys.stderr)
-    md = ["| file | size MB | IMU msgs | pymavlink s | fast decode s | read_log s | speed-up (decode) | speed-up (read_log) | identical |",
-          "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        md.append(f"| {r['file']} | {r['size_mb']} | {r['imu_messages']} | {r['pymavlink_s']} | {r['fast_s']} | "
-                  f"{r['read_log_s']} | {r['speedup']}x | {r['speedup_read_log']}x | {r['identical']} |")
-    env = f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}, {os.cpu_count()} CPUs"
-    text = ("# Reading speed (benchmarks/bench_read.py)\n\n" + "\n".join(md) +
-            f"\n\npymavlink = `recv_match(type=IMU messages)` loop (DFReader for .bin), collecting the values;"
-            f" fast decode = `decode_tlog`/`decode_dataflash` of the same messages; read_log = full ImuLog"
-            f" (also params, events, position; tlog CRCs checked for the decoded message types, as"
-            f" `read_log` does by default). Best of 3 for the fast paths, pymavlink once."
-            f" Machine shared with other jobs: timings vary by ~20% between runs. {env}.\n")
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(text)
-    args.out.with_suffix(".json").write_text(json.dumps({"environment": env, "rows": rows}, indent=1))
-    return 0 if all(r["identical"] for r in rows) else 1
+    print(write_results(rows, args.name))
+    ok = all(r["identical"] and r["accel_samples_kept"] == r["accel_samples_expected"] for r in rows)
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -14,7 +14,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mav2
 from mavcal.errors import MavcalError, SourceError
 from mavcal.sources import open_source, read_log
 from mavcal.sources.assemble import REBOOT_BACKSTEP_S, TLOG_MESSAGES, _next_reboot
-from mavcal.sources.fast_tlog import _mark_path, _path_from, crc_x25, decode_tlog
+from mavcal.sources.fast_tlog import crc_x25, decode_tlog
+from mavcal.sources.framing import mark_path as _mark_path
+from mavcal.sources.framing import path_from as _path_from
 from mavcal.sources.progress import ProgressPrinter, auto_progress
 from mavcal.sources.wmm import field_at, field_ned
 

@@ -12,26 +12,27 @@ the FMT record (type 128) that defines ``type``. This module
    DFReader (``c/C/e/E`` / 100, ``L`` / 1e7) so values are identical to DFReader's.
 
 Like DFReader, all FMT records of the file define the known types (DFReader indexes the
-whole file before reading it). Memory is bounded by the chunk size plus the decoded columns.
+whole file before reading it). Memory is bounded by a few chunks plus the decoded columns (grown in place,
+never held twice).
 """
 from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
-from mavcal.sources.fast_tlog import _mark_path
+from mavcal.sources.framing import ColumnBuffer, file_chunks, path_from
+from mavcal.sources.progress import ProgressFn
 
 log = logging.getLogger(__name__)
 
 HEAD1, HEAD2 = 0xA3, 0x95
 FMT_TYPE = 0x80
 FMT_LEN = 89
-DEFAULT_CHUNK = 32 * 1024 * 1024
-ProgressFn = Callable[[int, int], None]
+DEFAULT_CHUNK = 4 * 1024 * 1024  # the working memory is a few times this (32 MiB made it ~110 MB)
 
 # DataFlash format character -> (numpy dtype, multiplier)  (pymavlink DFReader.FORMAT_TO_STRUCT)
 FORMAT_TO_DTYPE = {
@@ -52,7 +53,7 @@ class DFFormat:
     name: str
     length: int
     format: str
-    columns: Tuple[str, ...]
+    columns: tuple[str, ...]
 
     def dtype(self) -> np.dtype:
         fields = []
@@ -66,12 +67,16 @@ class DFFormat:
             fields.append((name, dt, (n,)) if n > 1 else (name, dt))
         return np.dtype(fields)
 
-    def multipliers(self) -> Dict[str, float]:
-        return {c: FORMAT_TO_DTYPE[ch][1] for c, ch in zip(self.columns, self.format)
-                if FORMAT_TO_DTYPE[ch][1] is not None}
+    def multipliers(self) -> dict[str, float]:
+        out = {}
+        for c, ch in zip(self.columns, self.format):
+            m = FORMAT_TO_DTYPE[ch][1]
+            if m is not None:
+                out[c] = float(m)
+        return out
 
 
-def _format_size(fmt: str) -> Optional[int]:
+def _format_size(fmt: str) -> int | None:
     size = 0
     for ch in fmt:
         if ch not in FORMAT_TO_DTYPE:
@@ -95,7 +100,7 @@ class DFStats:
     bad_fmt: int = 0
     conflicting_fmt: int = 0
 
-    def warnings(self) -> List[str]:
+    def warnings(self) -> list[str]:
         w = []
         if self.skipped_bytes:
             w.append(f"skipped {self.skipped_bytes} unparseable bytes in {self.resyncs} place(s)")
@@ -108,30 +113,20 @@ class DFStats:
         return w
 
 
-def _chunks(size: int, chunk: int, overlap: int):
-    start = 0
-    while start < size:
-        end = min(start + chunk, size)
-        yield start, end, min(end + overlap, size)
-        start = end
-
-
-def read_formats(path: str, *, chunk_size: int = DEFAULT_CHUNK, stats: Optional[DFStats] = None) -> Dict[int, DFFormat]:
+def read_formats(path: str, *, chunk_size: int = DEFAULT_CHUNK, stats: DFStats | None = None) -> dict[int, DFFormat]:
     """All valid FMT records of a DataFlash file, by type number (first definition wins)."""
     size = os.path.getsize(path)
-    formats: Dict[int, DFFormat] = {}
+    formats: dict[int, DFFormat] = {}
     stats = stats if stats is not None else DFStats()
     with open(path, "rb") as fh:
-        for start, end, rend in _chunks(size, chunk_size, FMT_LEN):
-            fh.seek(start)
-            b = np.frombuffer(fh.read(rend - start), dtype=np.uint8)
+        for _, start, end, b in file_chunks(fh, size, chunk_size, 0, FMT_LEN):
             n = end - start
-            p = np.flatnonzero((b[: n] == HEAD1))
+            p = np.flatnonzero(b[: n] == HEAD1)
             p = p[p + FMT_LEN <= len(b)]
             p = p[(b[p + 1] == HEAD2) & (b[p + 2] == FMT_TYPE)]
             if len(p) == 0:
                 continue
-            recs = np.ascontiguousarray(b[p[:, None] + 3 + np.arange(FMT_LEN - 3)]).view(_FMT_DTYPE).ravel()
+            recs = np.lib.stride_tricks.sliding_window_view(b, FMT_LEN - 3)[p + 3].view(_FMT_DTYPE).ravel()
             for r in recs:
                 f = _parse_fmt(r)
                 if f is None:
@@ -145,7 +140,7 @@ def read_formats(path: str, *, chunk_size: int = DEFAULT_CHUNK, stats: Optional[
     return formats
 
 
-def _parse_fmt(r) -> Optional[DFFormat]:
+def _parse_fmt(r) -> DFFormat | None:
     try:
         name = r["Name"].split(b"\0", 1)[0].decode("ascii")
         fmt = r["Format"].split(b"\0", 1)[0].decode("ascii")
@@ -164,9 +159,13 @@ def _parse_fmt(r) -> Optional[DFFormat]:
     return DFFormat(int(r["Type"]), name, length, fmt, columns)
 
 
+_FMT_FORMAT = DFFormat(FMT_TYPE, "FMT", FMT_LEN, "BBnNZ", ("Type", "Length", "Name", "Format", "Columns"))
+Wanted = dict[int, tuple[DFFormat, np.dtype, dict[str, float]]]
+
+
 def decode_dataflash(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAULT_CHUNK,
-                     progress: Optional[ProgressFn] = None
-                     ) -> Tuple[Dict[str, Dict[str, np.ndarray]], Dict[int, DFFormat], DFStats]:
+                     progress: ProgressFn | None = None
+                     ) -> tuple[dict[str, dict[str, np.ndarray]], dict[int, DFFormat], DFStats]:
     """Decode the records of the given message names of a DataFlash .bin file.
 
     Parameters
@@ -190,92 +189,96 @@ def decode_dataflash(path: str, msg_names: Iterable[str], *, chunk_size: int = D
     size = os.path.getsize(path)
     stats = DFStats()
     formats = read_formats(path, chunk_size=chunk_size, stats=stats)
-    formats.setdefault(FMT_TYPE, DFFormat(FMT_TYPE, "FMT", FMT_LEN, "BBnNZ", ("Type", "Length", "Name", "Format", "Columns")))
+    formats.setdefault(FMT_TYPE, _FMT_FORMAT)
     lengths = np.zeros(256, dtype=np.int64)
     for t, f in formats.items():
         lengths[t] = f.length
-    known = lengths > 0
-    wanted = {}
     names = set(msg_names)
-    for t, f in formats.items():
-        if f.name in names:
-            wanted[t] = (f, f.dtype(), f.multipliers())
-    parts: Dict[int, List[Dict[str, np.ndarray]]] = {t: [] for t in wanted}
+    wanted: Wanted = {t: (f, f.dtype(), f.multipliers()) for t, f in formats.items() if f.name in names}
+    parts: dict[int, ColumnBuffer] = {t: ColumnBuffer() for t in wanted}
     expected = 0
-    rec_count = 0
     with open(path, "rb") as fh:
-        for start, end, rend in _chunks(size, chunk_size, 256):
-            if expected >= end:
-                if progress:
-                    progress(end, size)
-                continue
-            fh.seek(start)
-            b = np.frombuffer(fh.read(rend - start), dtype=np.uint8)
-            nb = len(b)
-            hi = end - start
-            p = np.flatnonzero(b[: min(hi, nb - 2)] == HEAD1)
-            p = p[(b[p + 1] == HEAD2) & known[b[p + 2]]]
-            if len(p) == 0:
-                if progress:
-                    progress(end, size)
-                continue
-            typ = b[p + 2]
-            ln = lengths[typ]
-            nxt = p + ln
-            succ = np.searchsorted(p, nxt)  # first candidate at or after p + length
-            succ = np.where(nxt >= hi, len(p), succ)
-            loc_exp = expected - start
-            s0 = int(np.searchsorted(p, loc_exp))
-            on = _mark_path(succ, s0)
-            idx = np.flatnonzero(on)
-            if len(idx) == 0:
-                expected = end
-                continue
-            pos, typ, ln = p[idx], typ[idx], ln[idx]
-            gaps = np.empty(len(pos), dtype=np.int64)
-            gaps[0] = pos[0] - loc_exp
-            gaps[1:] = pos[1:] - (pos[:-1] + ln[:-1])
-            # at the very start a log may begin with garbage; count it like any other gap
-            stats.skipped_bytes += int(gaps[gaps > 0].sum())
-            stats.resyncs += int((gaps > 0).sum())
-            inside = pos + ln <= nb
-            if not inside.all():
-                stats.truncated += int((~inside).sum())
-            expected = start + int(pos[-1] + ln[-1])
-            recno = np.arange(len(pos), dtype=np.int64) + rec_count
-            rec_count += len(pos)
-            for t, (f, dt, mults) in wanted.items():
-                sel = np.flatnonzero((typ == t) & inside)
-                if len(sel) == 0:
-                    continue
-                body = np.ascontiguousarray(b[pos[sel][:, None] + 3 + np.arange(f.length - 3)])
-                rec = body.view(dt).ravel()
-                part = {}
-                for name in dt.names:
-                    col = np.array(rec[name])
-                    m = mults.get(name)
-                    if m is not None:
-                        # as DFReader: dividing by 1e2/1e7 is more accurate than multiplying
-                        col = col.astype(np.float64) / (1 / m)
-                    part[name] = col
-                part["_index"] = recno[sel]
-                parts[t].append(part)
+        for _, start, end, b in file_chunks(fh, size, chunk_size, 0, 256):
+            if expected < end:
+                recs = _records_in(b, end - start, lengths, expected - start, stats)
+                if recs is not None and len(recs[0]) == 0:
+                    expected = end
+                elif recs is not None:
+                    pos, typ, ln = recs
+                    # trailing garbage after the last record is ignored, as DFReader does
+                    expected = start + int(pos[-1] + ln[-1])
+                    _decode_records(b, recs, wanted, parts, stats)
+            del b
             if progress:
                 progress(end, size)
-    if expected < size and rec_count:
-        stats.skipped_bytes += 0  # trailing garbage after the last record is ignored, as DFReader does
-    stats.records = rec_count
-    columns: Dict[str, Dict[str, np.ndarray]] = {}
+    return _join(wanted, parts), formats, stats
+
+
+def _records_in(b: np.ndarray, hi: int, lengths: np.ndarray, loc_exp: int, stats: DFStats):
+    """Records of one chunk starting in ``[0, hi)``: (pos, type, length) arrays, or None if no candidate.
+
+    As DFReader: a record at ``p`` is followed by the first ``A3 95 <known type>`` at or after
+    ``p + length``; the path starts at the first candidate at or after ``loc_exp``. Gaps are
+    counted in ``stats`` (at the very start a log may begin with garbage: counted the same).
+    """
+    nb = len(b)
+    p = np.flatnonzero(b[: min(hi, nb - 2)] == HEAD1)
+    p = p[(b[p + 1] == HEAD2) & (lengths[b[p + 2]] > 0)]
+    if len(p) == 0:
+        return None
+    ln = lengths[b[p + 2]]
+    nxt = p + ln
+    succ = np.where(nxt >= hi, len(p), np.searchsorted(p, nxt))  # first candidate at or after p + length
+    idx = np.flatnonzero(path_from(succ, int(np.searchsorted(p, loc_exp))))
+    pos, ln = p[idx], ln[idx]
+    if len(pos):
+        gaps = np.empty(len(pos), dtype=np.int64)
+        gaps[0] = pos[0] - loc_exp
+        gaps[1:] = pos[1:] - (pos[:-1] + ln[:-1])
+        stats.skipped_bytes += int(gaps[gaps > 0].sum())
+        stats.resyncs += int((gaps > 0).sum())
+    return pos, b[pos + 2], ln
+
+
+def _decode_records(b: np.ndarray, recs, wanted: Wanted, parts: dict[int, ColumnBuffer],
+                    stats: DFStats) -> None:
+    """Append the columns of the wanted records of one chunk to ``parts`` (one dict per type)."""
+    pos, typ, ln = recs
+    inside = pos + ln <= len(b)
+    stats.truncated += int((~inside).sum())
+    recno = np.arange(len(pos), dtype=np.int64) + stats.records
+    stats.records += len(pos)
     for t, (f, dt, mults) in wanted.items():
-        if parts[t]:
-            cols = {k: np.concatenate([q[k] for q in parts[t]]) for k in parts[t][0]}
-            if f.name in columns:  # same name defined under two type numbers
-                prev = columns[f.name]
-                if set(prev) == set(cols):
-                    cols = {k: np.concatenate([prev[k], cols[k]]) for k in cols}
-                    order = np.argsort(cols["_index"], kind="stable")
-                    cols = {k: v[order] for k, v in cols.items()}
-                else:
-                    continue
-            columns[f.name] = cols
-    return columns, formats, stats
+        sel = np.flatnonzero((typ == t) & inside)
+        if len(sel) == 0:
+            continue
+        # gather only the record bodies (a window view indexes bytes, not an index per byte)
+        rec = np.lib.stride_tricks.sliding_window_view(b, f.length - 3)[pos[sel] + 3].view(dt).ravel()
+        part = {}
+        for name in dt.names or ():
+            col = np.array(rec[name])
+            m = mults.get(name)
+            if m is not None:
+                # as DFReader: dividing by 1e2/1e7 is more accurate than multiplying
+                col = col.astype(np.float64) / (1 / m)
+            part[name] = col
+        part["_index"] = recno[sel]
+        parts[t].append(part)
+
+
+def _join(wanted: Wanted, parts: dict[int, ColumnBuffer]) -> dict[str, dict[str, np.ndarray]]:
+    """One column dict per message name (a name defined under two type numbers is merged by record order)."""
+    columns: dict[str, dict[str, np.ndarray]] = {}
+    for t, (f, _, _) in wanted.items():
+        if not parts[t].n:
+            continue
+        cols = parts[t].columns()
+        if f.name in columns:  # same name defined under two type numbers
+            prev = columns[f.name]
+            if set(prev) != set(cols):
+                continue
+            cols = {k: np.concatenate([prev[k], cols[k]]) for k in cols}
+            order = np.argsort(cols["_index"], kind="stable")
+            cols = {k: v[order] for k, v in cols.items()}
+        columns[f.name] = cols
+    return columns

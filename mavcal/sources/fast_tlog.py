@@ -26,10 +26,14 @@ from __future__ import annotations
 import logging
 import os
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
+
+from mavcal.sources.framing import ColumnBuffer, file_chunks, first_at_or_after, path_from
+from mavcal.sources.progress import ProgressFn
+
 try:  # the dialect mavutil uses by default (superset of ardupilotmega)
     from pymavlink.dialects.v20 import all as _dialect
 except ImportError:  # pragma: no cover
@@ -45,7 +49,6 @@ _TS_MAX_US = 4102444800 * 10**6  # 2100-01-01
 _MAX_FRAME = 10 + 255 + 2 + 13
 DEFAULT_CHUNK = 4 * 1024 * 1024  # small enough for the temporaries to stay cached/reused (faster than 32 MiB)
 
-ProgressFn = Callable[[int, int], None]
 
 
 def _make_crc_table() -> np.ndarray:
@@ -81,7 +84,7 @@ _IDS = np.array(sorted(_MAP), dtype=np.int64)
 _EXTRA = np.array([_MAP[i].crc_extra for i in _IDS], dtype=np.uint16)
 
 
-def _struct_dtype(cls) -> Tuple[np.dtype, List[str]]:
+def _struct_dtype(cls) -> tuple[np.dtype, list[str]]:
     """numpy structured dtype of a pymavlink message class's wire payload (packed, LE)."""
     fmt = cls.unpacker.format
     if isinstance(fmt, bytes):
@@ -93,7 +96,7 @@ def _struct_dtype(cls) -> Tuple[np.dtype, List[str]]:
     names = list(cls.ordered_fieldnames)
     if len(parts) != len(names):
         raise RuntimeError(f"cannot map {cls.msgname} format {fmt}")
-    fields = []
+    fields: list[tuple] = []
     for name, (count, code) in zip(names, parts):
         n = int(count) if count else 1
         if code == "s":
@@ -165,79 +168,13 @@ def crc_x25(data: np.ndarray, starts: np.ndarray, lengths: np.ndarray, extra: np
     return out
 
 
-def _mark_path(succ: np.ndarray, start: int) -> np.ndarray:
-    """Boolean mask of the nodes reached from ``start`` following ``succ`` (pointer doubling).
-
-    ``succ`` maps node -> next node (strictly increasing), ``len(succ)`` is the end sentinel.
-    """
-    n = len(succ)
-    on = np.zeros(n + 1, dtype=bool)
-    if start >= n:
-        return on[:n]
-    jump = np.append(succ, n).astype(np.int64)
-    frontier = np.array([start], dtype=np.int64)
-    on[start] = True
-    reached = frontier
-    # after step k, `reached` holds the first 2**k nodes of the path
-    while True:
-        nxt = jump[reached]
-        new = nxt[~on[nxt]]
-        if len(new) == 0:
-            break
-        on[new] = True
-        reached = np.concatenate([reached, new])
-        jump = jump[jump]
-    return on[:n]
-
-
-def _first_at_or_after(flags: np.ndarray) -> np.ndarray:
-    """``out[i]`` = smallest ``k >= i`` with ``flags[k]``, else ``len(flags)``; ``out`` has one extra entry."""
-    n = len(flags)
-    e = np.where(flags, np.arange(n, dtype=np.int64), n)
-    out = np.empty(n + 1, dtype=np.int64)
-    out[n] = n
-    out[:n] = np.minimum.accumulate(e[::-1])[::-1]
-    return out
-
-
-def _path_from(succ: np.ndarray, start: int) -> np.ndarray:
-    """Same as :func:`_mark_path` (nodes reached from ``start``), faster on long chains.
-
-    Runs of nodes whose successor is the next node are contracted first: the path enters a
-    run somewhere and follows it to its end, so only the entry points (``start`` and the
-    successors of run ends) need pointer doubling; the marked runs are then filled in.
-    """
-    n = len(succ)
-    if start >= n:
-        return np.zeros(n, dtype=bool)
-    idx = np.arange(n, dtype=np.int64)
-    brk = succ != idx + 1
-    brk[-1] = True
-    run_end = _first_at_or_after(brk)[:n]
-    is_entry = np.zeros(n + 1, dtype=bool)
-    is_entry[succ[brk]] = True
-    is_entry[start] = True
-    entries = np.flatnonzero(is_entry[:n])
-    nxt = succ[run_end[entries]]  # next entry after following the run (or n)
-    k = np.searchsorted(entries, nxt)
-    k[nxt >= n] = len(entries)
-    s = int(np.searchsorted(entries, start))
-    on_e = _mark_path(k, s)
-    first = entries[on_e]
-    last = run_end[first]
-    cover = np.zeros(n + 1, dtype=np.int64)
-    cover[first] += 1
-    cover[last + 1] -= 1
-    return np.cumsum(cover[:n]) > 0
-
-
 @dataclass
 class TlogStats:
     """Counts of what the decoder saw and skipped (for ``ImuLog.warnings``)."""
 
     frames: int = 0
     bad_crc: int = 0
-    bad_crc_by_id: Dict[int, int] = field(default_factory=dict)
+    bad_crc_by_id: dict[int, int] = field(default_factory=dict)
     unknown_id: int = 0
     bad_header: int = 0
     truncated: int = 0
@@ -249,14 +186,14 @@ class TlogStats:
     #: frames of known message types whose CRC was not checked (types not decoded)
     crc_unchecked: int = 0
 
-    def notes(self) -> List[str]:
+    def notes(self) -> list[str]:
         """Informational lines (logged at debug level, not shown as warnings)."""
         if self.crc_unchecked:
             return [f"CRC checked only for the decoded message types: {self.crc_unchecked} MAVLink frames "
                     "of other types were not checked"]
         return []
 
-    def warnings(self) -> List[str]:
+    def warnings(self) -> list[str]:
         """What was skipped, for the user."""
         w = []
         if self.bad_crc:
@@ -273,30 +210,22 @@ class TlogStats:
         return w
 
 
-def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
-    """Find the frames of one chunk.
+def _candidates(b: np.ndarray, lo: int, hi: int, expected: int):
+    """Candidate frame starts of a chunk that some path can reach, or None.
 
-    ``b`` holds file bytes from some base; candidate start bytes are at local positions
-    ``lo <= p < hi``; ``expected`` is the local position where the next frame should start.
-    Returns (frame arrays or None, next expected local position, skipped bytes, resyncs).
-
-    Candidates form a graph: each goes to the candidate right after its frame and timestamp
-    (a direct hit), else to the next candidate with a plausible timestamp (resync); the
-    frames are the path from the expected position. Only candidates that can be on a path
-    are kept (those hit directly by some candidate, those with a plausible timestamp, and the
-    expected one), which drops most 0xFD/0xFE bytes inside payloads before the graph is built.
+    Returns (cand, direct, strong): local positions of 0xFD/0xFE bytes in ``[lo, hi)``, the
+    position right after each one's frame and the next timestamp (a direct hit), and whether
+    the 8 bytes before it are a plausible timestamp. Only candidates hit directly by some
+    candidate, those with a plausible timestamp and the expected one are kept, which drops
+    most 0xFD/0xFE bytes inside payloads before the graph is built.
     """
     nb = len(b)
-    seg = b[lo:hi]
-    cand = np.flatnonzero((seg - np.uint8(STX_V2)) <= 1) + lo  # 0xFD or 0xFE
+    cand = np.flatnonzero((b[lo:hi] - np.uint8(STX_V2)) <= 1) + lo  # 0xFD or 0xFE
     cand = cand[cand >= 8]
+    if len(cand):
+        cand = cand[cand + np.where(b[cand] == STX_V2, 10, 6) <= nb]  # need the header inside b
     if len(cand) == 0:
-        return None, hi + 0, 0, 0
-    isv2 = b[cand] == STX_V2
-    # need the header to be inside b
-    cand = cand[cand + np.where(isv2, 10, 6) <= nb]
-    if len(cand) == 0:
-        return None, hi, 0, 0
+        return None
     isv2 = b[cand] == STX_V2
     signed = isv2 & ((b[np.minimum(cand + 2, nb - 1)] & 1) != 0)
     direct = cand + b[cand + 1] + np.where(isv2, 20, 16) + np.where(signed, 13, 0)  # + hlen + 2 + sig + 8
@@ -304,14 +233,17 @@ def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
     # microseconds between 2000 and 2100 are 0x0003..0x000E
     hi16 = b[cand - 7]
     strong = (b[cand - 8] == 0) & (hi16 >= (_TS_MIN_US >> 48)) & (hi16 <= (_TS_MAX_US >> 48))
-    # prune candidates that no path can reach
     target = np.zeros(hi + 1, dtype=bool)
     target[direct[direct < hi]] = True
     keep = target[cand] | strong | (cand == expected)
-    cand, direct, strong = cand[keep], direct[keep], strong[keep]
+    if not keep.any():
+        return None
+    return cand[keep], direct[keep], strong[keep]
+
+
+def _direct_successors(cand: np.ndarray, direct: np.ndarray, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    """(hit, j): whether each candidate's direct successor is a candidate, and its index (else n)."""
     n = len(cand)
-    if n == 0:
-        return None, hi, 0, 0
     is_cand = np.zeros(hi + 1, dtype=bool)
     is_cand[cand] = True
     hit = (direct < hi) & is_cand[np.minimum(direct, hi)]
@@ -328,47 +260,76 @@ def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
         j[pend[found]] = jj[found]
         pend = pend[~found]
         d += 1
-    # first strong candidate after each candidate
-    first_strong = _first_at_or_after(strong)
-    resync = first_strong[1:]
-    succ = np.where(hit, j, np.where(direct >= hi, n, resync))
-    # start node
-    s0 = int(np.searchsorted(cand, expected))
-    if not (s0 < n and cand[s0] == expected):
-        s0 = int(first_strong[s0]) if s0 <= n else n
-    on = _path_from(succ, s0)
-    idx = np.flatnonzero(on)
-    if len(idx) == 0:
-        return None, hi, 0, 0
-    # skipped bytes: gaps between consecutive path frames that were not direct hits
-    pos = cand[idx]
-    ends = direct[idx]
-    skipped = 0
-    resyncs = 0
-    if s0 < n and cand[s0] != expected and expected < hi:
-        gap = int(cand[s0] - expected)
-        if gap > 0:
-            skipped += gap
-            resyncs += 1
-    if len(idx) > 1:
+    return hit, j
+
+
+def _skipped(pos: np.ndarray, ends: np.ndarray, first_gap: int) -> tuple[int, int]:
+    """(skipped bytes, resyncs): the gap before the first frame plus those between path frames."""
+    skipped = resyncs = 0
+    if first_gap > 0:
+        skipped, resyncs = first_gap, 1
+    if len(pos) > 1:
         gaps = pos[1:] - ends[:-1]
         nz = gaps != 0
         skipped += int(np.abs(gaps[nz]).sum())
         resyncs += int(nz.sum())
-    last = idx[-1]
-    nxt = int(direct[last]) if hit[last] or direct[last] >= hi else int(cand[resync[last]]) if resync[last] < n else hi
+    return skipped, resyncs
+
+
+def _frame_arrays(b: np.ndarray, pos: np.ndarray) -> dict[str, np.ndarray]:
     isv2 = b[pos] == STX_V2
     hlen = np.where(isv2, 10, 6)
     plen = b[pos + 1].astype(np.int64)
     incompat = np.where(isv2, b[pos + 2], 0).astype(np.int64)
     signed = isv2 & ((incompat & 1) != 0)
     flen = hlen + plen + 2 + np.where(signed, 13, 0)
-    frames = dict(pos=pos, isv2=isv2, hlen=hlen, plen=plen, flen=flen, incompat=incompat, signed=signed)
-    return frames, nxt, skipped, resyncs
+    return dict(pos=pos, isv2=isv2, hlen=hlen, plen=plen, flen=flen, incompat=incompat, signed=signed)
+
+
+def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
+    """Find the frames of one chunk.
+
+    ``b`` holds file bytes from some base; candidate start bytes are at local positions
+    ``lo <= p < hi``; ``expected`` is the local position where the next frame should start.
+    Returns (frame arrays or None, next expected local position, skipped bytes, resyncs).
+
+    Candidates form a graph: each goes to the candidate right after its frame and timestamp
+    (a direct hit), else to the next candidate with a plausible timestamp (resync); the
+    frames are the path from the expected position (see :func:`_candidates`).
+    """
+    found = _candidates(b, lo, hi, expected)
+    if found is None:
+        return None, hi, 0, 0
+    cand, direct, strong = found
+    n = len(cand)
+    hit, j = _direct_successors(cand, direct, hi)
+    first_strong = first_at_or_after(strong)  # first strong candidate at or after each one
+    resync = first_strong[1:]
+    succ = np.where(hit, j, np.where(direct >= hi, n, resync))
+    s0 = int(np.searchsorted(cand, expected))
+    if not (s0 < n and cand[s0] == expected):
+        s0 = int(first_strong[s0]) if s0 <= n else n
+    idx = np.flatnonzero(path_from(succ, s0))
+    if len(idx) == 0:
+        return None, hi, 0, 0
+    first_gap = int(cand[s0] - expected) if s0 < n and cand[s0] != expected and expected < hi else 0
+    skipped, resyncs = _skipped(cand[idx], direct[idx], first_gap)
+    last = idx[-1]
+    nxt = int(direct[last]) if hit[last] or direct[last] >= hi else int(cand[resync[last]]) if resync[last] < n else hi
+    return _frame_arrays(b, cand[idx]), nxt, skipped, resyncs
+
+
+def _wanted(msg_names: Iterable[str]) -> dict[int, tuple[str, np.dtype, list[str]]]:
+    wanted = {}
+    for name in msg_names:
+        mid = msgid_of(name)
+        wanted[mid] = (name,) + _struct_dtype(_MAP[mid])
+    return wanted
 
 
 def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAULT_CHUNK,
-                progress: Optional[ProgressFn] = None, check_all_crc: bool = False) -> Tuple[Dict[str, Dict[str, np.ndarray]], TlogStats]:
+                progress: ProgressFn | None = None, check_all_crc: bool = False
+                ) -> tuple[dict[str, dict[str, np.ndarray]], TlogStats]:
     """Decode the given message types of a tlog into numpy columns.
 
     Parameters
@@ -378,7 +339,8 @@ def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAUL
     msg_names : iterable of str
         MAVLink message names (ardupilotmega dialect) to decode, e.g. ``["RAW_IMU"]``.
     chunk_size : int
-        Bytes per read; memory use is about 20x this plus the decoded columns.
+        Bytes per read; the decoder's working memory is a few times this, plus the decoded
+        columns (grown in place, never held twice).
     progress : callable(done_bytes, total_bytes), optional
     check_all_crc : bool
         Also verify the CRC of frames of the types that are not decoded (to count them in
@@ -393,64 +355,47 @@ def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAUL
         ``_index`` (frame number in the file), ``_sysid``, ``_compid``.
     stats : TlogStats
     """
-    wanted = {}
-    for name in msg_names:
-        mid = msgid_of(name)
-        wanted[mid] = (name,) + _struct_dtype(_MAP[mid])
+    wanted = _wanted(msg_names)
     size = os.path.getsize(path)
-    out_parts: Dict[int, List[Dict[str, np.ndarray]]] = {mid: [] for mid in wanted}
+    out_parts: dict[int, ColumnBuffer] = {mid: ColumnBuffer() for mid in wanted}
     stats = TlogStats()
     expected = 8  # first STX after the first timestamp
-    frame_count = 0
-    overlap = _MAX_FRAME + 8
     with open(path, "rb") as fh:
-        start = 0
-        while start < size:
-            base = max(start - 8, 0)
-            end = min(start + chunk_size, size)
-            read_end = min(end + overlap, size)
-            fh.seek(base)
-            b = np.frombuffer(fh.read(read_end - base), dtype=np.uint8)
-            lo = start - base
-            hi = end - base
-            if expected >= end:
-                start = end
-                if progress:
-                    progress(end, size)
-                continue
-            res = _frames_in(b, lo, hi, expected - base)
-            frames, nxt, skipped, resyncs = res
-            stats.skipped_bytes += skipped
-            stats.resyncs += resyncs
-            if frames is not None:
-                expected = base + nxt
-                _decode_frames(b, base, frames, wanted, out_parts, stats, frame_count, read_end == size,
-                               check_all_crc)
-                frame_count += len(frames["pos"])
-            else:
-                expected = max(expected, end)
-            start = end
+        for base, start, end, b in file_chunks(fh, size, chunk_size, 8, _MAX_FRAME + 8):
+            if expected < end:
+                frames, nxt, skipped, resyncs = _frames_in(b, start - base, end - base, expected - base)
+                stats.skipped_bytes += skipped
+                stats.resyncs += resyncs
+                if frames is not None:
+                    expected = base + nxt
+                    _decode_frames(b, frames, wanted, out_parts, stats, base + len(b) == size, check_all_crc)
+                    stats.frames += len(frames["pos"])
+                else:
+                    expected = max(expected, end)
+            del b
             if progress:
                 progress(end, size)
-    stats.frames = frame_count
-    columns: Dict[str, Dict[str, np.ndarray]] = {}
+    return _join(wanted, out_parts), stats
+
+
+def _join(wanted, out_parts) -> dict[str, dict[str, np.ndarray]]:
+    columns: dict[str, dict[str, np.ndarray]] = {}
     for mid, (name, dt, names) in wanted.items():
-        parts = out_parts[mid]
-        if parts:
-            columns[name] = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        if out_parts[mid].n:
+            columns[name] = out_parts[mid].columns()
         else:
             columns[name] = {k: np.zeros((0,) + dt[k].shape, dtype=dt[k].base) for k in names}
             columns[name].update(_log_time_s=np.zeros(0), _index=np.zeros(0, np.int64),
                                  _sysid=np.zeros(0, np.uint8), _compid=np.zeros(0, np.uint8))
-    return columns, stats
+    return columns
 
 
-def _decode_frames(b, base, fr, wanted, out_parts, stats, frame_offset, at_eof, check_all_crc=False):
+def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False):
     nb = len(b)
     pos, isv2, hlen, plen, flen = fr["pos"], fr["isv2"], fr["hlen"], fr["plen"], fr["flen"]
     inside = pos + flen <= nb
     ntrunc = int((~inside).sum())
-    frame_no = np.arange(len(pos), dtype=np.int64) + frame_offset
+    frame_no = np.arange(len(pos), dtype=np.int64) + stats.frames
     incompat, signed = fr["incompat"], fr["signed"]
     if ntrunc:
         if at_eof:
@@ -486,7 +431,7 @@ def _decode_frames(b, base, fr, wanted, out_parts, stats, frame_offset, at_eof, 
     good = kk[ok_k]
     gid = msgid[good]
     windows = {}
-    for mid, (name, dt, names) in wanted.items():
+    for mid, (_name, dt, names) in wanted.items():
         sel = good[gid == mid]
         if len(sel) == 0:
             continue

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Callable, Optional, TextIO
+from typing import Callable, TextIO
 
 ProgressFn = Callable[[int, int], None]
 
@@ -25,7 +25,7 @@ class ProgressPrinter:
         Minimum time between redraws.
     """
 
-    def __init__(self, label: str, stream: Optional[TextIO] = None, min_interval_s: float = 0.2) -> None:
+    def __init__(self, label: str, stream: TextIO | None = None, min_interval_s: float = 0.2) -> None:
         self.label = label
         self.stream = stream if stream is not None else sys.stderr
         self.min_interval_s = min_interval_s
@@ -54,7 +54,7 @@ class ProgressPrinter:
             self._drawn = False
 
 
-def auto_progress(label: str, stream: Optional[TextIO] = None) -> Optional[ProgressPrinter]:
+def auto_progress(label: str, stream: TextIO | None = None) -> ProgressPrinter | None:
     """A :class:`ProgressPrinter` if ``stream`` (default stderr) is a terminal, else ``None``."""
     stream = stream if stream is not None else sys.stderr
     try:

@@ -1,0 +1,182 @@
+"""Long logs end to end: ``mavcal calibrate`` / ``mavcal segments`` vs pymavlink at 10 MB, 100 MB (1 GB).
+
+For each size and kind, builds a log of time-shifted copies (``benchmarks/biglogs.py``:
+``sitl_logs/sitl02.tlog`` and ``00000124.BIN``, every sample of every copy kept) under /tmp and
+runs, each as its own subprocess with this tree first on ``PYTHONPATH``:
+
+* ``mavcal calibrate LOG --json OUT`` (end to end: read, recover, segment, fit, gates, outputs),
+* ``mavcal segments LOG --json``,
+* pymavlink reading the same IMU messages: tlog ``recv_match`` loop over RAW_IMU and
+  SCALED_IMU2; .bin ``DFReader`` (via ``mavlink_connection``) ``recv_match`` over IMU and MAG,
+  collecting the values.
+
+Each run's wall time is measured here, its peak resident memory by ``/usr/bin/time -f %M``
+(interpreter start included for all three). Prints a table with the ratios to
+pymavlink, peak memory / file size and the 10 MB -> 100 MB (-> 1 GB) time scaling, and writes
+``benchmarks/results/long_logs.md`` and ``.json``.
+
+    python benchmarks/bench_long_logs.py [--full] [--sizes-mb 10 100] [--timeout 3600]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import biglogs  # noqa: E402  (benchmarks/ is this script's directory)
+
+RESULTS = REPO / "benchmarks" / "results"
+TLOG_TYPES = ["RAW_IMU", "SCALED_IMU2"]
+DF_TYPES = ["IMU", "MAG"]
+TOOLS = ("mavcal calibrate", "mavcal segments", "pymavlink read")
+
+# the reference reader, run as ``python -c PYMAVLINK_READER LOG``
+PYMAVLINK_READER = rf"""
+import sys
+from pymavlink import mavutil
+path = sys.argv[1]
+tlog = path.endswith(".tlog")
+types = {TLOG_TYPES!r} if tlog else {DF_TYPES!r}
+m = mavutil.mavlink_connection(path)
+rows = []
+while True:
+    msg = m.recv_match(type=types)
+    if msg is None:
+        break
+    if tlog:
+        rows.append((msg._timestamp, msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro,
+                     msg.xmag, msg.ymag, msg.zmag))
+    elif msg.get_type() == "IMU":
+        rows.append((msg.TimeUS, msg.AccX, msg.AccY, msg.AccZ, msg.GyrX, msg.GyrY, msg.GyrZ))
+    else:
+        rows.append((msg.TimeUS, msg.MagX, msg.MagY, msg.MagZ))
+print(len(rows))
+"""
+
+
+def run(cmd: list, timeout_s: float, stdout=subprocess.DEVNULL) -> dict:
+    """Run ``cmd`` under ``/usr/bin/time``: wall time, the child's peak RSS and exit code.
+
+    The peak RSS comes from ``/usr/bin/time -f %M`` (its child's ``wait4`` rusage): asking
+    ``os.wait4`` for a child forked from this process would report at least this process's
+    own resident size, which a fork copies into the child's high-water mark.
+    """
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    with tempfile.NamedTemporaryFile("r", prefix="mavcal-time-", dir="/tmp") as tf:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(["/usr/bin/time", "-f", "%M", "-o", tf.name] + cmd, stdout=stdout,
+                                stderr=subprocess.PIPE, env=env, cwd="/tmp")
+        try:
+            _, err = proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            return dict(wall_s=None, peak_rss_mb=None, rc="timeout")
+        wall = time.perf_counter() - t0
+        lines = tf.read().split()
+    out: dict = dict(wall_s=round(wall, 2), peak_rss_mb=round(int(lines[-1]) * 1024 / 1e6, 1) if lines else None,
+                     rc=proc.returncode)
+    if proc.returncode not in (0, 4):  # 4 = calibration rejected by a gate: still a complete run
+        out["stderr_tail"] = err.decode(errors="replace").strip().splitlines()[-3:]
+    return out
+
+
+def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, tools) -> list:
+    py = sys.executable
+    size_mb = path.stat().st_size / 1e6
+    cmds = {
+        "mavcal calibrate": [py, "-m", "mavcal", "-q", "calibrate", str(path), "--json", str(tmp / "cal.json")],
+        "mavcal segments": [py, "-m", "mavcal", "-q", "segments", str(path), "--json"],
+        "pymavlink read": [py, "-c", PYMAVLINK_READER, str(path)],
+    }
+    rows = []
+    for tool, cmd in cmds.items():
+        if tool not in tools:
+            continue
+        r = run(cmd, timeout_s)
+        r.update(kind=kind, size_mb=round(size_mb, 1), copies=copies, tool=tool,
+                 rss_per_file=round(r["peak_rss_mb"] / size_mb, 2) if r["peak_rss_mb"] else None)
+        rows.append(r)
+        print(r, file=sys.stderr, flush=True)
+    ref = rows[-1]["wall_s"] if rows and rows[-1]["tool"] == "pymavlink read" else None
+    for r in rows:
+        r["time_vs_pymavlink"] = round(r["wall_s"] / ref, 3) if r["wall_s"] and ref else None
+    return rows
+
+
+def add_scaling(rows: list) -> None:
+    """time(size) / time(smallest size) and the size ratio, per kind and tool."""
+    for r in rows:
+        same = [q for q in rows if q["kind"] == r["kind"] and q["tool"] == r["tool"]]
+        base = min(same, key=lambda q: q["size_mb"])
+        r["size_x"] = round(r["size_mb"] / base["size_mb"], 1)
+        r["time_x"] = round(r["wall_s"] / base["wall_s"], 1) if r["wall_s"] and base["wall_s"] else None
+
+
+def write_results(rows: list, env: str) -> str:
+    md = ["| log | size MB | copies | tool | wall s | peak RSS MB | RSS / file | time / pymavlink | size x | time x "
+          "| rc |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| {r['kind']} | {r['size_mb']} | {r['copies']} | {r['tool']} | {r['wall_s']} | "
+                  f"{r['peak_rss_mb']} | {r['rss_per_file']} | {r['time_vs_pymavlink']} | {r['size_x']} | "
+                  f"{r['time_x']} | {r['rc']} |")
+    text = ("# Long logs end to end (benchmarks/bench_long_logs.py)\n\n" + "\n".join(md) +
+            "\n\nLogs: time-shifted copies of sitl_logs/sitl02.tlog and 00000124.BIN (benchmarks/biglogs.py). "
+            "Each row is one subprocess: `mavcal calibrate LOG --json OUT`, `mavcal segments LOG --json`, or "
+            "pymavlink reading the IMU messages (tlog: recv_match over RAW_IMU, SCALED_IMU2; .bin: DFReader over "
+            "IMU, MAG) and collecting the values. Peak RSS = `/usr/bin/time -f %M` of the run, interpreter "
+            "included (MB = 1e6 bytes); RSS / file = peak RSS over the file size. size x / time x: ratio to "
+            "the smallest size of the same log kind and tool (linear = equal). rc 4 = calibration rejected "
+            "by a quality gate (the copies of one session are a valid but repetitive log). "
+            f"Machine shared with other jobs: timings vary between runs. {env}.\n")
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "long_logs.md").write_text(text)
+    (RESULTS / "long_logs.json").write_text(json.dumps({"environment": env, "rows": rows}, indent=1))
+    return text
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes-mb", type=float, nargs="+", default=[10.0, 100.0])
+    ap.add_argument("--full", action="store_true", help="also 1 GB (1000 MB)")
+    ap.add_argument("--kinds", nargs="+", default=["tlog", "bin"], choices=["tlog", "bin"])
+    ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
+    ap.add_argument("--tools", nargs="+", default=list(TOOLS), choices=list(TOOLS))
+    args = ap.parse_args(argv)
+    sizes = list(args.sizes_mb) + ([1000.0] if args.full else [])
+    import numpy as np
+
+    env = f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}, {os.cpu_count()} CPUs"
+    rows: list = []
+    tmp = Path(tempfile.mkdtemp(prefix="mavcal-long-logs-", dir="/tmp"))
+    try:
+        for kind in args.kinds:
+            for size in sizes:
+                path = tmp / f"big_{int(size)}MB.{kind}"
+                build = biglogs.build_tlog if kind == "tlog" else biglogs.build_bin
+                copies = build(path, size * 1e6)
+                rows += bench_log(kind, path, copies, tmp, args.timeout, args.tools)
+                path.unlink()
+                add_scaling(rows)
+                write_results(rows, env)  # after every log: a long run interrupted keeps what it measured
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    add_scaling(rows)
+    print(write_results(rows, env))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

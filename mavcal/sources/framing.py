@@ -1,0 +1,146 @@
+"""Numpy helpers shared by the vectorised log decoders (:mod:`.fast_tlog`, :mod:`.fast_dataflash`).
+
+Both decoders find record starts the same way: every candidate start byte of a chunk points
+to its successor (the candidate right after its record, or a resynchronisation point), and
+the records are the nodes on the path from the expected position. :func:`path_from` marks
+that path without a Python loop per record. :class:`ColumnBuffer` grows the decoded columns
+in place chunk by chunk, so the decoders hold the columns once (no join at the end).
+
+This module knows nothing of MAVLink or DataFlash (and imports no pymavlink dialect, so a
+DataFlash read does not pay for loading one).
+"""
+from __future__ import annotations
+
+import mmap
+from collections.abc import Iterator, Mapping
+
+import numpy as np
+
+__all__ = ["mark_path", "first_at_or_after", "path_from", "ColumnBuffer", "file_chunks"]
+
+
+def mark_path(succ: np.ndarray, start: int) -> np.ndarray:
+    """Boolean mask of the nodes reached from ``start`` following ``succ`` (pointer doubling).
+
+    ``succ`` maps node -> next node (strictly increasing), ``len(succ)`` is the end sentinel.
+    """
+    n = len(succ)
+    on = np.zeros(n + 1, dtype=bool)
+    if start >= n:
+        return on[:n]
+    jump = np.append(succ, n).astype(np.int64)
+    on[start] = True
+    reached = np.array([start], dtype=np.int64)
+    # after step k, `reached` holds the first 2**k nodes of the path
+    while True:
+        nxt = jump[reached]
+        new = nxt[~on[nxt]]
+        if len(new) == 0:
+            break
+        on[new] = True
+        reached = np.concatenate([reached, new])
+        jump = jump[jump]
+    return on[:n]
+
+
+def first_at_or_after(flags: np.ndarray) -> np.ndarray:
+    """``out[i]`` = smallest ``k >= i`` with ``flags[k]``, else ``len(flags)``; ``out`` has one extra entry."""
+    n = len(flags)
+    e = np.where(flags, np.arange(n, dtype=np.int64), n)
+    out = np.empty(n + 1, dtype=np.int64)
+    out[n] = n
+    out[:n] = np.minimum.accumulate(e[::-1])[::-1]
+    return out
+
+
+def path_from(succ: np.ndarray, start: int) -> np.ndarray:
+    """Same as :func:`mark_path` (nodes reached from ``start``), linear-time on long chains.
+
+    Runs of nodes whose successor is the next node are contracted first: the path enters a
+    run somewhere and follows it to its end, so only the entry points (``start`` and the
+    successors of run ends) need pointer doubling; the marked runs are then filled in.
+    """
+    n = len(succ)
+    if start >= n:
+        return np.zeros(n, dtype=bool)
+    idx = np.arange(n, dtype=np.int64)
+    brk = succ != idx + 1
+    brk[-1] = True
+    run_end = first_at_or_after(brk)[:n]
+    is_entry = np.zeros(n + 1, dtype=bool)
+    is_entry[succ[brk]] = True
+    is_entry[start] = True
+    entries = np.flatnonzero(is_entry[:n])
+    nxt = succ[run_end[entries]]  # next entry after following the run (or n)
+    k = np.searchsorted(entries, nxt)
+    k[nxt >= n] = len(entries)
+    on_e = mark_path(k, int(np.searchsorted(entries, start)))
+    first = entries[on_e]
+    last = run_end[first]
+    cover = np.zeros(n + 1, dtype=np.int64)
+    cover[first] += 1
+    cover[last + 1] -= 1
+    return np.cumsum(cover[:n]) > 0
+
+
+class ColumnBuffer:
+    """Columns that grow in place as per-chunk pieces are appended (no join at the end).
+
+    Each column lives in its own anonymous memory map, grown geometrically with ``mremap``
+    (:meth:`mmap.mmap.resize`): growing never copies, the unused capacity is never touched
+    (so it is not resident) and the map is trimmed to the final length at the end. The
+    returned columns are numpy arrays over those maps (freed with them). Collecting the
+    pieces and concatenating them instead holds the columns twice, and growing heap arrays
+    leaves the old buffers resident in the process heap: both made the peak about twice the
+    columns.
+    """
+
+    def __init__(self) -> None:
+        self._maps: dict[str, tuple[mmap.mmap, np.dtype, tuple[int, ...]]] = {}
+        self._cap = 0
+        self.n = 0
+
+    def _view(self, key: str, rows: int) -> np.ndarray:
+        mm, dtype, shape = self._maps[key]
+        return np.frombuffer(mm, dtype=dtype, count=rows * int(np.prod(shape, dtype=np.int64))).reshape((rows,) + shape)
+
+    def _grow(self, rows: int) -> None:
+        for mm, dtype, shape in self._maps.values():
+            mm.resize(max(rows, 1) * dtype.itemsize * int(np.prod(shape, dtype=np.int64)))
+        self._cap = rows
+
+    def append(self, part: Mapping[str, np.ndarray]) -> None:
+        """Append one piece: a dict column -> array, all of the same length and the same keys each time."""
+        m = len(next(iter(part.values())))
+        need = self.n + m
+        if need > self._cap:
+            self._grow(max(need, 2 * self._cap, 4096))
+        for key, v in part.items():
+            if key not in self._maps:
+                size = self._cap * v.dtype.itemsize * int(np.prod(v.shape[1:], dtype=np.int64))
+                mm = mmap.mmap(-1, max(size, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+                self._maps[key] = (mm, v.dtype, tuple(v.shape[1:]))
+            self._view(key, need)[self.n:need] = v
+        self.n = need
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The columns, trimmed to the appended length; the buffer is empty afterwards."""
+        self._grow(self.n)
+        out = {key: self._view(key, self.n) for key in self._maps}
+        self._maps, self._cap, self.n = {}, 0, 0
+        return out
+
+
+def file_chunks(fh, size: int, chunk: int, before: int, after: int) -> Iterator[tuple[int, int, int, np.ndarray]]:
+    """Read a file in chunks ``[start, end)`` with ``before`` bytes of context before and ``after`` after.
+
+    Yields ``(base, start, end, b)`` where ``b`` holds the file bytes ``[base, min(end + after, size))``
+    and ``base = max(start - before, 0)``. Only one chunk is in memory at a time.
+    """
+    start = 0
+    while start < size:
+        base = max(start - before, 0)
+        end = min(start + chunk, size)
+        fh.seek(base)
+        yield base, start, end, np.frombuffer(fh.read(min(end + after, size) - base), dtype=np.uint8)
+        start = end
