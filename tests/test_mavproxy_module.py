@@ -7,6 +7,7 @@ process is killed in a finally; every wait is bounded.
 import importlib.util
 import os
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -29,10 +30,12 @@ _ADVICE = re.compile(r"mavcal: (\d+) intervals, \w+, heading \S+ deg(?:; next: .
 class MAVProxy:
     """A MAVProxy process: send lines to its stdin, wait for patterns in its output."""
 
-    def __init__(self, master: str, cwd):
+    def __init__(self, master: str, cwd, out: str | None = None):
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.started = time.monotonic()  # MAVProxy asks for its stream rates every 15 s from about now
         self.p = subprocess.Popen([sys.executable, "-m", "MAVProxy.mavproxy", "--master", master, "--no-state",
-                                   "--default-modules=link,param"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                   "--default-modules=link,param", *(["--out", out] if out else [])],
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                   stderr=subprocess.STDOUT, text=True, cwd=str(cwd), env=env)
         self.lines = []
         self.cond = threading.Condition()
@@ -99,6 +102,39 @@ class MAVProxy:
             self.reader.join(timeout=5)
 
 
+class RawImuClock(threading.Thread):
+    """Receive times of the RAW_IMU messages MAVProxy forwards to its ``--out`` (what the vehicle streams)."""
+
+    def __init__(self):
+        super().__init__(name="test-raw-imu", daemon=True)
+        from pymavlink import mavutil
+
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.bind(("127.0.0.1", 0))
+        self.port = s.getsockname()[1]
+        s.close()
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}")
+        self.times = []
+        self.halt = threading.Event()
+
+    def run(self) -> None:
+        while not self.halt.is_set():
+            m = self.conn.recv_match(type="RAW_IMU", blocking=True, timeout=0.1)
+            if m is not None:
+                self.times.append(time.monotonic())
+
+    def rates(self, t0: float, t1: float, window_s: float = 1.0):
+        """RAW_IMU per second in 1 s windows sliding by 0.25 s over [t0, t1]."""
+        t = np.array(self.times)
+        starts = np.arange(t0, t1 - window_s, 0.25)
+        return [int(((t >= a) & (t < a + window_s)).sum()) / window_s for a in starts]
+
+    def stop(self) -> None:
+        self.halt.set()
+        self.join(timeout=5)
+        self.conn.close()
+
+
 def _changed_rows(lines, start):
     """(name, new value) of the writer's table rows marked ok after output line ``start``."""
     rows = {}
@@ -112,24 +148,33 @@ def _changed_rows(lines, start):
 def test_mavproxy_module_capture_fit_write_restore_unload(tmp_path, start_vehicle):
     v = start_vehicle(truth=VehicleTruth.random(3), seed=3, heartbeat_hz=2)
     before = v.params
-    mp = MAVProxy(v.gcs_device, tmp_path)
+    clock = RawImuClock()
+    clock.start()
+    mp = MAVProxy(v.gcs_device, tmp_path, out=f"udp:127.0.0.1:{clock.port}")
     hand = AdviceHand(v, mp.advice)
     try:
         mp.expect(r"Detected vehicle 1:1", timeout=20)
-        _, at = mp.expect(r"Loaded module mavcal\.mavproxy_mavcal", after=mp.send("module load mavcal.mavproxy_mavcal"))
+        loaded = mp.send("module load mavcal.mavproxy_mavcal")
+        _, at = mp.expect(r"Loaded module mavcal\.mavproxy_mavcal", after=loaded)
         _, at = mp.expect(r"mavcal threads: mavcal-worker$", after=mp.send("mavcal threads"))
         mp.send("mavcal set hold_s 0.6")
         mp.send(f"mavcal set backup_dir {tmp_path / 'backups'}")
         _, at = mp.expect(r"mavcal: capture started", after=mp.send("mavcal start"))
+        t_started = time.monotonic()
         mp.expect(r"next: level, nose towards magnetic north", after=at)
         hand.start()
         _, at2 = mp.expect(r"NEXT POSE: ", after=mp.send("mavcal status"))
         mp.expect(r"mavcal next pose: .* intervals kept", after=mp.send("mavcal next"))
         m, at = mp.expect(r"capture (finished|aborted)", timeout=90, after=at)
+        t_finished = time.monotonic()
         assert m.group(1) == "finished", "\n".join(mp.lines[-30:])
         done, _ = mp.expect(r"mavcal: (\d+) intervals, .*: done: heading error bound (\S+) deg", after=at - 2)
         assert int(done.group(1)) >= 8 and float(done.group(2)) <= 0.5
         mp.expect(r"mavcal: fit done", after=at)  # fitted on its own at the end
+        # the fit ends with the per-sensor verdicts and the module's next step
+        mp.expect(r"^accel0: accepted$", after=at)
+        mp.expect(r"^compass0: accepted$", after=at)
+        mp.expect(r"next: write the parameters \('mavcal write'\), then reboot the vehicle", after=at)
         hand.stop()
         mark = mp.send("mavcal fit")
         mp.expect(r"heading", after=mark)
@@ -158,7 +203,24 @@ def test_mavproxy_module_capture_fit_write_restore_unload(tmp_path, start_vehicl
         mp.expect(r"mavcal: unloaded; worker stopped; mavcal threads left: none", after=mark)
         mp.expect(r"Unloaded module mavcal", after=mark)
         mp.expect(r"Unknown command 'mavcal", after=mp.send("mavcal threads"))
+        _check_stream_rates(mp, clock, loaded, t_started, t_finished)
     finally:
         hand.stop()
         mp.close()
+        clock.stop()
         v.stop()
+
+
+def _check_stream_rates(mp, clock, loaded, t_started, t_finished):
+    """Issue 13 item 5: one SET_MESSAGE_INTERVAL per IMU message the vehicle has (3 here), no
+    re-request and no reset of our own; the IMU rate never falls to MAVProxy's 4 Hz during the
+    capture (MAVProxy's REQUEST_DATA_STREAM, every 15 s, is paused); MAVProxy's own rate is back
+    after the capture (MAVProxy re-requested it: no reset of ours was needed)."""
+    acks = [line for line in mp.lines[loaded:] if "COMMAND_ACK: SET_MESSAGE_INTERVAL" in line]
+    assert len(acks) == 3, acks
+    during = clock.rates(t_started + 1.5, t_finished)
+    assert during and min(during) >= 12, during  # asked 25 Hz; MAVProxy's 4 Hz would show as <= 5
+    # MAVProxy asks for its stream rates every 15 s: the capture spanned such a moment
+    assert t_finished - mp.started > 15.5, "the capture ended before MAVProxy's first periodic stream request"
+    after = clock.rates(t_finished + 1.5, t_finished + 3.5)
+    assert after and max(after) <= 6, after

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+from typing import TextIO
 
 from mavcal.commands.common import (
     add_device_map_arguments,
@@ -98,6 +100,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_device_map_arguments(w)
 
 
+class RecordingPrinter:
+    """Shows a live recording's progress on one redrawn terminal line: elapsed and remaining
+    seconds and the samples so far (a :class:`mavcal.link.live.RecordingProgress` per call)."""
+
+    def __init__(self, out: TextIO) -> None:
+        self.out = out
+
+    def __call__(self, p) -> None:
+        line = (f"recording: {p.elapsed_s:4.0f} of {p.duration_s:.0f} s, {p.remaining_s:.0f} s left, "
+                f"{p.samples} samples")
+        self.out.write(f"\r{line}\x1b[K" + ("\n" if p.done else ""))
+        self.out.flush()
+
+
+def recording_printer(out: TextIO, *, quiet: bool = False) -> RecordingPrinter | None:
+    """A :class:`RecordingPrinter` on ``out`` when it is a terminal and not ``quiet``; else None (silent)."""
+    try:
+        tty = out.isatty()
+    except (AttributeError, ValueError):
+        tty = False
+    return RecordingPrinter(out) if tty and not quiet else None
+
+
 def _options(args):
     from mavcal.pipeline import Options
 
@@ -112,14 +137,17 @@ def _options(args):
 
 
 def _single(args, source: str) -> int:
-    from mavcal.pipeline import calibrate_source, open_source
+    from mavcal.pipeline import calibrate_source
     from mavcal.sources.progress import auto_progress
     from mavcal.sources.reader import is_device
 
     opts = _options(args)
     device = is_device(source)
     if device:
-        log_ = open_source(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout)
+        from mavcal.link.live import record_device
+
+        log_ = record_device(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout,
+                             on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))
         run = calibrate_source(log_, opts)
     else:
         run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))

@@ -8,9 +8,10 @@ printed, the outputs are written, and the parameters are written to the vehicle 
 confirmation (interactive y/N, or ``--write``/``--write --yes``) through the same safe
 writer as ``calibrate --write``.
 
-Exit codes as ``calibrate``: 0 success; 2 usage; 3 the device does not answer; 4 aborted
-(impossible field, magnetic disturbance), rejected by the gates or too little data; 5 write
-failed and the vehicle was restored; 6 write failed and the restore failed.
+Exit codes as ``calibrate``: 0 every sensor accepted (and written when asked); 7 some sensors
+accepted (only their parameters are written), some rejected; 2 usage; 3 the device does not
+answer; 4 aborted (impossible field, magnetic disturbance), no sensor accepted or too little
+data; 5 write failed and the vehicle was restored; 6 write failed and the restore failed.
 """
 from __future__ import annotations
 
@@ -54,7 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
     w = p.add_argument_group("writing to the vehicle")
     w.add_argument("--write", action="store_true", help="write the parameters (asks first unless --yes)")
-    w.add_argument("--force", action="store_true", help="write even if a quality gate failed")
+    w.add_argument("--force", action="store_true",
+                   help="write the rejected sensors' parameters too (and values outside ArduPilot's limits)")
     w.add_argument("--backup", metavar="F", help="backup .param of the old values (default mavcal-backup-DATE.param)")
 
 
@@ -115,20 +117,24 @@ def run(args: argparse.Namespace) -> int:
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
     run = session.result()  # InsufficientDataError (exit 4) when too little was captured
-    write_outputs(run, args, f"mavcal guided capture on {args.connect}")
-    changes = dict(run.mapping.new)
+    # 0 all accepted, 7 some rejected (GateError, exit 4, when none was accepted and no --force)
+    code = write_outputs(run, args, f"mavcal guided capture on {args.connect}")
+    # the accepted sensors' parameters only (every sensor's with --force). No log_params for the
+    # device-id check: the capture recorded the very vehicle it writes to, so its compasses and
+    # IMUs are the vehicle's by construction
+    changes = run.params_to_write(args.force)
     if args.write or args.dry_run:
-        return write_with_report(args, changes, args.backup, "calibration write")
+        return write_with_report(args, changes, args.backup, "calibration write") or code
     if sys.stdin.isatty():  # offer it: the diff, then y/N
         try:
-            return write_with_report(replace_ns(args, yes=False), changes, args.backup, "calibration write")
+            return write_with_report(replace_ns(args, yes=False), changes, args.backup, "calibration write") or code
         except UsageError as exc:
             if str(exc).startswith("cancelled"):
                 print("nothing written to the vehicle")
-                return 0
+                return code
             raise
     print("nothing written to the vehicle (use --write to write the parameters)")
-    return 0
+    return code
 
 
 def replace_ns(ns: argparse.Namespace, **kw) -> argparse.Namespace:

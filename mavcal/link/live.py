@@ -24,6 +24,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -31,11 +32,12 @@ import numpy as np
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link, open_link
 from mavcal.link.params import download_params
-from mavcal.link.streams import start_streams
+from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, start_streams
 from mavcal.sources.assemble import IMU_MESSAGES, SCALED_INSTANCE, TLOG_MESSAGES, assemble_tlog, imu_series
 from mavcal.sources.types import ImuLog, SensorSeries
 
-__all__ = ["LiveRecorder", "open_recorder", "record_device", "imu_batch_from_messages"]
+__all__ = ["LiveRecorder", "open_recorder", "record_device", "imu_batch_from_messages", "RecordingProgress",
+           "PROGRESS_PERIOD_S"]
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +46,27 @@ _BATCH_ORDER = ("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SCALED_IMU")
 #: a GCS HEARTBEAT this often while recording, as a ground station does
 GCS_HEARTBEAT_PERIOD_S = 1.0
 
+#: how often a recording reports its progress
+PROGRESS_PERIOD_S = 0.5
+
 Batch = tuple[SensorSeries, ...]
+
+
+@dataclass(frozen=True)
+class RecordingProgress:
+    """How far a recording is (handed to ``on_progress`` of :func:`record_device`)."""
+
+    elapsed_s: float
+    duration_s: float
+    samples: int  # accelerometer samples received so far (every IMU instance)
+
+    @property
+    def remaining_s(self) -> float:
+        return max(0.0, self.duration_s - self.elapsed_s)
+
+    @property
+    def done(self) -> bool:
+        return self.elapsed_s >= self.duration_s
 
 
 class LiveRecorder:
@@ -111,9 +133,11 @@ class LiveRecorder:
         self.params = {name: value for name, (value, _) in dl.table.items()}
         return dict(self.params)
 
-    def start_streams(self, rate_hz: float = 50.0, ack_timeout_s: float = 1.0, data_timeout_s: float = 2.0) -> str:
+    def start_streams(self, rate_hz: float = 50.0, ack_timeout_s: float = 1.0, data_timeout_s: float = 2.0,
+                      message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> str:
         """:func:`mavcal.link.streams.start_streams` on this link: ``"interval"`` or ``"data_stream"``."""
-        return start_streams(self.link, rate_hz, ack_timeout_s=ack_timeout_s, data_timeout_s=data_timeout_s)
+        return start_streams(self.link, rate_hz, ack_timeout_s=ack_timeout_s, data_timeout_s=data_timeout_s,
+                             message_ids=message_ids)
 
     # ------------------------------------------------------------------ samples
     def _new_batch(self) -> Batch:
@@ -139,11 +163,21 @@ class LiveRecorder:
             yield self._new_batch()
 
     def capture(self, duration_s: float, callback: Callable[[Batch], None] | None = None,
-                batch_s: float = 0.2) -> None:
-        """Receive for ``duration_s``, passing each batch to ``callback`` if given."""
+                batch_s: float = 0.2, on_progress: Callable[[RecordingProgress], None] | None = None) -> None:
+        """Receive for ``duration_s``, passing each batch to ``callback`` if given, and a
+        :class:`RecordingProgress` to ``on_progress`` every :data:`PROGRESS_PERIOD_S` and once at the end."""
+        start = time.monotonic()
+        last, samples = -PROGRESS_PERIOD_S, 0
         for batch in self.iter_batches(duration_s, batch_s):
+            samples += sum(len(s.time_s) for s in batch if s.sensor == "accel")
             if callback is not None:
                 callback(batch)
+            elapsed = time.monotonic() - start
+            if on_progress is not None and elapsed - last >= PROGRESS_PERIOD_S:
+                last = elapsed
+                on_progress(RecordingProgress(min(elapsed, duration_s), duration_s, samples))
+        if on_progress is not None:
+            on_progress(RecordingProgress(duration_s, duration_s, samples))
 
     def snapshot(self) -> ImuLog:
         """Everything received so far as an :class:`ImuLog` of kind ``"live"``."""
@@ -188,12 +222,14 @@ def open_recorder(device: str, *, baud: int = 115200, heartbeat_timeout_s: float
 
 def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, heartbeat_timeout_s: float = 5.0,
                   param_timeout_s: float = 30.0, rate_hz: float = 50.0,
-                  progress: Callable[[int, int], None] | None = None) -> ImuLog:
+                  progress: Callable[[int, int], None] | None = None,
+                  on_progress: Callable[[RecordingProgress], None] | None = None) -> ImuLog:
     """Record ``duration_s`` seconds of IMU data from a live vehicle as an ImuLog of kind ``"live"``.
 
     Connect (``LinkError`` when no heartbeat within ``heartbeat_timeout_s``), fetch all
     parameters (bounded by ``param_timeout_s``; an incomplete table is a warning of the log),
-    stream the IMU messages at ``rate_hz`` and record.
+    stream the IMU messages the vehicle has (:func:`mavcal.link.streams.needed_stream_ids`) at
+    ``rate_hz`` and record.
 
     Parameters
     ----------
@@ -201,14 +237,23 @@ def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, 
         pymavlink device string (``udp:HOST:PORT``, ``udpin:``, ``udpout:``, ``tcp:HOST:PORT``,
         a serial port with ``baud``).
     progress : callable, optional
-        Accepted for symmetry with :func:`mavcal.sources.read_log` (a byte-count callback);
-        a recording takes ``duration_s`` and reports no progress.
+        ``progress(elapsed_ms, duration_ms)`` every :data:`PROGRESS_PERIOD_S` of the recording
+        and once at its end: the ``(done, total)`` shape of :func:`mavcal.sources.read_log`'s
+        byte count, so any ``(done, total)`` bar shows how far the recording is.
+    on_progress : callable, optional
+        The same moments with a :class:`RecordingProgress` (elapsed and remaining seconds,
+        samples so far), e.g. for a status line.
     """
-    del progress  # no byte count to report
+    def report(p: RecordingProgress) -> None:
+        if progress is not None:
+            progress(int(round(p.elapsed_s * 1000)), int(round(p.duration_s * 1000)))
+        if on_progress is not None:
+            on_progress(p)
+
     with open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s) as rec:
-        rec.fetch_params(timeout_s=param_timeout_s)
-        rec.start_streams(rate_hz=rate_hz)
-        rec.capture(duration_s)
+        params = rec.fetch_params(timeout_s=param_timeout_s)
+        rec.start_streams(rate_hz=rate_hz, message_ids=needed_stream_ids(params))
+        rec.capture(duration_s, on_progress=report if (progress or on_progress) else None)
         return rec.snapshot()
 
 

@@ -14,16 +14,17 @@ module, which does not own its read loop, uses it too.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from pymavlink import mavutil
 
+from mavcal.ardupilot import firmware as fw
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link
 
 __all__ = ["STREAM_MESSAGES", "STREAM_MESSAGE_IDS", "MIN_STREAM_RATE_HZ", "send_message_intervals",
-           "start_streams", "reset_streams"]
+           "start_streams", "reset_streams", "needed_stream_ids"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,25 @@ STREAM_MESSAGES: dict[str, int] = {"RAW_IMU": _A.MAVLINK_MSG_ID_RAW_IMU,
 STREAM_MESSAGE_IDS: tuple[int, ...] = tuple(STREAM_MESSAGES.values())
 #: :func:`start_streams` never asks for less (the still-interval detector needs the samples)
 MIN_STREAM_RATE_HZ = 25.0
+
+
+def needed_stream_ids(params: Mapping[str, float] | None) -> tuple[int, ...]:
+    """The IMU messages worth asking for on a vehicle with the parameter table ``params``.
+
+    Message k carries IMU k and compass slot k (RAW_IMU: 0, SCALED_IMU2: 1, SCALED_IMU3: 2).
+    RAW_IMU is always asked for; SCALED_IMU2/3 only when that IMU (``INS_ACCn_ID``) or that
+    compass slot (``COMPASS_DEV_IDn``) has a device, or when the table does not say (a name
+    missing: asked for, to be safe). Asking for a message of a sensor the board does not have
+    changes nothing but costs a COMMAND_ACK, which MAVProxy prints.
+    """
+    if params is None:
+        return STREAM_MESSAGE_IDS
+    out = []
+    for k, mid in enumerate(STREAM_MESSAGE_IDS):
+        ids = [params.get(fw.accel_param_names(k)["id"]), params.get(fw.compass_param_names(k)["dev_id"])]
+        if k == 0 or any(v is None or int(v) != 0 for v in ids):
+            out.append(mid)
+    return tuple(out)
 
 
 def send_message_intervals(mav: Any, target_system: int, target_component: int, rate_hz: float | None,
@@ -78,8 +98,9 @@ class _StreamWatch:
 
 
 def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1.0,
-                  data_timeout_s: float = 2.0) -> str:
-    """Ask for RAW_IMU, SCALED_IMU2 and SCALED_IMU3 at ``rate_hz`` (at least 25 Hz) and check data comes.
+                  data_timeout_s: float = 2.0, message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> str:
+    """Ask for RAW_IMU, SCALED_IMU2 and SCALED_IMU3 (``message_ids``, e.g. :func:`needed_stream_ids`)
+    at ``rate_hz`` (at least 25 Hz) and check data comes.
 
     Uses MAV_CMD_SET_MESSAGE_INTERVAL; falls back to REQUEST_DATA_STREAM
     (MAV_DATA_STREAM_RAW_SENSORS) when it is not acknowledged (within ``ack_timeout_s``) or
@@ -98,7 +119,7 @@ def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1
     rate_hz = max(float(rate_hz), MIN_STREAM_RATE_HZ)
     watch = _StreamWatch(link)
     try:
-        send_message_intervals(link.mav, link.target_system, link.target_component, rate_hz)
+        send_message_intervals(link.mav, link.target_system, link.target_component, rate_hz, message_ids)
         link.wait(lambda: bool(watch.acks), ack_timeout_s)
         accepted = _A.MAV_RESULT_ACCEPTED in watch.acks
         if accepted and watch.wait_data(rate_hz, data_timeout_s):
@@ -114,9 +135,9 @@ def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1
         watch.close()
 
 
-def reset_streams(link: Link) -> None:
+def reset_streams(link: Link, message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> None:
     """Give the IMU messages back their default rates (best effort: the link may be dead)."""
     try:
-        send_message_intervals(link.mav, link.target_system, link.target_component, None)
+        send_message_intervals(link.mav, link.target_system, link.target_component, None, message_ids)
     except Exception as exc:  # a dead socket, a closed connection: nothing to restore
         log.debug("could not reset the stream rates: %s", exc)

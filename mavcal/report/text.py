@@ -14,7 +14,14 @@ from mavcal.ardupilot.paramfile import format_param_value
 
 __all__ = ["summary_text", "verdict_lines", "next_step", "param_rows", "format_value", "gate_failures_by_sensor",
            "param_table", "plan_text", "gate_refusal_text", "write_done_text", "write_failed_text", "in_doubt_text",
-           "writing_text"]
+           "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS"]
+
+#: how the ``mavcal`` command names the next steps (:func:`next_step`)
+CLI_HINTS: dict[str, str] = {"force_hint": "--force", "write_hint": "--write, or load the .param file",
+                             "only_hint": "--accel-only / --compass-only"}
+#: how the MAVProxy module names them
+MAVPROXY_HINTS: dict[str, str] = {"force_hint": "'mavcal set force 1'", "write_hint": "'mavcal write'",
+                                  "only_hint": ""}
 
 
 def format_value(v: float | None) -> str:
@@ -66,16 +73,18 @@ def verdict_lines(run) -> list[str]:
     return out
 
 
-def next_step(run, *, force_hint: str = "--force") -> str:
-    """What to do now, from the verdicts."""
+def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str = CLI_HINTS["write_hint"],
+              only_hint: str = CLI_HINTS["only_hint"]) -> str:
+    """What to do now, from the verdicts (the hints name the commands: :data:`CLI_HINTS`,
+    :data:`MAVPROXY_HINTS`; an empty ``only_hint`` is left out)."""
     code = run.exit_code
     if code == 0:
-        return "next: write the parameters (--write, or load the .param file), then reboot the vehicle"
+        return f"next: write the parameters ({write_hint}), then reboot the vehicle"
     if code == 7:
         bad = ", ".join(run.gates.rejected_sensors())
+        only = f"{only_hint}, or " if only_hint else ""
         return (f"next: write the accepted sensors' parameters; {bad} keep their current values: fix the cause "
-                f"named above and record again (or --accel-only / --compass-only, or {force_hint} to write them "
-                "anyway)")
+                f"named above and record again (or {only}{force_hint} to write them anyway)")
     return f"next: nothing is written; fix the causes named above and record again ({force_hint} writes anyway)"
 
 
@@ -100,12 +109,14 @@ def _holdout_text(run) -> str:
     return f"held-out error: not run ({why})"
 
 
-def summary_text(run) -> str:
+def summary_text(run, *, hints: dict[str, str] | None = None) -> str:
     """Short human summary of a run for a terminal.
 
     Parameters
     ----------
     run : mavcal.pipeline.CalibrationRun
+    hints : dict, optional
+        How :func:`next_step` names the commands (default :data:`CLI_HINTS`).
 
     Returns
     -------
@@ -118,7 +129,8 @@ def summary_text(run) -> str:
     cal = run.calibration
     seg = run.segmentation
     n_ok = sum(v.accepted for v in run.verdicts)
-    L = [f"{run.source}: {n_ok} of {len(run.verdicts)} sensors accepted"] + verdict_lines(run) + [next_step(run)]
+    L = [f"{run.source}: {n_ok} of {len(run.verdicts)} sensors accepted", *verdict_lines(run),
+         next_step(run, **(hints or {}))]
     L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
           f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
     if cal is None:
@@ -202,6 +214,17 @@ def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
     fails = "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures())
     return _lines([f"nothing written: the calibration failed a quality gate ({fails}); {override_hint} to override"],
                   prefix)
+
+
+def forced_limits_text(violations: Sequence[str], unsaved_kinds: Sequence[str], *, override: str = "--force",
+                       prefix: str = "mavcal: ") -> str:
+    """The loud warning of a write forced past ArduPilot's limits: one line per value
+    (:attr:`mavcal.ardupilot.limits.LimitViolation.message`) and the sensor kinds that will not
+    be marked calibrated; "" when there is none."""
+    lines = [f"WARNING: {override}: writing {v}" for v in violations]
+    if unsaved_kinds:
+        lines.append(f"WARNING: {'/'.join(unsaved_kinds)} will NOT be marked calibrated (no force-save)")
+    return _lines(lines, prefix)
 
 
 def plan_text(plan, *, dry_run: bool = False, confirm_hint: str | None = None, prefix: str = "") -> str:
