@@ -315,8 +315,6 @@ def _warn_out_of_range(changes: dict, table: dict, force: bool) -> None:
     bad = check_limits(changes, values)
     if not (force and bad):
         return
-    for v in bad:
-        print(f"mavcal: WARNING: --force: writing {v.message}", file=sys.stderr)
-    kinds = sorted(failing_kinds(changes, values))
-    if kinds:
-        print(f"mavcal: WARNING: {'/'.join(kinds)} will NOT be marked calibrated (no force-save)", file=sys.stderr)
+    from mavcal.report.text import forced_limits_text
+
+    sys.stderr.write(forced_limits_text([v.message for v in bad], sorted(failing_kinds(changes, values))))
