@@ -25,7 +25,7 @@ from typing import Callable
 from mavcal.capture.session import CaptureConfig, CaptureSession, CaptureStatus
 from mavcal.errors import InsufficientDataError
 from mavcal.link.live import open_recorder
-from mavcal.link.streams import reset_streams
+from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, reset_streams
 from mavcal.pipeline import Options
 from mavcal.sources.types import SensorSeries
 
@@ -165,15 +165,17 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s)
     loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s)
     method = "?"
+    streams = STREAM_MESSAGE_IDS
     try:
         params = rec.fetch_params(timeout_s=param_timeout_s)
         session = CaptureSession(params, config or CaptureConfig(), options, source=device)
-        method = rec.start_streams(rate_hz)
+        streams = needed_stream_ids(params)  # only the IMU messages this vehicle has
+        method = rec.start_streams(rate_hz, message_ids=streams)
         log.info("capturing from %s (%s streams at %g Hz)", device, method, rate_hz)
         loop.run(session, rec.iter_batches(None, batch_s))
         return session
     finally:
-        reset_streams(rec.link)
+        reset_streams(rec.link, streams)
         if on_info is not None:
             on_info(LiveCaptureInfo(device, method, time.monotonic() - loop.t_start, loop.updates,
                                     tuple(rec.warnings)))
