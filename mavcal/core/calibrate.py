@@ -21,8 +21,8 @@ Pipeline of :func:`calibrate` (paper section in brackets):
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import replace
-from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.stats import chi2
@@ -63,7 +63,7 @@ def _check_geometry(a: IntervalStats, m: IntervalStats) -> None:
                 "add poses tilted about another axis (nose up/down and rolled left/right)")
 
 
-def _stats(accel_sets, mag_sets, noise_floor) -> Tuple[IntervalStats, IntervalStats]:
+def _stats(accel_sets, mag_sets, noise_floor) -> tuple[IntervalStats, IntervalStats]:
     nf_a, nf_m = (noise_floor if isinstance(noise_floor, (tuple, list)) else (noise_floor, noise_floor))
     a = interval_stats(accel_sets, "accel_sets", noise_floor=nf_a)
     m = interval_stats(mag_sets, "mag_sets", noise_floor=nf_m)
@@ -99,8 +99,8 @@ def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, 
 
 
 def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method: str, tol: float,
-                    max_iter: int, handoff_rate: Optional[float] = None,
-                    on_iteration=None) -> Tuple[steps.State, int, str]:
+                    max_iter: int, handoff_rate: float | None = None,
+                    on_iteration=None) -> tuple[steps.State, int, str]:
     """Sec. VII: iterate rotation, bias/field, gain (and covariance) steps until J_{k-1} - J_k < tol.
 
     With ``handoff_rate`` (used when the joint refinement follows), the steps also stop once
@@ -149,7 +149,7 @@ def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
 
 
 def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats, method: str,
-            tol: float) -> Tuple[RefineResult, np.ndarray, np.ndarray]:
+            tol: float) -> tuple[RefineResult, np.ndarray, np.ndarray]:
     """LM to the exact optimum; for fcar/dcar alternate with the ML covariance refit."""
     Sa, Sm = st.Sigma_a, st.Sigma_m
     fa, fm = FORMS[spec.accel_form], FORMS[spec.mag_form]
@@ -178,7 +178,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
     return res, Sa, Sm
 
 
-def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> Tuple[float, int, float]:
+def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> tuple[float, int, float]:
     """Wald statistic of linear constraints sum_k c_k theta_k = 0 on the global parameters."""
     idx = {n: i for i, n in enumerate(res.names)}
     C = np.zeros((len(constraints), len(res.names)))
@@ -281,7 +281,117 @@ def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts,
     return res, Sa, Sm, block_it, block_conv
 
 
-def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: Optional[int] = None,
+def _check_args(method: str, tol, model: str, accel_sets) -> str:
+    """Validate the options and the interval count before any statistics are computed."""
+    method = str(method).lower()
+    if method not in METHODS:
+        raise EstimationError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
+        raise EstimationError(f"tol (the stop condition gamma) must be a positive number; got {tol!r}")
+    if model != "auto" and model not in MODELS:
+        raise EstimationError(f"model must be 'auto' or one of {', '.join(MODELS)}; got {model!r}")
+    try:
+        n_given = len(accel_sets)
+    except TypeError:
+        n_given = None
+    if n_given is not None and 0 < n_given < MODELS[MODEL_CHAIN[-1]].min_intervals:
+        raise InsufficientDataError(
+            f"{n_given} still interval(s) cannot identify even the simplest model (offsets and scales need "
+            f"{MODELS[MODEL_CHAIN[-1]].min_intervals}; the full joint model needs {MODELS['full'].min_intervals}); "
+            "hold the vehicle still in more orientations")
+    return method
+
+
+def _choose_model(model: str, N: int) -> tuple[ModelSpec, str]:
+    """The model to fit first and why: the most general identifiable one for "auto"."""
+    if model == "auto":
+        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
+        if not allowed:
+            raise InsufficientDataError(
+                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
+                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
+                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
+        spec = allowed[0]
+        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
+                  if spec.name == "full" else
+                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
+                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
+        return spec, reason
+    spec = MODELS[model]
+    if N < spec.min_intervals:
+        raise InsufficientDataError(
+            f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
+            f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
+            "choose a simpler model")
+    return spec, f"model {spec.name} requested"
+
+
+def _paper_path(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts):
+    """refine=False: the paper's algorithm alone, its end point scored as a RefineResult."""
+    if spec.name != "full":
+        raise EstimationError("refine=False runs the paper's algorithm, which fits the full model only; "
+                              f"{a.mu.shape[0]} intervals call for the {spec.name} model")
+    st, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, refine=False)
+    prob = JointProblem(_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
+    p = JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R)
+    r, Jg, Jr = prob.jacobians(p)
+    res = RefineResult(p, float(np.sum(r * r)), 0, True, prob.covariance(Jg, Jr), prob.names,
+                       3 * a.mu.shape[0] - prob.P)
+    return res, st.Sigma_a, st.Sigma_m, block_it, block_conv
+
+
+def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol, max_iter, rng, restarts):
+    """Wald tests down MODEL_CHAIN; refit the simplest accepted model. Returns (spec, res, Sa, Sm, note)."""
+    chain = MODEL_CHAIN[MODEL_CHAIN.index(spec.name):]
+    scale = max(1.0, res.cost / max(res.dof, 1))
+    chosen, tests = spec, []
+    cons: list = []
+    for nxt in chain[1:]:
+        if (spec.accel_form == "diag" and nxt == "diag-accel") or (spec.mag_form == "sym" and nxt == "ardupilot"):
+            continue
+        cons = cons + _REDUCTIONS[nxt]
+        W, k, pval = _wald(res, cons, scale)
+        tests.append(f"{nxt}: Wald chi2={W:.3g} on {k} dof, p={pval:.3g}")
+        if pval <= WALD_ALPHA:
+            break
+        chosen = MODELS[nxt]
+    if chosen is spec:
+        return spec, res, Sa, Sm, (f"; simpler models are rejected ({tests[0]})" if tests else "")
+    p = res.params
+    start = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+    res2, Sa, Sm, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
+    note = f"; the simpler {chosen.name} model explains the data as well ({'; '.join(tests)}), so it was used"
+    return chosen, replace(res2, iterations=res.iterations + res2.iterations), Sa, Sm, note
+
+
+def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, block_it, block_conv) -> Calibration:
+    """Canonical gauge, covariance, message, and the frozen Calibration."""
+    p = res.params
+    K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)
+    if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
+        res = replace(res, cov=_transform_cov(res, p, K_a, K_m, h_z))
+    p = JointParams((K_a, K_m), p.biases, h_z, R)
+    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res)
+    converged = bool(block_conv and res.converged)
+    msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
+           f"{res.iterations} joint refinement iterations"
+           + ("" if converged else " (block steps hit the iteration limit)" if not block_conv else
+              " (refinement did not reach its tolerance)"))
+    if res.dof > 0 and res.cost / res.dof > 4.0:
+        msg += (f"; chi2/dof = {res.cost / res.dof:.3g}: the readings scatter more than the noise explains "
+                "(motion in the intervals or magnetic disturbance?)")
+    log.info(msg)
+    return Calibration(
+        accel=SensorModel(p.gains[0], p.biases[0], Sa, "accel"),
+        mag=SensorModel(p.gains[1], p.biases[1], Sm, "mag"),
+        gravity=G_UNIT.copy(), field=np.array([1.0, 0.0, p.h_z]), orientations=p.R,
+        cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
+        method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
+        n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
+        dof=int(res.dof))
+
+
+def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: int | None = None,
               model: str = "auto", max_iter: int = 1000, restarts: int = 24,
               noise_floor=None, refine: bool = True) -> Calibration:
     """Joint maximum-likelihood calibration of an accelerometer and a magnetometer.
@@ -322,117 +432,20 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
     InsufficientDataError
         Fewer intervals than the requested (or any) model can identify.
     """
-    method = str(method).lower()
-    if method not in METHODS:
-        raise EstimationError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
-    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
-        raise EstimationError(f"tol (the stop condition gamma) must be a positive number; got {tol!r}")
-    if model != "auto" and model not in MODELS:
-        raise EstimationError(f"model must be 'auto' or one of {', '.join(MODELS)}; got {model!r}")
-    try:
-        n_given = len(accel_sets)
-    except TypeError:
-        n_given = None
-    if n_given is not None and 0 < n_given < MODELS[MODEL_CHAIN[-1]].min_intervals:
-        raise InsufficientDataError(
-            f"{n_given} still interval(s) cannot identify even the simplest model (offsets and scales need "
-            f"{MODELS[MODEL_CHAIN[-1]].min_intervals}; the full joint model needs {MODELS['full'].min_intervals}); "
-            "hold the vehicle still in more orientations")
+    method = _check_args(method, tol, model, accel_sets)
     a, m = _stats(accel_sets, mag_sets, noise_floor)
-    N = a.mu.shape[0]
     rng = np.random.default_rng(seed)
-
-    if model == "auto":
-        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
-        if not allowed:
-            raise InsufficientDataError(
-                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
-                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
-                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
-        spec = allowed[0]
-        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
-                  if spec.name == "full" else
-                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
-                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
-    else:
-        spec = MODELS[model]
-        if N < spec.min_intervals:
-            raise InsufficientDataError(
-                f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
-                f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
-                "choose a simpler model")
-        reason = f"model {spec.name} requested"
+    spec, reason = _choose_model(model, a.mu.shape[0])
     _check_geometry(a, m)
-
     if not refine:
-        if spec.name != "full":
-            raise EstimationError("refine=False runs the paper's algorithm, which fits the full model only; "
-                                  f"{N} intervals call for the {spec.name} model")
-        st, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, refine=False)
-        prob = JointProblem(_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
-        p = JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R)
-        r, Jg, Jr = prob.jacobians(p)
-        res = RefineResult(p, float(np.sum(r * r)), 0, True, prob.covariance(Jg, Jr), prob.names,
-                           3 * N - prob.P)
-        Sa, Sm = st.Sigma_a, st.Sigma_m
+        res, Sa, Sm, block_it, block_conv = _paper_path(spec, a, m, method, tol, max_iter, rng, restarts)
         model = "full"  # no model selection on the paper's path
     else:
         res, Sa, Sm, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
-
     if model == "auto" and res.cov is not None:
-        chain = MODEL_CHAIN[MODEL_CHAIN.index(spec.name):]
-        scale = max(1.0, res.cost / max(res.dof, 1))
-        chosen, tests = spec, []
-        cons: list = []
-        for nxt in chain[1:]:
-            extra = _REDUCTIONS[nxt]
-            if spec.accel_form == "diag" and nxt == "diag-accel":
-                continue
-            if spec.mag_form == "sym" and nxt == "ardupilot":
-                continue
-            cons = cons + extra
-            W, k, pval = _wald(res, cons, scale)
-            tests.append(f"{nxt}: Wald chi2={W:.3g} on {k} dof, p={pval:.3g}")
-            if pval > WALD_ALPHA:
-                chosen = MODELS[nxt]
-            else:
-                break
-        if chosen is not spec:
-            p = res.params
-            start = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
-            res2, Sa, Sm, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
-            reason += (f"; the simpler {chosen.name} model explains the data as well "
-                       f"({'; '.join(tests)}), so it was used")
-            res = replace(res2, iterations=res.iterations + res2.iterations)
-            spec = chosen
-        elif tests:
-            reason += f"; simpler models are rejected ({tests[0]})"
-
-    p = res.params
-    K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)
-    if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
-        cov = _transform_cov(res, p, K_a, K_m, h_z)
-        res = replace(res, cov=cov)
-    p = JointParams((K_a, K_m), p.biases, h_z, R)
-    dof = res.dof
-    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res)
-    converged = bool(block_conv and res.converged)
-    msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
-           f"{res.iterations} joint refinement iterations"
-           + ("" if converged else " (block steps hit the iteration limit)" if not block_conv else
-              " (refinement did not reach its tolerance)"))
-    if dof > 0 and res.cost / dof > 4.0:
-        msg += (f"; chi2/dof = {res.cost / dof:.3g}: the readings scatter more than the noise explains "
-                "(motion in the intervals or magnetic disturbance?)")
-    log.info(msg)
-    return Calibration(
-        accel=SensorModel(p.gains[0], p.biases[0], Sa, "accel"),
-        mag=SensorModel(p.gains[1], p.biases[1], Sm, "mag"),
-        gravity=G_UNIT.copy(), field=np.array([1.0, 0.0, p.h_z]), orientations=p.R,
-        cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
-        method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
-        n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
-        dof=int(dof))
+        spec, res, Sa, Sm, note = _select_model(spec, res, Sa, Sm, a, m, method, tol, max_iter, rng, restarts)
+        reason += note
+    return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
 
 
 def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):
@@ -449,7 +462,7 @@ def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm,
 
 
 def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,
-                         res: RefineResult) -> Optional[np.ndarray]:
+                         res: RefineResult) -> np.ndarray | None:
     """Parameter covariance honest about misfit, sensor by sensor.
 
     When a sensor's weighted residuals exceed what its noise covariance explains
@@ -469,7 +482,7 @@ def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa
     return res.cov * max(1.0, res.cost / res.dof) if cov is None else cov
 
 
-def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> Optional[np.ndarray]:
+def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> np.ndarray | None:
     """Covariance after a discrete gauge change: every parameter maps to +-1 times itself."""
     if res.cov is None:
         return None
@@ -482,7 +495,7 @@ def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> Optional
 
 # --- orientations of new data, reconstruction error -----------------------------------------
 
-def _means(sets, name: str) -> Tuple[np.ndarray, np.ndarray]:
+def _means(sets, name: str) -> tuple[np.ndarray, np.ndarray]:
     seq = list(sets)
     if not seq:
         raise EstimationError(f"{name} is empty")
@@ -522,7 +535,7 @@ def estimate_orientations(calibration: Calibration, accel_sets, mag_sets) -> np.
 
 def reconstruction_error(calibration: Calibration, truth=None, *, orientations=None, mu_accel=None,
                          mu_mag=None, noise_cov_accel=None, noise_cov_mag=None, n_accel=None,
-                         n_mag=None) -> Tuple[float, float]:
+                         n_mag=None) -> tuple[float, float]:
     """The paper's delta_s (Eq. ``distance``) for both sensors: (delta_a, delta_m).
 
     delta_s = sqrt( sum_i Delta[i] (mu_s[i] - mu_breve_s[i])^T Sigma_s^-1 (...) / sum_i Delta[i] )
