@@ -28,9 +28,11 @@ import numpy as np
 from scipy.stats import chi2
 
 from mavcal.core import steps
-from mavcal.core.gauge import canonical
+from mavcal.core.certify import certificate
+from mavcal.core.gauge import branches, canonical
 from mavcal.core.initial import (
     G_UNIT,
+    fit_axis_ellipsoid,
     fit_ellipsoid,
     fit_sphere,
     search_rotation_hz,
@@ -38,7 +40,7 @@ from mavcal.core.initial import (
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, refit_covariances
 from mavcal.core.stats import IntervalStats, interval_stats
-from mavcal.core.types import Calibration, SensorModel
+from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
 from mavcal.errors import EstimationError, InsufficientDataError
 
 log = logging.getLogger(__name__)
@@ -76,17 +78,24 @@ def _stats(accel_sets, mag_sets, noise_floor) -> tuple[IntervalStats, IntervalSt
 # --- initial estimates ---------------------------------------------------------------------
 
 def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, *,
-                  accel_form: str = "upper", restarts: int = 24, sphere: bool = False) -> steps.State:
+                  accel_form: str = "upper", restarts: int = 24, sphere: bool = False,
+                  shape: str = "quadric") -> steps.State:
     """Sec. VI: closed-form gains and biases, the R/h_z search, the orientation approximation.
 
-    The general quadric of Eq. ``J_approx`` needs N >= 9 intervals (and falls back to a
-    sphere when it is not a well-conditioned ellipsoid); ``sphere=True`` starts from the
-    sphere fit of both sensors (used as a second start when the first fit looks wrong).
+    ``shape`` of the per-sensor fits: "quadric", the general quadric of Eq. ``J_approx``
+    (needs N >= 9 intervals; falls back to a sphere when it is not a well-conditioned
+    ellipsoid); "axes", an ellipsoid with axes along the sensor axes (N >= 7); "sphere"
+    (``sphere=True`` is the same). The other shapes are the extra starts of the search.
     """
     N = a.mu.shape[0]
-    quadric = N >= 9 and not sphere
-    ea = fit_ellipsoid(a.mu) if (quadric and accel_form == "upper") else fit_sphere(a.mu)
-    em = fit_ellipsoid(m.mu) if quadric else fit_sphere(m.mu)
+    shape = "sphere" if sphere else shape
+    if shape == "quadric" and N < 9:
+        shape = "sphere"
+    if shape == "axes" and N < 7:
+        shape = "sphere"
+    fit = {"quadric": fit_ellipsoid, "axes": fit_axis_ellipsoid, "sphere": fit_sphere}[shape]
+    ea = fit(a.mu) if (accel_form == "upper" or shape == "axes") else fit_sphere(a.mu)
+    em = fit(m.mu)
     z_a = np.linalg.solve(ea.K, (a.mu - ea.b).T).T
     z_m = np.linalg.solve(em.K, (m.mu - em.b).T).T
     R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
@@ -211,25 +220,92 @@ _REDUCTIONS = {
 }
 
 
-SECOND_START_CHI2 = 3.0  # chi2/dof above which the other initial estimate is tried too
+WEAK_DOF = 12  # fewer degrees of freedom than this: the cost has many near-exact-fit minima
+WEAK_P = 1e-3  # chi2 p-value below which the fit is suspected to sit in a wrong basin
+
+
+def _weak_evidence(res: RefineResult) -> str:
+    """Why one start is not enough for this fit ("" when the single start is trusted).
+
+    A fit from one start is trusted when the refinement converged, the residuals are what
+    the noise explains (chi2 p-value >= WEAK_P) and there are enough degrees of freedom
+    (>= WEAK_DOF) for a wrong basin to show as misfit.
+    """
+    if not res.converged:
+        return "the refinement did not converge"
+    if res.dof < WEAK_DOF:
+        return f"only {res.dof} degrees of freedom"
+    if chi2.sf(res.cost, res.dof) < WEAK_P:
+        return f"chi2/dof = {res.cost / res.dof:.3g}"
+    return ""
+
+
+BRANCH_PROBE_ITER = 30  # LM iterations a branch start gets before it must beat the best fit so far
+
+
+def _branch_fits(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol):
+    """LM from the 7 discrete branches of ``res`` (:func:`mavcal.core.gauge.branches`).
+
+    Each branch is probed with ``BRANCH_PROBE_ITER`` LM iterations at fixed covariances; only
+    a branch that gets below ``res`` is refined to convergence (a wrong branch typically
+    stalls far above, and would otherwise cost the full iteration budget).
+    """
+    p = res.params
+    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    out = []
+    for _, K_m, h_z in branches(p.gains[1], p.h_z):
+        st = steps.State(p.gains[0], p.biases[0], K_m, p.biases[1], h_z, p.R, Sa, Sm)
+        st = steps.rotations_approx(st, a, m)
+        try:
+            probe = prob.solve(JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R),
+                               max_iter=BRANCH_PROBE_ITER, covariance=False)
+            if probe.cost >= res.cost:
+                out.append((probe, Sa, Sm))
+                continue
+            q = probe.params
+            out.append(_refine(spec, replace(st, K_a=q.gains[0], b_a=q.biases[0], K_m=q.gains[1], b_m=q.biases[1],
+                                             h_z=q.h_z, R=q.R), a, m, method, tol))
+        except (np.linalg.LinAlgError, EstimationError):
+            continue
+    return out
+
+
+def _search(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, out):
+    """Deterministic multi-start: the other initial estimates, then every branch of the best.
+
+    Returns (best fit as (res, Sa, Sm, block_it, block_conv), J' reached from every other start).
+    """
+    fits = [out]
+    shapes = ("axes", "sphere") if a.mu.shape[0] >= 9 else ("axes",)
+    for shape in shapes:
+        try:
+            fits.append(_fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, None, True, shape))
+        except (np.linalg.LinAlgError, EstimationError):
+            continue
+    best = min(fits, key=lambda f: f[0].cost)
+    for res, Sa, Sm in _branch_fits(spec, best[0], best[1], best[2], a, m, method, tol):
+        fits.append((res, Sa, Sm, best[3], best[4]))
+    k = min(range(len(fits)), key=lambda i: (fits[i][0].cost, not fits[i][0].converged))
+    return fits[k], tuple(float(f[0].cost) for i, f in enumerate(fits) if i != k)
 
 
 def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start=None, refine=True):
-    """Fit one model; when the result fits poorly, also from the other initial estimate.
+    """Fit one model; when one start is not evidence enough, from a deterministic set of starts.
 
-    With few intervals the quadric start can be far off and the cost has poor local minima;
-    if chi2/dof of the first result exceeds ``SECOND_START_CHI2``, the fit is repeated from
-    the sphere start and the lower cost wins.
+    With few intervals, or a fit that does not converge or fits worse than the noise explains,
+    the fit is repeated from the other initial estimate (sphere vs quadric) and from the 7
+    discrete branches of the best result (:func:`mavcal.core.gauge.branches`); the lowest
+    J' wins. Returns (res, Sa, Sm, block_it, block_conv, start_costs); ``start_costs`` are
+    the J' (at the initial noise covariances) reached from each start, the chosen one first.
     """
-    out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere=False)
+    out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, "quadric")
     if not refine:
         return out
-    res = out[0]
-    if start is None and res.dof > 0 and res.cost / res.dof > SECOND_START_CHI2:
-        alt = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, None, refine, sphere=True)
-        if alt[0].cost < res.cost:
-            out = alt
-    return _reweight(spec, a, m, method, tol, out)
+    costs: Tuple[float, ...] = (float(out[0].cost),)
+    if start is None and _weak_evidence(out[0]):
+        out, others = _search(spec, a, m, method, tol, max_iter, rng, restarts, out)
+        costs = (float(out[0].cost),) + others
+    return _reweight(spec, a, m, method, tol, out) + (costs,)
 
 
 REWEIGHT_LIMIT = 4.0  # a sensor whose chi2/dof exceeds this gets its covariance inflated and the fit redone
@@ -261,20 +337,20 @@ def _reweight(spec: ModelSpec, a, m, method, tol, out):
     return res, Sa, Sm, block_it, block_conv
 
 
-def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere):
+def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, shape):
     """Fit one model: the paper's algorithm for ``full``, a reduced start + LM otherwise."""
     block_it, block_conv = 0, True
     if start is not None:
         st = start
     elif spec.name == "full":
-        st = initial_state(a, m, rng, restarts=restarts, sphere=sphere)
+        st = initial_state(a, m, rng, restarts=restarts, shape=shape)
         st, block_it, how = run_block_steps(st, a, m, method, tol, max_iter,
                                             handoff_rate=0.5 if refine else None)
         block_conv = how != "limit"
         if not refine:
             return st, block_it, block_conv
     else:
-        st = initial_state(a, m, rng, accel_form=spec.accel_form, restarts=restarts, sphere=sphere)
+        st = initial_state(a, m, rng, accel_form=spec.accel_form, restarts=restarts, shape=shape)
         if method == "ncdr":
             st = steps.rotations_direct(st, a, m)
     res, Sa, Sm = _refine(spec, st, a, m, method, tol)
@@ -359,12 +435,34 @@ def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol,
         return spec, res, Sa, Sm, (f"; simpler models are rejected ({tests[0]})" if tests else "")
     p = res.params
     start = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
-    res2, Sa, Sm, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
+    res2, Sa, Sm, _, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
     note = f"; the simpler {chosen.name} model explains the data as well ({'; '.join(tests)}), so it was used"
     return chosen, replace(res2, iterations=res.iterations + res2.iterations), Sa, Sm, note
 
 
-def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, block_it, block_conv) -> Calibration:
+def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs) -> OptimumCertificate:
+    """Local evidence at the final point plus what the search showed (see :mod:`mavcal.core.certify`).
+
+    Global evidence: a single start is trusted only when :func:`_weak_evidence` found nothing
+    wrong (else the search ran). After a search, the best start is trusted when its chi2 is
+    what the noise explains, or, with enough degrees of freedom (misfit from disturbances
+    in real data), when at least two starts reached it; with few degrees of freedom and a
+    misfit the data cannot tell a wrong basin from a bad model, so nothing is certified.
+    """
+    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    note = ""
+    if len(costs) > 1:
+        best = costs[0]
+        agree = sum(1 for c in costs if abs(c - best) <= 1e-7 * max(best, 1e-300))
+        misfit = res.dof > 0 and chi2.sf(best, res.dof) < WEAK_P
+        if misfit and (res.dof < WEAK_DOF or agree < 2):
+            note = (f"the best of {len(costs)} starts leaves chi2/dof = {best / max(res.dof, 1):.3g} "
+                    f"({agree} start(s) reached it, {res.dof} degrees of freedom): a wrong basin cannot be ruled out")
+    return certificate(prob, res.params, res.cost, costs, note)
+
+
+def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, block_it, block_conv,
+            cert: Optional[OptimumCertificate] = None) -> Calibration:
     """Canonical gauge, covariance, message, and the frozen Calibration."""
     p = res.params
     K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)
@@ -377,6 +475,11 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
            f"{res.iterations} joint refinement iterations"
            + ("" if converged else " (block steps hit the iteration limit)" if not block_conv else
               " (refinement did not reach its tolerance)"))
+    if cert is not None:
+        msg += f"; {cert.starts} start(s)"
+        if not cert.certified:
+            converged = False
+            msg += f"; not certified as the global optimum: {cert.reason}"
     if res.dof > 0 and res.cost / res.dof > 4.0:
         msg += (f"; chi2/dof = {res.cost / res.dof:.3g}: the readings scatter more than the noise explains "
                 "(motion in the intervals or magnetic disturbance?)")
@@ -388,7 +491,7 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
         cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
         method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
         n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
-        dof=int(res.dof))
+        dof=int(res.dof), certificate=cert)
 
 
 def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: int | None = None,
@@ -439,13 +542,15 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
     _check_geometry(a, m)
     if not refine:
         res, Sa, Sm, block_it, block_conv = _paper_path(spec, a, m, method, tol, max_iter, rng, restarts)
-        model = "full"  # no model selection on the paper's path
-    else:
-        res, Sa, Sm, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
+        return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
+    res, Sa, Sm, block_it, block_conv, costs = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
     if model == "auto" and res.cov is not None:
-        spec, res, Sa, Sm, note = _select_model(spec, res, Sa, Sm, a, m, method, tol, max_iter, rng, restarts)
-        reason += note
-    return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
+        spec, res2, Sa, Sm, note = _select_model(spec, res, Sa, Sm, a, m, method, tol, max_iter, rng, restarts)
+        if res2 is not res:  # reduced model, started from the full model's optimum
+            costs = (float(res2.cost),)
+        res, reason = res2, reason + note
+    cert = _certify(spec, res, Sa, Sm, a, m, costs)
+    return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv, cert)
 
 
 def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):

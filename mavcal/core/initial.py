@@ -26,6 +26,7 @@ from mavcal.core.rotations import exp_so3, quat_to_matrix, random_rotations, ske
 from mavcal.errors import EstimationError
 
 G_UNIT = np.array([0.0, 0.0, -1.0])
+MAX_AXIS_RATIO = 20.0  # longest / shortest ellipsoid axis accepted from the quadric fit (else the sphere)
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,8 +92,8 @@ def fit_ellipsoid(mu: np.ndarray, weights: Optional[np.ndarray] = None) -> Ellip
         raise EstimationError("degenerate ellipsoid fit: the orientations do not span enough directions")
     alpha = 1.0 / denom
     w = np.linalg.eigvalsh(alpha * A)
-    if N >= 9 and (w[0] <= 0 or w[-1] / w[0] > 16.0):
-        # not an ellipsoid (a hyperboloid through noisy points), or one with axes more than 4:1:
+    if N >= 9 and (w[0] <= 0 or w[-1] / w[0] > MAX_AXIS_RATIO ** 2):
+        # not an ellipsoid (a hyperboloid through noisy points), or one with axes beyond MAX_AXIS_RATIO:
         # the quadric is not determined well enough; fall back to the sphere start
         return fit_sphere(mu)
     P = _nearest_pd(alpha * A)  # = K^-T K^-1 in the conditioned coordinates
@@ -101,6 +102,30 @@ def fit_ellipsoid(mu: np.ndarray, weights: Optional[np.ndarray] = None) -> Ellip
     K = K_x * scale
     b = center + scale * b_x
     return Ellipsoid(K=K, b=b, residual=float(sv[-1] / sv[0]))
+
+
+def fit_axis_ellipsoid(mu: np.ndarray) -> Ellipsoid:
+    """Ellipsoid with axes along the sensor axes (A diagonal): 7 unknowns, so N >= 7 intervals.
+
+    A second start for few intervals, where the general quadric (N >= 9) is not determined
+    and the sphere cannot represent unequal scale factors. Falls back to the sphere when the
+    fit is not an ellipsoid.
+    """
+    mu = np.asarray(mu, dtype=float)
+    center = mu.mean(axis=0)
+    scale = np.sqrt(np.mean(np.sum((mu - center) ** 2, axis=1)))
+    x = (mu - center) / scale
+    Jm = np.concatenate([x * x, x, np.ones((len(x), 1))], axis=1)
+    _, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
+    a, bv, c = Vt[-1][:3], Vt[-1][3:6], Vt[-1][6]
+    if np.any(a == 0):
+        return fit_sphere(mu)
+    cx = -0.5 * bv / a
+    alpha = 1.0 / (np.sum(a * cx * cx) - c)
+    w = alpha * a
+    if not np.all(np.isfinite(w)) or np.min(w) <= 0 or np.max(w) / np.min(w) > MAX_AXIS_RATIO ** 2:
+        return fit_sphere(mu)
+    return Ellipsoid(K=np.diag(scale / np.sqrt(w)), b=center + scale * cx, residual=float(sv[-1] / sv[0]))
 
 
 def fit_sphere(mu: np.ndarray) -> Ellipsoid:
@@ -244,5 +269,5 @@ def sensor_weight(K: np.ndarray, Sigma: np.ndarray) -> float:
     return float(abs(np.linalg.det(K.T @ np.linalg.solve(Sigma, K))) ** (1.0 / 3.0))
 
 
-__all__ = ["fit_ellipsoid", "fit_sphere", "search_rotation_hz", "approximate_rotations", "sensor_weight",
+__all__ = ["fit_ellipsoid", "fit_axis_ellipsoid", "fit_sphere", "search_rotation_hz", "approximate_rotations", "sensor_weight",
            "G_UNIT", "Ellipsoid", "skew"]
