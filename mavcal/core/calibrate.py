@@ -189,6 +189,8 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
 
 def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> tuple[float, int, float]:
     """Wald statistic of linear constraints sum_k c_k theta_k = 0 on the global parameters."""
+    if res.cov is None:
+        return np.inf, len(constraints), 0.0
     idx = {n: i for i, n in enumerate(res.names)}
     C = np.zeros((len(constraints), len(res.names)))
     for r, con in enumerate(constraints):
@@ -301,7 +303,7 @@ def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, star
     out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, "quadric")
     if not refine:
         return out
-    costs: Tuple[float, ...] = (float(out[0].cost),)
+    costs: tuple[float, ...] = (float(out[0].cost),)
     if start is None and _weak_evidence(out[0]):
         out, others = _search(spec, a, m, method, tol, max_iter, rng, restarts, out)
         costs = (float(out[0].cost),) + others
@@ -462,7 +464,7 @@ def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs) -> Optimum
 
 
 def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, block_it, block_conv,
-            cert: Optional[OptimumCertificate] = None) -> Calibration:
+            cert: OptimumCertificate | None = None) -> Calibration:
     """Canonical gauge, covariance, message, and the frozen Calibration."""
     p = res.params
     K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)

@@ -23,8 +23,6 @@ the Cholesky start) and det K_m > 0.
 """
 from __future__ import annotations
 
-from typing import Tuple
-
 import numpy as np
 
 RZ180 = np.diag([-1.0, -1.0, 1.0])
@@ -33,7 +31,7 @@ PX = np.diag([-1.0, 1.0, 1.0])
 _BRANCH_D = (("", np.eye(3)), ("Rz(180)", RZ180), ("Px", PX), ("Py", PY))
 
 
-def mirror_twin(K_m: np.ndarray, h_z: float, R: np.ndarray) -> Tuple[np.ndarray, float, np.ndarray]:
+def mirror_twin(K_m: np.ndarray, h_z: float, R: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """The other member of the mirror-twin pair (see module docstring)."""
     return -np.asarray(K_m), -float(h_z), np.asarray(R) @ RZ180
 
@@ -55,7 +53,7 @@ def canonical(K_a, K_m, h_z, R, extra_gains=()):
     return K_a, K_m, float(h_z), R, tuple(extra)
 
 
-def branches(K_m: np.ndarray, h_z: float) -> Tuple[Tuple[str, np.ndarray, float], ...]:
+def branches(K_m: np.ndarray, h_z: float) -> tuple[tuple[str, np.ndarray, float], ...]:
     """The 7 discrete alternatives (label, K_m D, +-h_z) to (K_m, h_z); see the module docstring."""
     out = []
     for label, D in _BRANCH_D:

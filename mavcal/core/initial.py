@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
@@ -52,7 +51,7 @@ def _nearest_pd(A: np.ndarray, rel: float = 1e-6) -> np.ndarray:
     return (V * w) @ V.T
 
 
-def fit_ellipsoid(mu: np.ndarray, weights: Optional[np.ndarray] = None) -> Ellipsoid:
+def fit_ellipsoid(mu: np.ndarray, weights: np.ndarray | None = None) -> Ellipsoid:
     """Algebraic ellipsoid fit through the interval means (Sec. VI, Kok 2012).
 
     With fewer than 9 intervals the general quadric is not determined; then the fit is
@@ -269,5 +268,5 @@ def sensor_weight(K: np.ndarray, Sigma: np.ndarray) -> float:
     return float(abs(np.linalg.det(K.T @ np.linalg.solve(Sigma, K))) ** (1.0 / 3.0))
 
 
-__all__ = ["fit_ellipsoid", "fit_axis_ellipsoid", "fit_sphere", "search_rotation_hz", "approximate_rotations", "sensor_weight",
-           "G_UNIT", "Ellipsoid", "skew"]
+__all__ = ["fit_ellipsoid", "fit_axis_ellipsoid", "fit_sphere", "search_rotation_hz", "approximate_rotations",
+           "sensor_weight", "G_UNIT", "Ellipsoid", "skew"]

@@ -93,7 +93,7 @@ class JointProblem:
         for t, K, b in zip(self.terms, p.gains, p.biases):
             parts += [t.form.from_matrix(K), np.asarray(b, float)]
         if self.has_mag:
-            parts.append([p.h_z])
+            parts.append(np.array([p.h_z]))
         return np.concatenate(parts)
 
     def unpack(self, theta: np.ndarray, R: np.ndarray) -> JointParams:

@@ -14,7 +14,6 @@ when det K_m < 0).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Tuple
 
 import numpy as np
 
@@ -103,7 +102,7 @@ class OptimumCertificate:
     """
 
     starts: int
-    start_costs: Tuple[float, ...]
+    start_costs: tuple[float, ...]
     grad_decrement: float
     min_hessian_eig: float
     local_ok: bool
@@ -167,14 +166,14 @@ class Calibration:
     method: str = "ncar"
     model: str = "full"
     model_reason: str = ""
-    param_names: Tuple[str, ...] = ()
-    param_cov: Optional[np.ndarray] = None
-    n_accel: Optional[np.ndarray] = None
-    n_mag: Optional[np.ndarray] = None
+    param_names: tuple[str, ...] = ()
+    param_cov: np.ndarray | None = None
+    n_accel: np.ndarray | None = None
+    n_mag: np.ndarray | None = None
     block_iterations: int = 0
     refine_iterations: int = 0
     dof: int = 0
-    certificate: Optional[OptimumCertificate] = None
+    certificate: OptimumCertificate | None = None
 
     def __post_init__(self) -> None:
         for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):
