@@ -60,14 +60,24 @@ def test_mirrored_magnetometer_that_ended_in_a_wrong_basin_reaches_the_optimum(c
     assert np.linalg.det(cal.mag.gain) > 0  # canonical twin reported
 
 
-def test_wrong_basin_that_the_search_cannot_escape_is_not_claimed_converged():
-    d = _stress_run("hard-N8", 73, 8)  # 8 intervals, 2 degrees of freedom: every start ends far above
+def test_misfit_with_few_degrees_of_freedom_is_not_claimed_converged():
+    # 8 intervals (2 degrees of freedom) and one pose with a magnetic disturbance: no start explains the
+    # data, and with so few degrees of freedom a wrong basin cannot be told from a bad model
+    d = _stress_run("hard-N8", 73, 8)
+    mag = [x.copy() for x in d.mag_sets]
+    mag[3] += np.array([0.3, -0.2, 0.25])
+    cal = mavcal.calibrate(d.accel_sets, mag, seed=73, model="full")
+    assert not cal.converged
+    assert cal.certificate.local_ok and not cal.certificate.global_ok and cal.certificate.starts > 1
+    assert "not certified as the global optimum" in cal.message and "wrong basin" in cal.message
+
+
+def test_search_finds_the_basin_of_another_rotation_hz_minimum():
+    # the lowest minimum of the R/h_z search (Sec. VI) leads 440x above the optimum; the second one to it
+    d = _stress_run("hard-N8", 73, 8)
     cal = mavcal.calibrate(d.accel_sets, d.mag_sets, seed=73, model="full")
     J_opt = _optimum_from_truth(d, cal.accel.noise_cov, cal.mag.noise_cov)
-    assert cal.cost > J_opt * 1.01
-    assert not cal.converged
-    assert not cal.certificate.global_ok and cal.certificate.starts > 1
-    assert "not certified as the global optimum" in cal.message and "wrong basin" in cal.message
+    assert cal.cost <= J_opt * (1 + 1e-6) and cal.converged
 
 
 def test_certificate_on_a_regular_fit():
@@ -89,7 +99,7 @@ def test_analytic_hessian_matches_finite_differences_at_the_optimum():
         prob = JointProblem(C._terms(MODELS[model], a, m, cal.accel.noise_cov, cal.mag.noise_cov))
         p = JointParams((cal.accel.gain, cal.mag.gain), (cal.accel.bias, cal.mag.bias), cal.h_z, cal.orientations)
         for x, y in zip(exact_hessian_blocks(prob, p), exact_hessian_fd(prob, p)):
-            assert np.abs(x - y).max() <= 2e-3 * np.abs(y).max()  # forward-difference error
+            assert np.abs(x - y).max() <= 1e-5 * np.abs(y).max()  # forward-difference error
 
 
 def test_branches_are_not_symmetries():

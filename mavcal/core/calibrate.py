@@ -28,13 +28,14 @@ import numpy as np
 from scipy.stats import chi2
 
 from mavcal.core import steps
-from mavcal.core.certify import certificate
+from mavcal.core.certify import certificate, escape_saddle
 from mavcal.core.gauge import branches, canonical
 from mavcal.core.initial import (
     G_UNIT,
     fit_axis_ellipsoid,
     fit_ellipsoid,
     fit_sphere,
+    rotation_hz_minima,
     search_rotation_hz,
 )
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
@@ -87,24 +88,40 @@ def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, 
     ellipsoid); "axes", an ellipsoid with axes along the sensor axes (N >= 7); "sphere"
     (``sphere=True`` is the same). The other shapes are the extra starts of the search.
     """
+    z_a, z_m, ea, em = _normalised(a, m, accel_form, "sphere" if sphere else shape)
+    R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
+    return _state_from(a, m, ea, em, R, h_z)
+
+
+def _normalised(a: IntervalStats, m: IntervalStats, accel_form: str, shape: str):
+    """Per-sensor closed-form fits of the given shape and the normalised readings z_s."""
     N = a.mu.shape[0]
-    shape = "sphere" if sphere else shape
-    if shape == "quadric" and N < 9:
-        shape = "sphere"
-    if shape == "axes" and N < 7:
+    if (shape == "quadric" and N < 9) or (shape == "axes" and N < 7):
         shape = "sphere"
     fit = {"quadric": fit_ellipsoid, "axes": fit_axis_ellipsoid, "sphere": fit_sphere}[shape]
     ea = fit(a.mu) if (accel_form == "upper" or shape == "axes") else fit_sphere(a.mu)
     em = fit(m.mu)
     z_a = np.linalg.solve(ea.K, (a.mu - ea.b).T).T
     z_m = np.linalg.solve(em.K, (m.mu - em.b).T).T
-    R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
+    return z_a, z_m, ea, em
+
+
+def _state_from(a: IntervalStats, m: IntervalStats, ea, em, R: np.ndarray, h_z: float) -> steps.State:
+    """Normalisation h_x = 1 of a (R, h_z) solution and the orientation approximation."""
     # R is the proper member of the (R, h_z) / (-R, -h_z) pair: the canonical mirror twin
     h_z = float(np.clip(h_z, -0.999999, 0.999999))
     h_x = np.sqrt(1.0 - h_z * h_z)
-    st = steps.State(K_a=ea.K, b_a=ea.b, K_m=em.K @ R * h_x, b_m=em.b, h_z=h_z / h_x, R=np.zeros((N, 3, 3)),
-                     Sigma_a=a.sigma_hat, Sigma_m=m.sigma_hat)
+    st = steps.State(K_a=ea.K, b_a=ea.b, K_m=em.K @ R * h_x, b_m=em.b, h_z=h_z / h_x,
+                     R=np.zeros((a.mu.shape[0], 3, 3)), Sigma_a=a.sigma_hat, Sigma_m=m.sigma_hat)
     return steps.rotations_approx(st, a, m)
+
+
+def initial_states(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, *, accel_form: str = "upper",
+                   restarts: int = 24, shape: str = "quadric", limit: int = 3) -> list[steps.State]:
+    """One initial state per distinct minimum of the R/h_z search (:func:`rotation_hz_minima`)."""
+    z_a, z_m, ea, em = _normalised(a, m, accel_form, shape)
+    return [_state_from(a, m, ea, em, R, h_z)
+            for R, h_z, _ in rotation_hz_minima(z_a, z_m, a.n + m.n, rng, restarts=restarts, limit=limit)]
 
 
 def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method: str, tol: float,
@@ -222,7 +239,7 @@ _REDUCTIONS = {
 }
 
 
-WEAK_DOF = 12  # fewer degrees of freedom than this: the cost has many near-exact-fit minima
+WEAK_DOF = 6  # fewer degrees of freedom than this (N <= 9, full model): many near-exact-fit minima
 WEAK_P = 1e-3  # chi2 p-value below which the fit is suspected to sit in a wrong basin
 
 
@@ -242,7 +259,7 @@ def _weak_evidence(res: RefineResult) -> str:
     return ""
 
 
-BRANCH_PROBE_ITER = 30  # LM iterations a branch start gets before it must beat the best fit so far
+BRANCH_PROBE_ITER = 20  # LM iterations a branch start gets before it must beat the best fit so far
 
 
 def _branch_fits(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol):
@@ -273,22 +290,44 @@ def _branch_fits(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol):
 
 
 def _search(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, out):
-    """Deterministic multi-start: the other initial estimates, then every branch of the best.
+    """Deterministic multi-start, then every branch of the best.
 
-    Returns (best fit as (res, Sa, Sm, block_it, block_conv), J' reached from every other start).
+    Starts: for each initial shape (quadric, axis-aligned ellipsoid, sphere), every distinct
+    minimum of the R/h_z search (up to 3); then the 7 discrete branches of the best fit.
+
+    Returns (best fit as (res, Sa, Sm, block_it, block_conv), J' reached from every start, the
+    chosen one first).
     """
+    # the starts are compared at the initial covariances (J' of NCAR/NCDR); a covariance refit
+    # (FCAR/DCAR) is applied to the winner only
+    smethod = "ncar" if method in ("fcar", "dcar") else method
+    if smethod != method:
+        out = _fit_model_once(spec, a, m, smethod, tol, max_iter, rng, restarts, None, True, "quadric")
     fits = [out]
-    shapes = ("axes", "sphere") if a.mu.shape[0] >= 9 else ("axes",)
+    N = a.mu.shape[0]
+    shapes = [s for s, n_min in (("quadric", 9), ("axes", 7), ("sphere", 0)) if N >= n_min]
     for shape in shapes:
         try:
-            fits.append(_fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, None, True, shape))
+            inits = initial_states(a, m, rng, accel_form=spec.accel_form, restarts=restarts, shape=shape)
         except (np.linalg.LinAlgError, EstimationError):
             continue
+        for st in inits[1:] if shape == shapes[0] else inits:  # the default start is the first shape's best
+            try:
+                fits.append(_fit_model_once(spec, a, m, smethod, tol, max_iter, rng, restarts, None, True, shape,
+                                            init=st))
+            except (np.linalg.LinAlgError, EstimationError):
+                continue
     best = min(fits, key=lambda f: f[0].cost)
-    for res, Sa, Sm in _branch_fits(spec, best[0], best[1], best[2], a, m, method, tol):
+    for res, Sa, Sm in _branch_fits(spec, best[0], best[1], best[2], a, m, smethod, tol):
         fits.append((res, Sa, Sm, best[3], best[4]))
     k = min(range(len(fits)), key=lambda i: (fits[i][0].cost, not fits[i][0].converged))
-    return fits[k], tuple(float(f[0].cost) for i, f in enumerate(fits) if i != k)
+    others = tuple(float(f[0].cost) for i, f in enumerate(fits) if i != k)
+    res, Sa, Sm, block_it, block_conv = fits[k]
+    if smethod != method:
+        p = res.params
+        st = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+        res, Sa, Sm = _refine(spec, st, a, m, method, tol)
+    return (res, Sa, Sm, block_it, block_conv), (float(fits[k][0].cost),) + others
 
 
 def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start=None, refine=True):
@@ -305,8 +344,7 @@ def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, star
         return out
     costs: tuple[float, ...] = (float(out[0].cost),)
     if start is None and _weak_evidence(out[0]):
-        out, others = _search(spec, a, m, method, tol, max_iter, rng, restarts, out)
-        costs = (float(out[0].cost),) + others
+        out, costs = _search(spec, a, m, method, tol, max_iter, rng, restarts, out)
     return _reweight(spec, a, m, method, tol, out) + (costs,)
 
 
@@ -339,20 +377,26 @@ def _reweight(spec: ModelSpec, a, m, method, tol, out):
     return res, Sa, Sm, block_it, block_conv
 
 
-def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, shape):
-    """Fit one model: the paper's algorithm for ``full``, a reduced start + LM otherwise."""
+def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, shape,
+                    init: steps.State | None = None):
+    """Fit one model: the paper's algorithm for ``full``, a reduced start + LM otherwise.
+
+    ``start``: a state to refine directly (no block steps); ``init``: an initial state to use
+    instead of :func:`initial_state` (the search's alternatives).
+    """
     block_it, block_conv = 0, True
     if start is not None:
         st = start
     elif spec.name == "full":
-        st = initial_state(a, m, rng, restarts=restarts, shape=shape)
+        st = init if init is not None else initial_state(a, m, rng, restarts=restarts, shape=shape)
         st, block_it, how = run_block_steps(st, a, m, method, tol, max_iter,
                                             handoff_rate=0.5 if refine else None)
         block_conv = how != "limit"
         if not refine:
             return st, block_it, block_conv
     else:
-        st = initial_state(a, m, rng, accel_form=spec.accel_form, restarts=restarts, shape=shape)
+        st = init if init is not None else initial_state(a, m, rng, accel_form=spec.accel_form,
+                                                         restarts=restarts, shape=shape)
         if method == "ncdr":
             st = steps.rotations_direct(st, a, m)
     res, Sa, Sm = _refine(spec, st, a, m, method, tol)
@@ -440,6 +484,21 @@ def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol,
     res2, Sa, Sm, _, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
     note = f"; the simpler {chosen.name} model explains the data as well ({'; '.join(tests)}), so it was used"
     return chosen, replace(res2, iterations=res.iterations + res2.iterations), Sa, Sm, note
+
+
+def _escape_saddles(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol) -> RefineResult:
+    """Leave saddles of J' (where Gauss-Newton stops) along negative curvature and refine again."""
+    for _ in range(3):
+        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        q = escape_saddle(prob, res.params, res.cost)
+        if q is None:
+            break
+        st = steps.State(q.gains[0], q.biases[0], q.gains[1], q.biases[1], q.h_z, q.R, Sa, Sm)
+        new, _, _ = _refine(spec, st, a, m, "ncar" if method in ("fcar", "dcar") else method, tol)
+        if new.cost >= res.cost:
+            break
+        res = replace(new, iterations=res.iterations + new.iterations)
+    return res
 
 
 def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs) -> OptimumCertificate:
@@ -552,6 +611,9 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
             costs = (float(res2.cost),)
         res, reason = res2, reason + note
     cert = _certify(spec, res, Sa, Sm, a, m, costs)
+    if cert.min_hessian_eig < 0:  # stopped at a saddle: leave it and certify again
+        res = _escape_saddles(spec, res, Sa, Sm, a, m, method, tol)
+        cert = _certify(spec, res, Sa, Sm, a, m, costs)
     return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv, cert)
 
 

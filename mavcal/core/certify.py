@@ -53,7 +53,7 @@ def _second_order(prob: JointProblem, p: JointParams, r: np.ndarray):
     col = 0
     for s_, (t, K, f, L, sn) in enumerate(zip(prob.terms, p.gains, prob._fields(p.h_z), prob.L, prob.sn)):
         w = (r[:, 3 * s_:3 * s_ + 3] @ L) * sn[:, None]  # (N, 3) = sqrt(n) L^T r
-        y = np.einsum("nji,jk,nk->ni", p.R, K, w)  # R^T K^T w
+        y = np.einsum("nji,kj,nk->ni", p.R, K, w)  # R^T K^T w
         yf = y @ f
         Srr += 0.5 * (y[:, None, :] * f[None, :, None] + y[:, :, None] * f[None, None, :])
         Srr -= yf[:, None, None] * np.eye(3)
@@ -138,6 +138,45 @@ def local_evidence(prob: JointProblem, p: JointParams) -> tuple[float, float, st
     return dec, lam, ""
 
 
+def _profile_min_eig(prob: JointProblem, p: JointParams):
+    """Smallest eigenpair of the exact profile Hessian relative to Gauss-Newton: (lambda, v, Hgr, Hrr)."""
+    r, Jg, Jr = prob.jacobians(p)
+    Ggg = np.einsum("nmp,nmq->pq", Jg, Jg)
+    Ggr = np.einsum("nmp,nmr->npr", Jg, Jr)
+    Grr = np.einsum("nmr,nms->nrs", Jr, Jr)
+    S = Ggg - np.einsum("npr,nrs,nqs->pq", Ggr, np.linalg.inv(Grr), Ggr)
+    Hgg, Hgr, Hrr = exact_hessian_blocks(prob, p)
+    Hp = Hgg - np.einsum("npr,nrs,nqs->pq", Hgr, np.linalg.inv(Hrr), Hgr)
+    Li = np.linalg.inv(np.linalg.cholesky(2.0 * S))
+    lam, V = np.linalg.eigh(Li @ Hp @ Li.T)
+    return float(lam[0]), Li.T @ V[:, 0], Hgr, Hrr
+
+
+def escape_saddle(prob: JointProblem, p: JointParams, cost: float) -> JointParams | None:
+    """A point of lower J' along the direction of negative curvature, or None.
+
+    Gauss-Newton type methods (this package's LM, scipy's least_squares) stop wherever the
+    gradient vanishes, also at a saddle of J' whose negative curvature J^T J cannot see. Along
+    the eigenvector v of the profile Hessian's negative eigenvalue (orientations following,
+    d_i = -Hrr_i^-1 Hrg_i v), steps of both signs and several lengths are tried.
+    """
+    try:
+        lam, v, Hgr, Hrr = _profile_min_eig(prob, p)
+    except np.linalg.LinAlgError:
+        return None
+    if lam >= 0:
+        return None
+    dr = -np.einsum("nrs,nps,p->nr", np.linalg.inv(Hrr), Hgr, v)
+    theta = prob.pack(p)
+    best, best_cost = None, cost
+    for t in (4.0, 2.0, 1.0, 0.5, 0.25, 0.1, -0.1, -0.25, -0.5, -1.0, -2.0, -4.0):
+        q = prob.unpack(theta + t * v, p.R @ exp_so3(t * dr))
+        c = float(np.sum(prob.residuals(q) ** 2))
+        if np.isfinite(c) and c < best_cost:
+            best, best_cost = q, c
+    return best
+
+
 def certificate(prob: JointProblem, p: JointParams, cost: float, start_costs: tuple[float, ...],
                 note: str | None = None) -> OptimumCertificate:
     """Combine the local evidence at ``p`` with the costs reached from the other starts."""
@@ -155,4 +194,5 @@ def certificate(prob: JointProblem, p: JointParams, cost: float, start_costs: tu
                               global_ok=global_ok, reason="; ".join(reasons))
 
 
-__all__ = ["OptimumCertificate", "certificate", "local_evidence", "exact_hessian_blocks", "exact_hessian_fd"]
+__all__ = ["OptimumCertificate", "certificate", "escape_saddle", "local_evidence", "exact_hessian_blocks",
+           "exact_hessian_fd"]

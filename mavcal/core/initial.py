@@ -230,6 +230,34 @@ def search_rotation_hz(z_a: np.ndarray, z_m: np.ndarray, w: np.ndarray, rng: np.
     return R[k], float(hz[k]), float(c[k])
 
 
+def rotation_hz_minima(z_a: np.ndarray, z_m: np.ndarray, w: np.ndarray, rng: np.random.Generator,
+                       restarts: int = 24, iterations: int = 30, limit: int = 3):
+    """The distinct local minima of Eq. ``optimize_hz``, lowest first (at most ``limit``).
+
+    The relaxed start and ``restarts`` random starts, each taken to its minimum; members of a
+    (R, h_z) / (-R, -h_z) pair are merged (reported proper, det R = +1), and minima with the
+    same h_z (to 1e-3) and R (to 1e-2) are one. With few or ill-spread intervals the lowest is
+    not always the basin of the global optimum of the full cost; the others are the
+    alternatives the caller's search tries. Returns a list of (R, h_z, cost).
+    """
+    R0 = _relaxed_start(z_a, z_m, w)
+    R0 = R0 * np.sign(np.linalg.det(R0))[:, None, None]
+    hz0 = -np.einsum("nj,bjk,nk,n->b", z_m, R0, z_a, w) / w.sum()
+    Rs = np.concatenate([R0, random_rotations(restarts, rng)])
+    hzs = np.concatenate([hz0, rng.uniform(-1.0, 1.0, restarts)])
+    R, hz, c = _lm_rotation_hz(Rs, hzs, z_a, z_m, w, iterations)
+    sign = np.sign(np.linalg.det(R))
+    R, hz = R * sign[:, None, None], hz * sign
+    out: list = []
+    for k in np.argsort(c):
+        if any(abs(hz[k] - h) < 1e-3 and np.abs(R[k] - Rk).max() < 1e-2 for Rk, h, _ in out):
+            continue
+        out.append((R[k], float(hz[k]), float(c[k])))
+        if len(out) >= limit:
+            break
+    return out
+
+
 def _f(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """f(x, y) of Eq. ``rotation_approximation`` for batches (..., 3) -> (..., 4, 4)."""
     z = np.zeros(x.shape[:-1])
@@ -268,5 +296,6 @@ def sensor_weight(K: np.ndarray, Sigma: np.ndarray) -> float:
     return float(abs(np.linalg.det(K.T @ np.linalg.solve(Sigma, K))) ** (1.0 / 3.0))
 
 
-__all__ = ["fit_ellipsoid", "fit_axis_ellipsoid", "fit_sphere", "search_rotation_hz", "approximate_rotations",
+__all__ = ["fit_ellipsoid", "fit_axis_ellipsoid", "fit_sphere", "search_rotation_hz", "rotation_hz_minima",
+           "approximate_rotations",
            "sensor_weight", "G_UNIT", "Ellipsoid", "skew"]
