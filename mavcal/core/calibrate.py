@@ -14,9 +14,24 @@ Pipeline of :func:`calibrate` (paper section in brackets):
    diagonal covariance refit, approximated rotations);
 4. beyond the paper: a joint Levenberg-Marquardt refinement of all parameters to the exact
    optimum of the cost, with the parameter covariance (:mod:`mavcal.core.refine`);
-5. model selection: when the intervals cannot identify the full model, or Wald tests on
+5. beyond the paper: when one start is weak evidence (the refinement did not converge,
+   fewer than ``WEAK_DOF`` degrees of freedom, or a chi2 the noise does not explain), a
+   deterministic search: every distinct minimum of the R/h_z search for each initial shape
+   (quadric, axis-aligned ellipsoid, sphere), then the 7 discrete branches K_m D, +-h_z of
+   the best fit (:func:`mavcal.core.gauge.branches`); before the covariance reweighting, which
+   would otherwise hide a wrong basin's misfit;
+6. model selection: when the intervals cannot identify the full model, or Wald tests on
    the full fit show that a simpler model explains the data as well, a reduced model
-   (:mod:`mavcal.core.models`) is fitted and ``Calibration.model_reason`` says why.
+   (:mod:`mavcal.core.models`) is fitted and ``Calibration.model_reason`` says why;
+7. a certificate (:mod:`mavcal.core.certify`, ``Calibration.certificate``): zero gradient,
+   a positive definite exact Hessian (saddles are left along negative curvature first) and
+   what the search showed; without it ``converged`` is False and ``message`` says why.
+
+Diagnosis behind 5-7 (benchmarks/stress_optimum.py, 2050 runs before the change): 19 runs
+ended above the optimum, 6 of them claiming convergence: the quadric start fell back to a
+sphere for ellipsoids with axes beyond 4:1 (large off-diagonal gains; now 20:1), N = 8 fits
+started in the basin of the lowest R/h_z minimum when the optimum lies in another's, and
+the reweighting then inflated the noise covariance until the wrong basin's chi2 looked normal.
 """
 from __future__ import annotations
 

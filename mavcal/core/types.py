@@ -132,6 +132,8 @@ class Calibration:
         Block-coordinate iterations of the paper's algorithm (Sec. VII) plus joint
         refinement iterations.
     converged : bool
+        The iterations reached their tolerances *and* the result is certified as the global
+        optimum (``certificate``); ``message`` says why when not.
     message : str
     method : str
         "ncdr", "ncar", "fcar" or "dcar".
