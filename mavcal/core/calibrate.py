@@ -189,8 +189,11 @@ def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
             Term("mag", FORMS[spec.mag_form], m.mu, m.n, Sm)]
 
 
+LM_MORE_ITER = 2000  # LM iterations granted after the first 100 did not converge
+
+
 def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats, method: str,
-            tol: float) -> tuple[RefineResult, np.ndarray, np.ndarray]:
+            tol: float, max_lm: int = 100) -> tuple[RefineResult, np.ndarray, np.ndarray]:
     """LM to the exact optimum; for fcar/dcar alternate with the ML covariance refit."""
     Sa, Sm = st.Sigma_a, st.Sigma_m
     fa, fm = FORMS[spec.accel_form], FORMS[spec.mag_form]
@@ -199,7 +202,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
     total_it = 0
     for _ in range(50 if refit else 1):
         prob = JointProblem(_terms(spec, a, m, Sa, Sm))
-        res = prob.solve(p)
+        res = prob.solve(p, max_iter=max_lm)
         total_it += res.iterations
         p = res.params
         if not refit:
@@ -360,6 +363,12 @@ def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, star
     costs: tuple[float, ...] = (float(out[0].cost),)
     if start is None and _weak_evidence(out[0]):
         out, costs = _search(spec, a, m, method, tol, max_iter, rng, restarts, out)
+    if not out[0].converged:  # ill-conditioned (e.g. nearly coplanar poses): LM needs more iterations
+        res, Sa, Sm, block_it, block_conv = out
+        p = res.params
+        st = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+        more, Sa, Sm = _refine(spec, st, a, m, method, tol, max_lm=LM_MORE_ITER)
+        out = (replace(more, iterations=res.iterations + more.iterations), Sa, Sm, block_it, block_conv)
     return _reweight(spec, a, m, method, tol, out) + (costs,)
 
 
