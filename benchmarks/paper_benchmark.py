@@ -16,7 +16,9 @@ Sections:
    delta/delta_opt, J/J_opt, time/time_generic (N = 15, NCAR).
 4. Speed: median ``mavcal.calibrate`` time vs N (8 .. 200), single process.
 
-Writes benchmarks/results/paper.md, paper.json and PNG plots. Usage:
+Writes benchmarks/results/paper.md, paper.json and PNG plots (about 10 min on one free
+core); ``--quick`` (5 runs, N in 8/15/30, about 1 min) writes paper_quick.md/json instead and
+no plots, so a smoke test never overwrites the real results. Usage:
 
     python benchmarks/paper_benchmark.py [--runs 100] [--quick]
 """
@@ -37,7 +39,7 @@ from mavcal.core import steps
 from mavcal.core.models import MODELS
 from mavcal.core.rotations import exp_so3
 from mavcal.core.types import Calibration, SensorModel
-from mavcal.sim.paper import draw_intervals, draw_sensors, Truth, SimData
+from mavcal.sim.paper import SimData, Truth, draw_intervals, draw_sensors
 
 OUT = Path(__file__).resolve().parent / "results"
 GAMMAS = [1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0]
@@ -198,13 +200,15 @@ def main(argv=None) -> int:
             ts.append(time.perf_counter() - t0)
         res["speed"][n] = {"median_ms": 1e3 * float(np.median(ts)), "p90_ms": 1e3 * q(ts, 90)}
     res["total_s"] = time.perf_counter() - t_all
-    (OUT / "paper.json").write_text(json.dumps(res, default=float))
-    report(res)
-    plots(res)
+    stem = "paper_quick" if args.quick else "paper"
+    (OUT / f"{stem}.json").write_text(json.dumps(res, default=float))
+    report(res, stem, " --quick" if args.quick else "")
+    if not args.quick:
+        plots(res)
     return 0
 
 
-def report(res) -> None:
+def report(res, stem: str = "paper", flags: str = "") -> None:
     L = []
     runs = res["runs"]
     opt = res["optimum"]
@@ -219,8 +223,8 @@ def report(res) -> None:
     ok_test_opt = int(np.sum((do[:, 2] < 0.1) & (do[:, 3] < 0.1)))
     ratio = d / do
     L.append(f"# mavcal vs the paper's experiments ({runs} Monte Carlo runs)\n")
-    L.append("Produced by `python benchmarks/paper_benchmark.py`"
-             + (f" --runs {runs}" if runs != 100 else "") + f"; {res.get('total_s', 0):.0f} s.\n")
+    L.append(f"Produced by `python benchmarks/paper_benchmark.py{flags}`"
+             + (f" --runs {runs}" if runs != 100 and not flags else "") + f"; {res.get('total_s', 0):.0f} s.\n")
     L.append("## Targets (NCAR, N = 15, default `mavcal.calibrate`)\n")
     L.append("| quantity | value | target |")
     L.append("|---|---|---|")
@@ -269,7 +273,7 @@ def report(res) -> None:
                 ft = np.mean((arr[:, 2] < 0.1) & (arr[:, 3] < 0.1))
                 L.append(f"| {meth} | {n} | " + " | ".join(cells) + f" | {fr:.2f} | {ft:.2f} | {1e3 * np.median(arr[:, 4]):.1f} |")
         L.append("")
-    (OUT / "paper.md").write_text("\n".join(L) + "\n")
+    (OUT / f"{stem}.md").write_text("\n".join(L) + "\n")
     print("\n".join(L))
 
 

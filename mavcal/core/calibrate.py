@@ -14,31 +14,49 @@ Pipeline of :func:`calibrate` (paper section in brackets):
    diagonal covariance refit, approximated rotations);
 4. beyond the paper: a joint Levenberg-Marquardt refinement of all parameters to the exact
    optimum of the cost, with the parameter covariance (:mod:`mavcal.core.refine`);
-5. model selection: when the intervals cannot identify the full model, or Wald tests on
+5. beyond the paper: when one start is weak evidence (the refinement did not converge,
+   fewer than ``WEAK_DOF`` degrees of freedom, or a chi2 the noise does not explain), a
+   deterministic search: every distinct minimum of the R/h_z search for each initial shape
+   (quadric, axis-aligned ellipsoid, sphere), then the 7 discrete branches K_m D, +-h_z of
+   the best fit (:func:`mavcal.core.gauge.branches`); before the covariance reweighting, which
+   would otherwise hide a wrong basin's misfit;
+6. model selection: when the intervals cannot identify the full model, or Wald tests on
    the full fit show that a simpler model explains the data as well, a reduced model
-   (:mod:`mavcal.core.models`) is fitted and ``Calibration.model_reason`` says why.
+   (:mod:`mavcal.core.models`) is fitted and ``Calibration.model_reason`` says why;
+7. a certificate (:mod:`mavcal.core.certify`, ``Calibration.certificate``): zero gradient,
+   a positive definite exact Hessian (saddles are left along negative curvature first) and
+   what the search showed; without it ``converged`` is False and ``message`` says why.
+
+Diagnosis behind 5-7 (benchmarks/stress_optimum.py, 2050 runs before the change): 19 runs
+ended above the optimum, 6 of them claiming convergence: the quadric start fell back to a
+sphere for ellipsoids with axes beyond 4:1 (large off-diagonal gains; now 20:1), N = 8 fits
+started in the basin of the lowest R/h_z minimum when the optimum lies in another's, and
+the reweighting then inflated the noise covariance until the wrong basin's chi2 looked normal.
 """
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import replace
-from typing import Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.stats import chi2
 
 from mavcal.core import steps
-from mavcal.core.gauge import canonical
+from mavcal.core.certify import certificate, escape_saddle
+from mavcal.core.gauge import branches, canonical
 from mavcal.core.initial import (
     G_UNIT,
+    fit_axis_ellipsoid,
     fit_ellipsoid,
     fit_sphere,
+    rotation_hz_minima,
     search_rotation_hz,
 )
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, refit_covariances
 from mavcal.core.stats import IntervalStats, interval_stats
-from mavcal.core.types import Calibration, SensorModel
+from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
 from mavcal.errors import EstimationError, InsufficientDataError
 
 log = logging.getLogger(__name__)
@@ -63,7 +81,7 @@ def _check_geometry(a: IntervalStats, m: IntervalStats) -> None:
                 "add poses tilted about another axis (nose up/down and rolled left/right)")
 
 
-def _stats(accel_sets, mag_sets, noise_floor) -> Tuple[IntervalStats, IntervalStats]:
+def _stats(accel_sets, mag_sets, noise_floor) -> tuple[IntervalStats, IntervalStats]:
     nf_a, nf_m = (noise_floor if isinstance(noise_floor, (tuple, list)) else (noise_floor, noise_floor))
     a = interval_stats(accel_sets, "accel_sets", noise_floor=nf_a)
     m = interval_stats(mag_sets, "mag_sets", noise_floor=nf_m)
@@ -76,31 +94,54 @@ def _stats(accel_sets, mag_sets, noise_floor) -> Tuple[IntervalStats, IntervalSt
 # --- initial estimates ---------------------------------------------------------------------
 
 def initial_state(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, *,
-                  accel_form: str = "upper", restarts: int = 24, sphere: bool = False) -> steps.State:
+                  accel_form: str = "upper", restarts: int = 24, sphere: bool = False,
+                  shape: str = "quadric") -> steps.State:
     """Sec. VI: closed-form gains and biases, the R/h_z search, the orientation approximation.
 
-    The general quadric of Eq. ``J_approx`` needs N >= 9 intervals (and falls back to a
-    sphere when it is not a well-conditioned ellipsoid); ``sphere=True`` starts from the
-    sphere fit of both sensors (used as a second start when the first fit looks wrong).
+    ``shape`` of the per-sensor fits: "quadric", the general quadric of Eq. ``J_approx``
+    (needs N >= 9 intervals; falls back to a sphere when it is not a well-conditioned
+    ellipsoid); "axes", an ellipsoid with axes along the sensor axes (N >= 7); "sphere"
+    (``sphere=True`` is the same). The other shapes are the extra starts of the search.
     """
+    z_a, z_m, ea, em = _normalised(a, m, accel_form, "sphere" if sphere else shape)
+    R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
+    return _state_from(a, m, ea, em, R, h_z)
+
+
+def _normalised(a: IntervalStats, m: IntervalStats, accel_form: str, shape: str):
+    """Per-sensor closed-form fits of the given shape and the normalised readings z_s."""
     N = a.mu.shape[0]
-    quadric = N >= 9 and not sphere
-    ea = fit_ellipsoid(a.mu) if (quadric and accel_form == "upper") else fit_sphere(a.mu)
-    em = fit_ellipsoid(m.mu) if quadric else fit_sphere(m.mu)
+    if (shape == "quadric" and N < 9) or (shape == "axes" and N < 7):
+        shape = "sphere"
+    fit = {"quadric": fit_ellipsoid, "axes": fit_axis_ellipsoid, "sphere": fit_sphere}[shape]
+    ea = fit(a.mu) if (accel_form == "upper" or shape == "axes") else fit_sphere(a.mu)
+    em = fit(m.mu)
     z_a = np.linalg.solve(ea.K, (a.mu - ea.b).T).T
     z_m = np.linalg.solve(em.K, (m.mu - em.b).T).T
-    R, h_z, _ = search_rotation_hz(z_a, z_m, a.n + m.n, rng, restarts=restarts)
+    return z_a, z_m, ea, em
+
+
+def _state_from(a: IntervalStats, m: IntervalStats, ea, em, R: np.ndarray, h_z: float) -> steps.State:
+    """Normalisation h_x = 1 of a (R, h_z) solution and the orientation approximation."""
     # R is the proper member of the (R, h_z) / (-R, -h_z) pair: the canonical mirror twin
     h_z = float(np.clip(h_z, -0.999999, 0.999999))
     h_x = np.sqrt(1.0 - h_z * h_z)
-    st = steps.State(K_a=ea.K, b_a=ea.b, K_m=em.K @ R * h_x, b_m=em.b, h_z=h_z / h_x, R=np.zeros((N, 3, 3)),
-                     Sigma_a=a.sigma_hat, Sigma_m=m.sigma_hat)
+    st = steps.State(K_a=ea.K, b_a=ea.b, K_m=em.K @ R * h_x, b_m=em.b, h_z=h_z / h_x,
+                     R=np.zeros((a.mu.shape[0], 3, 3)), Sigma_a=a.sigma_hat, Sigma_m=m.sigma_hat)
     return steps.rotations_approx(st, a, m)
 
 
+def initial_states(a: IntervalStats, m: IntervalStats, rng: np.random.Generator, *, accel_form: str = "upper",
+                   restarts: int = 24, shape: str = "quadric", limit: int = 3) -> list[steps.State]:
+    """One initial state per distinct minimum of the R/h_z search (:func:`rotation_hz_minima`)."""
+    z_a, z_m, ea, em = _normalised(a, m, accel_form, shape)
+    return [_state_from(a, m, ea, em, R, h_z)
+            for R, h_z, _ in rotation_hz_minima(z_a, z_m, a.n + m.n, rng, restarts=restarts, limit=limit)]
+
+
 def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method: str, tol: float,
-                    max_iter: int, handoff_rate: Optional[float] = None,
-                    on_iteration=None) -> Tuple[steps.State, int, str]:
+                    max_iter: int, handoff_rate: float | None = None,
+                    on_iteration=None) -> tuple[steps.State, int, str]:
     """Sec. VII: iterate rotation, bias/field, gain (and covariance) steps until J_{k-1} - J_k < tol.
 
     With ``handoff_rate`` (used when the joint refinement follows), the steps also stop once
@@ -148,8 +189,11 @@ def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
             Term("mag", FORMS[spec.mag_form], m.mu, m.n, Sm)]
 
 
+LM_MORE_ITER = 2000  # LM iterations granted after the first 100 did not converge
+
+
 def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats, method: str,
-            tol: float) -> Tuple[RefineResult, np.ndarray, np.ndarray]:
+            tol: float, max_lm: int = 100) -> tuple[RefineResult, np.ndarray, np.ndarray]:
     """LM to the exact optimum; for fcar/dcar alternate with the ML covariance refit."""
     Sa, Sm = st.Sigma_a, st.Sigma_m
     fa, fm = FORMS[spec.accel_form], FORMS[spec.mag_form]
@@ -158,7 +202,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
     total_it = 0
     for _ in range(50 if refit else 1):
         prob = JointProblem(_terms(spec, a, m, Sa, Sm))
-        res = prob.solve(p)
+        res = prob.solve(p, max_iter=max_lm)
         total_it += res.iterations
         p = res.params
         if not refit:
@@ -178,8 +222,10 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
     return res, Sa, Sm
 
 
-def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> Tuple[float, int, float]:
+def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> tuple[float, int, float]:
     """Wald statistic of linear constraints sum_k c_k theta_k = 0 on the global parameters."""
+    if res.cov is None:
+        return np.inf, len(constraints), 0.0
     idx = {n: i for i, n in enumerate(res.names)}
     C = np.zeros((len(constraints), len(res.names)))
     for r, con in enumerate(constraints):
@@ -211,25 +257,119 @@ _REDUCTIONS = {
 }
 
 
-SECOND_START_CHI2 = 3.0  # chi2/dof above which the other initial estimate is tried too
+WEAK_DOF = 6  # fewer degrees of freedom than this (N <= 9, full model): many near-exact-fit minima
+WEAK_P = 1e-3  # chi2 p-value below which the fit is suspected to sit in a wrong basin
+
+
+def _weak_evidence(res: RefineResult) -> str:
+    """Why one start is not enough for this fit ("" when the single start is trusted).
+
+    A fit from one start is trusted when the refinement converged, the residuals are what
+    the noise explains (chi2 p-value >= WEAK_P) and there are enough degrees of freedom
+    (>= WEAK_DOF) for a wrong basin to show as misfit.
+    """
+    if not res.converged:
+        return "the refinement did not converge"
+    if res.dof < WEAK_DOF:
+        return f"only {res.dof} degrees of freedom"
+    if chi2.sf(res.cost, res.dof) < WEAK_P:
+        return f"chi2/dof = {res.cost / res.dof:.3g}"
+    return ""
+
+
+BRANCH_PROBE_ITER = 20  # LM iterations a branch start gets before it must beat the best fit so far
+
+
+def _branch_fits(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol):
+    """LM from the 7 discrete branches of ``res`` (:func:`mavcal.core.gauge.branches`).
+
+    Each branch is probed with ``BRANCH_PROBE_ITER`` LM iterations at fixed covariances; only
+    a branch that gets below ``res`` is refined to convergence (a wrong branch typically
+    stalls far above, and would otherwise cost the full iteration budget).
+    """
+    p = res.params
+    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    out = []
+    for _, K_m, h_z in branches(p.gains[1], p.h_z):
+        st = steps.State(p.gains[0], p.biases[0], K_m, p.biases[1], h_z, p.R, Sa, Sm)
+        st = steps.rotations_approx(st, a, m)
+        try:
+            probe = prob.solve(JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R),
+                               max_iter=BRANCH_PROBE_ITER, covariance=False)
+            if probe.cost >= res.cost:
+                out.append((probe, Sa, Sm))
+                continue
+            q = probe.params
+            out.append(_refine(spec, replace(st, K_a=q.gains[0], b_a=q.biases[0], K_m=q.gains[1], b_m=q.biases[1],
+                                             h_z=q.h_z, R=q.R), a, m, method, tol))
+        except (np.linalg.LinAlgError, EstimationError):
+            continue
+    return out
+
+
+def _search(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, out):
+    """Deterministic multi-start, then every branch of the best.
+
+    Starts: for each initial shape (quadric, axis-aligned ellipsoid, sphere), every distinct
+    minimum of the R/h_z search (up to 3); then the 7 discrete branches of the best fit.
+
+    Returns (best fit as (res, Sa, Sm, block_it, block_conv), J' reached from every start, the
+    chosen one first).
+    """
+    # the starts are compared at the initial covariances (J' of NCAR/NCDR); a covariance refit
+    # (FCAR/DCAR) is applied to the winner only
+    smethod = "ncar" if method in ("fcar", "dcar") else method
+    if smethod != method:
+        out = _fit_model_once(spec, a, m, smethod, tol, max_iter, rng, restarts, None, True, "quadric")
+    fits = [out]
+    N = a.mu.shape[0]
+    shapes = [s for s, n_min in (("quadric", 9), ("axes", 7), ("sphere", 0)) if N >= n_min]
+    for shape in shapes:
+        try:
+            inits = initial_states(a, m, rng, accel_form=spec.accel_form, restarts=restarts, shape=shape)
+        except (np.linalg.LinAlgError, EstimationError):
+            continue
+        for st in inits[1:] if shape == shapes[0] else inits:  # the default start is the first shape's best
+            try:
+                fits.append(_fit_model_once(spec, a, m, smethod, tol, max_iter, rng, restarts, None, True, shape,
+                                            init=st))
+            except (np.linalg.LinAlgError, EstimationError):
+                continue
+    best = min(fits, key=lambda f: f[0].cost)
+    for res, Sa, Sm in _branch_fits(spec, best[0], best[1], best[2], a, m, smethod, tol):
+        fits.append((res, Sa, Sm, best[3], best[4]))
+    k = min(range(len(fits)), key=lambda i: (fits[i][0].cost, not fits[i][0].converged))
+    others = tuple(float(f[0].cost) for i, f in enumerate(fits) if i != k)
+    res, Sa, Sm, block_it, block_conv = fits[k]
+    if smethod != method:
+        p = res.params
+        st = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+        res, Sa, Sm = _refine(spec, st, a, m, method, tol)
+    return (res, Sa, Sm, block_it, block_conv), (float(fits[k][0].cost),) + others
 
 
 def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start=None, refine=True):
-    """Fit one model; when the result fits poorly, also from the other initial estimate.
+    """Fit one model; when one start is not evidence enough, from a deterministic set of starts.
 
-    With few intervals the quadric start can be far off and the cost has poor local minima;
-    if chi2/dof of the first result exceeds ``SECOND_START_CHI2``, the fit is repeated from
-    the sphere start and the lower cost wins.
+    With few intervals, or a fit that does not converge or fits worse than the noise explains,
+    the fit is repeated from the other initial estimate (sphere vs quadric) and from the 7
+    discrete branches of the best result (:func:`mavcal.core.gauge.branches`); the lowest
+    J' wins. Returns (res, Sa, Sm, block_it, block_conv, start_costs); ``start_costs`` are
+    the J' (at the initial noise covariances) reached from each start, the chosen one first.
     """
-    out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere=False)
+    out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, "quadric")
     if not refine:
         return out
-    res = out[0]
-    if start is None and res.dof > 0 and res.cost / res.dof > SECOND_START_CHI2:
-        alt = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, None, refine, sphere=True)
-        if alt[0].cost < res.cost:
-            out = alt
-    return _reweight(spec, a, m, method, tol, out)
+    costs: tuple[float, ...] = (float(out[0].cost),)
+    if start is None and _weak_evidence(out[0]):
+        out, costs = _search(spec, a, m, method, tol, max_iter, rng, restarts, out)
+    if not out[0].converged:  # ill-conditioned (e.g. nearly coplanar poses): LM needs more iterations
+        res, Sa, Sm, block_it, block_conv = out
+        p = res.params
+        st = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+        more, Sa, Sm = _refine(spec, st, a, m, method, tol, max_lm=LM_MORE_ITER)
+        out = (replace(more, iterations=res.iterations + more.iterations), Sa, Sm, block_it, block_conv)
+    return _reweight(spec, a, m, method, tol, out) + (costs,)
 
 
 REWEIGHT_LIMIT = 4.0  # a sensor whose chi2/dof exceeds this gets its covariance inflated and the fit redone
@@ -261,27 +401,185 @@ def _reweight(spec: ModelSpec, a, m, method, tol, out):
     return res, Sa, Sm, block_it, block_conv
 
 
-def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, sphere):
-    """Fit one model: the paper's algorithm for ``full``, a reduced start + LM otherwise."""
+def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, shape,
+                    init: steps.State | None = None):
+    """Fit one model: the paper's algorithm for ``full``, a reduced start + LM otherwise.
+
+    ``start``: a state to refine directly (no block steps); ``init``: an initial state to use
+    instead of :func:`initial_state` (the search's alternatives).
+    """
     block_it, block_conv = 0, True
     if start is not None:
         st = start
     elif spec.name == "full":
-        st = initial_state(a, m, rng, restarts=restarts, sphere=sphere)
+        st = init if init is not None else initial_state(a, m, rng, restarts=restarts, shape=shape)
         st, block_it, how = run_block_steps(st, a, m, method, tol, max_iter,
                                             handoff_rate=0.5 if refine else None)
         block_conv = how != "limit"
         if not refine:
             return st, block_it, block_conv
     else:
-        st = initial_state(a, m, rng, accel_form=spec.accel_form, restarts=restarts, sphere=sphere)
+        st = init if init is not None else initial_state(a, m, rng, accel_form=spec.accel_form,
+                                                         restarts=restarts, shape=shape)
         if method == "ncdr":
             st = steps.rotations_direct(st, a, m)
     res, Sa, Sm = _refine(spec, st, a, m, method, tol)
     return res, Sa, Sm, block_it, block_conv
 
 
-def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: Optional[int] = None,
+def _check_args(method: str, tol, model: str, accel_sets) -> str:
+    """Validate the options and the interval count before any statistics are computed."""
+    method = str(method).lower()
+    if method not in METHODS:
+        raise EstimationError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
+    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
+        raise EstimationError(f"tol (the stop condition gamma) must be a positive number; got {tol!r}")
+    if model != "auto" and model not in MODELS:
+        raise EstimationError(f"model must be 'auto' or one of {', '.join(MODELS)}; got {model!r}")
+    try:
+        n_given = len(accel_sets)
+    except TypeError:
+        n_given = None
+    if n_given is not None and 0 < n_given < MODELS[MODEL_CHAIN[-1]].min_intervals:
+        raise InsufficientDataError(
+            f"{n_given} still interval(s) cannot identify even the simplest model (offsets and scales need "
+            f"{MODELS[MODEL_CHAIN[-1]].min_intervals}; the full joint model needs {MODELS['full'].min_intervals}); "
+            "hold the vehicle still in more orientations")
+    return method
+
+
+def _choose_model(model: str, N: int) -> tuple[ModelSpec, str]:
+    """The model to fit first and why: the most general identifiable one for "auto"."""
+    if model == "auto":
+        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
+        if not allowed:
+            raise InsufficientDataError(
+                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
+                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
+                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
+        spec = allowed[0]
+        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
+                  if spec.name == "full" else
+                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
+                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
+        return spec, reason
+    spec = MODELS[model]
+    if N < spec.min_intervals:
+        raise InsufficientDataError(
+            f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
+            f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
+            "choose a simpler model")
+    return spec, f"model {spec.name} requested"
+
+
+def _paper_path(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts):
+    """refine=False: the paper's algorithm alone, its end point scored as a RefineResult."""
+    if spec.name != "full":
+        raise EstimationError("refine=False runs the paper's algorithm, which fits the full model only; "
+                              f"{a.mu.shape[0]} intervals call for the {spec.name} model")
+    st, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, refine=False)
+    prob = JointProblem(_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
+    p = JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R)
+    r, Jg, Jr = prob.jacobians(p)
+    res = RefineResult(p, float(np.sum(r * r)), 0, True, prob.covariance(Jg, Jr), prob.names,
+                       3 * a.mu.shape[0] - prob.P)
+    return res, st.Sigma_a, st.Sigma_m, block_it, block_conv
+
+
+def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol, max_iter, rng, restarts):
+    """Wald tests down MODEL_CHAIN; refit the simplest accepted model. Returns (spec, res, Sa, Sm, note)."""
+    chain = MODEL_CHAIN[MODEL_CHAIN.index(spec.name):]
+    scale = max(1.0, res.cost / max(res.dof, 1))
+    chosen, tests = spec, []
+    cons: list = []
+    for nxt in chain[1:]:
+        if (spec.accel_form == "diag" and nxt == "diag-accel") or (spec.mag_form == "sym" and nxt == "ardupilot"):
+            continue
+        cons = cons + _REDUCTIONS[nxt]
+        W, k, pval = _wald(res, cons, scale)
+        tests.append(f"{nxt}: Wald chi2={W:.3g} on {k} dof, p={pval:.3g}")
+        if pval <= WALD_ALPHA:
+            break
+        chosen = MODELS[nxt]
+    if chosen is spec:
+        return spec, res, Sa, Sm, (f"; simpler models are rejected ({tests[0]})" if tests else "")
+    p = res.params
+    start = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+    res2, Sa, Sm, _, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
+    note = f"; the simpler {chosen.name} model explains the data as well ({'; '.join(tests)}), so it was used"
+    return chosen, replace(res2, iterations=res.iterations + res2.iterations), Sa, Sm, note
+
+
+def _escape_saddles(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol) -> RefineResult:
+    """Leave saddles of J' (where Gauss-Newton stops) along negative curvature and refine again."""
+    for _ in range(3):
+        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        q = escape_saddle(prob, res.params, res.cost)
+        if q is None:
+            break
+        st = steps.State(q.gains[0], q.biases[0], q.gains[1], q.biases[1], q.h_z, q.R, Sa, Sm)
+        new, _, _ = _refine(spec, st, a, m, "ncar" if method in ("fcar", "dcar") else method, tol)
+        if new.cost >= res.cost:
+            break
+        res = replace(new, iterations=res.iterations + new.iterations)
+    return res
+
+
+def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs) -> OptimumCertificate:
+    """Local evidence at the final point plus what the search showed (see :mod:`mavcal.core.certify`).
+
+    Global evidence: a single start is trusted only when :func:`_weak_evidence` found nothing
+    wrong (else the search ran). After a search, the best start is trusted when its chi2 is
+    what the noise explains, or, with enough degrees of freedom (misfit from disturbances
+    in real data), when at least two starts reached it; with few degrees of freedom and a
+    misfit the data cannot tell a wrong basin from a bad model, so nothing is certified.
+    """
+    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    note = ""
+    if len(costs) > 1:
+        best = costs[0]
+        agree = sum(1 for c in costs if abs(c - best) <= 1e-7 * max(best, 1e-300))
+        misfit = res.dof > 0 and chi2.sf(best, res.dof) < WEAK_P
+        if misfit and (res.dof < WEAK_DOF or agree < 2):
+            note = (f"the best of {len(costs)} starts leaves chi2/dof = {best / max(res.dof, 1):.3g} "
+                    f"({agree} start(s) reached it, {res.dof} degrees of freedom): a wrong basin cannot be ruled out")
+    return certificate(prob, res.params, res.cost, costs, note)
+
+
+def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, block_it, block_conv,
+            cert: OptimumCertificate | None = None) -> Calibration:
+    """Canonical gauge, covariance, message, and the frozen Calibration."""
+    p = res.params
+    K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)
+    if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
+        res = replace(res, cov=_transform_cov(res, p, K_a, K_m, h_z))
+    p = JointParams((K_a, K_m), p.biases, h_z, R)
+    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res)
+    converged = bool(block_conv and res.converged)
+    msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
+           f"{res.iterations} joint refinement iterations"
+           + ("" if converged else " (block steps hit the iteration limit)" if not block_conv else
+              " (refinement did not reach its tolerance)"))
+    if cert is not None:
+        msg += f"; {cert.starts} start(s)"
+        if not cert.certified:
+            converged = False
+            msg += f"; not certified as the global optimum: {cert.reason}"
+    if res.dof > 0 and res.cost / res.dof > 4.0:
+        msg += (f"; chi2/dof = {res.cost / res.dof:.3g}: the readings scatter more than the noise explains "
+                "(motion in the intervals or magnetic disturbance?)")
+    log.info(msg)
+    return Calibration(
+        accel=SensorModel(p.gains[0], p.biases[0], Sa, "accel"),
+        mag=SensorModel(p.gains[1], p.biases[1], Sm, "mag"),
+        gravity=G_UNIT.copy(), field=np.array([1.0, 0.0, p.h_z]), orientations=p.R,
+        cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
+        method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
+        n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
+        dof=int(res.dof), certificate=cert)
+
+
+def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: int | None = None,
               model: str = "auto", max_iter: int = 1000, restarts: int = 24,
               noise_floor=None, refine: bool = True) -> Calibration:
     """Joint maximum-likelihood calibration of an accelerometer and a magnetometer.
@@ -322,117 +620,25 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
     InsufficientDataError
         Fewer intervals than the requested (or any) model can identify.
     """
-    method = str(method).lower()
-    if method not in METHODS:
-        raise EstimationError(f"method must be one of {', '.join(METHODS)}; got {method!r}")
-    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
-        raise EstimationError(f"tol (the stop condition gamma) must be a positive number; got {tol!r}")
-    if model != "auto" and model not in MODELS:
-        raise EstimationError(f"model must be 'auto' or one of {', '.join(MODELS)}; got {model!r}")
-    try:
-        n_given = len(accel_sets)
-    except TypeError:
-        n_given = None
-    if n_given is not None and 0 < n_given < MODELS[MODEL_CHAIN[-1]].min_intervals:
-        raise InsufficientDataError(
-            f"{n_given} still interval(s) cannot identify even the simplest model (offsets and scales need "
-            f"{MODELS[MODEL_CHAIN[-1]].min_intervals}; the full joint model needs {MODELS['full'].min_intervals}); "
-            "hold the vehicle still in more orientations")
+    method = _check_args(method, tol, model, accel_sets)
     a, m = _stats(accel_sets, mag_sets, noise_floor)
-    N = a.mu.shape[0]
     rng = np.random.default_rng(seed)
-
-    if model == "auto":
-        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
-        if not allowed:
-            raise InsufficientDataError(
-                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
-                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
-                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
-        spec = allowed[0]
-        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
-                  if spec.name == "full" else
-                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
-                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
-    else:
-        spec = MODELS[model]
-        if N < spec.min_intervals:
-            raise InsufficientDataError(
-                f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
-                f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
-                "choose a simpler model")
-        reason = f"model {spec.name} requested"
+    spec, reason = _choose_model(model, a.mu.shape[0])
     _check_geometry(a, m)
-
     if not refine:
-        if spec.name != "full":
-            raise EstimationError("refine=False runs the paper's algorithm, which fits the full model only; "
-                                  f"{N} intervals call for the {spec.name} model")
-        st, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, refine=False)
-        prob = JointProblem(_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
-        p = JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R)
-        r, Jg, Jr = prob.jacobians(p)
-        res = RefineResult(p, float(np.sum(r * r)), 0, True, prob.covariance(Jg, Jr), prob.names,
-                           3 * N - prob.P)
-        Sa, Sm = st.Sigma_a, st.Sigma_m
-        model = "full"  # no model selection on the paper's path
-    else:
-        res, Sa, Sm, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
-
+        res, Sa, Sm, block_it, block_conv = _paper_path(spec, a, m, method, tol, max_iter, rng, restarts)
+        return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
+    res, Sa, Sm, block_it, block_conv, costs = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
     if model == "auto" and res.cov is not None:
-        chain = MODEL_CHAIN[MODEL_CHAIN.index(spec.name):]
-        scale = max(1.0, res.cost / max(res.dof, 1))
-        chosen, tests = spec, []
-        cons: list = []
-        for nxt in chain[1:]:
-            extra = _REDUCTIONS[nxt]
-            if spec.accel_form == "diag" and nxt == "diag-accel":
-                continue
-            if spec.mag_form == "sym" and nxt == "ardupilot":
-                continue
-            cons = cons + extra
-            W, k, pval = _wald(res, cons, scale)
-            tests.append(f"{nxt}: Wald chi2={W:.3g} on {k} dof, p={pval:.3g}")
-            if pval > WALD_ALPHA:
-                chosen = MODELS[nxt]
-            else:
-                break
-        if chosen is not spec:
-            p = res.params
-            start = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
-            res2, Sa, Sm, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
-            reason += (f"; the simpler {chosen.name} model explains the data as well "
-                       f"({'; '.join(tests)}), so it was used")
-            res = replace(res2, iterations=res.iterations + res2.iterations)
-            spec = chosen
-        elif tests:
-            reason += f"; simpler models are rejected ({tests[0]})"
-
-    p = res.params
-    K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)
-    if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
-        cov = _transform_cov(res, p, K_a, K_m, h_z)
-        res = replace(res, cov=cov)
-    p = JointParams((K_a, K_m), p.biases, h_z, R)
-    dof = res.dof
-    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res)
-    converged = bool(block_conv and res.converged)
-    msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
-           f"{res.iterations} joint refinement iterations"
-           + ("" if converged else " (block steps hit the iteration limit)" if not block_conv else
-              " (refinement did not reach its tolerance)"))
-    if dof > 0 and res.cost / dof > 4.0:
-        msg += (f"; chi2/dof = {res.cost / dof:.3g}: the readings scatter more than the noise explains "
-                "(motion in the intervals or magnetic disturbance?)")
-    log.info(msg)
-    return Calibration(
-        accel=SensorModel(p.gains[0], p.biases[0], Sa, "accel"),
-        mag=SensorModel(p.gains[1], p.biases[1], Sm, "mag"),
-        gravity=G_UNIT.copy(), field=np.array([1.0, 0.0, p.h_z]), orientations=p.R,
-        cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
-        method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
-        n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
-        dof=int(dof))
+        spec, res2, Sa, Sm, note = _select_model(spec, res, Sa, Sm, a, m, method, tol, max_iter, rng, restarts)
+        if res2 is not res:  # reduced model, started from the full model's optimum
+            costs = (float(res2.cost),)
+        res, reason = res2, reason + note
+    cert = _certify(spec, res, Sa, Sm, a, m, costs)
+    if cert.min_hessian_eig < 0:  # stopped at a saddle: leave it and certify again
+        res = _escape_saddles(spec, res, Sa, Sm, a, m, method, tol)
+        cert = _certify(spec, res, Sa, Sm, a, m, costs)
+    return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv, cert)
 
 
 def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):
@@ -449,7 +655,7 @@ def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm,
 
 
 def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,
-                         res: RefineResult) -> Optional[np.ndarray]:
+                         res: RefineResult) -> np.ndarray | None:
     """Parameter covariance honest about misfit, sensor by sensor.
 
     When a sensor's weighted residuals exceed what its noise covariance explains
@@ -469,7 +675,7 @@ def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa
     return res.cov * max(1.0, res.cost / res.dof) if cov is None else cov
 
 
-def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> Optional[np.ndarray]:
+def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> np.ndarray | None:
     """Covariance after a discrete gauge change: every parameter maps to +-1 times itself."""
     if res.cov is None:
         return None
@@ -482,7 +688,7 @@ def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> Optional
 
 # --- orientations of new data, reconstruction error -----------------------------------------
 
-def _means(sets, name: str) -> Tuple[np.ndarray, np.ndarray]:
+def _means(sets, name: str) -> tuple[np.ndarray, np.ndarray]:
     seq = list(sets)
     if not seq:
         raise EstimationError(f"{name} is empty")
@@ -522,7 +728,7 @@ def estimate_orientations(calibration: Calibration, accel_sets, mag_sets) -> np.
 
 def reconstruction_error(calibration: Calibration, truth=None, *, orientations=None, mu_accel=None,
                          mu_mag=None, noise_cov_accel=None, noise_cov_mag=None, n_accel=None,
-                         n_mag=None) -> Tuple[float, float]:
+                         n_mag=None) -> tuple[float, float]:
     """The paper's delta_s (Eq. ``distance``) for both sensors: (delta_a, delta_m).
 
     delta_s = sqrt( sum_i Delta[i] (mu_s[i] - mu_breve_s[i])^T Sigma_s^-1 (...) / sum_i Delta[i] )

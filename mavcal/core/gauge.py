@@ -11,20 +11,27 @@ two discrete symmetries leave every predicted reading unchanged:
   a field of the opposite dip. mavcal reports the twin with det K_m > 0; the ArduPilot
   stage compares the dip with the World Magnetic Model to detect a mirrored compass.
 
+Not symmetries, but the discrete *branches* a local search cannot cross: the still poses fix
+the magnetometer frame relative to the field only through a sign ambiguity of the initial
+estimate (the ellipsoid fit gives K_m up to an orthogonal factor, the R/h_z search picks one
+of several near-equal minima when the data are few or ill-spread). :func:`branches` lists
+the alternatives K_m D, h_z -> +-h_z for the diagonal sign matrices D, modulo the mirror twin
+((D, h_z) ~ (-D, -h_z)): 7 starts besides the point itself.
+
 The canonical representative has K_a[1, 1] > 0 (and K_a[0, 0], K_a[2, 2] > 0 follow from
 the Cholesky start) and det K_m > 0.
 """
 from __future__ import annotations
 
-from typing import Tuple
-
 import numpy as np
 
 RZ180 = np.diag([-1.0, -1.0, 1.0])
 PY = np.diag([1.0, -1.0, 1.0])
+PX = np.diag([-1.0, 1.0, 1.0])
+_BRANCH_D = (("", np.eye(3)), ("Rz(180)", RZ180), ("Px", PX), ("Py", PY))
 
 
-def mirror_twin(K_m: np.ndarray, h_z: float, R: np.ndarray) -> Tuple[np.ndarray, float, np.ndarray]:
+def mirror_twin(K_m: np.ndarray, h_z: float, R: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """The other member of the mirror-twin pair (see module docstring)."""
     return -np.asarray(K_m), -float(h_z), np.asarray(R) @ RZ180
 
@@ -44,3 +51,14 @@ def canonical(K_a, K_m, h_z, R, extra_gains=()):
         K_m, h_z, R = -K_m, -h_z, R @ RZ180
         extra = [(k, -K if k == "mag" else K) for k, K in extra]
     return K_a, K_m, float(h_z), R, tuple(extra)
+
+
+def branches(K_m: np.ndarray, h_z: float) -> tuple[tuple[str, np.ndarray, float], ...]:
+    """The 7 discrete alternatives (label, K_m D, +-h_z) to (K_m, h_z); see the module docstring."""
+    out = []
+    for label, D in _BRANCH_D:
+        for sign in (1.0, -1.0):
+            if label or sign < 0:
+                name = " ".join(x for x in (f"K_m {label}" if label else "", "-h_z" if sign < 0 else "") if x)
+                out.append((name, np.asarray(K_m) @ D, sign * float(h_z)))
+    return tuple(out)

@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
@@ -26,6 +25,7 @@ from mavcal.core.rotations import exp_so3, quat_to_matrix, random_rotations, ske
 from mavcal.errors import EstimationError
 
 G_UNIT = np.array([0.0, 0.0, -1.0])
+MAX_AXIS_RATIO = 20.0  # longest / shortest ellipsoid axis accepted from the quadric fit (else the sphere)
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,7 +51,7 @@ def _nearest_pd(A: np.ndarray, rel: float = 1e-6) -> np.ndarray:
     return (V * w) @ V.T
 
 
-def fit_ellipsoid(mu: np.ndarray, weights: Optional[np.ndarray] = None) -> Ellipsoid:
+def fit_ellipsoid(mu: np.ndarray, weights: np.ndarray | None = None) -> Ellipsoid:
     """Algebraic ellipsoid fit through the interval means (Sec. VI, Kok 2012).
 
     With fewer than 9 intervals the general quadric is not determined; then the fit is
@@ -91,8 +91,8 @@ def fit_ellipsoid(mu: np.ndarray, weights: Optional[np.ndarray] = None) -> Ellip
         raise EstimationError("degenerate ellipsoid fit: the orientations do not span enough directions")
     alpha = 1.0 / denom
     w = np.linalg.eigvalsh(alpha * A)
-    if N >= 9 and (w[0] <= 0 or w[-1] / w[0] > 16.0):
-        # not an ellipsoid (a hyperboloid through noisy points), or one with axes more than 4:1:
+    if N >= 9 and (w[0] <= 0 or w[-1] / w[0] > MAX_AXIS_RATIO ** 2):
+        # not an ellipsoid (a hyperboloid through noisy points), or one with axes beyond MAX_AXIS_RATIO:
         # the quadric is not determined well enough; fall back to the sphere start
         return fit_sphere(mu)
     P = _nearest_pd(alpha * A)  # = K^-T K^-1 in the conditioned coordinates
@@ -101,6 +101,30 @@ def fit_ellipsoid(mu: np.ndarray, weights: Optional[np.ndarray] = None) -> Ellip
     K = K_x * scale
     b = center + scale * b_x
     return Ellipsoid(K=K, b=b, residual=float(sv[-1] / sv[0]))
+
+
+def fit_axis_ellipsoid(mu: np.ndarray) -> Ellipsoid:
+    """Ellipsoid with axes along the sensor axes (A diagonal): 7 unknowns, so N >= 7 intervals.
+
+    A second start for few intervals, where the general quadric (N >= 9) is not determined
+    and the sphere cannot represent unequal scale factors. Falls back to the sphere when the
+    fit is not an ellipsoid.
+    """
+    mu = np.asarray(mu, dtype=float)
+    center = mu.mean(axis=0)
+    scale = np.sqrt(np.mean(np.sum((mu - center) ** 2, axis=1)))
+    x = (mu - center) / scale
+    Jm = np.concatenate([x * x, x, np.ones((len(x), 1))], axis=1)
+    _, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
+    a, bv, c = Vt[-1][:3], Vt[-1][3:6], Vt[-1][6]
+    if np.any(a == 0):
+        return fit_sphere(mu)
+    cx = -0.5 * bv / a
+    alpha = 1.0 / (np.sum(a * cx * cx) - c)
+    w = alpha * a
+    if not np.all(np.isfinite(w)) or np.min(w) <= 0 or np.max(w) / np.min(w) > MAX_AXIS_RATIO ** 2:
+        return fit_sphere(mu)
+    return Ellipsoid(K=np.diag(scale / np.sqrt(w)), b=center + scale * cx, residual=float(sv[-1] / sv[0]))
 
 
 def fit_sphere(mu: np.ndarray) -> Ellipsoid:
@@ -206,6 +230,34 @@ def search_rotation_hz(z_a: np.ndarray, z_m: np.ndarray, w: np.ndarray, rng: np.
     return R[k], float(hz[k]), float(c[k])
 
 
+def rotation_hz_minima(z_a: np.ndarray, z_m: np.ndarray, w: np.ndarray, rng: np.random.Generator,
+                       restarts: int = 24, iterations: int = 30, limit: int = 3):
+    """The distinct local minima of Eq. ``optimize_hz``, lowest first (at most ``limit``).
+
+    The relaxed start and ``restarts`` random starts, each taken to its minimum; members of a
+    (R, h_z) / (-R, -h_z) pair are merged (reported proper, det R = +1), and minima with the
+    same h_z (to 1e-3) and R (to 1e-2) are one. With few or ill-spread intervals the lowest is
+    not always the basin of the global optimum of the full cost; the others are the
+    alternatives the caller's search tries. Returns a list of (R, h_z, cost).
+    """
+    R0 = _relaxed_start(z_a, z_m, w)
+    R0 = R0 * np.sign(np.linalg.det(R0))[:, None, None]
+    hz0 = -np.einsum("nj,bjk,nk,n->b", z_m, R0, z_a, w) / w.sum()
+    Rs = np.concatenate([R0, random_rotations(restarts, rng)])
+    hzs = np.concatenate([hz0, rng.uniform(-1.0, 1.0, restarts)])
+    R, hz, c = _lm_rotation_hz(Rs, hzs, z_a, z_m, w, iterations)
+    sign = np.sign(np.linalg.det(R))
+    R, hz = R * sign[:, None, None], hz * sign
+    out: list = []
+    for k in np.argsort(c):
+        if any(abs(hz[k] - h) < 1e-3 and np.abs(R[k] - Rk).max() < 1e-2 for Rk, h, _ in out):
+            continue
+        out.append((R[k], float(hz[k]), float(c[k])))
+        if len(out) >= limit:
+            break
+    return out
+
+
 def _f(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """f(x, y) of Eq. ``rotation_approximation`` for batches (..., 3) -> (..., 4, 4)."""
     z = np.zeros(x.shape[:-1])
@@ -244,5 +296,6 @@ def sensor_weight(K: np.ndarray, Sigma: np.ndarray) -> float:
     return float(abs(np.linalg.det(K.T @ np.linalg.solve(Sigma, K))) ** (1.0 / 3.0))
 
 
-__all__ = ["fit_ellipsoid", "fit_sphere", "search_rotation_hz", "approximate_rotations", "sensor_weight",
-           "G_UNIT", "Ellipsoid", "skew"]
+__all__ = ["fit_ellipsoid", "fit_axis_ellipsoid", "fit_sphere", "search_rotation_hz", "rotation_hz_minima",
+           "approximate_rotations",
+           "sensor_weight", "G_UNIT", "Ellipsoid", "skew"]

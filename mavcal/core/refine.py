@@ -19,8 +19,8 @@ share the field h = [1, 0, h_z], accelerometers the gravity g = [0, 0, -1].
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -48,8 +48,8 @@ class Term:
 
 @dataclass(frozen=True, eq=False)
 class JointParams:
-    gains: Tuple[np.ndarray, ...]  # per term, (3, 3)
-    biases: Tuple[np.ndarray, ...]  # per term, (3,)
+    gains: tuple[np.ndarray, ...]  # per term, (3, 3)
+    biases: tuple[np.ndarray, ...]  # per term, (3,)
     h_z: float
     R: np.ndarray  # (N, 3, 3)
 
@@ -60,8 +60,8 @@ class RefineResult:
     cost: float
     iterations: int
     converged: bool
-    cov: Optional[np.ndarray]  # global parameter covariance (unscaled (J^T J)^-1)
-    names: Tuple[str, ...]
+    cov: np.ndarray | None  # global parameter covariance (unscaled (J^T J)^-1)
+    names: tuple[str, ...]
     dof: int
 
 
@@ -76,7 +76,7 @@ class JointProblem:
         self.sn = [np.sqrt(t.n) for t in self.terms]
         self.sizes = [t.form.size + 3 for t in self.terms]
         self.P = sum(self.sizes) + (1 if self.has_mag else 0)
-        names: List[str] = []
+        names: list[str] = []
         for t in self.terms:
             sym = "K_a" if t.kind == "accel" else "K_m"
             bsym = "b_a" if t.kind == "accel" else "b_m"
@@ -93,7 +93,7 @@ class JointProblem:
         for t, K, b in zip(self.terms, p.gains, p.biases):
             parts += [t.form.from_matrix(K), np.asarray(b, float)]
         if self.has_mag:
-            parts.append([p.h_z])
+            parts.append(np.array([p.h_z]))
         return np.concatenate(parts)
 
     def unpack(self, theta: np.ndarray, R: np.ndarray) -> JointParams:
@@ -151,7 +151,7 @@ class JointProblem:
         lam = 1e-4
         converged = False
         it = 0
-        for it in range(1, max_iter + 1):
+        for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
             Hgg = np.einsum("nmp,nmq->pq", Jg, Jg)
             Hgr = np.einsum("nmp,nmr->npr", Jg, Jr)
             Hrr = np.einsum("nmr,nms->nrs", Jr, Jr)
@@ -199,7 +199,7 @@ class JointProblem:
                             names=self.names, dof=dof)
 
     @staticmethod
-    def covariance(Jg: np.ndarray, Jr: np.ndarray) -> Optional[np.ndarray]:
+    def covariance(Jg: np.ndarray, Jr: np.ndarray) -> np.ndarray | None:
         """(J^T J)^-1 on the global parameters, orientations marginalised (Schur complement)."""
         Hgg = np.einsum("nmp,nmq->pq", Jg, Jg)
         Hgr = np.einsum("nmp,nmr->npr", Jg, Jr)
@@ -216,7 +216,7 @@ class JointProblem:
 
 
 def refit_covariances(problem: JointProblem, p: JointParams, scatters: Sequence[np.ndarray],
-                      diagonal: bool) -> List[np.ndarray]:
+                      diagonal: bool) -> list[np.ndarray]:
     """ML noise covariances of Eq. ``covariance_estimation`` for every term."""
     out = []
     for t, K, b, f, S in zip(problem.terms, p.gains, p.biases, problem._fields(p.h_z), scatters):

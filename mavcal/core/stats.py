@@ -7,8 +7,8 @@ generalised-Bessel covariance (Eq. ``covariance_initial_estimation``)
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

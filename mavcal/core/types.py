@@ -14,7 +14,6 @@ when det K_m < 0).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Tuple
 
 import numpy as np
 
@@ -77,6 +76,44 @@ class SensorModel:
     __hash__ = None  # type: ignore[assignment]
 
 
+@dataclass(frozen=True)
+class OptimumCertificate:
+    """Evidence that a calibration is the global optimum of J' (see :mod:`mavcal.core.certify`).
+
+    Attributes
+    ----------
+    starts : int
+        Fits run from distinct deterministic starts (1 = the default start alone, used when
+        it converged with enough degrees of freedom and a chi2 the noise explains).
+    start_costs : tuple of float
+        J' (at the initial noise covariances) reached from each start, the returned one first.
+    grad_decrement : float
+        Gauss-Newton decrement g^T (J^T J)^-1 g at the returned point (0 at a stationary point).
+    min_hessian_eig : float
+        Smallest eigenvalue of the exact Hessian of the profile cost (orientations minimised
+        out) relative to its Gauss-Newton approximation: ~1 at a small-residual minimum, <= 0
+        at a saddle.
+    local_ok : bool
+        Stationary and the exact Hessian (gauge-fixed coordinates) is positive definite.
+    global_ok : bool
+        The returned point is the best of the starts and the search is trusted (see ``reason``).
+    reason : str
+        Empty when certified; otherwise why not, in words.
+    """
+
+    starts: int
+    start_costs: tuple[float, ...]
+    grad_decrement: float
+    min_hessian_eig: float
+    local_ok: bool
+    global_ok: bool
+    reason: str = ""
+
+    @property
+    def certified(self) -> bool:
+        return self.local_ok and self.global_ok
+
+
 @dataclass(frozen=True, eq=False)
 class Calibration:
     """Result of :func:`mavcal.calibrate`.
@@ -95,6 +132,8 @@ class Calibration:
         Block-coordinate iterations of the paper's algorithm (Sec. VII) plus joint
         refinement iterations.
     converged : bool
+        The iterations reached their tolerances *and* the result is certified as the global
+        optimum (``certificate``); ``message`` says why when not.
     message : str
     method : str
         "ncdr", "ncar", "fcar" or "dcar".
@@ -112,6 +151,9 @@ class Calibration:
     block_iterations, refine_iterations : int
     dof : int
         Degrees of freedom of J' (3N - global parameters); J'/dof ~ 1 for a good fit.
+    certificate : OptimumCertificate or None
+        Evidence that the result is the global optimum (None on the paper's path,
+        ``refine=False``); ``converged`` is False when it is not certified.
     """
 
     accel: SensorModel
@@ -126,13 +168,14 @@ class Calibration:
     method: str = "ncar"
     model: str = "full"
     model_reason: str = ""
-    param_names: Tuple[str, ...] = ()
-    param_cov: Optional[np.ndarray] = None
-    n_accel: Optional[np.ndarray] = None
-    n_mag: Optional[np.ndarray] = None
+    param_names: tuple[str, ...] = ()
+    param_cov: np.ndarray | None = None
+    n_accel: np.ndarray | None = None
+    n_mag: np.ndarray | None = None
     block_iterations: int = 0
     refine_iterations: int = 0
     dof: int = 0
+    certificate: OptimumCertificate | None = None
 
     def __post_init__(self) -> None:
         for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):
