@@ -578,7 +578,9 @@ def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
     dirs = np.array([seg.intervals[k].gravity_dir for k in used])
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
         cm, params_now, n_intervals=len(used), n_orientations=_n_orientations(dirs, seg),
-        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates)))
+        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates,
+        fit_converged=cal.converged,
+        fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message)))
     return CalibrationRun(source=log_.source, log=log_, raw=prep.raw, segmentation=seg, intervals_used=tuple(used),
                           calibration=cal, mapping=mapping, quality=quality, gates=report, params_before=params_now,
                           warnings=tuple(dict.fromkeys(warnings)))

@@ -109,3 +109,13 @@ def test_param_comments_roundtrip(tmp_path):
     p = write_param_file(tmp_path / "x.param", {"COMPASS_OFS_X": 1.5}, comments={"COMPASS_OFS_X": "REJECTED x"})
     assert "COMPASS_OFS_X,1.5  # REJECTED x" in p.read_text()
     assert read_param_file(p) == {"COMPASS_OFS_X": 1.5}
+
+
+def test_an_uncertified_joint_fit_rejects_its_compass_with_the_engines_reason(partial):
+    """Issue 12: converged=False is a rejection with the certificate's reason, never a silent result."""
+    _, params, doc, _ = partial
+    assert doc["calibration"]["converged"] is False
+    compass0 = next(s for s in doc["sensors"] if s["sensor"] == "compass0")
+    assert not compass0["accepted"]
+    assert any("not certified as the global optimum" in r and "starts" in r for r in compass0["reasons"])
+    assert not any(n.startswith("COMPASS_") for n in params)  # nothing of it in the .param

@@ -141,10 +141,14 @@ def accel_gates(am, *, n_intervals: int, n_orientations: int, tilt_95_deg: float
 
 
 def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int, n_orientations: int,
-                  heading_95_deg: float, holdout_mgauss: float, config: GateConfig = GateConfig()) -> list[Gate]:
+                  heading_95_deg: float, holdout_mgauss: float, config: GateConfig = GateConfig(),
+                  fit_converged: bool = True, fit_message: str = "") -> list[Gate]:
     """The gates of one compass (:class:`~mavcal.ardupilot.mapping.CompassMapping`): its own
     values, and the heading bound and held-out error of its fit with the accelerometer it is
-    paired with. The field gate runs only when the field strength is known (WMM or given)."""
+    paired with. The field gate runs only when the field strength is known (WMM or given).
+    A joint fit without evidence that it reached the global optimum (``fit_converged`` False,
+    :class:`mavcal.core.types.OptimumCertificate`) rejects the compass with the engine's reason:
+    users write these numbers into a vehicle."""
     from mavcal.ardupilot import firmware as fw
 
     gates: list[Gate] = []
@@ -169,6 +173,9 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int, n_orient
         lo, hi = c.field_range_mgauss
         add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
             f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range: check --location")
+    add(s, "converged", fit_converged, 1.0 if fit_converged else 0.0, "the global optimum, certified",
+        f"the fit is not certified as the global optimum: {fit_message or 'no reason given'}; "
+        "record more, better spread poses")
     dev = params.get(names["dev_id"])
     prio = params.get(names["prio_id"])
     if dev is not None and prio is not None and int(dev) != int(prio) and int(prio) != 0:
