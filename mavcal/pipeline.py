@@ -15,11 +15,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
 from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_accel, map_calibration
 from mavcal.ardupilot.recover import RawImu, recover_raw
+from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.types import Calibration

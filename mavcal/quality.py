@@ -19,10 +19,10 @@ from typing import Callable
 
 import numpy as np
 
-from mavcal.core.accel_fit import AccelFit, sample_accel
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
+from mavcal.core.accel_fit import AccelFit, sample_accel
 from mavcal.core.calibrate import calibrate, estimate_orientations
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import MODELS

@@ -1,12 +1,14 @@
 """The engine: recovery of simulated truth, exactness, variants, model selection, bad input."""
+import dataclasses
+
 import numpy as np
 import pytest
 
 import mavcal
 from mavcal import sim
+from mavcal.core.uncertainty import sample_parameters
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError
 from mavcal.sim.paper import Sensors, draw_intervals, draw_sensors
-from mavcal.core.uncertainty import sample_parameters
 
 
 def _noise_free(n_intervals=12, seed=0, mirror=False):
@@ -284,7 +286,7 @@ def test_constant_data_and_wrong_types():
 
 def test_result_is_frozen():
     cal = mavcal.calibrate(*_good(10), seed=0)
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         cal.cost = 1.0
     with pytest.raises(ValueError):
         cal.accel.gain[0, 0] = 2.0

@@ -278,7 +278,7 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
     Mk = 0.5 * (X + X.T)
     residual = rotation_angle_deg(R_x, U)
     M, k, implied = _split_scale(Mk, old.scale if not checked else None)
-    field_mgauss = field_mgauss if checked else implied
+    field_mgauss = field_mgauss if field_mgauss is not None else implied
     ofs = -(R_x @ np.asarray(b_m, float))
     new = fw.CompassCal(ofs_mgauss=tuple(ofs), dia=(M[0, 0], M[1, 1], M[2, 2]), odi=(M[0, 1], M[0, 2], M[1, 2]),
                         scale=k, orient=orient, external=external or force_external, custom_deg=custom, mot=old.mot)

@@ -21,7 +21,6 @@ global parameters needs 3N >= P (the paper's 6N >= 3N + 22 gives N >= 8 for ``fu
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Tuple
 
 import numpy as np
 
@@ -39,7 +38,7 @@ class GainForm:
 
     name: str
     basis: np.ndarray  # (k, 3, 3)
-    labels: Tuple[str, ...]  # "11", "12", ... (1-based row/col), "s" for scalar
+    labels: tuple[str, ...]  # "11", "12", ... (1-based row/col), "s" for scalar
 
     @property
     def size(self) -> int:
@@ -79,7 +78,7 @@ def _make_form(name: str) -> GainForm:
     return GainForm(name, np.array(basis), tuple(labels))
 
 
-FORMS: Dict[str, GainForm] = {n: _make_form(n) for n in ("upper", "diag", "full", "sym", "scalar")}
+FORMS: dict[str, GainForm] = {n: _make_form(n) for n in ("upper", "diag", "full", "sym", "scalar")}
 
 
 @dataclass(frozen=True)
@@ -98,7 +97,7 @@ class ModelSpec:
         return -(-self.n_global // 3)  # ceil(P / 3)
 
 
-MODELS: Dict[str, ModelSpec] = {
+MODELS: dict[str, ModelSpec] = {
     "full": ModelSpec("full", "upper", "full",
                       "the paper's model: upper-triangular K_a, full K_m (any accel-to-compass rotation)"),
     "diag-accel": ModelSpec("diag-accel", "diag", "full",
@@ -111,4 +110,4 @@ MODELS: Dict[str, ModelSpec] = {
 }
 
 # from most to least general; each is nested in the one before it
-MODEL_CHAIN: List[str] = ["full", "diag-accel", "ardupilot", "offsets-scales"]
+MODEL_CHAIN: list[str] = ["full", "diag-accel", "ardupilot", "offsets-scales"]

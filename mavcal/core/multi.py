@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Optional, Tuple
 
 import numpy as np
 
@@ -29,8 +28,8 @@ from mavcal.errors import EstimationError
 class MultiCalibration:
     """Result of :func:`calibrate_multi`: one SensorModel per sensor, shared orientations."""
 
-    accels: Tuple[SensorModel, ...]
-    mags: Tuple[SensorModel, ...]
+    accels: tuple[SensorModel, ...]
+    mags: tuple[SensorModel, ...]
     gravity: np.ndarray
     field: np.ndarray
     orientations: np.ndarray
@@ -38,8 +37,8 @@ class MultiCalibration:
     iterations: int
     converged: bool
     message: str
-    param_names: Tuple[str, ...] = ()
-    param_cov: Optional[np.ndarray] = None
+    param_names: tuple[str, ...] = ()
+    param_cov: np.ndarray | None = None
     dof: int = 0
 
     def __post_init__(self) -> None:
@@ -51,7 +50,7 @@ class MultiCalibration:
         return float(self.field[2])
 
 
-def _linear_gain(mu: np.ndarray, n: np.ndarray, v: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _linear_gain(mu: np.ndarray, n: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Least squares mu_i = K v_i + b (weights n_i) for a full K and b."""
     X = np.concatenate([v, np.ones((len(v), 1))], axis=1)  # (N, 4)
     W = n[:, None]
@@ -62,7 +61,7 @@ def _linear_gain(mu: np.ndarray, n: np.ndarray, v: np.ndarray) -> Tuple[np.ndarr
 
 
 def calibrate_multi(accel_sensors: Sequence, mag_sensors: Sequence, *, method: str = "ncar", tol: float = 1e-4,
-                    seed: Optional[int] = None, noise_floor=None) -> MultiCalibration:
+                    seed: int | None = None, noise_floor=None) -> MultiCalibration:
     """Calibrate A accelerometers and M magnetometers that share the same still intervals.
 
     Parameters

@@ -8,8 +8,6 @@ errors over a grid of attitudes) gives that quantity's confidence interval.
 """
 from __future__ import annotations
 
-from typing import Dict, List, Optional
-
 import numpy as np
 
 from mavcal.core.types import Calibration
@@ -38,7 +36,7 @@ def param_value(Ka, ba, Km, bm, hz, name: str) -> float:
     raise KeyError(name)
 
 
-def _set(d: Dict[str, np.ndarray], name: str, value: float, forms: Dict[str, str]) -> None:
+def _set(d: dict[str, np.ndarray], name: str, value: float, forms: dict[str, str]) -> None:
     if name == "h_z":
         d["h"][2] = value
         return
@@ -57,14 +55,14 @@ def _set(d: Dict[str, np.ndarray], name: str, value: float, forms: Dict[str, str
         d[sym]["xyz".index(lab)] = value
 
 
-def _forms(cal: Calibration) -> Dict[str, str]:
+def _forms(cal: Calibration) -> dict[str, str]:
     from mavcal.core.models import MODELS
 
     spec = MODELS.get(cal.model, MODELS["full"])
     return {"K_a": spec.accel_form, "K_m": spec.mag_form}
 
 
-def sample_parameters(cal: Calibration, n: int, rng: Optional[np.random.Generator] = None) -> List[dict]:
+def sample_parameters(cal: Calibration, n: int, rng: np.random.Generator | None = None) -> list[dict]:
     """``n`` draws of (K_a, b_a, K_m, b_m, h) from N(theta_hat, param_cov).
 
     Entries not among the estimated parameters (e.g. the zero off-diagonals of a diagonal
@@ -90,7 +88,7 @@ def sample_parameters(cal: Calibration, n: int, rng: Optional[np.random.Generato
     return out
 
 
-def parameter_std(cal: Calibration) -> Dict[str, float]:
+def parameter_std(cal: Calibration) -> dict[str, float]:
     """1-sigma uncertainty of each global parameter, by name."""
     if cal.param_cov is None:
         return {}
