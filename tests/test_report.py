@@ -149,7 +149,11 @@ def test_failed_gate_reasons_shown(run, tmp_path):
     assert "REJECTED" in text and "compass offset length too big for the test" in text
     assert "<tr class='fail'>" in text
     s = summary_text(rejected)
-    assert "REJECTED" in s and "compass0 offsets: compass offset length too big for the test" in s
+    # the verdict first, its reasons under it (said once: no second list at the end)
+    lines = s.splitlines()
+    k = lines.index("compass0: REJECTED")
+    assert lines[k + 1].strip().startswith("offsets: compass offset length too big for the test")
+    assert s.count("compass offset length too big for the test") == 1
     assert not list(tmp_path.glob("*.png"))  # no png_dir, no PNG files
 
 
@@ -345,3 +349,12 @@ def test_write_texts():
     doubt = write_failed_text(exc, "write", "b.param", "tcp:x:1")
     assert "parameters in doubt" in doubt and "  COMPASS_OFS_Y\n" in doubt
     assert "mavcal restore b.param --connect tcp:x:1" in doubt
+
+
+def test_summary_says_each_verdict_once_and_can_leave_the_table_to_the_write_plan(run):
+    s = summary_text(run)
+    assert s.splitlines()[0].startswith("ACCEPTED: ")
+    assert sum(line.startswith("accel0:") for line in s.splitlines()) == 1  # the verdict is not repeated
+    short = summary_text(run, param_table=False)
+    assert "PARAMETER" in s and "PARAMETER" not in short
+    assert short.splitlines()[:3] == s.splitlines()[:3]

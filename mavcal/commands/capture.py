@@ -118,14 +118,15 @@ def run(args: argparse.Namespace) -> int:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
     run = session.result()  # InsufficientDataError (exit 4) when too little was captured
     # 0 all accepted, 7 some rejected (GateError, exit 4, when none was accepted and no --force)
-    code = write_outputs(run, args, f"mavcal guided capture on {args.connect}")
+    offer = args.write or args.dry_run or sys.stdin.isatty()  # a write plan (with the table) follows
+    code = write_outputs(run, args, f"mavcal guided capture on {args.connect}", param_table=not offer)
     # the accepted sensors' parameters only (every sensor's with --force). No log_params for the
     # device-id check: the capture recorded the very vehicle it writes to, so its compasses and
     # IMUs are the vehicle's by construction
     changes = run.params_to_write(args.force)
     if args.write or args.dry_run:
         return write_with_report(args, changes, args.backup, "calibration write") or code
-    if sys.stdin.isatty():  # offer it: the diff, then y/N
+    if offer:  # offer it: the diff, then y/N
         try:
             return write_with_report(replace_ns(args, yes=False), changes, args.backup, "calibration write") or code
         except UsageError as exc:

@@ -134,7 +134,7 @@ def write_text_output(dest: str, text: str) -> None:
         raise UsageError(f"cannot write {dest}: {exc.strerror or exc}") from None
 
 
-def write_outputs(run, args: argparse.Namespace, title: str) -> int:
+def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: bool = True) -> int:
     """Print the summary, write --json/--report, apply the per-sensor verdicts, then write
     --param-out with the accepted sensors' parameters (every sensor's with ``--force``, the
     rejected ones' lines marked with the failed gate).
@@ -143,13 +143,15 @@ def write_outputs(run, args: argparse.Namespace, title: str) -> int:
     7 some rejected); raises GateError (exit 4) when no sensor was accepted and ``--force``
     was not given; the JSON and HTML reports are written first, so the reasons are on disk
     either way. With ``--json -`` the JSON alone goes to stdout (the summary to stderr).
+    ``param_table`` False leaves the parameter table out of the summary (a write follows, whose
+    plan shows the parameters against the vehicle's values).
     """
     from mavcal.ardupilot.paramfile import write_param_file
     from mavcal.report.json import to_json
     from mavcal.report.text import gate_refusal_text, summary_text
 
     say = sys.stderr if args.json == "-" else sys.stdout
-    print(summary_text(run), file=say)
+    print(summary_text(run, param_table=param_table), file=say)
     if args.json:
         write_text_output(args.json, json.dumps(to_json(run), indent=1))
     if args.report:

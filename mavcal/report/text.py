@@ -109,7 +109,7 @@ def _holdout_text(run) -> str:
     return f"held-out error: not run ({why})"
 
 
-def summary_text(run, *, hints: dict[str, str] | None = None) -> str:
+def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool = True) -> str:
     """Short human summary of a run for a terminal.
 
     Parameters
@@ -117,19 +117,23 @@ def summary_text(run, *, hints: dict[str, str] | None = None) -> str:
     run : mavcal.pipeline.CalibrationRun
     hints : dict, optional
         How :func:`next_step` names the commands (default :data:`CLI_HINTS`).
+    param_table : bool
+        Include the parameter table (False when a write to the vehicle follows: its plan shows
+        the same parameters against the vehicle's current values, so the table is not printed twice).
 
     Returns
     -------
     str
-        A few lines: intervals, model, the 95 % heading and tilt error bounds, the
-        parameter table old -> new (changed values marked ``*``), the verdict of the
-        quality gates with the reasons per sensor, and the warnings.
+        A few lines: the verdict per sensor with its reasons and the next step first, then
+        intervals, model, the 95 % heading and tilt error bounds, the parameter table
+        old -> new (changed values marked ``*``) and the warnings.
     """
     q = run.quality
     cal = run.calibration
     seg = run.segmentation
     n_ok = sum(v.accepted for v in run.verdicts)
-    L = [f"{run.source}: {n_ok} of {len(run.verdicts)} sensors accepted", *verdict_lines(run),
+    overall = {0: "ACCEPTED", 7: "PARTLY ACCEPTED"}.get(run.exit_code, "REJECTED")
+    L = [f"{overall}: {run.source}: {n_ok} of {len(run.verdicts)} sensors accepted", *verdict_lines(run),
          next_step(run, **(hints or {}))]
     L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
           f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
@@ -147,7 +151,7 @@ def summary_text(run, *, hints: dict[str, str] | None = None) -> str:
           for am in run.mapping.accel[:1]]
     L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
           for cm in run.mapping.compass[:1]]
-    rows = param_rows(run)
+    rows = param_rows(run) if param_table else []
     if rows:
         grouped = _group_vectors(rows)
         w = max(len(g[0]) for g in grouped)
@@ -160,13 +164,6 @@ def summary_text(run, *, hints: dict[str, str] | None = None) -> str:
                          f"({', '.join(format_value(v) for v in news)}){'  *' if ch else ''}")
         n_ch = sum(r[3] for r in rows)
         L.append(f"  ({n_ch} of {len(rows)} parameters change; _X/_Y/_Z shown together)")
-    fails = gate_failures_by_sensor(run)
-    if fails:
-        L.append("REJECTED by the quality gates:")
-        for sensor, why in fails.items():
-            L += [f"  {sensor} {w_}" for w_ in why]
-    else:
-        L.append("ACCEPTED: all quality gates passed")
     if run.mapping.reboot_required:
         L.append("reboot needed after writing (custom orientation)")
     L += [f"warning: {m}" for m in run.warnings]
