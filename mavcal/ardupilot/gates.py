@@ -62,8 +62,15 @@ class SensorVerdict:
     reasons: tuple[str, ...] = ()
 
 
+#: gates that are a yes/no question (value 1 yes, 0 no): their reason alone says it all
+YES_NO_GATES = ("converged",)
+
+
 def reason_text(g: Gate) -> str:
-    """The reason of a failed gate in words a user can act on."""
+    """The reason of a failed gate in words a user can act on: the gate, what to do, the value
+    and the limit (a yes/no gate's value in words)."""
+    if g.name in YES_NO_GATES:
+        return f"{g.name}: {g.reason} (value: {'yes' if g.value else 'no'}, limit: {g.limit})"
     return f"{g.name}: {g.reason} (value {g.value:.4g}, limit {g.limit})"
 
 
@@ -173,7 +180,7 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int, n_orient
         lo, hi = c.field_range_mgauss
         add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
             f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range: check --location")
-    add(s, "converged", fit_converged, 1.0 if fit_converged else 0.0, "the global optimum, certified",
+    add(s, "converged", fit_converged, 1.0 if fit_converged else 0.0, "certified as the global optimum",
         f"the fit is not certified as the global optimum: {fit_message or 'no reason given'}; "
         "record more, better spread poses")
     dev = params.get(names["dev_id"])

@@ -31,7 +31,7 @@ from mavcal.report.figures import (
     png_bytes,
 )
 from mavcal.report.numbers import IntervalNumbers, interval_numbers
-from mavcal.report.text import format_value, gate_failures_by_sensor, param_rows
+from mavcal.report.text import format_value, gate_failures_by_sensor, holdout_text, param_rows
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ h1{font-size:1.5em;margin-bottom:.2em}h2{font-size:1.15em;border-bottom:1px soli
 margin-top:1.6em}
 .meta{color:#616161;font-size:.9em}
 .verdict{display:inline-block;padding:.25em .8em;border-radius:4px;font-weight:bold;color:#fff}
-.ok{background:#2e7d32}.bad{background:#c62828}
+.ok{background:#2e7d32}.bad{background:#c62828}.partial{background:#ef6c00}
 table{border-collapse:collapse;font-size:.88em;margin:.5em 0}
 th,td{border:1px solid #ddd;padding:.25em .6em;text-align:right}th{background:#f5f5f5}
 td.l,th.l{text-align:left}
@@ -95,6 +95,10 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], row_classes: Se
     return "".join(out)
 
 
+#: exit code -> (the overall verdict, its CSS class): 7 = some sensors accepted, some rejected
+_OVERALL = {0: ("ACCEPTED", "ok"), 7: ("PARTLY ACCEPTED", "partial"), 4: ("REJECTED", "bad")}
+
+
 def _top(run) -> list[str]:
     q, seg = run.quality, run.segmentation
     n_int, n_used, accepted = len(seg.intervals), len(run.intervals_used), run.accepted
@@ -105,8 +109,7 @@ def _top(run) -> list[str]:
             f"data-accepted='{str(accepted).lower()}'>",
             f"<h1>mavcal calibration report</h1><p class='meta'>{_e(run.source)} &middot; mavcal "
             f"{_e(mavcal.__version__)} &middot; generated {now}</p>",
-            f"<p><span class='verdict {'ok' if accepted else 'bad'}'>"
-            f"{'ACCEPTED' if accepted else 'REJECTED'}</span> "
+            f"<p><span class='verdict {_OVERALL[run.exit_code][1]}'>{_OVERALL[run.exit_code][0]}</span> "
             f"<span id='interval-count'>{n_int} still intervals found, {n_used} used</span>, "
             f"{seg.coverage.n_orientations} distinct orientations; heading error &le; "
             f"<b>{_num(q.heading_95_deg, '.3f')}&deg;</b>, tilt error &le; <b>{_num(q.tilt_95_deg, '.3f')}&deg;</b> "
@@ -136,7 +139,9 @@ def _quality(run) -> list[str]:
           ("heading / tilt error of the written parameters at the estimate (deg)",
            f"{_num(q.heading_nominal_deg, '.4f')} / {_num(q.tilt_nominal_deg, '.4f')}"),
           ("held-out error, accel (m/s^2) / compass (mGauss)",
-           f"{_num(q.holdout_accel_mps2, '.4f')} / {_num(q.holdout_mag_mgauss, '.3f')}"),
+           f"{_num(q.holdout_accel_mps2, '.4f')} / {_num(q.holdout_mag_mgauss, '.3f')}"
+           if np.isfinite(q.holdout_accel_mps2) and np.isfinite(q.holdout_mag_mgauss)
+           else _e(holdout_text(run).removeprefix("held-out error: "))),
           ("fit chi2 / dof", _num(q.chi2_dof, ".3f"))]
     if cal is not None:
         kv += [("model", _e(cal.model)), ("why this model", _e(cal.model_reason or "-")),

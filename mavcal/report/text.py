@@ -12,9 +12,9 @@ import numpy as np
 
 from mavcal.ardupilot.paramfile import format_param_value
 
-__all__ = ["summary_text", "verdict_lines", "next_step", "param_rows", "format_value", "gate_failures_by_sensor",
-           "param_table", "plan_text", "gate_refusal_text", "write_done_text", "write_failed_text", "in_doubt_text",
-           "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS"]
+__all__ = ["summary_text", "holdout_text", "verdict_lines", "next_step", "param_rows", "format_value",
+           "gate_failures_by_sensor", "param_table", "plan_text", "gate_refusal_text", "write_done_text",
+           "write_failed_text", "in_doubt_text", "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS"]
 
 #: how the ``mavcal`` command names the next steps (:func:`next_step`)
 CLI_HINTS: dict[str, str] = {"force_hint": "--force", "write_hint": "--write, or load the .param file",
@@ -88,7 +88,7 @@ def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str
     return f"next: nothing is written; fix the causes named above and record again ({force_hint} writes anyway)"
 
 
-def _holdout_text(run) -> str:
+def holdout_text(run) -> str:
     """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
     q = run.quality
     if np.isfinite(q.holdout_accel_mps2) and np.isfinite(q.holdout_mag_mgauss):
@@ -146,7 +146,7 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     joint = "" if cal is None else " of the joint fit (each sensor's own numbers are in its gates)"
     L += [f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
           f"(95 % confidence, over the flight envelope{joint})",
-          f"{_holdout_text(run)}{joint}; fit chi2/dof {q.chi2_dof:.2f}"]
+          f"{holdout_text(run)}{joint}; fit chi2/dof {q.chi2_dof:.2f}"]
     L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
           for am in run.mapping.accel[:1]]
     L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
