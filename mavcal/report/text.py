@@ -143,10 +143,12 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
         L.append(f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}")
         if not cal.converged:
             L.append("the fit did NOT converge: treat the result with caution")
-    joint = "" if cal is None else " of the joint fit (each sensor's own numbers are in its gates)"
+    if cal is not None and run.mapping.accel and run.mapping.compass:
+        L.append(f"joint fit of accel{run.mapping.accel[0].instance} + compass{run.mapping.compass[0].instance} "
+                 "(each sensor's own numbers are in its verdict):")
     L += [f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
-          f"(95 % confidence, over the flight envelope{joint})",
-          f"{holdout_text(run)}{joint}; fit chi2/dof {q.chi2_dof:.2f}"]
+          "(95 % confidence, over the flight envelope)",
+          f"{holdout_text(run)}; fit chi2/dof {q.chi2_dof:.2f}"]
     L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
           for am in run.mapping.accel[:1]]
     L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
