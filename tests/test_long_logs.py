@@ -185,3 +185,19 @@ def test_assemble_tlog_releases_imu_columns():
     assert acc0.message == "RAW_IMU" and len(acc0.time_s) == n
     np.testing.assert_allclose(acc0.values[0], np.array([100, 100, -1000]) * G / 1000)
     assert "SCALED_IMU not used: RAW_IMU carries the same instance 0" in lg.warnings
+
+
+def test_fit_accel_degenerate_orientations_are_flagged_not_crashed():
+    """Gravity seen in one plane only: K_a is not identified. The fit either refuses
+    (EstimationError) or says so through its covariance; never a bare LinAlgError."""
+    from mavcal.errors import EstimationError
+
+    rng = np.random.default_rng(5)
+    ang = rng.uniform(0, 2 * np.pi, 14)
+    v = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)
+    sets = [G * vi + rng.normal(scale=0.01, size=(30, 3)) for vi in v]
+    try:
+        fit = fit_accel(sets)
+    except EstimationError:
+        return
+    assert np.diag(fit.param_cov).max() > 1.0  # unidentified: a huge variance (the gates reject it)

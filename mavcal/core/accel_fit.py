@@ -11,8 +11,8 @@ direction ``v_i = R_i g`` of each interval is observed (two degrees of freedom),
 unknowns are K_a (upper triangular: the same gauge as the joint fit; diagonal with fewer
 than :data:`MIN_INTERVALS_UPPER` intervals), b_a and the v_i. Maximum likelihood on the
 interval means weighted by ``n_i Sigma_a^-1`` (the paper's reduced cost J' restricted to
-the accelerometer), solved by Levenberg-Marquardt from the core's ellipsoid start with the v_i eliminated in
-closed form at each step (Schur complement: O(N) per iteration, where a dense solver over the
+the accelerometer), solved by Levenberg-Marquardt from the core's ellipsoid start with the
+v_i eliminated in closed form at each step (Schur complement: O(N) per iteration, where a dense solver over the
 9 + 2N unknowns costs O(N^3)); the covariance of ``[K_a, b_a]`` is the inverse of that
 reduced normal matrix (the marginal of the full one).
 """
@@ -182,7 +182,10 @@ def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = N
         return (st.mu - v @ _gain(theta, idx).T - theta[len(idx):]) @ L_inv.T * w
 
     theta0 = np.concatenate([[K0[i, j] for i, j in idx], b0])
-    theta, v, S, cost = _solve_lm(theta0, v0, idx, resid, L_inv, w)
+    try:
+        theta, v, S, cost = _solve_lm(theta0, v0, idx, resid, L_inv, w)
+    except np.linalg.LinAlgError:
+        raise EstimationError("singular accelerometer fit: the orientations do not span enough directions") from None
     K, b = _gain(theta, idx), theta[len(idx):]
     if np.any(np.diag(K) <= 0):
         raise EstimationError("the accelerometer fit reached a mirrored gain: the orientations do not span")
