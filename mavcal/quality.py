@@ -135,13 +135,15 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
 
     The refits are :func:`mavcal.core.accel_fit.holdout_folds`': leave-one-interval-out up
     to :data:`~mavcal.core.accel_fit.LOO_MAX_INTERVALS` intervals, else
-    :data:`~mavcal.core.accel_fit.HOLDOUT_FOLDS`-fold, so the cost is bounded by ten refits
-    (linear in the interval count) where leave-one-out would be one refit per interval. Only
-    intervals whose gravity direction is seen again in an interval the refit keeps (within
-    ``cluster_deg``) are predicted: leaving out the only pose on one side makes the rest
-    extrapolate, which measures the pose plan rather than the fit. NaN when none qualifies.
-    The prediction is the paper's model ``K R_j g + b`` (Eq. ``sensor_reading_model``)
-    with R_j estimated from interval j alone.
+    :data:`~mavcal.core.accel_fit.HOLDOUT_FOLDS`-fold over at most
+    :data:`~mavcal.core.accel_fit.HOLDOUT_POOL_MAX` intervals evenly spaced in the log, so
+    the cost is bounded (ten refits of at most that many intervals) where leave-one-out
+    would be one refit of N per interval (its docstring says why the number keeps its
+    meaning). Only intervals whose gravity direction is seen again in an interval the refit
+    keeps (within ``cluster_deg``) are predicted: leaving out the only pose on one side
+    makes the rest extrapolate, which measures the pose plan rather than the fit. NaN when
+    none qualifies. The prediction is the paper's model ``K R_j g + b`` (Eq.
+    ``sensor_reading_model``) with R_j estimated from interval j alone.
     """
 
     N = len(acc)
@@ -150,9 +152,7 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     dirs = np.array([a.mean(0) for a in acc])
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     ea, em = [], []
-    for left, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
-        gone = set(left.tolist())
-        keep = [i for i in range(N) if i not in gone]
+    for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
         try:
             cj = calibrate([acc[i] for i in keep], [mag[i] for i in keep], method=method, tol=tol,
                            seed=seed, model=cal.model, noise_floor=noise_floor)

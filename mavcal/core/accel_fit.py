@@ -28,7 +28,7 @@ from mavcal.core.stats import interval_stats
 from mavcal.errors import EstimationError, InsufficientDataError
 
 __all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "MIN_INTERVALS_DIAG", "MIN_INTERVALS_UPPER",
-           "LOO_MAX_INTERVALS", "HOLDOUT_FOLDS"]
+           "LOO_MAX_INTERVALS", "HOLDOUT_FOLDS", "HOLDOUT_POOL_MAX"]
 
 G_UNIT = np.array([0.0, 0.0, -1.0])
 MIN_INTERVALS_DIAG = 6  # 6 + 2N unknowns, 3N equations
@@ -234,42 +234,49 @@ def _nearest_on_ellipsoid(K: np.ndarray, b: np.ndarray, mu: np.ndarray) -> np.nd
 
 LOO_MAX_INTERVALS = 60  # up to this many intervals the held-out check leaves out one at a time
 HOLDOUT_FOLDS = 10  # above it, K-fold with this K: ten refits whatever the interval count
+HOLDOUT_POOL_MAX = 300  # ... over at most this many intervals, evenly spaced in the log
 
 
 def holdout_folds(dirs: np.ndarray, *, cluster_deg: float = 30.0, loo_max: int = LOO_MAX_INTERVALS,
-                  k: int = HOLDOUT_FOLDS) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The refits of the held-out check: ``(left_out, predicted)`` index arrays into the N
-    intervals whose unit gravity directions are ``dirs`` (N, 3).
+                  k: int = HOLDOUT_FOLDS, pool_max: int = HOLDOUT_POOL_MAX) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The refits of the held-out check: ``(fit, predicted)`` index arrays into the N intervals
+    whose unit gravity directions are ``dirs`` (N, 3): refit on ``fit``, predict ``predicted``.
 
-    Up to ``loo_max`` intervals: leave-one-out, every interval j alone (``left_out ==
-    predicted == [j]``), predicted only when its direction is seen again in another interval
-    (within ``cluster_deg``): leaving out the only pose on one side makes the rest
-    extrapolate, which measures the pose plan rather than the fit. Above: ``k``-fold, fold f
-    leaving out the intervals ``j % k == f`` (every interval left out exactly once, each fit
-    on (k-1)/k of the data) and predicting those whose direction is seen in an interval the
-    fold keeps. The cost is k refits of O(N) each: linear in N, where leave-one-out is N
-    refits (quadratic). Each held-out interval is still predicted by a fit that never saw
-    it, with at least ``loo_max (k-1)/k`` intervals in the fit, so the error measured is
-    the same prediction error up to the fit's own share of it (O(p/N) of the interval
-    scatter: under 2 % with 9 accelerometer parameters and 54 intervals); the gates'
-    thresholds keep their meaning.
+    Up to ``loo_max`` intervals: leave-one-out, every interval j predicted by a fit on all
+    the others, when its direction is seen again in another interval (within
+    ``cluster_deg``): leaving out the only pose on one side makes the rest extrapolate,
+    which measures the pose plan rather than the fit.
+
+    Above: ``k``-fold over a pool of at most ``pool_max`` intervals evenly spaced in the log
+    (all of them up to ``pool_max``): fold f predicts the pool's intervals ``i % k == f``
+    (those whose direction is seen in an interval the fold keeps) from a fit on the rest of
+    the pool. The cost is ``k`` refits of at most ``pool_max`` intervals whatever N (where
+    leave-one-out is N refits of N: quadratic). Why it keeps its meaning: every predicted
+    interval is still predicted by a fit that never saw it, from at least
+    ``loo_max (k-1)/k`` = 54 intervals, so the number is the same prediction error up to
+    the fit's own share of it (O(p/N) of the interval scatter, a few per cent for 9-22
+    parameters) and errs on the large side; the pool spans the whole log, so a disturbed
+    stretch of it is sampled in proportion. The gates' thresholds keep their meaning.
     """
     N = len(dirs)
     cos_c = np.cos(np.radians(cluster_deg))
     if N <= loo_max:
         close = (dirs @ dirs.T) > cos_c
-        return [(np.array([j]), np.array([j])) for j in range(N) if close[j].sum() >= 2]
+        every = np.arange(N)
+        return [(np.delete(every, j), np.array([j])) for j in range(N) if close[j].sum() >= 2]
     from scipy.spatial import cKDTree
 
+    pool = np.unique(np.round(np.linspace(0, N - 1, min(N, pool_max))).astype(int))
     chord = 2.0 * np.sin(np.radians(cluster_deg) / 2.0)  # |d_i - d_j| < chord <=> angle < cluster_deg
     out = []
     for f in range(k):
-        out_f = np.arange(f, N, k)
-        keep = np.setdiff1d(np.arange(N), out_f, assume_unique=True)
-        dist, _ = cKDTree(dirs[keep]).query(dirs[out_f], k=1, distance_upper_bound=chord)
+        held = np.zeros(len(pool), dtype=bool)
+        held[f::k] = True
+        fit, out_f = pool[~held], pool[held]
+        dist, _ = cKDTree(dirs[fit]).query(dirs[out_f], k=1, distance_upper_bound=chord)
         pred = out_f[np.isfinite(dist)]
         if pred.size:
-            out.append((out_f, pred))
+            out.append((fit, pred))
     return out
 
 
@@ -277,11 +284,11 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
                        form: str = "auto", cluster_deg: float = 30.0) -> float:
     """RMS held-out error of the accelerometer alone (the reading units).
 
-    As :func:`mavcal.quality.holdout_errors`: the intervals of each refit of
-    :func:`holdout_folds` (leave-one-out up to :data:`LOO_MAX_INTERVALS` intervals, else
-    :data:`HOLDOUT_FOLDS`-fold) are left out and each predicted one's mean is compared with
-    the nearest point of the refit's ellipsoid. NaN when no interval qualifies or too few
-    remain.
+    As :func:`mavcal.quality.holdout_errors`: each refit of :func:`holdout_folds`
+    (leave-one-out up to :data:`LOO_MAX_INTERVALS` intervals, else :data:`HOLDOUT_FOLDS`-fold
+    over at most :data:`HOLDOUT_POOL_MAX`) predicts intervals it never saw, each predicted
+    mean compared with the nearest point of the refit's ellipsoid. NaN when no interval
+    qualifies or too few remain.
     """
     sets = list(accel_sets)
     N = len(sets)
@@ -292,10 +299,9 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     mu = np.array([np.asarray(s, float).mean(0) for s in sets])
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
     errs = []
-    for left, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
-        gone = set(left.tolist())
+    for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
         try:
-            f = fit_accel([sets[i] for i in range(N) if i not in gone], noise_floor=noise_floor, form=form)
+            f = fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form)
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
             continue
         errs += list(np.linalg.norm(mu[pred] - _nearest_on_ellipsoid(f.gain, f.bias, mu[pred]), axis=1))
