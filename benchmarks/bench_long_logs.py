@@ -12,10 +12,16 @@ runs, each as its own subprocess with this tree first on ``PYTHONPATH``:
 
 Each run's wall time is measured here, its peak resident memory by ``/usr/bin/time -f %M``
 (interpreter start included for all three). Prints a table with the ratios to
-pymavlink, peak memory / file size and the 10 MB -> 100 MB (-> 1 GB) time scaling, and writes
-``benchmarks/results/long_logs.md`` and ``.json``.
+pymavlink, peak memory / file size and the 10 MB -> 100 MB (-> 1 GB) time scaling.
 
-    python benchmarks/bench_long_logs.py [--full] [--sizes-mb 10 100] [--timeout 3600]
+The interval-count case (``--intervals 2000 20000``, kind ``sim``): simulated sessions of that
+many random poses (``biglogs.build_intervals_tlog``), ``mavcal calibrate`` and the pymavlink
+reader on each; ``time x`` is then the cost against the interval count.
+
+Results go to ``benchmarks/out/long_logs.md`` / ``.json``, to ``benchmarks/results/`` with
+``--save`` (tracked), or ``--out DIR`` (benchmarks/README.md).
+
+    python benchmarks/bench_long_logs.py [--save] [--full] [--sizes-mb 10 100] [--intervals 2000 20000]
 """
 from __future__ import annotations
 
@@ -36,7 +42,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 import biglogs  # noqa: E402  (benchmarks/ is this script's directory)
 
-RESULTS = REPO / "benchmarks" / "results"
+OUT = REPO / "benchmarks" / "out"  # rebound by --save / --out (bench_output)
 TLOG_TYPES = ["RAW_IMU", "SCALED_IMU2"]
 DF_TYPES = ["IMU", "MAG"]
 TOOLS = ("mavcal calibrate", "mavcal segments", "pymavlink read")
@@ -92,6 +98,13 @@ def run(cmd: list, timeout_s: float, stdout=subprocess.DEVNULL) -> dict:
     return out
 
 
+def _n_intervals(cal_json: Path) -> int | None:
+    try:
+        return len(json.loads(cal_json.read_text())["intervals"])
+    except (OSError, ValueError, KeyError):
+        return None
+
+
 def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, tools) -> list:
     py = sys.executable
     size_mb = path.stat().st_size / 1e6
@@ -104,9 +117,11 @@ def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, t
     for tool, cmd in cmds.items():
         if tool not in tools:
             continue
+        (tmp / "cal.json").unlink(missing_ok=True)
         r = run(cmd, timeout_s)
         r.update(kind=kind, size_mb=round(size_mb, 1), copies=copies, tool=tool,
-                 rss_per_file=round(r["peak_rss_mb"] / size_mb, 2) if r["peak_rss_mb"] else None)
+                 rss_per_file=round(r["peak_rss_mb"] / size_mb, 2) if r["peak_rss_mb"] else None,
+                 intervals=_n_intervals(tmp / "cal.json") if tool == "mavcal calibrate" else None)
         rows.append(r)
         print(r, file=sys.stderr, flush=True)
     ref = rows[-1]["wall_s"] if rows and rows[-1]["tool"] == "pymavlink read" else None
@@ -119,31 +134,36 @@ def add_scaling(rows: list) -> None:
     """time(size) / time(smallest size) and the size ratio, per kind and tool."""
     for r in rows:
         same = [q for q in rows if q["kind"] == r["kind"] and q["tool"] == r["tool"]]
-        base = min(same, key=lambda q: q["size_mb"])
-        r["size_x"] = round(r["size_mb"] / base["size_mb"], 1)
+        base = min(same, key=lambda q: (q["copies"], q["size_mb"]))
+        r["size_x"] = round(r["size_mb"] / base["size_mb"], 1) if r["kind"] != "sim" else \
+            round(r["copies"] / base["copies"], 1)
         r["time_x"] = round(r["wall_s"] / base["wall_s"], 1) if r["wall_s"] and base["wall_s"] else None
 
 
-def write_results(rows: list, env: str) -> str:
-    md = ["| log | size MB | copies | tool | wall s | peak RSS MB | RSS / file | time / pymavlink | size x | time x "
-          "| rc |",
-          "|---|---|---|---|---|---|---|---|---|---|---|"]
+def write_results(rows: list, env: str, command: str = "") -> str:
+    md = ["| log | size MB | copies / poses | intervals | tool | wall s | peak RSS MB | RSS / file | time / pymavlink "
+          "| size x | time x | rc |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        md.append(f"| {r['kind']} | {r['size_mb']} | {r['copies']} | {r['tool']} | {r['wall_s']} | "
-                  f"{r['peak_rss_mb']} | {r['rss_per_file']} | {r['time_vs_pymavlink']} | {r['size_x']} | "
-                  f"{r['time_x']} | {r['rc']} |")
+        md.append(f"| {r['kind']} | {r['size_mb']} | {r['copies']} | {r.get('intervals') or ''} | {r['tool']} | "
+                  f"{r['wall_s']} | {r['peak_rss_mb']} | {r['rss_per_file']} | {r['time_vs_pymavlink']} | "
+                  f"{r['size_x']} | {r['time_x']} | {r['rc']} |")
     text = ("# Long logs end to end (benchmarks/bench_long_logs.py)\n\n" + "\n".join(md) +
             "\n\nLogs: time-shifted copies of sitl_logs/sitl02.tlog and 00000124.BIN (benchmarks/biglogs.py). "
             "Each row is one subprocess: `mavcal calibrate LOG --json OUT`, `mavcal segments LOG --json`, or "
             "pymavlink reading the IMU messages (tlog: recv_match over RAW_IMU, SCALED_IMU2; .bin: DFReader over "
             "IMU, MAG) and collecting the values. Peak RSS = `/usr/bin/time -f %M` of the run, interpreter "
             "included (MB = 1e6 bytes); RSS / file = peak RSS over the file size. size x / time x: ratio to "
-            "the smallest size of the same log kind and tool (linear = equal). rc 4 = calibration rejected "
-            "by a quality gate (the copies of one session are a valid but repetitive log). "
-            f"Machine shared with other jobs: timings vary between runs. {env}.\n")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "long_logs.md").write_text(text)
-    (RESULTS / "long_logs.json").write_text(json.dumps({"environment": env, "rows": rows}, indent=1))
+            "the smallest size of the same log kind and tool (linear = equal); for kind sim, the ratio of "
+            "the pose counts (simulated sessions, biglogs.build_intervals_tlog) and its time, i.e. the cost "
+            "against the interval count. intervals: still intervals of the calibrate run. rc 4 = calibration "
+            "rejected by a quality gate (the copies of one session are a valid but repetitive log). "
+            f"Machine shared with other jobs: timings vary between runs. {env}.\n"
+            + (f"\nProduced by `{command}`.\n" if command else ""))
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "long_logs.md").write_text(text)
+    (OUT / "long_logs.json").write_text(json.dumps({"environment": env, "command": command, "rows": rows},
+                                                   indent=1))
     return text
 
 
@@ -151,7 +171,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes-mb", type=float, nargs="+", default=[10.0, 100.0])
     ap.add_argument("--full", action="store_true", help="also 1 GB (1000 MB)")
-    ap.add_argument("--kinds", nargs="+", default=["tlog", "bin"], choices=["tlog", "bin"])
+    ap.add_argument("--kinds", nargs="+", default=["tlog", "bin", "sim"], choices=["tlog", "bin", "sim"])
+    ap.add_argument("--intervals", type=int, nargs="+", default=[2000, 20000],
+                    help="pose counts of the simulated sessions (kind sim)")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     ap.add_argument("--tools", nargs="+", default=list(TOOLS), choices=list(TOOLS))
     args = ap.parse_args(argv)
@@ -161,22 +183,30 @@ def main(argv=None) -> int:
     env = f"python {platform.python_version()}, numpy {np.__version__}, {platform.machine()}, {os.cpu_count()} CPUs"
     rows: list = []
     tmp = Path(tempfile.mkdtemp(prefix="mavcal-long-logs-", dir="/tmp"))
+    command = "python benchmarks/bench_long_logs.py " + " ".join(sys.argv[1:])
     try:
         for kind in args.kinds:
-            for size in sizes:
-                path = tmp / f"big_{int(size)}MB.{kind}"
-                build = biglogs.build_tlog if kind == "tlog" else biglogs.build_bin
-                copies = build(path, size * 1e6)
-                rows += bench_log(kind, path, copies, tmp, args.timeout, args.tools)
+            for size in (args.intervals if kind == "sim" else sizes):
+                path = tmp / f"big_{int(size)}{'poses' if kind == 'sim' else 'MB'}.{'bin' if kind == 'bin' else 'tlog'}"
+                if kind == "sim":
+                    copies = biglogs.build_intervals_tlog(path, int(size))
+                    tools = [t for t in args.tools if t != "mavcal segments"]
+                else:
+                    build = biglogs.build_tlog if kind == "tlog" else biglogs.build_bin
+                    copies, tools = build(path, size * 1e6), args.tools
+                rows += bench_log(kind, path, copies, tmp, args.timeout, tools)
                 path.unlink()
                 add_scaling(rows)
-                write_results(rows, env)  # after every log: a long run interrupted keeps what it measured
+                write_results(rows, env, command)  # after every log: a long run interrupted keeps what it measured
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     add_scaling(rows)
-    print(write_results(rows, env))
+    print(write_results(rows, env, command))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from bench_output import output_dir  # --save / --out: where the results go (benchmarks/README.md)
+
+    OUT, _argv = output_dir(sys.argv[1:])  # the other arguments go on to main's own parser
+    sys.exit(main(_argv))

@@ -19,7 +19,12 @@ copies follow each other and every sample of every copy is kept.
 Both write the file in whole copies until it reaches ``size_bytes`` (at least one copy) and
 return the number of copies. Same inputs -> byte-identical output.
 
+* :func:`build_intervals_tlog`: a simulated hand-held session (:mod:`mavcal.testing.simlog`)
+  with ``n`` random poses held 2 s each, 0.8 s of motion between, 25 Hz: a log of about ``n``
+  still intervals, for the cost against the interval count at a small size per interval.
+
     python benchmarks/biglogs.py tlog /tmp/big.tlog 100e6
+    python benchmarks/biglogs.py intervals /tmp/n2000.tlog 2000
 """
 from __future__ import annotations
 
@@ -215,8 +220,25 @@ def build_tlog(dst: Path, size_bytes: float, src: Path = DEFAULT_TLOG) -> int:
     return _write_copies(Path(dst), data, sites, span, size_bytes, fix)
 
 
+def build_intervals_tlog(dst: Path, n_intervals: int, seed: int = 0) -> int:
+    """Write a simulated session of ``n_intervals`` random poses (each held 2 s) to ``dst``;
+    returns ``n_intervals``. Deterministic for a given seed."""
+    from mavcal.testing.simlog import SimConfig, simulate_session
+
+    rng = np.random.default_rng(seed)
+    n = int(n_intervals)
+    poses = tuple(zip(rng.uniform(-180, 180, n).tolist(), rng.uniform(-80, 80, n).tolist(),
+                      rng.uniform(-180, 180, n).tolist()))
+    simulate_session(SimConfig(poses_deg=poses, hold_s=2.0, move_s=0.8, rate_hz=25.0, seed=seed + 1), tlog=dst)
+    return n
+
+
 def main(argv=None) -> int:
     kind, dst, size = (argv or sys.argv[1:])[:3]
+    if kind == "intervals":
+        build_intervals_tlog(Path(dst), int(float(size)))
+        print(f"{dst}: {int(float(size))} poses, {Path(dst).stat().st_size / 1e6:.1f} MB")
+        return 0
     n = (build_tlog if kind == "tlog" else build_bin)(Path(dst), float(size))
     print(f"{dst}: {n} copies, {Path(dst).stat().st_size / 1e6:.1f} MB")
     return 0

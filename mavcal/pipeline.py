@@ -26,15 +26,20 @@ from mavcal.core.types import Calibration
 from mavcal.errors import EXIT_PARTIAL, GateError, InsufficientDataError, MavcalError, SourceError
 from mavcal.quality import Quality, accel_tilt_bounds, holdout_errors, quality_of
 from mavcal.segment import Segmentation, StillConfig, find_still_intervals
-from mavcal.sources.progress import ProgressFn
+from mavcal.sources.progress import ProgressFn, report
 from mavcal.sources.types import ImuLog
 
 log = logging.getLogger(__name__)
 
+# the stages a progress object with a ``stage`` method is told of (mavcal.sources.progress)
+STAGE_RECOVER = "recovering raw readings"
+STAGE_SEGMENT = "finding still intervals"
+STAGE_FIT = "fitting"
+
 EXIT_ALL_ACCEPTED, EXIT_NONE_ACCEPTED = 0, GateError.exit_code
 
 __all__ = ["Options", "Prepared", "CalibrationRun", "Quality", "open_source", "prepare", "calibrate_source",
-           "calibrate_prepared"]
+           "calibrate_prepared", "STAGE_RECOVER", "STAGE_SEGMENT", "STAGE_FIT"]
 
 
 @dataclass(frozen=True)
@@ -271,7 +276,9 @@ def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
     options : Options
         Only ``options.untruncate`` and ``options.still`` are used here.
     progress : callable(done, total), optional
-        Passed to :func:`open_source`.
+        Passed to :func:`open_source`; an object that also has ``stage(name, done, total)``
+        (:class:`mavcal.sources.progress.ProgressPrinter`, :class:`~mavcal.sources.progress.CallbackProgress`)
+        is told the later stages too (:data:`STAGE_RECOVER`, :data:`STAGE_SEGMENT`).
 
     Returns
     -------
@@ -291,11 +298,15 @@ def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
     log_ = source if isinstance(source, ImuLog) else open_source(source, progress=progress)
     warnings: list[str] = list(log_.warnings)
     steps = {(s.sensor, s.instance): quantization_step(s) for s in log_.series}
+    report(progress, STAGE_RECOVER, 0, 1)
     if opts.untruncate:
         log_, _ = untruncate_log(log_)
     raw = recover_raw(log_)
+    report(progress, STAGE_RECOVER, 1, 1)
     warnings += list(raw.warnings)
+    report(progress, STAGE_SEGMENT, 0, 1)
     seg = find_still_intervals(raw, opts.still)
+    report(progress, STAGE_SEGMENT, 1, 1)
     warnings += list(seg.warnings)
     return Prepared(log_, raw, seg, steps, tuple(warnings))
 
@@ -317,7 +328,10 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
     options : Options, optional
         Fit, mapping and gate settings; the defaults are the command line's.
     progress : callable(done, total), optional
-        Called as the file is read.
+        Called as the file is read; an object with a ``stage(name, done, total)`` method
+        is told every stage (reading, recovery, segmentation, :data:`STAGE_FIT` counted in
+        fits): :func:`mavcal.sources.progress.auto_progress` for a terminal line,
+        :class:`mavcal.sources.progress.CallbackProgress` for ``fn(stage, fraction)`` calls.
 
     Returns
     -------
@@ -346,10 +360,10 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
     >>> run.accepted, round(run.mapping.new["COMPASS_OFS_X"])  # doctest: +SKIP
     (True, -141)
     """
-    return calibrate_prepared(prepare(source, options, progress=progress), options)
+    return calibrate_prepared(prepare(source, options, progress=progress), options, progress=progress)
 
 
-def calibrate_prepared(prep: Prepared, options: Options = Options()) -> CalibrationRun:
+def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
     """The fits, mapping, quality and per-sensor gates for a :class:`Prepared` recording.
 
     Every accelerometer is judged on its own fit (:mod:`mavcal.core.accel_fit`); it is written
@@ -367,6 +381,8 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
         ``options`` (a different model, other gate limits) without reading it again.
     options : Options, optional
         Everything except ``still`` and ``untruncate`` (those act in :func:`prepare`).
+    progress : optional
+        As :func:`calibrate_source`'s: told :data:`STAGE_FIT` (fits done of fits to do).
 
     Returns
     -------
@@ -381,17 +397,17 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
     """
     opts, warnings = _resolve(prep, options)
     if opts.sensors == "accel":
-        return _accel_only(prep, opts, warnings)
+        return _accel_only(prep, opts, warnings, progress)
     ai, mi = opts.accel_instance, opts.mag_instance
+    pairs = _other_pairs(prep, opts)
+    n_fits = 1 + len(pairs) + (len(prep.raw.accel_instances()) if opts.sensors == "both" else 0)
+    report(progress, STAGE_FIT, 0, n_fits)
     primary = _calibrate_pair(prep, opts)
+    report(progress, STAGE_FIT, 1, n_fits)
     warnings += list(primary.warnings)
-    pairs: list[tuple[int, int]] = []
-    if opts.all_instances:
-        if opts.sensors == "both":
-            pairs += [(a, mi) for a in prep.raw.accel_instances() if a != ai]
-        pairs += [(ai, m) for m in _wanted(prep.raw.mag_instances(), opts, "compass") if m != mi]
     others = []
-    for a, m in pairs:
+    for k, (a, m) in enumerate(pairs):
+        report(progress, STAGE_FIT, 1 + k, n_fits)
         try:
             others.append(_calibrate_pair(prep, replace(options, accel_instance=a, mag_instance=m,
                                                         holdout=opts.holdout and a == ai)))
@@ -406,7 +422,8 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
     if opts.sensors == "both":
         mi_ok = all(g.ok for g in primary.gates.gates)
         joint = {r.mapping.accel[0].instance: r for r in [primary] + others if r.mapping.compass[0].instance == mi}
-        for a in prep.raw.accel_instances():
+        for k, a in enumerate(prep.raw.accel_instances()):
+            report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits)
             try:
                 am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, joint[a].mapping.accel[0]
                                                      if a in joint and mi_ok else None)
@@ -419,10 +436,22 @@ def calibrate_prepared(prep: Prepared, options: Options = Options()) -> Calibrat
             if a in joint and not mi_ok:
                 warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
                                 "was rejected")
+    report(progress, STAGE_FIT, n_fits, n_fits)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+
+
+def _other_pairs(prep: Prepared, opts: Options) -> list[tuple[int, int]]:
+    """The accelerometer/compass pairs fitted besides the primary one (``opts.all_instances``)."""
+    ai, mi = opts.accel_instance, opts.mag_instance
+    pairs: list[tuple[int, int]] = []
+    if opts.all_instances:
+        if opts.sensors == "both":
+            pairs += [(a, mi) for a in prep.raw.accel_instances() if a != ai]
+        pairs += [(ai, m) for m in _wanted(prep.raw.mag_instances(), opts, "compass") if m != mi]
+    return pairs
 
 
 def _wanted(instances, opts: Options, kind: str) -> list[int]:
@@ -492,7 +521,7 @@ def _n_orientations(dirs: np.ndarray, seg: Segmentation) -> int:
     return len(centres)
 
 
-def _accel_only(prep: Prepared, opts: Options, warnings: list[str]) -> CalibrationRun:
+def _accel_only(prep: Prepared, opts: Options, warnings: list[str], progress=None) -> CalibrationRun:
     """Every wanted accelerometer calibrated from its own intervals alone."""
     params_now = prep.log.params.snapshot()
     accels, gates, fits = [], [], []
@@ -502,7 +531,8 @@ def _accel_only(prep: Prepared, opts: Options, warnings: list[str]) -> Calibrati
     if not wanted:
         raise SourceError(f"{prep.log.source}: no accelerometer data")
     errors = []
-    for a in wanted:
+    for k, a in enumerate(wanted):
+        report(progress, STAGE_FIT, k, len(wanted))
         try:
             am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None)
         except MavcalError as exc:
@@ -516,6 +546,7 @@ def _accel_only(prep: Prepared, opts: Options, warnings: list[str]) -> Calibrati
             quality = Quality(float("nan"), tilt[0], float("nan"), tilt[1], ho, float("nan"),
                               fit.cost / fit.dof if fit.dof > 0 else float("nan"))
             first_used = tuple(_accel_sets(prep, a)[0])
+    report(progress, STAGE_FIT, len(wanted), len(wanted))
     if quality is None:
         raise errors[0]
     if not params_now:

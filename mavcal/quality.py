@@ -6,7 +6,8 @@
 * :func:`quality_of`: the 95 % bounds of the heading and tilt error over the flight
   envelope, propagating the parameter covariance (draws of
   :func:`mavcal.core.uncertainty.sample_parameters`);
-* :func:`holdout_errors`: the leave-one-interval-out reconstruction error;
+* :func:`holdout_errors`: the held-out reconstruction error (leave-one-interval-out, K-fold
+  on long logs);
 * :func:`accel_tilt_bounds`: an accelerometer's own 95 % tilt bound, from its fit alone
   (:mod:`mavcal.core.accel_fit`), so that no compass's misfit enters its verdict.
 """
@@ -22,7 +23,7 @@ import numpy as np
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
-from mavcal.core.accel_fit import AccelFit, sample_accel
+from mavcal.core.accel_fit import AccelFit, holdout_folds, sample_accel
 from mavcal.core.calibrate import calibrate, estimate_orientations
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import MODELS
@@ -45,7 +46,7 @@ class Quality:
     tilt_95_deg: float
     heading_nominal_deg: float  # what the dropped terms alone cause (at the estimate)
     tilt_nominal_deg: float
-    holdout_accel_mps2: float  # RMS leave-one-interval-out reconstruction error
+    holdout_accel_mps2: float  # RMS held-out reconstruction error (holdout_errors)
     holdout_mag_mgauss: float
     chi2_dof: float
 
@@ -130,13 +131,19 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
                    method: str = "ncar", tol: float = 1e-4, seed: int = 0,
                    noise_floor: tuple[float | None, float | None] = (None, None),
                    cluster_deg: float = 30.0) -> tuple[float, float]:
-    """RMS leave-one-interval-out error: refit without interval j, predict j's means.
+    """RMS held-out error: refit without some intervals, predict their means.
 
-    Only intervals whose gravity direction is seen again in another interval (within
-    ``cluster_deg``) are held out: leaving out the only pose on one side makes the rest
-    extrapolate, which measures the pose plan rather than the fit. NaN when none qualifies.
-    The prediction is the paper's model ``K R_j g + b`` (Eq. ``sensor_reading_model``)
-    with R_j estimated from interval j alone.
+    The refits are :func:`mavcal.core.accel_fit.holdout_folds`': leave-one-interval-out up
+    to :data:`~mavcal.core.accel_fit.LOO_MAX_INTERVALS` intervals, else
+    :data:`~mavcal.core.accel_fit.HOLDOUT_FOLDS`-fold over at most
+    :data:`~mavcal.core.accel_fit.HOLDOUT_POOL_MAX` intervals evenly spaced in the log, so
+    the cost is bounded (ten refits of at most that many intervals) where leave-one-out
+    would be one refit of N per interval (its docstring says why the number keeps its
+    meaning). Only intervals whose gravity direction is seen again in an interval the refit
+    keeps (within ``cluster_deg``) are predicted: leaving out the only pose on one side
+    makes the rest extrapolate, which measures the pose plan rather than the fit. NaN when
+    none qualifies. The prediction is the paper's model ``K R_j g + b`` (Eq.
+    ``sensor_reading_model``) with R_j estimated from interval j alone.
     """
 
     N = len(acc)
@@ -144,22 +151,19 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
         return float("nan"), float("nan")
     dirs = np.array([a.mean(0) for a in acc])
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    close = (dirs @ dirs.T) > np.cos(np.radians(cluster_deg))
     ea, em = [], []
-    for j in range(N):
-        if close[j].sum() < 2:
-            continue
-        keep = [i for i in range(N) if i != j]
+    for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
         try:
             cj = calibrate([acc[i] for i in keep], [mag[i] for i in keep], method=method, tol=tol,
                            seed=seed, model=cal.model, noise_floor=noise_floor)
         except MavcalError:
             continue
-        R = estimate_orientations(cj, [acc[j]], [mag[j]])[0]
-        pa = cj.accel.gain @ R @ cj.gravity + cj.accel.bias
-        pm = cj.mag.gain @ R @ cj.field + cj.mag.bias
-        ea.append(np.linalg.norm(acc[j].mean(0) - pa))
-        em.append(np.linalg.norm(mag[j].mean(0) - pm))
+        Rs = estimate_orientations(cj, [acc[j] for j in pred], [mag[j] for j in pred])
+        for j, R in zip(pred, Rs):
+            pa = cj.accel.gain @ R @ cj.gravity + cj.accel.bias
+            pm = cj.mag.gain @ R @ cj.field + cj.mag.bias
+            ea.append(np.linalg.norm(acc[j].mean(0) - pa))
+            em.append(np.linalg.norm(mag[j].mean(0) - pm))
     if not ea:
         return float("nan"), float("nan")
     return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))

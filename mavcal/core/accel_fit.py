@@ -11,7 +11,10 @@ direction ``v_i = R_i g`` of each interval is observed (two degrees of freedom),
 unknowns are K_a (upper triangular: the same gauge as the joint fit; diagonal with fewer
 than :data:`MIN_INTERVALS_UPPER` intervals), b_a and the v_i. Maximum likelihood on the
 interval means weighted by ``n_i Sigma_a^-1`` (the paper's reduced cost J' restricted to
-the accelerometer), solved by Gauss-Newton/trust region from the core's ellipsoid start.
+the accelerometer), solved by Levenberg-Marquardt from the core's ellipsoid start with the
+v_i eliminated in closed form at each step (Schur complement: O(N) per iteration, where a dense solver over the
+9 + 2N unknowns costs O(N^3)); the covariance of ``[K_a, b_a]`` is the inverse of that
+reduced normal matrix (the marginal of the full one).
 """
 from __future__ import annotations
 
@@ -19,13 +22,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from mavcal.core.initial import fit_ellipsoid, fit_sphere
 from mavcal.core.stats import interval_stats
 from mavcal.errors import EstimationError, InsufficientDataError
 
-__all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "MIN_INTERVALS_DIAG", "MIN_INTERVALS_UPPER"]
+__all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "MIN_INTERVALS_DIAG", "MIN_INTERVALS_UPPER",
+           "LOO_MAX_INTERVALS", "HOLDOUT_FOLDS", "HOLDOUT_POOL_MAX"]
 
 G_UNIT = np.array([0.0, 0.0, -1.0])
 MIN_INTERVALS_DIAG = 6  # 6 + 2N unknowns, 3N equations
@@ -59,14 +62,95 @@ def _tangent(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(v, e1)
 
 
-def _unpack(theta: np.ndarray, idx, v0: np.ndarray, basis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _gain(theta: np.ndarray, idx) -> np.ndarray:
     K = np.zeros((3, 3))
     for k, (i, j) in enumerate(idx):
         K[i, j] = theta[k]
-    b = theta[len(idx):len(idx) + 3]
-    ab = theta[len(idx) + 3:].reshape(-1, 2)
-    v = v0 + ab[:, :1] * basis[:, 0] + ab[:, 1:] * basis[:, 1]
-    return K, b, v / np.linalg.norm(v, axis=1, keepdims=True)
+    return K
+
+
+def _basis(v: np.ndarray) -> np.ndarray:
+    """(N, 2, 3): an orthonormal basis of the tangent plane at each unit vector v_i (vectorised
+    :func:`_tangent`)."""
+    a = np.where(np.abs(v[:, :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    e1 = np.cross(v, a)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return np.stack([e1, np.cross(v, e1)], 1)
+
+
+def _jacobians(K: np.ndarray, v: np.ndarray, basis: np.ndarray, idx, L_inv: np.ndarray,
+               w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-interval Jacobian blocks of the weighted residuals ``w_i L^-1 (mu_i - K v_i - b)``:
+    global (N, 3, P) over ``[K entries, b]`` and local (N, 3, 2) over the tangent step of v_i."""
+    N = v.shape[0]
+    Jg = np.empty((N, 3, len(idx) + 3))
+    for m, (i, j) in enumerate(idx):
+        Jg[:, :, m] = -w * L_inv[:, i][None, :] * v[:, j:j + 1]
+    Jg[:, :, len(idx):] = -w[:, :, None] * L_inv[None]
+    Jl = -w[:, :, None] * np.einsum("ab,nbc->nac", L_inv @ K, np.swapaxes(basis, 1, 2))
+    return Jg, Jl
+
+
+def _schur_step(Jg: np.ndarray, Jl: np.ndarray, r: np.ndarray, lam: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One damped Gauss-Newton step (Levenberg-Marquardt, ``lam`` on the diagonal) with the
+    per-interval unknowns eliminated in closed form (Schur complement): O(N) work.
+
+    Returns (global step, local steps (N, 2), the damped reduced normal matrix S)."""
+    N, _, P = Jg.shape
+    JgT = np.swapaxes(Jg, 1, 2)  # (N, P, 3)
+    JlT = np.swapaxes(Jl, 1, 2)  # (N, 2, 3)
+    A = Jg.reshape(-1, P).T @ Jg.reshape(-1, P)
+    B = JgT @ Jl  # (N, P, 2)
+    C = JlT @ Jl  # (N, 2, 2)
+    gg = Jg.reshape(-1, P).T @ r.reshape(-1)
+    gl = (JlT @ r[:, :, None])[:, :, 0]  # (N, 2)
+    Cd = C + lam * C * np.eye(2)  # C_i + lam diag(C_i)
+    Ci = np.linalg.inv(Cd)
+    BCi = B @ Ci  # (N, P, 2)
+    BCi_wide = BCi.transpose(1, 0, 2).reshape(P, 2 * N)  # [BCi_1 ... BCi_N]
+    S = A + lam * np.diag(np.diag(A)) - BCi_wide @ B.transpose(0, 2, 1).reshape(2 * N, P)  # A - sum B C^-1 B^T
+    rhs = -gg + BCi_wide @ gl.reshape(-1)
+    dg = np.linalg.solve(S, rhs)
+    dl = -(Ci @ (gl + (np.swapaxes(B, 1, 2) @ dg))[:, :, None])[:, :, 0]
+    return dg, dl, S
+
+
+def _solve_lm(theta: np.ndarray, v: np.ndarray, idx, resid, L_inv: np.ndarray, w: np.ndarray,
+              max_iter: int = 200) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Minimise the weighted squared residuals over ``theta`` = [K entries, b] and the unit
+    vectors v_i (each moved in its tangent plane, then renormalised) by Levenberg-Marquardt
+    with the Schur complement (:func:`_schur_step`). Returns (theta, v, S at the optimum, cost)."""
+    r = resid(theta, v)
+    cost = float(np.sum(r * r))
+    lam = 1e-3
+    for _ in range(max_iter):
+        K = _gain(theta, idx)
+        basis = _basis(v)
+        Jg, Jl = _jacobians(K, v, basis, idx, L_inv, w)
+        for _ in range(30):
+            dg, dl, S = _schur_step(Jg, Jl, r, lam)
+            th_new = theta + dg
+            v_new = v + dl[:, :1] * basis[:, 0] + dl[:, 1:] * basis[:, 1]
+            v_new /= np.linalg.norm(v_new, axis=1, keepdims=True)
+            r_new = resid(th_new, v_new)
+            c_new = float(np.sum(r_new * r_new))
+            if c_new <= cost:
+                break
+            lam *= 4.0
+        else:
+            break
+        small = (np.abs(dg).max() <= 1e-12 * (np.abs(theta).max() + 1e-12)
+                 and (dl.size == 0 or np.abs(dl).max() <= 1e-12))
+        done = cost - c_new <= 1e-12 * cost or small
+        theta, v, r, cost = th_new, v_new, r_new, c_new
+        lam = max(lam / 3.0, 1e-12)
+        if done:
+            break
+    K = _gain(theta, idx)
+    Jg, Jl = _jacobians(K, v, _basis(v), idx, L_inv, w)
+    _, _, S = _schur_step(Jg, Jl, r, 0.0)
+    return theta, v, S, cost
 
 
 def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
@@ -91,23 +175,23 @@ def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = N
     if not np.all(np.isfinite(v0)) or np.any(np.linalg.norm(v0, axis=1) == 0):
         raise EstimationError("degenerate accelerometer start: the orientations do not span enough directions")
     v0 = v0 / np.linalg.norm(v0, axis=1, keepdims=True)
-    basis = np.array([np.stack(_tangent(v)) for v in v0])  # (N, 2, 3)
     L_inv = np.linalg.inv(np.linalg.cholesky(st.sigma_hat))
     w = np.sqrt(st.n)[:, None]
 
-    def resid(theta: np.ndarray) -> np.ndarray:
-        K, b, v = _unpack(theta, idx, v0, basis)
-        return ((st.mu - v @ K.T - b) @ L_inv.T * w).ravel()
+    def resid(theta: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return (st.mu - v @ _gain(theta, idx).T - theta[len(idx):]) @ L_inv.T * w
 
-    theta0 = np.concatenate([[K0[i, j] for i, j in idx], b0, np.zeros(2 * N)])
-    res = least_squares(resid, theta0, method="lm" if 3 * N >= theta0.size else "trf", xtol=1e-12, ftol=1e-12)
-    K, b, v = _unpack(res.x, idx, v0, basis)
+    theta0 = np.concatenate([[K0[i, j] for i, j in idx], b0])
+    try:
+        theta, v, S, cost = _solve_lm(theta0, v0, idx, resid, L_inv, w)
+    except np.linalg.LinAlgError:
+        raise EstimationError("singular accelerometer fit: the orientations do not span enough directions") from None
+    K, b = _gain(theta, idx), theta[len(idx):]
     if np.any(np.diag(K) <= 0):
         raise EstimationError("the accelerometer fit reached a mirrored gain: the orientations do not span")
-    cost = float(np.sum(res.fun ** 2))
-    dof = 3 * N - theta0.size
+    dof = 3 * N - (theta0.size + 2 * N)
     scale = max(1.0, cost / dof) if dof > 0 else 1.0
-    cov = np.linalg.pinv(res.jac.T @ res.jac)[:len(idx) + 3, :len(idx) + 3] * scale
+    cov = np.linalg.pinv(S) * scale  # the marginal covariance of [K, b]: the Schur complement's inverse
     names = tuple(f"K_a[{i + 1}{j + 1}]" for i, j in idx) + ("b_a[x]", "b_a[y]", "b_a[z]")
     return AccelFit(gain=K, bias=b, form=form, param_names=names, param_cov=cov, directions=v, cost=cost,
                     dof=int(dof), n_intervals=N)
@@ -127,27 +211,83 @@ def sample_accel(fit: AccelFit, n: int, rng: np.random.Generator) -> list[tuple[
 
 
 def _nearest_on_ellipsoid(K: np.ndarray, b: np.ndarray, mu: np.ndarray) -> np.ndarray:
-    """The reading ``K v + b`` (|v| = 1) nearest to ``mu`` (a few Gauss-Newton steps on v)."""
-    v = np.linalg.solve(K, mu - b)
-    v /= np.linalg.norm(v)
+    """The readings ``K v + b`` (|v| = 1) nearest to each row of ``mu`` (M, 3): a few
+    Gauss-Newton steps on every v at once, each row frozen once its step is below 1e-12."""
+    mu = np.atleast_2d(mu)
+    v = np.linalg.solve(K, (mu - b).T).T
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    active = np.ones(len(v), dtype=bool)
     for _ in range(10):
-        e1, e2 = _tangent(v)
-        J = K @ np.stack([e1, e2], 1)
-        step = np.linalg.lstsq(J, mu - K @ v - b, rcond=None)[0]
-        v = v + step[0] * e1 + step[1] * e2
-        v /= np.linalg.norm(v)
-        if np.abs(step).max() < 1e-12:
+        if not active.any():
             break
-    return K @ v + b
+        va = v[active]
+        E = _basis(va)  # (m, 2, 3)
+        J = np.einsum("ij,mcj->mic", K, E)  # (m, 3, 2)
+        r = mu[active] - va @ K.T - b
+        step = np.linalg.solve(np.swapaxes(J, 1, 2) @ J, (np.swapaxes(J, 1, 2) @ r[:, :, None]))[:, :, 0]
+        va = va + step[:, :1] * E[:, 0] + step[:, 1:] * E[:, 1]
+        v[active] = va / np.linalg.norm(va, axis=1, keepdims=True)
+        idx = np.flatnonzero(active)
+        active[idx[np.abs(step).max(axis=1) < 1e-12]] = False
+    return v @ K.T + b
+
+
+LOO_MAX_INTERVALS = 60  # up to this many intervals the held-out check leaves out one at a time
+HOLDOUT_FOLDS = 10  # above it, K-fold with this K: ten refits whatever the interval count
+HOLDOUT_POOL_MAX = 300  # ... over at most this many intervals, evenly spaced in the log
+
+
+def holdout_folds(dirs: np.ndarray, *, cluster_deg: float = 30.0, loo_max: int = LOO_MAX_INTERVALS,
+                  k: int = HOLDOUT_FOLDS, pool_max: int = HOLDOUT_POOL_MAX) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The refits of the held-out check: ``(fit, predicted)`` index arrays into the N intervals
+    whose unit gravity directions are ``dirs`` (N, 3): refit on ``fit``, predict ``predicted``.
+
+    Up to ``loo_max`` intervals: leave-one-out, every interval j predicted by a fit on all
+    the others, when its direction is seen again in another interval (within
+    ``cluster_deg``): leaving out the only pose on one side makes the rest extrapolate,
+    which measures the pose plan rather than the fit.
+
+    Above: ``k``-fold over a pool of at most ``pool_max`` intervals evenly spaced in the log
+    (all of them up to ``pool_max``): fold f predicts the pool's intervals ``i % k == f``
+    (those whose direction is seen in an interval the fold keeps) from a fit on the rest of
+    the pool. The cost is ``k`` refits of at most ``pool_max`` intervals whatever N (where
+    leave-one-out is N refits of N: quadratic). Why it keeps its meaning: every predicted
+    interval is still predicted by a fit that never saw it, from at least
+    ``loo_max (k-1)/k`` = 54 intervals, so the number is the same prediction error up to
+    the fit's own share of it (O(p/N) of the interval scatter, a few per cent for 9-22
+    parameters) and errs on the large side; the pool spans the whole log, so a disturbed
+    stretch of it is sampled in proportion. The gates' thresholds keep their meaning.
+    """
+    N = len(dirs)
+    cos_c = np.cos(np.radians(cluster_deg))
+    if N <= loo_max:
+        close = (dirs @ dirs.T) > cos_c
+        every = np.arange(N)
+        return [(np.delete(every, j), np.array([j])) for j in range(N) if close[j].sum() >= 2]
+    from scipy.spatial import cKDTree
+
+    pool = np.unique(np.round(np.linspace(0, N - 1, min(N, pool_max))).astype(int))
+    chord = 2.0 * np.sin(np.radians(cluster_deg) / 2.0)  # |d_i - d_j| < chord <=> angle < cluster_deg
+    out = []
+    for f in range(k):
+        held = np.zeros(len(pool), dtype=bool)
+        held[f::k] = True
+        fit, out_f = pool[~held], pool[held]
+        dist, _ = cKDTree(dirs[fit]).query(dirs[out_f], k=1, distance_upper_bound=chord)
+        pred = out_f[np.isfinite(dist)]
+        if pred.size:
+            out.append((fit, pred))
+    return out
 
 
 def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
                        form: str = "auto", cluster_deg: float = 30.0) -> float:
-    """RMS leave-one-interval-out error of the accelerometer alone (the reading units).
+    """RMS held-out error of the accelerometer alone (the reading units).
 
-    As :func:`mavcal.quality.holdout_errors`, only intervals whose gravity direction is
-    seen again in another interval (within ``cluster_deg``) are held out; the refit without
-    interval j predicts j's mean as the nearest point of its ellipsoid. NaN when no interval
+    As :func:`mavcal.quality.holdout_errors`: each refit of :func:`holdout_folds`
+    (leave-one-out up to :data:`LOO_MAX_INTERVALS` intervals, else :data:`HOLDOUT_FOLDS`-fold
+    over at most :data:`HOLDOUT_POOL_MAX`) predicts intervals it never saw, each predicted
+    mean compared with the nearest point of the refit's ellipsoid. NaN when no interval
     qualifies or too few remain.
     """
     sets = list(accel_sets)
@@ -158,14 +298,11 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
         form = "upper" if N - 1 >= MIN_INTERVALS_UPPER else "diag"
     mu = np.array([np.asarray(s, float).mean(0) for s in sets])
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
-    close = (dirs @ dirs.T) > np.cos(np.radians(cluster_deg))
     errs = []
-    for j in range(N):
-        if close[j].sum() < 2:
-            continue
+    for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
         try:
-            f = fit_accel([sets[i] for i in range(N) if i != j], noise_floor=noise_floor, form=form)
+            f = fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form)
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
             continue
-        errs.append(np.linalg.norm(mu[j] - _nearest_on_ellipsoid(f.gain, f.bias, mu[j])))
+        errs += list(np.linalg.norm(mu[pred] - _nearest_on_ellipsoid(f.gain, f.bias, mu[pred]), axis=1))
     return float(np.sqrt(np.mean(np.square(errs)))) if errs else float("nan")

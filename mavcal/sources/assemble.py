@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import re
 from collections import Counter
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -171,16 +171,22 @@ def _next_reboot(boot: np.ndarray, i0: int) -> int | None:
 class _TimeBase:
     """Maps boot times and log times of a tlog onto one monotonic time base (see module doc)."""
 
-    def __init__(self, index: np.ndarray, boot: np.ndarray, logt: np.ndarray) -> None:
+    def __init__(self, index: np.ndarray, boot: Callable[[], np.ndarray], logt: Callable[[], np.ndarray]) -> None:
+        """``index`` the frame order of every IMU sample; ``boot()`` / ``logt()`` build their boot
+        and log times in the same order (built one at a time, so that no more than two
+        full-length temporaries live beside the columns)."""
         order = np.argsort(index, kind="stable")
-        index, boot, logt = index[order], boot[order], logt[order]
+        boot_s = boot()[order]
+        logt_s = logt()[order]
+        boot, logt = boot_s, logt_s
         starts = [0]
         nxt = _next_reboot(boot, 0)
         while nxt is not None:
             starts.append(nxt)
             nxt = _next_reboot(boot, nxt)
         bounds = starts + [len(boot)]
-        self.seg_index = np.array([index[s] for s in starts], dtype=np.int64)
+        self.seg_index = index[order[starts]].astype(np.int64)
+        del order
         self.delay = np.zeros(len(starts))
         self.offset = np.zeros(len(starts))
         self.reboot_s = np.zeros(len(starts))  # just after the last IMU message of the boot before
@@ -229,6 +235,10 @@ class _SeriesSet:
     def keep(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray, lt: np.ndarray | None,
              extra: Mapping[str, np.ndarray] | None = None, dup_label: str | None = None) -> None:
         """Sort by time, drop repeated timestamps (stated in the warnings) and keep the series."""
+        if len(t) < 2 or bool(np.all(t[1:] > t[:-1])):  # already sorted, no repeat: keep the arrays as they are
+            self.series.append(SensorSeries(sensor, inst, msg, t, v, lt, dict(extra or {})))
+            self.taken.add((sensor, inst))
+            return
         order, ndup = _dedupe_sorted(t)
         if ndup:
             self.warns.append(f"dropped {ndup} duplicated {dup_label or msg} samples (same timestamp)")
@@ -238,6 +248,9 @@ class _SeriesSet:
 
     def sorted(self) -> tuple[SensorSeries, ...]:
         return tuple(sorted(self.series, key=lambda s: _SENSOR_ORDER.index(s.sensor) * 100 + s.instance))
+
+
+_TIME_COLUMNS = ("_index", "_log_time_s", "time_boot_ms", "time_usec")
 
 
 def _tlog_vehicle_imu(cols: Columns, source: str, warns: list[str]) -> tuple[int, Columns]:
@@ -257,26 +270,35 @@ def _tlog_vehicle_imu(cols: Columns, source: str, warns: list[str]) -> tuple[int
     imu: Columns = {}
     for n, c in present.items():
         m = np.asarray(c["_sysid"]) == sysid
-        if m.any():
+        if n == "SCALED_IMU" and "RAW_IMU" in imu and m.any():
+            # not used (RAW_IMU carries instance 0): keep only what the time base needs, release the rest
+            imu[n] = _take({k: v for k, v in c.items() if k in _TIME_COLUMNS}, m)
+            if isinstance(cols, dict):
+                del cols[n]
+        elif m.all():
+            imu[n] = c  # the vehicle's alone: no copy
+        elif m.any():
             imu[n] = _take(c, m)
     return sysid, imu
 
 
-def _integer_imu_series(imu: Columns, tb: _TimeBase, out: _SeriesSet) -> None:
-    """RAW_IMU / SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 -> accel, gyro, mag series."""
+def _integer_imu_series(imu: Columns, tb: _TimeBase, out: _SeriesSet, consumed: Callable[[str], None]) -> None:
+    """RAW_IMU / SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 -> accel, gyro, mag series.
+
+    Each message's columns are released (``consumed(name)``) once its series are built, and
+    no copy is made of what every row keeps (the usual case): the peak memory stays near
+    the columns plus the series, not several full-size temporaries more."""
     for name in ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"):
         c = imu.get(name)
         if c is None:
             continue
-        if name == "SCALED_IMU" and "RAW_IMU" in imu:
+        if "xacc" not in c:  # SCALED_IMU beside RAW_IMU: its time columns alone (_tlog_vehicle_imu)
             out.warns.append("SCALED_IMU not used: RAW_IMU carries the same instance 0")
+            consumed(name)
             continue
         inst = SCALED_INSTANCE[name]
         t = tb.from_boot(c["_index"], _boot_time(name, c))
         lt = np.asarray(c["_log_time_s"], float)
-        acc = _vec(c, ("xacc", "yacc", "zacc"))
-        gyr = _vec(c, ("xgyro", "ygyro", "zgyro"))
-        mag = _vec(c, ("xmag", "ymag", "zmag"))
         # zero tests on the integer fields (same result as on the float copies, cheaper)
         has_imu = _any_nonzero(c, ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro"))
         has_mag = _any_nonzero(c, ("xmag", "ymag", "zmag"))
@@ -285,9 +307,20 @@ def _integer_imu_series(imu: Columns, tb: _TimeBase, out: _SeriesSet) -> None:
             out.warns.append(f"dropped {nz} {name} samples with all-zero accel and gyro")
         elif nz:
             out.warns.append(f"{name}: accel and gyro are all zero (no IMU {inst + 1}); used its mag only")
-        out.add("accel", inst, name, t[has_imu], acc[has_imu] * MG_TO_MS2, lt[has_imu])
-        out.add("gyro", inst, name, t[has_imu], gyr[has_imu] / 1000.0, lt[has_imu])
-        out.add("mag", inst, name, t[has_mag], mag[has_mag], lt[has_mag])
+        if has_imu.any():
+            keep = slice(None) if not nz else has_imu
+            acc = _vec(c, ("xacc", "yacc", "zacc"))[keep]
+            acc *= MG_TO_MS2
+            out.add("accel", inst, name, t[keep], acc, lt[keep])
+            del acc
+            gyr = _vec(c, ("xgyro", "ygyro", "zgyro"))[keep]
+            gyr /= 1000.0
+            out.add("gyro", inst, name, t[keep], gyr, lt[keep])
+            del gyr
+        keep = slice(None) if has_mag.all() else has_mag
+        out.add("mag", inst, name, t[keep], _vec(c, ("xmag", "ymag", "zmag"))[keep], lt[keep])
+        del c
+        consumed(name)
 
 
 def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _SeriesSet) -> None:
@@ -389,19 +422,27 @@ def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = ()) -> I
     """Build an ImuLog from tlog message columns (fast decoder, pymavlink or a live recording).
 
     ``cols[name]`` holds the message fields plus ``_log_time_s``, ``_index`` (frame order),
-    ``_sysid``, ``_compid``.
+    ``_sysid``, ``_compid``. ``cols`` is consumed: the columns of the integer IMU messages
+    are removed from it as soon as their series are built (that is what keeps a long log's
+    peak memory near the size of its series); pass a copy to keep them.
     """
     warns = list(warnings)
     sysid, imu = _tlog_vehicle_imu(cols, source, warns)
     # time base from all IMU messages of the vehicle
     tb = _TimeBase(np.concatenate([imu[n]["_index"] for n in imu]).astype(np.int64),
-                   np.concatenate([_boot_time(n, imu[n]) for n in imu]),
-                   np.concatenate([np.asarray(imu[n]["_log_time_s"], float) for n in imu]))
+                   lambda: np.concatenate([_boot_time(n, imu[n]) for n in imu]),
+                   lambda: np.concatenate([np.asarray(imu[n]["_log_time_s"], float) for n in imu]))
     if tb.reboots:
         warns.append(f"vehicle rebooted {tb.reboots} time(s) during the log; time_s of later boots is "
                      f"shifted by {', '.join(f'{o:+.3f}' for o in tb.offset[1:])} s to continue the log time")
     out = _SeriesSet(warns)
-    _integer_imu_series(imu, tb, out)
+
+    def consumed(name: str) -> None:  # release a message's columns once its series are built
+        imu.pop(name, None)
+        if isinstance(cols, dict) and name in cols:
+            del cols[name]
+
+    _integer_imu_series(imu, tb, out, consumed)
     if "HIGHRES_IMU" in imu:
         _highres_imu_series(imu["HIGHRES_IMU"], tb, out)
     if not out.series:
