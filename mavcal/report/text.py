@@ -166,6 +166,8 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
                          f"({', '.join(format_value(v) for v in news)}){'  *' if ch else ''}")
         n_ch = sum(r[3] for r in rows)
         L.append(f"  ({n_ch} of {len(rows)} parameters change; _X/_Y/_Z shown together)")
+    if run.exit_code == 0:  # (the reasons of a rejection are said once, at the top)
+        L.append("ACCEPTED: all quality gates passed")
     if run.mapping.reboot_required:
         L.append("reboot needed after writing (custom orientation)")
     L += [f"warning: {m}" for m in run.warnings]
