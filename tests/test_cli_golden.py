@@ -43,3 +43,16 @@ def test_segments_text_matches_golden(capsys, monkeypatch):
         golden.write_text(out)
     assert code == 0
     assert out == golden.read_text()
+
+
+def test_report_without_matplotlib_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """Issue 14: an optional dependency is checked first, not after the whole calibration."""
+    import mavcal.report.html as html
+
+    monkeypatch.setattr(html, "missing_dependencies", lambda: ["matplotlib"])
+    pf, js = tmp_path / "x.param", tmp_path / "x.json"
+    code = main(["calibrate", str(REPO / "sitl_logs" / "sitl02.tlog"), "--report", str(tmp_path / "r.html"),
+                 "--param-out", str(pf), "--json", str(js)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "mavcal[plots]" in err
+    assert not pf.exists() and not js.exists()

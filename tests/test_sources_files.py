@@ -471,3 +471,13 @@ def test_wmm_field():
     assert ned[2] > 0  # northern hemisphere: field points down
     with pytest.raises(MavcalError):
         field_at(95, 0)
+
+
+def test_a_concatenated_log_says_its_reboots_in_one_short_line(tmp_path, sitl_dir):
+    """Issue 14: plain copies of one tlog (each a new boot) gave a 1,000-character warning."""
+    data = (sitl_dir / "sitl01.tlog").read_bytes()
+    p = tmp_path / "copies.tlog"
+    p.write_bytes(data * 6)
+    lg = read_log(p)
+    (w,) = [w for w in lg.warnings if "rebooted" in w]
+    assert "rebooted 5 time(s)" in w and "(2 more)" in w and len(w) < 200

@@ -19,6 +19,7 @@ from mavcal.commands.common import (
     add_still_arguments,
     add_write_budget_argument,
     check_new_backup,
+    check_optional_dependencies,
     parse_location,
     still_config,
     write_outputs,
@@ -81,7 +82,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="snap the compass rotation to a standard COMPASS_ORIENT within this angle (default 1)")
     fit.add_argument("--no-custom-rotation", action="store_true", help="never use CUST_ROT (101/102) orientations")
     fit.add_argument("--force-external", action="store_true",
-                     help="internal compass: write COMPASS_EXTERN=2 so its misalignment goes into COMPASS_ORIENT")
+                     help="internal compass: write COMPASS_EXTERNAL (COMPASS_EXTERNn for compass n) = 2 so its "
+                          "misalignment goes into COMPASS_ORIENT")
     fit.add_argument("--duration", type=float, default=60.0, metavar="S", help="live source: seconds to record")
     add_still_arguments(p)
     w = p.add_argument_group("writing to the vehicle")
@@ -166,6 +168,7 @@ def _single(args, source: str) -> int:
 def run(args) -> int:
     if args.jobs < 1:
         raise UsageError("--jobs must be at least 1")
+    check_optional_dependencies(args)
     if len(args.sources) == 1:
         return _single(args, args.sources[0])
     if args.write or args.dry_run or args.param_out or args.report:

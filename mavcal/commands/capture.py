@@ -22,6 +22,7 @@ from typing import TextIO
 from mavcal.commands.common import (
     add_link_arguments,
     check_new_backup,
+    check_optional_dependencies,
     parse_location,
     write_outputs,
     write_with_report,
@@ -101,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from mavcal.segment import StillConfig
 
     _check(args)
+    check_optional_dependencies(args)
     try:
         still = StillConfig(min_duration_s=args.hold)
     except ValueError as exc:

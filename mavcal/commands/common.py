@@ -134,6 +134,18 @@ def write_text_output(dest: str, text: str) -> None:
         raise UsageError(f"cannot write {dest}: {exc.strerror or exc}") from None
 
 
+def check_optional_dependencies(args: argparse.Namespace) -> None:
+    """Before any work: refuse (exit 2, nothing done) an output whose optional dependency is
+    missing, rather than fail after the whole calibration with half the outputs written."""
+    if getattr(args, "report", None):
+        from mavcal.report.html import missing_dependencies
+
+        missing = missing_dependencies()
+        if missing:
+            raise UsageError(f"--report needs {', '.join(missing)}, which is not installed: "
+                             "pip install 'mavcal[plots]' (or leave out --report); nothing was done")
+
+
 def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: bool = True) -> int:
     """Print the summary, write --json/--report, apply the per-sensor verdicts, then write
     --param-out with the accepted sensors' parameters (every sensor's with ``--force``, the

@@ -261,6 +261,14 @@ def html_page(run, st: IntervalNumbers | None, images: dict[str, bytes], n_spans
     return "\n".join(P)
 
 
+def missing_dependencies() -> list[str]:
+    """The optional packages the HTML report needs that are not installed (``[]`` when it can
+    be written): checked before any work, so a run never fails at its end for want of them."""
+    import importlib.util
+
+    return [] if importlib.util.find_spec("matplotlib") is not None else ["matplotlib"]
+
+
 def write_html(run, path, *, png_dir=None) -> Path:
     """Write the self-contained HTML report of a calibration run.
 

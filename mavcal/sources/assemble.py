@@ -433,8 +433,10 @@ def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = ()) -> I
                    lambda: np.concatenate([_boot_time(n, imu[n]) for n in imu]),
                    lambda: np.concatenate([np.asarray(imu[n]["_log_time_s"], float) for n in imu]))
     if tb.reboots:
+        shifts = [f"{o:+.3f}" for o in tb.offset[1:]]
+        shown = ", ".join(shifts[:3]) + (f" ... ({len(shifts) - 3} more)" if len(shifts) > 3 else "")
         warns.append(f"vehicle rebooted {tb.reboots} time(s) during the log; time_s of later boots is "
-                     f"shifted by {', '.join(f'{o:+.3f}' for o in tb.offset[1:])} s to continue the log time")
+                     f"shifted by {shown} s to continue the log time")
     out = _SeriesSet(warns)
 
     def consumed(name: str) -> None:  # release a message's columns once its series are built
