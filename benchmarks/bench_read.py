@@ -43,7 +43,7 @@ from mavcal.sources import read_log  # noqa: E402
 from mavcal.sources.fast_dataflash import decode_dataflash  # noqa: E402
 from mavcal.sources.fast_tlog import decode_tlog  # noqa: E402
 
-RESULTS = REPO / "benchmarks" / "results"
+OUT = REPO / "benchmarks" / "out"  # --save: benchmarks/results/ (benchmarks/README.md)
 TLOG_IMU = ["RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"]
 DF_IMU = ["IMU", "MAG"]
 
@@ -147,9 +147,9 @@ def write_results(rows: list, name: str) -> str:
             " read_log = full ImuLog (also params, events, position; tlog CRCs checked for the decoded message"
             " types, as `read_log` does by default). Best of 3 for the fast paths, pymavlink once."
             f" Machine shared with other jobs: timings vary between runs. {env}.\n")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{name}.md").write_text(text)
-    (RESULTS / f"{name}.json").write_text(json.dumps({"environment": env, "rows": rows}, indent=1))
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / f"{name}.md").write_text(text)
+    (OUT / f"{name}.json").write_text(json.dumps({"environment": env, "rows": rows}, indent=1))
     return text
 
 
@@ -178,4 +178,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from bench_output import output_dir  # --save / --out: where the results go (benchmarks/README.md)
+
+    OUT, _argv = output_dir(sys.argv[1:])
+    sys.exit(main(_argv))

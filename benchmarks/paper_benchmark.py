@@ -16,11 +16,12 @@ Sections:
    delta/delta_opt, J/J_opt, time/time_generic (N = 15, NCAR).
 4. Speed: median ``mavcal.calibrate`` time vs N (8 .. 200), single process.
 
-Writes benchmarks/results/paper.md, paper.json and PNG plots (about 10 min on one free
-core); ``--quick`` (5 runs, N in 8/15/30, about 1 min) writes paper_quick.md/json instead and
-no plots, so a smoke test never overwrites the real results. Usage:
+Writes paper.md, paper.json and PNG plots (about 10 min on one free core) into
+benchmarks/out/, or into the tracked benchmarks/results/ with ``--save`` (benchmarks/README.md);
+``--quick`` (5 runs, N in 8/15/30, about 1 min) writes paper_quick.md/json instead and no plots.
+Usage:
 
-    python benchmarks/paper_benchmark.py [--runs 100] [--quick]
+    python benchmarks/paper_benchmark.py [--runs 100] [--quick] [--save | --out DIR]
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ from mavcal.core.rotations import exp_so3
 from mavcal.core.types import Calibration, SensorModel
 from mavcal.sim.paper import SimData, Truth, draw_intervals, draw_sensors
 
-OUT = Path(__file__).resolve().parent / "results"
+OUT = Path(__file__).resolve().parent / "out"  # --save: benchmarks/results/ (benchmarks/README.md)
 GAMMAS = [1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0]
 NS = [8, 10, 12, 15, 20, 25, 30, 40, 50]
 METHODS = ["ncar", "ncdr", "fcar", "dcar"]
@@ -343,4 +344,7 @@ def plots(res) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from bench_output import output_dir  # --save / --out: where the results go (benchmarks/README.md)
+
+    OUT, _argv = output_dir(sys.argv[1:])
+    sys.exit(main(_argv))

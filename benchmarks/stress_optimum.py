@@ -42,7 +42,7 @@ from mavcal.core.rotations import exp_so3
 from mavcal.errors import EstimationError
 from mavcal.sim.paper import coplanar_rotations, draw_intervals, draw_sensors
 
-OUT = Path(__file__).resolve().parent / "results"
+OUT = Path(__file__).resolve().parent / "out"  # --save: benchmarks/results/ (benchmarks/README.md)
 TOL = 1e-6
 DIPS = list(range(-70, 71, 10))
 
@@ -199,4 +199,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from bench_output import output_dir  # --save / --out: where the results go (benchmarks/README.md)
+
+    OUT, _argv = output_dir(sys.argv[1:])
+    sys.exit(main(_argv))
