@@ -12,7 +12,7 @@ time field shifted so the copies follow each other, whole records only), and tim
 checks that the decoded values are identical and that ``read_log`` keeps every IMU sample of
 every copy, counts the lines pymavlink printed (e.g. "bad header"; 0 on these clean inputs,
 the count goes to the results instead of the terminal) and writes
-``benchmarks/results/read_speed.md`` and ``.json`` (``--name`` changes the file name, never
+``read_speed.md`` and ``.json`` into benchmarks/out/ (benchmarks/results/ with ``--save``; ``--name`` changes the file name, never
 the directory).
 
     python benchmarks/bench_read.py [--size-mb 50] [--name read_speed]
@@ -158,7 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size-mb", type=float, default=50.0)
     ap.add_argument("--tlog", type=Path, default=biglogs.DEFAULT_TLOG)
     ap.add_argument("--bin", type=Path, default=biglogs.DEFAULT_BIN)
-    ap.add_argument("--name", default="read_speed", help="results file name (under benchmarks/results/)")
+    ap.add_argument("--name", default="read_speed", help="results file name (in benchmarks/out/, or benchmarks/results/ with --save)")
     args = ap.parse_args(argv)
     if Path(args.name).name != args.name:
         ap.error("--name is a file name, not a path: results go to benchmarks/results/")

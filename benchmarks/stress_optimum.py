@@ -20,7 +20,7 @@ A run passes when J/J_opt <= 1 + 1e-6, or when calibrate reports ``converged=Fal
 refuses the data with an EstimationError): the pipeline then rejects it. A run *fails*
 when calibrate claims convergence above the optimum.
 
-Writes benchmarks/results/stress_optimum.md and .json. Usage:
+Writes stress_optimum.md and .json into benchmarks/out/ (benchmarks/results/ with --save). Usage:
 
     python benchmarks/stress_optimum.py [--quick] [--workers 2]
 """
