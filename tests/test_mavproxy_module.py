@@ -177,6 +177,7 @@ def test_mavproxy_module_capture_fit_write_restore_unload(tmp_path, start_vehicl
         mp.expect(r"next: write the parameters \('mavcal write'\), then reboot the vehicle", after=at)
         hand.stop()
         mark = mp.send("mavcal fit")
+        mp.expect(r"mavcal: fitting 100%", after=mark)  # the console shows the fit's progress
         mp.expect(r"heading", after=mark)
         _, at = mp.expect(r"mavcal: fit done", after=mark)
         # write: first the diff and the question, nothing written

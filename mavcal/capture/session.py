@@ -497,8 +497,9 @@ class CaptureSession:
 
         return out | np.any((cos(pa, mu_a) >= cos_r) & (cos(pm, mu_m) >= cos_r), axis=1)
 
-    def result(self, options: Options | None = None) -> CalibrationRun:
-        """The final fit with the full quality analysis (held-out errors, more draws)."""
+    def result(self, options: Options | None = None, *, progress=None) -> CalibrationRun:
+        """The final fit with the full quality analysis (held-out errors, more draws);
+        ``progress`` as :func:`mavcal.pipeline.calibrate_prepared` takes it."""
         if self._prep is None:
             self.update()
         if self._prep is None or not self._prep.segmentation.intervals:
@@ -508,7 +509,8 @@ class CaptureSession:
                                                                   accel_instance=self.options.accel_instance,
                                                                   mag_instance=self.options.mag_instance,
                                                                   location=self.options.location,
-                                                                  field_mgauss=self.options.field_mgauss))
+                                                                  field_mgauss=self.options.field_mgauss),
+                                  progress=progress)
 
 
 def _calibrated_field(run: CalibrationRun, iv) -> float | None:

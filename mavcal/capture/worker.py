@@ -323,7 +323,11 @@ class CaptureWorker:
         if self.status is not None and self.status.aborted:
             self._say(f"the capture was aborted ({self.status.reason}); not fitting")
             return
-        self.run = self.session.result()
+        from mavcal.sources.progress import CallbackProgress
+
+        # the console shows each stage of the final fit (held-out refits can take seconds)
+        progress = CallbackProgress(lambda stage, frac: self._say(f"{stage} {frac:.0%}"), min_interval_s=2.0)
+        self.run = self.session.result(progress=progress)
         self.say(summary_text(self.run, hints=MAVPROXY_HINTS))
         self._say("fit done; 'mavcal write' shows the parameter changes")
 
