@@ -23,7 +23,8 @@ from mavcal.commands.common import (
     write_text_output,
     write_with_report,
 )
-from mavcal.errors import UsageError
+from mavcal.commands.segments import add_csv_rate_argument, csv_rate, csv_rate_hint
+from mavcal.errors import InsufficientDataError, MavcalError, UsageError
 
 EPILOG = """\
 every accelerometer and compass with data gets its own verdict: accepted, or rejected with
@@ -82,6 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="internal compass: write COMPASS_EXTERN=2 so its misalignment goes into COMPASS_ORIENT")
     fit.add_argument("--duration", type=float, default=60.0, metavar="S", help="live source: seconds to record")
     add_still_arguments(p)
+    add_csv_rate_argument(p)
     w = p.add_argument_group("writing to the vehicle")
     w.add_argument("--write", action="store_true", help="write the parameters to the vehicle (safe writer)")
     w.add_argument("--connect", metavar="DEVICE", help="vehicle to write to (default: SOURCE when it is a device)")
@@ -111,18 +113,42 @@ def _options(args):
                    force_external=args.force_external, sensors=sensors, only_instances=only)
 
 
+def _refused(args, source: str, exc: MavcalError, prep, opts) -> None:
+    """--json of a recording that could not be calibrated: every sensor with data rejected with
+    the reason, the exit code and the refusal (then the error goes on to the CLI)."""
+    if not args.json:
+        return
+    from mavcal.pipeline import refusal_verdicts
+    from mavcal.report.json import refusal_json
+
+    verdicts = refusal_verdicts(prep, exc, opts) if prep is not None else ()
+    write_text_output(args.json, json.dumps(refusal_json(source, exc, verdicts, prep), indent=1))
+
+
 def _single(args, source: str) -> int:
-    from mavcal.pipeline import calibrate_source, open_source
+    from mavcal.pipeline import calibrate_prepared, open_source, prepare
     from mavcal.sources.progress import auto_progress
-    from mavcal.sources.reader import is_device
+    from mavcal.sources.reader import is_device, read_log
 
     opts = _options(args)
     device = is_device(source)
-    if device:
-        log_ = open_source(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout)
-        run = calibrate_source(log_, opts)
-    else:
-        run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))
+    prep = None
+    try:
+        if device:
+            log_ = open_source(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout)
+            prep = prepare(log_, opts)
+        else:
+            prep = prepare(read_log(source, progress=auto_progress(f"reading {Path(source).name}"),
+                                    csv_rate_hz=csv_rate(args)), opts)
+        run = calibrate_prepared(prep, opts)
+    except MavcalError as exc:  # no fit at all: the JSON still says why, per sensor
+        if isinstance(exc, UsageError):
+            raise
+        hint = csv_rate_hint(prep.log if prep is not None else None)
+        if hint and isinstance(exc, InsufficientDataError):
+            exc = type(exc)(f"{exc}{hint}")
+        _refused(args, source, exc, prep, opts)
+        raise exc from None
     code = write_outputs(run, args, f"mavcal calibration of {run.source}")
     if args.write or args.dry_run:
         target = args.connect or (source if device else None)
