@@ -30,7 +30,7 @@ EPILOG = """\
 exit codes:
   0  coverage ok or reduced: a calibration can run (reduced model when "reduced")
   4  coverage insufficient: no still interval, or too few intervals/orientations for any model
-  3  unreadable source      2  bad options
+  3  unreadable source      2  bad options      70  internal error (a bug: report it with -vv)
 """
 
 
