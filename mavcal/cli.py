@@ -4,6 +4,11 @@ Each subcommand lives in its own module under :mod:`mavcal.commands` and exposes
 ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``. This module only
 dispatches, configures logging and maps :class:`mavcal.errors.MavcalError` to one-line
 messages and exit codes; it never shows a traceback for bad input.
+
+Any other exception escaping a subcommand is a bug in mavcal (bad input must raise a
+:class:`MavcalError` where it is found): it is reported as one line, ``mavcal: internal
+error: ...``, with exit code :data:`EXIT_INTERNAL` (70, EX_SOFTWARE of sysexits.h); ``-vv``
+logs its traceback.
 """
 from __future__ import annotations
 
@@ -14,6 +19,11 @@ import sys
 
 from mavcal import __version__
 from mavcal.errors import MavcalError
+
+log = logging.getLogger("mavcal.cli")
+
+#: exit code of an unexpected exception (a bug: please report it with the ``-vv`` output)
+EXIT_INTERNAL = 70
 
 # subcommand name -> module under mavcal.commands
 COMMANDS = {
@@ -67,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     level = logging.ERROR if args.quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="mavcal: %(levelname)s: %(message)s")
+    logging.captureWarnings(True)  # numpy/scipy RuntimeWarnings go through logging (-q hides them)
     try:
         return int(args._run(args) or 0)
     except MavcalError as exc:
@@ -77,6 +88,11 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return 0
+    except Exception as exc:  # a bug, not bad input: one line, the traceback only with -vv
+        log.debug("internal error", exc_info=True)
+        print(f"mavcal: internal error: {type(exc).__name__}: {exc} (a bug in mavcal; -vv shows where)",
+              file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

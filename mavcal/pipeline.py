@@ -23,7 +23,7 @@ from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.types import Calibration
-from mavcal.errors import EXIT_PARTIAL, GateError, InsufficientDataError, MavcalError, SourceError
+from mavcal.errors import EXIT_PARTIAL, EstimationError, GateError, InsufficientDataError, MavcalError, SourceError
 from mavcal.quality import Quality, accel_tilt_bounds, holdout_errors, quality_of
 from mavcal.segment import Segmentation, StillConfig, find_still_intervals
 from mavcal.sources.progress import ProgressFn, report
@@ -39,7 +39,7 @@ STAGE_FIT = "fitting"
 EXIT_ALL_ACCEPTED, EXIT_NONE_ACCEPTED = 0, GateError.exit_code
 
 __all__ = ["Options", "Prepared", "CalibrationRun", "Quality", "open_source", "prepare", "calibrate_source",
-           "calibrate_prepared", "STAGE_RECOVER", "STAGE_SEGMENT", "STAGE_FIT"]
+           "calibrate_prepared", "STAGE_RECOVER", "STAGE_SEGMENT", "STAGE_FIT", "refusal_verdicts"]
 
 
 @dataclass(frozen=True)
@@ -480,6 +480,45 @@ def _resolve(prep: Prepared, options: Options) -> tuple[Options, list[str]]:
     return opts, warnings
 
 
+def refusal_verdicts(prep: Prepared, error: Exception, options: Options = Options()
+                     ) -> tuple[gates_mod.SensorVerdict, ...]:
+    """A verdict for every sensor with data of a recording that could not be calibrated at all
+    (``error``: the refusal): each rejected, with how many still intervals it has and ``error``."""
+    seg, raw, none = prep.segmentation, prep.raw, np.empty((0, 3))
+    ai = options.accel_instance
+    out = []
+    for kind, label, insts in (("accel", "accel", raw.accel_instances()), ("compass", "compass",
+                                                                           raw.mag_instances())):
+        if options.sensors not in ("both", kind):
+            continue
+        for i in _wanted(insts, options, kind):
+            if kind == "accel":
+                used = [iv for iv in seg.intervals if iv.accel_mps2.get(i, none).shape[0] >= 2]
+                what = f"accelerometer {i} data"
+            else:
+                used = [iv for iv in seg.intervals if iv.mag_mgauss.get(i, none).shape[0] >= 2
+                        and iv.accel_mps2.get(ai, none).shape[0] >= 2]
+                what = f"compass {i} and accelerometer {ai} data"
+            dirs = np.array([iv.gravity_dir for iv in used]).reshape(-1, 3)
+            first = (f"not calibrated: {len(used)} still interval(s) with {what}, in "
+                     f"{_n_orientations(dirs, seg) if len(used) else 0} distinct orientation(s)")
+            out.append(gates_mod.SensorVerdict(f"{label}{i}", False, tuple(dict.fromkeys([first, str(error)]))))
+    return tuple(out)
+
+
+def _blind_cal(prep: Prepared) -> list[str]:
+    """The refusal's reason when the log holds calibration prompts but no IMU data during them."""
+    return [f"the log holds ArduPilot's accelerometer calibration ({a:.1f}..{b:.1f} s: 'Place vehicle' prompts) "
+            "but no IMU data during it (the ground station stopped streaming RAW_IMU?), so its poses are lost; "
+            "record the IMU stream while calibrating" for a, b in prep.raw.accel_cal_without_imu]
+
+
+def _with_blind_cal(prep: Prepared, exc: MavcalError) -> MavcalError:
+    """``exc``, or (when the log holds calibration prompts without IMU data) an
+    InsufficientDataError that gives that reason as well."""
+    return InsufficientDataError("; ".join([str(exc)] + _blind_cal(prep))) if _blind_cal(prep) else exc
+
+
 def _accel_sets(prep: Prepared, a: int) -> tuple[list[int], list[np.ndarray]]:
     none = np.empty((0, 3))
     used = [k for k, iv in enumerate(prep.segmentation.intervals) if iv.accel_mps2.get(a, none).shape[0] >= 2]
@@ -487,7 +526,7 @@ def _accel_sets(prep: Prepared, a: int) -> tuple[list[int], list[np.ndarray]]:
         raise SourceError(f"{prep.log.source}: no accelerometer {a} data")
     if not used:
         raise InsufficientDataError(f"{prep.log.source}: no still interval with accelerometer {a} data; "
-                                    + "; ".join(prep.segmentation.coverage.messages))
+                                    + "; ".join(list(prep.segmentation.coverage.messages) + _blind_cal(prep)))
     return used, [prep.segmentation.intervals[k].accel_mps2[a] for k in used]
 
 
@@ -497,7 +536,10 @@ def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | No
     used, acc = _accel_sets(prep, a)
     q = prep.quantization.get(("accel", a), 0.0)
     floor = q / np.sqrt(12) if q else None
-    fit = fit_accel(acc, noise_floor=floor)
+    try:
+        fit = fit_accel(acc, noise_floor=floor)
+    except (InsufficientDataError, EstimationError) as exc:
+        raise _with_blind_cal(prep, exc) from None
     am = joint if joint is not None else map_accel(fit.gain, fit.bias,
                                                    fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
     tilt = accel_tilt_bounds(fit, am, opts.uncertainty_draws, opts.seed)
@@ -572,10 +614,11 @@ def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
         if raw.get("mag", mi) is None:
             raise SourceError(f"{log_.source}: no compass {mi} data")
         raise InsufficientDataError(f"{log_.source}: no still intervals found ({len(seg.intervals)} detected, none "
-                                    "with both sensors); " + "; ".join(seg.coverage.messages))
+                                    "with both sensors); " + "; ".join(list(seg.coverage.messages) + _blind_cal(prep)))
     n_min = MODELS[MODEL_CHAIN[-1]].min_intervals
     if len(used) < n_min:
-        why = "; ".join(seg.coverage.messages) or f"{seg.coverage.n_orientations} distinct orientation(s)"
+        why = "; ".join(_blind_cal(prep) + list(seg.coverage.messages)) \
+            or f"{seg.coverage.n_orientations} distinct orientation(s)"
         raise InsufficientDataError(
             f"{log_.source}: {len(used)} still interval(s) with accelerometer {ai} and compass {mi} data; at least "
             f"{n_min} in different orientations are needed ({MODELS['full'].min_intervals} for the full model): {why}")
@@ -593,8 +636,11 @@ def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
     mag = [seg.intervals[k].mag_mgauss[mi] for k in used]
     qa, qm = prep.quantization.get(("accel", ai), 0.0), prep.quantization.get(("mag", mi), 0.0)
     noise_floor = (qa / np.sqrt(12) if qa else None, qm / np.sqrt(12) if qm else None)
-    cal = calibrate(acc, mag, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model,
-                    noise_floor=noise_floor)
+    try:
+        cal = calibrate(acc, mag, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model,
+                        noise_floor=noise_floor)
+    except (InsufficientDataError, EstimationError) as exc:
+        raise _with_blind_cal(prep, exc) from None
     params_now = log_.params.snapshot()
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")

@@ -32,7 +32,7 @@ from typing import TypedDict
 
 import numpy as np
 
-from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, rotation_matrix
+from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, is_valid_rotation, rotation_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 
 __all__ = [
@@ -41,6 +41,7 @@ __all__ = [
     "COMPASS_MAX_SCALE",
     "MAX_COMPASSES",
     "MAX_IMUS",
+    "param_value_plausible",
     "compass_param_names",
     "accel_param_names",
     "gyro_param_names",
@@ -211,6 +212,32 @@ def board_param_names() -> BoardNames:
         "trim": ("AHRS_TRIM_X", "AHRS_TRIM_Y", "AHRS_TRIM_Z"),
         "motct": "COMPASS_MOTCT",
     }
+
+
+def _orientation_names() -> frozenset[str]:
+    return frozenset([board_param_names()["orientation"]]
+                     + [compass_param_names(k)["orient"] for k in range(MAX_COMPASSES)])
+
+
+_ORIENTATION_NAMES = _orientation_names()
+
+
+def param_value_plausible(name: str, value: float) -> bool:
+    """False for a value no ArduPilot firmware can hold (a damaged log record): not a finite
+    number, or a rotation parameter (AHRS_ORIENTATION, COMPASS_ORIENTn) that is not one of
+    the rotations mavcal can apply (0..43, 101, 102).
+
+    Examples
+    --------
+    >>> param_value_plausible("AHRS_ORIENTATION", 109), param_value_plausible("AHRS_ORIENTATION", 2)
+    (False, True)
+    """
+    v = float(value)
+    if not np.isfinite(v):
+        return False
+    if name in _ORIENTATION_NAMES:
+        return v == round(v) and abs(v) < 1e6 and is_valid_rotation(int(v))
+    return True
 
 
 # --------------------------------------------------------------------------- models

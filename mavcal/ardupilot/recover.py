@@ -75,6 +75,9 @@ class RawImu:
         were not inverse-corrected for offsets/scale).
     board_rotation : (3, 3) array or None
         R_A of AHRS_ORIENTATION (at the end of the data): board frame -> body frame.
+    accel_cal_without_imu : tuple of (start_s, end_s)
+        Accelerometer calibrations whose prompts the log holds but during which it has
+        (almost) no IMU readings (:func:`accel_cal_without_imu`): the poses held then are lost.
     """
 
     source: str
@@ -86,6 +89,7 @@ class RawImu:
     warnings: tuple[str, ...] = ()
     accel_cal_periods: tuple[tuple[float, float], ...] = ()
     board_rotation: np.ndarray | None = None
+    accel_cal_without_imu: tuple[tuple[float, float], ...] = ()
 
     def accel_instances(self) -> list[int]:
         return [s.instance for s in self.accel]
@@ -192,36 +196,69 @@ def find_accel_cal_periods(log_: ImuLog, margin_s: float = 4.0, min_step_mps2: f
     min_step = float(min_step_mps2)
     out: list[tuple[float, float]] = []
     for start, end, cmd in wins:
-        s_edge, e_edge = start, end
-        if acc is not None and len(acc) > 2:
-            t, v = acc.time_s, acc.values
-            if np.isfinite(end):
-                e_edge = end
-            else:
-                e_edge = float(t[-1]) + 1e-6
-            # start edge: corrected before, uncorrected after
-            lo = start - margin_s if np.isnan(cmd) else max(start - margin_s, cmd)
-            sel = np.nonzero((t >= lo) & (t <= start + margin_s))[0]
+        try:
+            out.append(_refine_period(log_, acc, start, end, cmd, margin_s, min_step))
+        except (ValueError, np.linalg.LinAlgError):  # parameters that cannot be applied: keep the event times
+            out.append((float(start), float(end if np.isfinite(end) else np.inf)))
+    return out
+
+
+def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: float, cmd: float,
+                   margin_s: float, min_step: float) -> tuple[float, float]:
+    """One calibration period, its edges moved to where the raw readings are continuous."""
+    s_edge, e_edge = start, end
+    if acc is not None and len(acc) > 2:
+        t, v = acc.time_s, acc.values
+        if np.isfinite(end):
+            e_edge = end
+        else:
+            e_edge = float(t[-1]) + 1e-6
+        # start edge: corrected before, uncorrected after
+        lo = start - margin_s if np.isnan(cmd) else max(start - margin_s, cmd)
+        sel = np.nonzero((t >= lo) & (t <= start + margin_s))[0]
+        if len(sel) > 1:
+            p = log_.params
+            cal_b = _accel_cal_at(p, 0, t[sel[0]])
+            u_corr = fw.undo_accel(cal_b, v[sel])
+            u_raw = fw.undo_accel(cal_b, v[sel], calibrating=True)
+            if np.all(np.isfinite(u_corr)):
+                k = _best_split(u_corr, u_raw, min_step)
+                if k is not None:
+                    s_edge = float(t[sel[k]])
+        if np.isfinite(end):
+            sel = np.nonzero((t >= end - margin_s) & (t <= end + margin_s))[0]
             if len(sel) > 1:
-                p = log_.params
-                cal_b = _accel_cal_at(p, 0, t[sel[0]])
-                u_corr = fw.undo_accel(cal_b, v[sel])
-                u_raw = fw.undo_accel(cal_b, v[sel], calibrating=True)
+                cal_a = _accel_cal_at(log_.params, 0, t[sel[-1]])
+                u_raw = fw.undo_accel(cal_a, v[sel], calibrating=True)
+                u_corr = fw.undo_accel(cal_a, v[sel])
                 if np.all(np.isfinite(u_corr)):
-                    k = _best_split(u_corr, u_raw, min_step)
+                    k = _best_split(u_raw, u_corr, min_step)
                     if k is not None:
-                        s_edge = float(t[sel[k]])
-            if np.isfinite(end):
-                sel = np.nonzero((t >= end - margin_s) & (t <= end + margin_s))[0]
-                if len(sel) > 1:
-                    cal_a = _accel_cal_at(log_.params, 0, t[sel[-1]])
-                    u_raw = fw.undo_accel(cal_a, v[sel], calibrating=True)
-                    u_corr = fw.undo_accel(cal_a, v[sel])
-                    if np.all(np.isfinite(u_corr)):
-                        k = _best_split(u_raw, u_corr, min_step)
-                        if k is not None:
-                            e_edge = float(t[sel[k]])
-        out.append((float(s_edge), float(e_edge)))
+                        e_edge = float(t[sel[k]])
+    return (float(s_edge), float(e_edge))
+
+
+def accel_cal_without_imu(log_: ImuLog, min_coverage: float = 0.2) -> list[tuple[float, float]]:
+    """ArduPilot accelerometer calibrations (their prompts: "Place vehicle ...",
+    ACCELCAL_VEHICLE_POS) during which the log holds IMU readings over less than
+    ``min_coverage`` of the time, e.g. a ground station that stopped streaming RAW_IMU while
+    the calibration ran. Each as (first prompt, end) in seconds; an unfinished calibration ends
+    at the last event of the log."""
+    evs = [e.time_s for e in log_.events]
+    accs = [s for s in log_.series if s.sensor == "accel" and len(s)]
+    out = []
+    for start, end, _cmd in _event_windows(log_.events):
+        stop = end if np.isfinite(end) else max(evs)
+        if not stop > start:
+            stop = start + 1.0
+        covered = 0.0
+        for s in accs:
+            t = s.time_s[(s.time_s >= start) & (s.time_s < stop)]
+            if len(t) > 1:
+                dt = float(np.median(np.diff(s.time_s[np.isfinite(s.time_s)]))) if len(s) > 1 else 0.0
+                covered = max(covered, min(len(t) * dt, stop - start))
+        if covered < min_coverage * (stop - start):
+            out.append((float(start), float(stop)))
     return out
 
 
@@ -354,6 +391,11 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
     periods = list(find_accel_cal_periods(log_) if accel_cal_periods is None else accel_cal_periods)
     for a, b in periods:
         log.info("accelerometer calibration ran %.2f..%.2f s: offsets/scale not undone there", a, b)
+    blind = accel_cal_without_imu(log_)
+    for a, b in blind:
+        warnings.append(f"the log holds an accelerometer calibration ({a:.1f}..{b:.1f} s: its 'Place vehicle' "
+                        "prompts) but no IMU data during it (the ground station stopped streaming RAW_IMU?): "
+                        "its poses cannot be used")
     events = sorted(ph.change_events(log_.events) + ph.accel_cal_events(periods), key=lambda e: e.time_s)
     accel_out: list[SensorSeries] = []
     for inst in log_.instances("accel"):
@@ -384,6 +426,7 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
         warnings=tuple(warnings),
         accel_cal_periods=tuple((float(a), float(b)) for a, b in periods),
         board_rotation=_board_rotation(log_.params),
+        accel_cal_without_imu=tuple(blind),
     )
 
 
@@ -423,9 +466,17 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
     left_out = np.zeros(len(t), dtype=bool)
     missing: list[str] = []
     pieces = _pieces(params, known, names, (), t)
+    unusable: list[str] = []
+    bad = np.zeros(len(t), dtype=bool)  # left out: parameters that cannot be applied
     for p in pieces:
         sl = slice(p.i0, p.i1)
-        cal = fw.accel_cal_from_params(p.values, inst, missing if (have and not p.unknown) else None)
+        try:
+            cal = fw.accel_cal_from_params(p.values, inst, missing if (have and not p.unknown) else None)
+            cal.board_matrix  # noqa: B018 - raises for a rotation mavcal cannot apply
+        except (ValueError, np.linalg.LinAlgError) as exc:  # a damaged or unsupported parameter value
+            out[sl], left_out[sl], bad[sl] = np.nan, True, True
+            unusable.append(f"{t[p.i0]:.1f} s: {exc}")
+            continue
         if not have or set(p.unknown) & set(board):
             out[sl] = fw.undo_accel(cal, s.values[sl], calibrating=True)
             left_out[sl] = bool(p.unknown)
@@ -447,9 +498,10 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
         if missing:
             warnings.append(f"accel {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
         _record(used, params, names, float(t[0]), float(t[-1]))
-    w = _left_out(f"accel {inst}", t, left_out, pieces, known, params)
+    w = _left_out(f"accel {inst}", t, left_out & ~bad, pieces, known, params)
     if w:
         warnings.append(w)
+    warnings += _unusable_warning(f"accel {inst}", unusable)
     return _with_known(s, out, {**dict(s.extra), "calibrating": calib.astype(float)}, left_out)
 
 
@@ -469,18 +521,35 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
     left_out = np.zeros(len(t), dtype=bool)
     missing: list[str] = []
     pieces = _pieces(params, known, names, list(cn["mot"]), t)
+    unusable: list[str] = []
+    bad = np.zeros(len(t), dtype=bool)  # left out: parameters that cannot be applied
     for p in pieces:
-        cal = fw.compass_cal_from_params(p.values, inst, None if p.unknown else missing)
-        out[p.i0:p.i1] = fw.undo_compass(cal, s.values[p.i0:p.i1], None if motor is None else motor[p.i0:p.i1])
-        left_out[p.i0:p.i1] = bool(p.unknown)
+        try:
+            cal = fw.compass_cal_from_params(p.values, inst, None if p.unknown else missing)
+            out[p.i0:p.i1] = fw.undo_compass(cal, s.values[p.i0:p.i1],
+                                             None if motor is None else motor[p.i0:p.i1])
+            left_out[p.i0:p.i1] = bool(p.unknown)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # e.g. a singular DIA/ODI matrix, unknown rotation
+            out[p.i0:p.i1], left_out[p.i0:p.i1], bad[p.i0:p.i1] = np.nan, True, True
+            unusable.append(f"{t[p.i0]:.1f} s: {exc}")
     if missing:
         warnings.append(f"mag {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
     _record(used, params, names, float(t[0]), float(t[-1]))
     warnings += _mag_param_warnings(params, inst, motor is None)
-    w = _left_out(f"mag {inst}", t, left_out, pieces, known, params)
+    w = _left_out(f"mag {inst}", t, left_out & ~bad, pieces, known, params)
     if w:
         warnings.append(w)
+    warnings += _unusable_warning(f"mag {inst}", unusable)
     return _with_known(s, out, dict(s.extra), left_out)
+
+
+def _unusable_warning(label: str, unusable: Sequence[str]) -> list[str]:
+    """Warning for readings left out because the parameters in force cannot be applied."""
+    if not unusable:
+        return []
+    return [f"{label}: readings left out where the parameters in force cannot be undone (damaged log or "
+            f"unsupported value): " + "; ".join(unusable[:3]) + (f" (and {len(unusable) - 3} more)"
+                                                                 if len(unusable) > 3 else "")]
 
 
 def _mag_without_params(s: SensorSeries, cn: Mapping[str, Any], motor: np.ndarray | None,

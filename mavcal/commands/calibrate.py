@@ -26,7 +26,8 @@ from mavcal.commands.common import (
     write_text_output,
     write_with_report,
 )
-from mavcal.errors import UsageError
+from mavcal.commands.segments import add_csv_rate_argument, csv_rate, csv_rate_hint
+from mavcal.errors import InsufficientDataError, MavcalError, UsageError
 
 EPILOG = """\
 every accelerometer and compass with data gets its own verdict: accepted, or rejected with
@@ -40,6 +41,9 @@ exit codes:
   4  no sensor accepted, or too little data to calibrate
   2  usage error      3  unreadable source or no IMU data
   5  write failed, vehicle restored      6  write failed and restore failed
+  70 internal error (a bug in mavcal: please report it with the -vv output)
+with --json, a log that was read but could not be calibrated still gets its report: every
+sensor with data rejected with the reason, "exit_code" and "error".
 """
 
 HELP = "calibrate from a log or a live link, check quality, write .param/JSON/HTML, optionally write the vehicle"
@@ -86,6 +90,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                           "misalignment goes into COMPASS_ORIENT")
     fit.add_argument("--duration", type=float, default=60.0, metavar="S", help="live source: seconds to record")
     add_still_arguments(p)
+    add_csv_rate_argument(p)
     w = p.add_argument_group("writing to the vehicle")
     w.add_argument("--write", action="store_true", help="write the parameters to the vehicle (safe writer)")
     w.add_argument("--connect", metavar="DEVICE", help="vehicle to write to (default: SOURCE when it is a device)")
@@ -138,21 +143,48 @@ def _options(args):
                    force_external=args.force_external, sensors=sensors, only_instances=only)
 
 
+def _refused(args, source: str, exc: MavcalError, prep, opts) -> None:
+    """--json of a recording that could not be calibrated: every sensor with data rejected with
+    the reason, the exit code and the refusal (then the error goes on to the CLI)."""
+    if not args.json:
+        return
+    from mavcal.pipeline import refusal_verdicts
+    from mavcal.report.json import refusal_json
+
+    verdicts = refusal_verdicts(prep, exc, opts) if prep is not None else ()
+    write_text_output(args.json, json.dumps(refusal_json(source, exc, verdicts, prep), indent=1))
+
+
 def _single(args, source: str) -> int:
-    from mavcal.pipeline import calibrate_source
+    from mavcal.pipeline import calibrate_prepared, prepare
     from mavcal.sources.progress import auto_progress
-    from mavcal.sources.reader import is_device
+    from mavcal.sources.reader import is_device, read_log
 
     opts = _options(args)
     device = is_device(source)
-    if device:
-        from mavcal.link.live import record_device
+    prep = None
+    progress = None if device else auto_progress(f"reading {Path(source).name}")
+    try:
+        if device:
+            from mavcal.link.live import record_device
 
-        log_ = record_device(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout,
-                             on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))
-        run = calibrate_source(log_, opts)
-    else:
-        run = calibrate_source(source, opts, progress=auto_progress(f"reading {Path(source).name}"))
+            log_ = record_device(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout,
+                                 on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))
+        else:
+            log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))
+        prep = prepare(log_, opts, progress=progress)
+        run = calibrate_prepared(prep, opts, progress=progress)
+    except MavcalError as exc:  # no fit at all: the JSON still says why, per sensor
+        if isinstance(exc, UsageError):
+            raise
+        hint = csv_rate_hint(prep.log if prep is not None else None)
+        if hint and isinstance(exc, InsufficientDataError):
+            exc = type(exc)(f"{exc}{hint}")
+        _refused(args, source, exc, prep, opts)
+        raise exc from None
+    finally:
+        if progress is not None:
+            progress.close()  # an error message then starts on a line of its own
     code = write_outputs(run, args, f"mavcal calibration of {run.source}")
     if args.write or args.dry_run:
         target = args.connect or (source if device else None)

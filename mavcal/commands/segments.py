@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 
 from mavcal.commands.common import add_still_arguments, still_config
-from mavcal.errors import SegmentationError
+from mavcal.errors import SegmentationError, UsageError
 
 HELP = "find the still intervals of a log and diagnose whether they can calibrate"
 EPILOG = """\
 exit codes:
   0  coverage ok or reduced: a calibration can run (reduced model when "reduced")
   4  coverage insufficient: no still interval, or too few intervals/orientations for any model
-  3  unreadable source      2  bad options
+  3  unreadable source      2  bad options      70  internal error (a bug: report it with -vv)
 """
 
 
@@ -46,6 +46,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="live source: seconds to record (default 10)")
     parser.add_argument("--baud", type=int, default=115200, help="live source: serial baud rate (default 115200)")
     add_still_arguments(parser)
+    add_csv_rate_argument(parser)
+
+
+def add_csv_rate_argument(parser: argparse.ArgumentParser) -> None:
+    """``--csv-rate HZ`` (segments and calibrate): the sample rate of a CSV without a time column."""
+    parser.add_argument("--csv-rate", type=float, default=None, metavar="HZ",
+                        help="sample rate of a CSV log without a time column (default: 100 Hz assumed); the "
+                             "still-interval durations are measured with it")
+
+
+def csv_rate(args) -> float:
+    """``--csv-rate`` (UsageError unless a positive number), or the reader's assumption."""
+    from mavcal.sources.reader import DEFAULT_CSV_RATE_HZ
+
+    rate = getattr(args, "csv_rate", None)
+    if rate is None:
+        return DEFAULT_CSV_RATE_HZ
+    if not (math.isfinite(rate) and rate > 0):
+        raise UsageError(f"--csv-rate must be a positive number of Hz, got {rate}")
+    return float(rate)
+
+
+def csv_rate_hint(log_) -> str:
+    """What to do when too few still intervals were found in a CSV without a time column."""
+    from mavcal.sources.reader import csv_rate_was_assumed
+
+    if log_ is None or not csv_rate_was_assumed(log_):
+        return ""
+    return ("; the CSV has no time column, so its sample rate was assumed: if its still holds are shorter than "
+            "the detector's --window/--min-duration at that rate, give the real rate with --csv-rate HZ (a lower "
+            "rate lengthens them) or shorten --window and --min-duration")
 
 
 def _num(x: float) -> Any:
@@ -132,11 +163,12 @@ def _segment(args, cfg):
     (:func:`mavcal.pipeline.prepare`), or, with ``--no-recover``, the readings as logged."""
     from mavcal.pipeline import Options, open_source, prepare
     from mavcal.sources.progress import auto_progress
-    from mavcal.sources.reader import is_device
+    from mavcal.sources.reader import is_device, read_log
 
     src = str(args.source)
     progress = auto_progress("recording" if is_device(src) else f"reading {Path(src).name}")
-    log_ = open_source(src, baud=args.baud, duration_s=args.duration, progress=progress)
+    log_ = (open_source(src, baud=args.baud, duration_s=args.duration, progress=progress) if is_device(src)
+            else read_log(src, progress=progress, csv_rate_hz=csv_rate(args)))
     if args.no_recover:
         from mavcal.segment import find_still_intervals
 
@@ -147,7 +179,7 @@ def _segment(args, cfg):
 
 def run(args) -> int:
     cfg = still_config(args)
-    _, raw, seg = _segment(args, cfg)
+    log_, raw, seg = _segment(args, cfg)
     rep = _report(str(args.source), raw, seg, bool(args.samples))
     if args.json:
         print(json.dumps(rep, indent=1))
@@ -157,8 +189,8 @@ def run(args) -> int:
         why = [w for w in seg.warnings if not w.startswith("no still intervals")]
         raise SegmentationError(f"no still intervals in {args.source}"
                                 + (f": {'; '.join(why)}" if why else " (the vehicle never stayed still "
-                                   "long enough, or the thresholds are too strict)"))
+                                   "long enough, or the thresholds are too strict)") + csv_rate_hint(log_))
     if seg.coverage.status == "insufficient":
         raise SegmentationError(f"{args.source}: the still intervals cannot calibrate: "
-                                + "; ".join(seg.coverage.messages))
+                                + "; ".join(seg.coverage.messages) + csv_rate_hint(log_))
     return 0

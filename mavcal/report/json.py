@@ -15,7 +15,7 @@ covariances rebuilt from their diagonals and those other fields empty. 2 adds th
 from __future__ import annotations
 
 import json as _json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -29,8 +29,8 @@ from mavcal.core.types import Calibration, SensorModel
 from mavcal.errors import SourceError, UsageError
 from mavcal.quality import Quality
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "SavedInterval", "SavedCalibration", "to_json", "from_json", "write_json",
-           "read_json"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "SavedInterval", "SavedCalibration", "to_json", "refusal_json", "from_json",
+           "write_json", "read_json"]
 
 FORMAT = "mavcal report v1"  # the document kind (kept from the first version)
 FORMAT_VERSION = 2
@@ -188,6 +188,38 @@ def to_json(run) -> dict[str, Any]:
     }
 
 
+def refusal_json(source: str, error: Exception, verdicts: Sequence[Any] = (), prep: Any = None) -> dict[str, Any]:
+    """The JSON report of a recording that could not be calibrated at all (too little data,
+    unreadable): ``"sensors"`` (each sensor with data rejected with the reasons, see
+    :func:`mavcal.pipeline.refusal_verdicts`; empty when the log could not be read),
+    ``"exit_code"`` (the CLI's), ``"error"`` (the one-line refusal) and, when the log was
+    read, the still intervals, coverage and warnings. It has no ``"calibration"`` or
+    ``"parameters"``: :func:`from_json` refuses it."""
+    out: dict[str, Any] = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "mavcal_version": mavcal.__version__,
+        "source": str(source),
+        "accepted": False,
+        "sensors": [{"sensor": v.sensor, "accepted": bool(v.accepted), "reasons": list(v.reasons)}
+                    for v in verdicts],
+        "exit_code": int(getattr(error, "exit_code", 1)),
+        "error": str(error),
+    }
+    if prep is not None:
+        seg = prep.segmentation
+        out["intervals"] = [{"index": k, "start_s": iv.start_s, "end_s": iv.end_s, "duration_s": iv.duration_s,
+                             "samples_accel": iv.n_accel, "samples_mag": iv.n_mag,
+                             "gravity_dir": _f(iv.gravity_dir), "used": False}
+                            for k, iv in enumerate(seg.intervals)]
+        out["coverage"] = {"n_intervals": seg.coverage.n_intervals, "n_orientations": seg.coverage.n_orientations,
+                           "largest_empty_cap_deg": _f(seg.coverage.largest_empty_cap_deg),
+                           "status": seg.coverage.status, "messages": list(seg.coverage.messages)}
+        out["raw_recovery"] = {"frames": dict(prep.raw.frames), "accel_cal_periods": _f(prep.raw.accel_cal_periods)}
+        out["warnings"] = list(prep.warnings)
+    return out
+
+
 def write_json(run, path) -> Path:
     """Write :func:`to_json` of ``run`` to ``path`` ('-' is not a path here); UsageError when it cannot."""
     path = Path(path)
@@ -253,6 +285,8 @@ def from_json(doc: Mapping[str, Any]) -> SavedCalibration:
     """
     if not isinstance(doc, Mapping) or doc.get("format") != FORMAT:
         raise SourceError("not a mavcal JSON report (no \"format\": \"mavcal report v1\")")
+    if "error" in doc and "calibration" not in doc:
+        raise SourceError(f"this JSON report holds no calibration: the recording was refused ({doc['error']})")
     version = int(doc.get("format_version", 1))
     if version > FORMAT_VERSION:
         raise SourceError(f"JSON report format version {version} is newer than this mavcal reads "

@@ -40,6 +40,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_SET_MESSAGE_INTERVAL
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
@@ -486,6 +487,9 @@ def _tlog_position(cols: Columns, sysid: int) -> tuple[float, float, float] | No
 
 
 # --------------------------------------------------------------------------- DataFlash assembly
+_PARAM_NAME_RE = re.compile(r"^[A-Za-z0-9_]{1,16}$")  # ArduPilot: up to 16 letters, digits, _
+
+
 def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
     if "TimeUS" in c:
         return np.asarray(c["TimeUS"], dtype=float) * 1e-6
@@ -494,11 +498,21 @@ def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
     raise SourceError("DataFlash message without TimeUS/TimeMS")
 
 
-def _df_instances(name: str, c: Mapping[str, np.ndarray]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
-    """Yield (instance, columns) of a DataFlash message (I field, or the digit in the name)."""
+def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int,
+                  warns: list[str]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
+    """Yield (instance, columns) of a DataFlash message (I field, or the digit in the name).
+
+    Records whose instance is not 0..``limit``-1 (a corrupt I byte: ArduPilot has no such
+    sensor slot) are skipped and counted in ``warns``."""
     if "I" in c:
-        inst = np.asarray(c["I"]).astype(int)
-        for i in np.unique(inst).tolist():
+        raw = np.asarray(c["I"], dtype=float)
+        ok = np.isfinite(raw) & (raw >= 0) & (raw < limit) & (raw == np.round(raw))
+        if not ok.all():
+            bad = sorted({int(x) for x in raw[~ok & np.isfinite(raw)][:1000].tolist()})[:5]
+            warns.append(f"skipped {int((~ok).sum())} {name} records with an impossible instance number "
+                         f"({', '.join(map(str, bad)) or 'not a number'}; valid 0..{limit - 1}): corrupt records")
+        inst = np.where(ok, raw, -1).astype(int)
+        for i in np.unique(inst[ok]).tolist():
             yield i, _take(c, inst == i)
     else:
         digit = name[-1]
@@ -526,7 +540,7 @@ def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c):
+        for inst, ci in _df_instances(name, c, fw.MAX_IMUS, out.warns):
             t = _df_time(ci)
             if all(k in ci for k in ("AccX", "AccY", "AccZ")):
                 _df_add(out, "accel", inst, name, t, _vec(ci, ("AccX", "AccY", "AccZ")))
@@ -536,7 +550,7 @@ def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c):
+        for inst, ci in _df_instances(name, c, fw.MAX_COMPASSES, out.warns):
             if not all(k in ci for k in ("MagX", "MagY", "MagZ")):
                 continue
             extra = {}
@@ -571,6 +585,22 @@ class _DfRecordTime:
         return np.where(k >= 0, self.t_val[np.clip(k, 0, None)], self.t_val[0])
 
 
+def _df_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[str]) -> ParamTimeline:
+    """PARM records -> ParamTimeline; records with an impossible value or name (a damaged
+    log: DataFlash has no checksum) are skipped and counted in ``warns``."""
+    names = [_text(x) for x in pm["Name"]]
+    values = np.asarray(pm["Value"], dtype=float)
+    ok = np.array([bool(_PARAM_NAME_RE.match(n)) and fw.param_value_plausible(n, v)
+                   for n, v in zip(names, values.tolist())], dtype=bool)
+    ok &= np.isfinite(t)
+    if not ok.all():
+        bad = [f"{n}={v:g}" for n, v, k in zip(names, values.tolist(), ok.tolist()) if not k][:3]
+        warns.append(f"skipped {int((~ok).sum())} PARM records with an impossible name or value "
+                     f"({', '.join(bad)}): corrupt records")
+    keep = np.flatnonzero(ok)
+    return _build_timeline([names[i] for i in keep.tolist()], t[keep], values[keep])
+
+
 def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
     """Build an ImuLog from DataFlash message columns (fast decoder or DFReader)."""
     warns = list(warnings)
@@ -582,7 +612,7 @@ def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ())
     params = ParamTimeline()
     pm = cols.get("PARM") or {}
     if _n(pm):
-        params = _build_timeline([_text(x) for x in pm["Name"]], rec_time(pm), np.asarray(pm["Value"], dtype=float))
+        params = _df_params(pm, rec_time(pm), warns)
     events: list[LogEvent] = []
     firmware = None
     msg = cols.get("MSG") or {}

@@ -30,11 +30,16 @@ from mavcal.sources.assemble import DATAFLASH_MESSAGES, G0, TLOG_MESSAGES, Colum
 from mavcal.sources.types import ImuLog, SensorSeries
 
 __all__ = ["read_log", "read_csv", "is_device", "open_source", "pymavlink_tlog_columns",
-           "pymavlink_dataflash_columns"]
+           "pymavlink_dataflash_columns", "DEFAULT_CSV_RATE_HZ", "CSV_RATE_ASSUMED", "csv_rate_was_assumed"]
 
 log = logging.getLogger(__name__)
 
 ProgressFn = Callable[[int, int], None]
+
+#: sample rate assumed for a CSV without a time column (stated in the warnings)
+DEFAULT_CSV_RATE_HZ = 100.0
+#: how that warning begins
+CSV_RATE_ASSUMED = "CSV has no time column: assumed"
 
 
 # --------------------------------------------------------------------------- pymavlink reference readers
@@ -104,7 +109,7 @@ def pymavlink_dataflash_columns(path: str, names: Sequence[str] = DATAFLASH_MESS
 
 
 # --------------------------------------------------------------------------- CSV
-def read_csv(path: str, *, rate_hz: float = 100.0) -> ImuLog:
+def read_csv(path: str, *, rate_hz: float = DEFAULT_CSV_RATE_HZ) -> ImuLog:
     """Read a CSV of accelerometer (and optionally gyro/mag) readings.
 
     The header must name ``ax,ay,az`` (accel in g); optional ``gx,gy,gz`` (rad/s),
@@ -151,7 +156,7 @@ def read_csv(path: str, *, rate_hz: float = 100.0) -> ImuLog:
         ok &= np.isfinite(t)
     else:
         t = np.arange(len(a)) / float(rate_hz)
-        warns.append(f"CSV has no time column: assumed {rate_hz:g} Hz")
+        warns.append(f"{CSV_RATE_ASSUMED} {rate_hz:g} Hz")
     warns.append("CSV accel assumed in g (x 9.80665 -> m/s^2)")
     series = [SensorSeries("accel", 0, "CSV", t[ok], acc[ok] * G0)]
     if all(k in col for k in ("gx", "gy", "gz")):
@@ -167,6 +172,12 @@ def read_csv(path: str, *, rate_hz: float = 100.0) -> ImuLog:
     if len(series[0]) == 0:
         raise SourceError(f"CSV {path} has no usable accel rows")
     return ImuLog(source=str(path), kind="csv", series=tuple(series), warnings=tuple(warns))
+
+
+def csv_rate_was_assumed(log_: ImuLog) -> bool:
+    """True for a CSV log read without a time column (its sample rate, and so every duration
+    measured on it, was assumed)."""
+    return log_.kind == "csv" and any(w.startswith(CSV_RATE_ASSUMED) for w in log_.warnings)
 
 
 # --------------------------------------------------------------------------- entry points
@@ -198,7 +209,7 @@ def _kind_of(path: Path) -> str:
     raise SourceError(f"unknown log type '{path.suffix or path.name}' of {path}: expected .tlog, .bin, .log or .csv")
 
 
-def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv_rate_hz: float = 100.0,
+def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv_rate_hz: float = DEFAULT_CSV_RATE_HZ,
              chunk_size: int | None = None) -> ImuLog:
     """Read a log file into an :class:`ImuLog`.
 
@@ -265,7 +276,7 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
 
 
 def open_source(source, *, progress: ProgressFn | None = None, fast: bool = True,
-                csv_rate_hz: float = 100.0) -> ImuLog:
+                csv_rate_hz: float = DEFAULT_CSV_RATE_HZ) -> ImuLog:
     """:func:`read_log` of a log file; a device string is refused.
 
     Kept for the callers that read files by this name. A live vehicle is recorded by
