@@ -32,13 +32,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
+from lsq_truth import G, least_squares_from_truth, unpack  # benchmarks/lsq_truth.py
 
 import mavcal
 from mavcal.core import calibrate as C
 from mavcal.core import steps
 from mavcal.core.models import MODELS
-from mavcal.core.rotations import exp_so3
 from mavcal.core.types import Calibration, SensorModel
 from mavcal.sim.paper import SimData, Truth, draw_intervals, draw_sensors
 
@@ -107,31 +106,12 @@ def gamma_sweep(train: SimData, test: SimData, method: str, seed: int):
 def generic_optimum(train: SimData):
     """Exact optimum of J' by scipy least_squares from the truth (paper gauge, Sigma_hat)."""
     a, m = C._stats(train.accel_sets, train.mag_sets, None)
-    K_a, b_a, K_m, b_m, h_z, R0 = train.truth.in_paper_gauge()
-    La = np.linalg.cholesky(np.linalg.inv(a.sigma_hat)).T
-    Lm = np.linalg.cholesky(np.linalg.inv(m.sigma_hat)).T
-    iu = np.triu_indices(3)
-    N = len(R0)
-    x0 = np.concatenate([K_a[iu], b_a, K_m.ravel(), b_m, [h_z], np.zeros(3 * N)])
-    g = np.array([0, 0, -1.0])
-
-    def unpack(x):
-        Ka = np.zeros((3, 3))
-        Ka[iu] = x[:6]
-        return Ka, x[6:9], x[9:18].reshape(3, 3), x[18:21], x[21], R0 @ exp_so3(x[22:].reshape(N, 3))
-
-    def fun(x):
-        Ka, ba, Km, bm, hz, R = unpack(x)
-        ra = ((np.einsum("ij,njk,k->ni", Ka, R, g) + ba - a.mu) @ La.T) * np.sqrt(a.n)[:, None]
-        rm = ((np.einsum("ij,njk,k->ni", Km, R, [1, 0, hz]) + bm - m.mu) @ Lm.T) * np.sqrt(m.n)[:, None]
-        return np.concatenate([ra.ravel(), rm.ravel()])
-
     t0 = time.perf_counter()
-    sol = least_squares(fun, x0, method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    sol, R0 = least_squares_from_truth(train.accel_sets, train.mag_sets, train.truth, a.sigma_hat, m.sigma_hat)
     dt = time.perf_counter() - t0
-    Ka, ba, Km, bm, hz, R = unpack(sol.x)
+    Ka, ba, Km, bm, hz, R = unpack(sol.x, R0)
     cal = Calibration(accel=SensorModel(Ka, ba, a.sigma_hat), mag=SensorModel(Km, bm, m.sigma_hat, "mag"),
-                      gravity=g, field=np.array([1, 0, hz]), orientations=R, cost=float(2 * sol.cost),
+                      gravity=G, field=np.array([1, 0, hz]), orientations=R, cost=float(2 * sol.cost),
                       iterations=int(sol.nfev), converged=bool(sol.success), message=sol.message)
     return cal, dt
 

@@ -35,10 +35,9 @@ from multiprocessing import Pool
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
+from lsq_truth import least_squares_from_truth  # benchmarks/lsq_truth.py
 
 import mavcal
-from mavcal.core.rotations import exp_so3
 from mavcal.errors import EstimationError
 from mavcal.sim.paper import coplanar_rotations, draw_intervals, draw_sensors
 
@@ -79,27 +78,7 @@ def make_data(cls: str, k: int, spec: dict):
 
 def optimum_from_truth(d, Sa, Sm):
     """min J' by scipy least_squares from the truth in the paper's gauge; returns (J, h_z)."""
-    K_a, b_a, K_m, b_m, h_z, R0 = d.truth.in_paper_gauge()
-    mu_a = np.array([x.mean(0) for x in d.accel_sets])
-    mu_m = np.array([x.mean(0) for x in d.mag_sets])
-    n_a = np.array([len(x) for x in d.accel_sets], float)
-    n_m = np.array([len(x) for x in d.mag_sets], float)
-    La = np.linalg.cholesky(np.linalg.inv(Sa)).T
-    Lm = np.linalg.cholesky(np.linalg.inv(Sm)).T
-    iu = np.triu_indices(3)
-    N = len(R0)
-    x0 = np.concatenate([K_a[iu], b_a, K_m.ravel(), b_m, [h_z], np.zeros(3 * N)])
-    g = np.array([0, 0, -1.0])
-
-    def fun(x):
-        Ka = np.zeros((3, 3))
-        Ka[iu] = x[:6]
-        R = R0 @ exp_so3(x[22:].reshape(N, 3))
-        ra = ((np.einsum("ij,njk,k->ni", Ka, R, g) + x[6:9] - mu_a) @ La.T) * np.sqrt(n_a)[:, None]
-        rm = ((np.einsum("ij,njk,k->ni", x[9:18].reshape(3, 3), R, [1, 0, x[21]]) + x[18:21] - mu_m) @ Lm.T)
-        return np.concatenate([ra.ravel(), (rm * np.sqrt(n_m)[:, None]).ravel()])
-
-    sol = least_squares(fun, x0, method="trf", xtol=1e-13, ftol=1e-13, gtol=1e-13, max_nfev=2000)
+    sol, _ = least_squares_from_truth(d.accel_sets, d.mag_sets, d.truth, Sa, Sm, tol=1e-13, max_nfev=2000)
     return float(2 * sol.cost), float(sol.x[21])
 
 
