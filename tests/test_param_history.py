@@ -10,7 +10,7 @@ from mavcal.ardupilot.param_history import change_events, known_values
 from mavcal.ardupilot.protocol import MAV_CMD
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.segment import find_still_intervals
-from mavcal.sources import open_source
+from mavcal.sources import read_log
 from mavcal.sources.types import LogEvent, ParamTimeline
 from mavcal.testing.logwriters import TlogWriter
 from mavcal.testing.simlog import G, MagTruth, SimConfig, simulate_session
@@ -51,7 +51,7 @@ def _write_late_params_tlog(path: Path):
 def late(tmp_path_factory):
     path = tmp_path_factory.mktemp("late") / "late_params.tlog"
     sim = _write_late_params_tlog(path)
-    log_ = open_source(str(path))
+    log_ = read_log(str(path))
     return sim, log_, recover_raw(log_)
 
 
@@ -129,7 +129,7 @@ def test_real_log_reboot_after_compass_calibration():
     path = REAL / "2024-04-05 09-36-27.tlog"
     if not path.exists():
         pytest.skip(f"{path} not available")
-    log_ = open_source(str(path))
+    log_ = read_log(str(path))
     reboots = [e.time_s for e in log_.events if e.kind == "reboot"]
     assert [round(t, 1) for t in reboots] == [289.2]
     raw = recover_raw(log_)

@@ -9,7 +9,7 @@ import pytest
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.recover import ACCEL_FRAME, MAG_FRAME, recover_raw
 from mavcal.ardupilot.rotations import rotation_matrix
-from mavcal.sources import open_source
+from mavcal.sources import read_log
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
@@ -68,7 +68,7 @@ def test_accel_cal_period_from_events_is_not_corrected():
 
 @pytest.mark.parametrize("name", ["00000124.BIN", "2024-04-05 09-19-03.tlog", "2023-05-17 12-18-48.tlog"])
 def test_real_six_pose_logs_jump_is_removed(name):
-    log_ = open_source(_need(REAL / name))
+    log_ = read_log(_need(REAL / name))
     raw = recover_raw(log_)
     assert len(raw.accel_cal_periods) == 1
     a0, b0 = raw.accel_cal_periods[0]
@@ -94,7 +94,7 @@ def test_real_six_pose_logs_jump_is_removed(name):
 @pytest.mark.parametrize("name", ["sitl01", "sitl02"])
 def test_sitl_raw_matches_truth_model(name):
     truth = json.loads(_need(SITL / f"{name}.truth.json").read_text())
-    raw = recover_raw(open_source(_need(SITL / f"{name}.tlog")))
+    raw = recover_raw(read_log(_need(SITL / f"{name}.tlog")))
     S = truth["injected_sim_params"]
     Msim = fw.soft_iron_matrix([S[f"SIM_MAG1_DIA_{a}"] for a in "XYZ"], [S[f"SIM_MAG1_ODI_{a}"] for a in "XYZ"])
     ofs = np.array([S[f"SIM_MAG1_OFS_{a}"] for a in "XYZ"])

@@ -9,7 +9,7 @@ import pytest
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.errors import MavcalError, SegmentationError
 from mavcal.segment import StillConfig, diagnose_coverage, find_still_intervals
-from mavcal.sources import open_source
+from mavcal.sources import read_log
 from mavcal.sources.types import SensorSeries
 from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
 
@@ -100,7 +100,7 @@ def test_no_accel_is_an_error():
 def test_sitl_dance_windows_are_found(name):
     truth = json.loads((SITL / f"{name}.truth.json").read_text()) if (SITL / f"{name}.truth.json").exists() \
         else pytest.skip("no SITL logs")
-    raw = recover_raw(open_source(SITL / f"{name}.tlog"))
+    raw = recover_raw(read_log(SITL / f"{name}.tlog"))
     seg = find_still_intervals(raw)
     unix = raw.accel[0].time_s[0] > 1e9
     wins = [((w["still_start_unix_usec"] / 1e6, w["still_end_unix_usec"] / 1e6) if unix
@@ -129,7 +129,7 @@ def test_every_real_log_gives_intervals_or_a_reason(name):
     if not path.exists():
         pytest.skip(f"{path} not available")
     try:
-        raw = recover_raw(open_source(path))
+        raw = recover_raw(read_log(path))
     except MavcalError as exc:  # unreadable: the error itself is the diagnosis
         pytest.fail(f"{name}: {exc}")
     seg = find_still_intervals(raw)
@@ -165,7 +165,7 @@ def test_bundled_logs_give_the_recorded_intervals(name):
     if not path.exists():
         pytest.skip(f"{path} not available")
     expect = json.loads(EXPECTED.read_text())[name]
-    seg = find_still_intervals(recover_raw(open_source(str(path))))
+    seg = find_still_intervals(recover_raw(read_log(str(path))))
     got = [[iv.start_s, iv.end_s, {str(k): v for k, v in iv.n_accel.items()},
             {str(k): v for k, v in iv.n_mag.items()}, list(iv.accel_dir)] for iv in seg.intervals]
     assert len(got) == len(expect)

@@ -9,7 +9,7 @@ import pytest
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.core.constants import GRAVITY_MPS2
-from mavcal.sources import open_source
+from mavcal.sources import read_log
 from mavcal.testing.logwriters import DataFlashWriter, TlogWriter, int16_trunc
 from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
 
@@ -96,7 +96,7 @@ def test_truth_matches_the_firmware_forward_model(sims):
 @pytest.mark.parametrize("kind", ["tlog", "bin"])
 def test_round_trip_recovers_simulated_raw(sims, kind):
     s = sims[kind]
-    log_ = open_source(s.paths[kind])
+    log_ = read_log(s.paths[kind])
     raw = recover_raw(log_)
     assert raw.warnings == ()
     for i in range(2):
@@ -123,5 +123,5 @@ def test_mavlink2_tlog(tmp_path):
     cfg = replace(CFG, poses_deg=CFG.poses_deg[:3], change_at_s=None, accel_cal_period_s=None,
                   compass_cals_after=None, accel_cals_after=None)
     s = simulate_session(cfg, tlog=tmp_path / "v2.tlog", mavlink2=True)
-    raw = recover_raw(open_source(tmp_path / "v2.tlog"))
+    raw = recover_raw(read_log(tmp_path / "v2.tlog"))
     np.testing.assert_allclose(raw.get("mag", 0).values, s.mag_raw_mgauss[0], atol=1.05)

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mav2
 
 from mavcal.errors import MavcalError, SourceError
-from mavcal.sources import open_source, read_log
+from mavcal.sources import read_log
 from mavcal.sources.assemble import REBOOT_BACKSTEP_S, TLOG_MESSAGES, _next_reboot
 from mavcal.sources.fast_tlog import crc_x25, decode_tlog
 from mavcal.sources.framing import mark_path as _mark_path
@@ -375,7 +375,7 @@ def test_bad_files_give_one_line_source_errors(tmp_path, name, data, match):
 
 def test_missing_file_and_no_imu(tmp_path):
     with pytest.raises(SourceError, match="no such file"):
-        open_source(str(tmp_path / "nope.tlog"))
+        read_log(str(tmp_path / "nope.tlog"))
     hb = [mav2.MAVLink_heartbeat_message(2, 3, 0, 0, 0, 3)] * 5
     with pytest.raises(SourceError, match="no IMU messages"):
         read_log(write(tmp_path, "hb.tlog", tlog_bytes(hb)))

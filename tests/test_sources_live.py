@@ -13,7 +13,7 @@ from mavcal.errors import LinkError, MavcalError, SourceError
 from mavcal.link.live import imu_batch_from_messages, open_recorder, record_device
 from mavcal.link.params import fetch_all_params
 from mavcal.link.streams import send_message_intervals
-from mavcal.sources import open_source
+from mavcal.sources import read_log
 
 PARAMS = {f"COMPASS_OFS_{a}": v for a, v in zip("XYZ", (12.5, -40.0, 101.25))}
 PARAMS.update({f"INS_ACCOFFS_{a}": v for a, v in zip("XYZ", (0.01, -0.02, 0.3))})
@@ -213,7 +213,7 @@ def test_incomplete_parameter_table_is_a_warning_of_the_recording(vehicle_factor
 
 def test_file_reader_refuses_a_device():
     with pytest.raises(SourceError, match="record_device"):
-        open_source("udpin:127.0.0.1:14550")
+        read_log("udpin:127.0.0.1:14550")
 
 
 class _Encoder:

@@ -29,7 +29,7 @@ from mavcal.errors import MavcalError, SourceError
 from mavcal.sources.assemble import DATAFLASH_MESSAGES, G0, TLOG_MESSAGES, Columns, assemble_dataflash, assemble_tlog
 from mavcal.sources.types import ImuLog, SensorSeries
 
-__all__ = ["read_log", "read_csv", "is_device", "open_source", "pymavlink_tlog_columns",
+__all__ = ["read_log", "read_csv", "is_device", "pymavlink_tlog_columns",
            "pymavlink_dataflash_columns", "DEFAULT_CSV_RATE_HZ", "CSV_RATE_ASSUMED", "csv_rate_was_assumed"]
 
 log = logging.getLogger(__name__)
@@ -231,8 +231,11 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
     SourceError
         Missing, empty, unreadable or corrupt file, unknown type, or no IMU data.
     """
-    p = Path(path)
     src = str(path)
+    if is_device(src):  # a clear word rather than "no such file"
+        raise SourceError(f"{src} is a device, not a log file: record it with mavcal.link.live.record_device "
+                          "(mavcal.pipeline.open_source takes both)")
+    p = Path(path)
     if not p.exists():
         raise SourceError(f"no such file: {src}")
     if not p.is_file():
@@ -273,21 +276,3 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
     except Exception as exc:  # corrupt input that a parser did not anticipate: one line, no traceback
         log.debug("reading %s failed", src, exc_info=True)
         raise SourceError(f"cannot read {src}: corrupt or unsupported ({type(exc).__name__}: {exc})") from None
-
-
-def open_source(source, *, progress: ProgressFn | None = None, fast: bool = True,
-                csv_rate_hz: float = DEFAULT_CSV_RATE_HZ) -> ImuLog:
-    """:func:`read_log` of a log file; a device string is refused.
-
-    Kept for the callers that read files by this name. A live vehicle is recorded by
-    :func:`mavcal.link.live.record_device` (``mavcal.pipeline.open_source`` takes both).
-
-    Raises
-    ------
-    SourceError
-        ``source`` is a device string, or anything :func:`read_log` raises.
-    """
-    src = str(source)
-    if is_device(src):
-        raise SourceError(f"{src} is a device, not a log file: record it with mavcal.link.live.record_device")
-    return read_log(src, progress=progress, fast=fast, csv_rate_hz=csv_rate_hz)
