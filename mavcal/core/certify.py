@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mavcal.core.refine import JointParams, JointProblem
+from mavcal.core.refine import JointParams, JointProblem, gauss_newton_blocks, schur_complement
 from mavcal.core.rotations import exp_so3, skew
 from mavcal.core.types import OptimumCertificate
 
@@ -110,14 +110,12 @@ def local_evidence(prob: JointProblem, p: JointParams) -> tuple[float, float, st
     r, Jg, Jr = prob.jacobians(p)
     cost = float(np.sum(r * r))
     # Gauss-Newton decrement with the Schur complement over the orientation blocks
-    Ggg = np.einsum("nmp,nmq->pq", Jg, Jg)
-    Ggr = np.einsum("nmp,nmr->npr", Jg, Jr)
-    Grr = np.einsum("nmr,nms->nrs", Jr, Jr)
+    Ggg, Ggr, Grr = gauss_newton_blocks(Jg, Jr)
     gg = np.einsum("nmp,nm->p", Jg, r)
     gr = np.einsum("nmr,nm->nr", Jr, r)
     try:
         Grr_inv = np.linalg.inv(Grr)
-        S = Ggg - np.einsum("npr,nrs,nqs->pq", Ggr, Grr_inv, Ggr)
+        S = schur_complement(Ggg, Ggr, Grr_inv)
         rhs = gg - np.einsum("npr,nrs,ns->p", Ggr, Grr_inv, gr)
         dec = float(rhs @ np.linalg.solve(S, rhs) + np.einsum("nr,nrs,ns->", gr, Grr_inv, gr))
     except np.linalg.LinAlgError:
@@ -125,7 +123,7 @@ def local_evidence(prob: JointProblem, p: JointParams) -> tuple[float, float, st
     Hgg, Hgr, Hrr = exact_hessian_blocks(prob, p)
     if np.any(np.linalg.eigvalsh(Hrr)[:, 0] <= 0):
         return dec, -np.inf, "an orientation is at a saddle or maximum of J' (exact Hessian block not positive)"
-    Hp = Hgg - np.einsum("npr,nrs,nqs->pq", Hgr, np.linalg.inv(Hrr), Hgr)
+    Hp = schur_complement(Hgg, Hgr, np.linalg.inv(Hrr))
     try:  # relative to the Gauss-Newton profile Hessian 2 S: 1 for a linear problem, <= 0 at a saddle
         Li = np.linalg.inv(np.linalg.cholesky(2.0 * S))
         lam = float(np.linalg.eigvalsh(Li @ Hp @ Li.T)[0])

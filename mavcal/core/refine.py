@@ -152,9 +152,7 @@ class JointProblem:
         converged = False
         it = 0
         for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
-            Hgg = np.einsum("nmp,nmq->pq", Jg, Jg)
-            Hgr = np.einsum("nmp,nmr->npr", Jg, Jr)
-            Hrr = np.einsum("nmr,nms->nrs", Jr, Jr)
+            Hgg, Hgr, Hrr = gauss_newton_blocks(Jg, Jr)
             gg = np.einsum("nmp,nm->p", Jg, r)
             gr = np.einsum("nmr,nm->nr", Jr, r)
             improved = False
@@ -201,18 +199,26 @@ class JointProblem:
     @staticmethod
     def covariance(Jg: np.ndarray, Jr: np.ndarray) -> np.ndarray | None:
         """(J^T J)^-1 on the global parameters, orientations marginalised (Schur complement)."""
-        Hgg = np.einsum("nmp,nmq->pq", Jg, Jg)
-        Hgr = np.einsum("nmp,nmr->npr", Jg, Jr)
-        Hrr = np.einsum("nmr,nms->nrs", Jr, Jr)
+        Hgg, Hgr, Hrr = gauss_newton_blocks(Jg, Jr)
         try:
-            Hrr_inv = np.linalg.inv(Hrr)
-            S = Hgg - np.einsum("npr,nrs,nqs->pq", Hgr, Hrr_inv, Hgr)
-            cov = np.linalg.inv(S)
+            cov = np.linalg.inv(schur_complement(Hgg, Hgr, np.linalg.inv(Hrr)))
         except np.linalg.LinAlgError:
             return None
         if not np.all(np.isfinite(cov)):
             return None
         return 0.5 * (cov + cov.T)
+
+
+def gauss_newton_blocks(Jg: np.ndarray, Jr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The blocks of J^T J with one 3x3 orientation block per interval: ``Hgg`` (P, P), ``Hgr``
+    (N, P, 3), ``Hrr`` (N, 3, 3), from the Jacobians of :meth:`JointProblem.jacobians`."""
+    return (np.einsum("nmp,nmq->pq", Jg, Jg), np.einsum("nmp,nmr->npr", Jg, Jr),
+            np.einsum("nmr,nms->nrs", Jr, Jr))
+
+
+def schur_complement(Hgg: np.ndarray, Hgr: np.ndarray, Hrr_inv: np.ndarray) -> np.ndarray:
+    """Hgg - sum_n Hgr_n Hrr_n^-1 Hgr_n^T: the global block with the orientations eliminated."""
+    return Hgg - np.einsum("npr,nrs,nqs->pq", Hgr, Hrr_inv, Hgr)
 
 
 def refit_covariances(problem: JointProblem, p: JointParams, scatters: Sequence[np.ndarray],
