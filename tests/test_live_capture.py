@@ -322,7 +322,8 @@ def test_rotated_compass_and_quick_returns_reach_the_target(start_vehicle):
     assert st.heading_95_deg <= 0.5 and st.n_intervals >= 8
     assert hand.returns >= 3
     ivs = sess.run.segmentation.intervals
-    assert any(len(iv.pieces_s) > 1 for iv in ivs)  # returns did merge
+    # whether a return lands within the merge window depends on the machine's load (real time);
+    # the merge itself is tested deterministically in tests/test_segment.py (pieces_s)
     for iv in ivs:  # RAW_IMU carries accel 0 and mag 0: the same still pieces, the same samples
         assert abs(iv.n_mag[0] - iv.n_accel[0]) <= len(iv.pieces_s)
     # consecutive advices after the plan never name the pose of an interval already counted
