@@ -140,6 +140,23 @@ def add_scaling(rows: list) -> None:
         r["time_x"] = round(r["wall_s"] / base["wall_s"], 1) if r["wall_s"] and base["wall_s"] else None
 
 
+def bar_lines(rows: list) -> list[str]:
+    """Issue 11's bars, per log: speed-up of ``mavcal calibrate`` over the pymavlink reader of
+    the same file in the same run (>= 20), its peak RSS / file (<= 2), and the time scaling
+    to the next size (<= 12 for 10x the size or the intervals)."""
+    out = ["| log | size MB | calibrate s | pymavlink s | speed-up (bar >= 20) | peak / file (bar <= 2) "
+           "| time x / size x (bar <= 12 for 10) |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["tool"] != "mavcal calibrate" or not r["wall_s"]:
+            continue
+        ref = next((q for q in rows if q["kind"] == r["kind"] and q["size_mb"] == r["size_mb"]
+                    and q["copies"] == r["copies"] and q["tool"] == "pymavlink read"), None)
+        speed = round(ref["wall_s"] / r["wall_s"], 1) if ref and ref["wall_s"] else None
+        out.append(f"| {r['kind']} | {r['size_mb']} | {r['wall_s']} | {ref['wall_s'] if ref else ''} | {speed} "
+                   f"| {r['rss_per_file'] if r['kind'] != 'sim' else ''} | {r['time_x']} / {r['size_x']} |")
+    return out
+
+
 def write_results(rows: list, env: str, command: str = "") -> str:
     md = ["| log | size MB | copies / poses | intervals | tool | wall s | peak RSS MB | RSS / file | time / pymavlink "
           "| size x | time x | rc |",
@@ -148,7 +165,8 @@ def write_results(rows: list, env: str, command: str = "") -> str:
         md.append(f"| {r['kind']} | {r['size_mb']} | {r['copies']} | {r.get('intervals') or ''} | {r['tool']} | "
                   f"{r['wall_s']} | {r['peak_rss_mb']} | {r['rss_per_file']} | {r['time_vs_pymavlink']} | "
                   f"{r['size_x']} | {r['time_x']} | {r['rc']} |")
-    text = ("# Long logs end to end (benchmarks/bench_long_logs.py)\n\n" + "\n".join(md) +
+    text = ("# Long logs end to end (benchmarks/bench_long_logs.py)\n\n" + "\n".join(md) + "\n\n"
+            + "\n".join(bar_lines(rows)) +
             "\n\nLogs: time-shifted copies of sitl_logs/sitl02.tlog and 00000124.BIN (benchmarks/biglogs.py). "
             "Each row is one subprocess: `mavcal calibrate LOG --json OUT`, `mavcal segments LOG --json`, or "
             "pymavlink reading the IMU messages (tlog: recv_match over RAW_IMU, SCALED_IMU2; .bin: DFReader over "
