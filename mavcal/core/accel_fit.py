@@ -264,17 +264,13 @@ def holdout_folds(dirs: np.ndarray, *, cluster_deg: float = 30.0, loo_max: int =
         close = (dirs @ dirs.T) > cos_c
         every = np.arange(N)
         return [(np.delete(every, j), np.array([j])) for j in range(N) if close[j].sum() >= 2]
-    from scipy.spatial import cKDTree
-
     pool = np.unique(np.round(np.linspace(0, N - 1, min(N, pool_max))).astype(int))
-    chord = 2.0 * np.sin(np.radians(cluster_deg) / 2.0)  # |d_i - d_j| < chord <=> angle < cluster_deg
     out = []
     for f in range(k):
         held = np.zeros(len(pool), dtype=bool)
         held[f::k] = True
         fit, out_f = pool[~held], pool[held]
-        dist, _ = cKDTree(dirs[fit]).query(dirs[out_f], k=1, distance_upper_bound=chord)
-        pred = out_f[np.isfinite(dist)]
+        pred = out_f[((dirs[out_f] @ dirs[fit].T) > cos_c).any(axis=1)]  # angle < cluster_deg to a kept one
         if pred.size:
             out.append((fit, pred))
     return out

@@ -40,7 +40,6 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
-from scipy.stats import chi2
 
 from mavcal.core import steps
 from mavcal.core.certify import certificate, escape_saddle
@@ -55,7 +54,7 @@ from mavcal.core.initial import (
 )
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, refit_covariances
-from mavcal.core.stats import IntervalStats, interval_stats
+from mavcal.core.stats import IntervalStats, chi2_sf, interval_stats
 from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
 from mavcal.errors import EstimationError, InsufficientDataError
 
@@ -238,7 +237,7 @@ def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> tuple
         W = float(v @ np.linalg.solve(V, v))
     except np.linalg.LinAlgError:
         return np.inf, len(constraints), 0.0
-    return W, len(constraints), float(chi2.sf(W, len(constraints)))
+    return W, len(constraints), chi2_sf(W, len(constraints))
 
 
 def _theta_by_names(res: RefineResult):
@@ -272,7 +271,7 @@ def _weak_evidence(res: RefineResult) -> str:
         return "the refinement did not converge"
     if res.dof < WEAK_DOF:
         return f"only {res.dof} degrees of freedom"
-    if chi2.sf(res.cost, res.dof) < WEAK_P:
+    if chi2_sf(res.cost, res.dof) < WEAK_P:
         return f"chi2/dof = {res.cost / res.dof:.3g}"
     return ""
 
@@ -539,7 +538,7 @@ def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs) -> Optimum
     if len(costs) > 1:
         best = costs[0]
         agree = sum(1 for c in costs if abs(c - best) <= 1e-7 * max(best, 1e-300))
-        misfit = res.dof > 0 and chi2.sf(best, res.dof) < WEAK_P
+        misfit = res.dof > 0 and chi2_sf(best, res.dof) < WEAK_P
         if misfit and (res.dof < WEAK_DOF or agree < 2):
             note = (f"the best of {len(costs)} starts leaves chi2/dof = {best / max(res.dof, 1):.3g} "
                     f"({agree} start(s) reached it, {res.dof} degrees of freedom): a wrong basin cannot be ruled out")
