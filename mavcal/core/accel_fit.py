@@ -154,9 +154,11 @@ def _solve_lm(theta: np.ndarray, v: np.ndarray, idx, resid, L_inv: np.ndarray, w
 
 
 def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
-              form: str = "auto") -> AccelFit:
+              form: str = "auto", start: AccelFit | None = None) -> AccelFit:
     """Fit one accelerometer from its still intervals alone (see the module docstring).
 
+    ``start``: begin from this fit's K_a, b_a instead of the ellipsoid fit (the warm-started
+    refits of :func:`holdout_accel_mps2`; the optimum is still that of these intervals).
     Raises InsufficientDataError with fewer than :data:`MIN_INTERVALS_DIAG` intervals,
     EstimationError on degenerate orientations.
     """
@@ -168,9 +170,12 @@ def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = N
     if form == "auto":
         form = "upper" if N >= MIN_INTERVALS_UPPER else "diag"
     idx = _UPPER if form == "upper" else _DIAG
-    e = fit_ellipsoid(st.mu) if form == "upper" else fit_sphere(st.mu)
-    K0 = np.asarray(e.K) if form == "upper" else np.diag(np.abs(np.diag(np.asarray(e.K))))
-    b0 = np.asarray(e.b, float)
+    if start is not None:
+        K0, b0 = _gain(np.array([start.gain[i, j] for i, j in idx]), idx), np.asarray(start.bias, float)
+    else:
+        e = fit_ellipsoid(st.mu) if form == "upper" else fit_sphere(st.mu)
+        K0 = np.asarray(e.K) if form == "upper" else np.diag(np.abs(np.diag(np.asarray(e.K))))
+        b0 = np.asarray(e.b, float)
     v0 = (st.mu - b0) @ np.linalg.inv(K0).T
     if not np.all(np.isfinite(v0)) or np.any(np.linalg.norm(v0, axis=1) == 0):
         raise EstimationError("degenerate accelerometer start: the orientations do not span enough directions")
@@ -277,7 +282,7 @@ def holdout_folds(dirs: np.ndarray, *, cluster_deg: float = 30.0, loo_max: int =
 
 
 def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
-                       form: str = "auto", cluster_deg: float = 30.0) -> float:
+                       form: str = "auto", cluster_deg: float = 30.0, start: AccelFit | None = None) -> float:
     """RMS held-out error of the accelerometer alone (the reading units).
 
     As :func:`mavcal.quality.holdout_errors`: each refit of :func:`holdout_folds`
@@ -285,6 +290,11 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     over at most :data:`HOLDOUT_POOL_MAX`) predicts intervals it never saw, each predicted
     mean compared with the nearest point of the refit's ellipsoid. NaN when no interval
     qualifies or too few remain.
+
+    The K-fold refits start from the fit of all intervals (``start``, e.g. the
+    :func:`fit_accel` the caller already has; else it is fitted here once): each still
+    minimises the cost of the intervals it keeps, the start only spares the ellipsoid fit and
+    most LM iterations. Leave-one-out (small logs) starts from scratch as before.
     """
     sets = list(accel_sets)
     N = len(sets)
@@ -295,9 +305,15 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     mu = np.array([np.asarray(s, float).mean(0) for s in sets])
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
     errs = []
+    if N > LOO_MAX_INTERVALS and (start is None or start.form != form):
+        try:
+            start = fit_accel(sets, noise_floor=noise_floor, form=form)
+        except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
+            start = None
     for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
         try:
-            f = fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form)
+            f = fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form,
+                          start=start if N > LOO_MAX_INTERVALS else None)
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
             continue
         errs += list(np.linalg.norm(mu[pred] - _nearest_on_ellipsoid(f.gain, f.bias, mu[pred]), axis=1))

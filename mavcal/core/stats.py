@@ -25,6 +25,9 @@ class IntervalStats:
     scatter : (3, 3) within-interval scatter sum_i sum_j (v - mu_hat[i])(v - mu_hat[i])^T
     sigma_hat : (3, 3) Sigma_hat (Bessel-corrected, floored to stay positive definite)
     scale : float, typical magnitude of the readings (for tolerances)
+    interval_scatter : (N, 3, 3) each interval's own scatter (``per_interval=True`` only), so
+        that :func:`stats_subset` forms the statistics of any subset without the samples
+    noise_floor : the floor the covariance was computed with
     """
 
     mu: np.ndarray
@@ -32,13 +35,16 @@ class IntervalStats:
     scatter: np.ndarray
     sigma_hat: np.ndarray
     scale: float
+    interval_scatter: np.ndarray | None = None
+    noise_floor: float | None = None
 
     @property
     def total(self) -> int:
         return int(self.n.sum())
 
 
-def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float | None = None) -> IntervalStats:
+def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float | None = None,
+                   per_interval: bool = False) -> IntervalStats:
     """Validate one sensor's interval readings and compute their statistics.
 
     Parameters
@@ -48,6 +54,7 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
     noise_floor : optional lower bound on the noise standard deviation (e.g. the
         quantisation step / sqrt(12)); by default 1e-9 of the reading scale so that
         noise-free data still give a usable (positive-definite) weighting.
+    per_interval : also keep each interval's scatter (for :func:`stats_subset`)
     """
     if isinstance(sets, np.ndarray) and sets.ndim == 3:
         sets = list(sets)
@@ -85,8 +92,17 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
     mu = np.add.reduceat(Xc, starts, axis=0) / n[:, None]
     D = Xc - np.repeat(mu, ns, axis=0)
     scatter = D.T @ D  # sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T
+    each = None
+    if per_interval:
+        each = np.add.reduceat(D[:, :, None] * D[:, None, :], starts, axis=0)
     mu = mu + center
-    N = len(seq)
+    return _finish_stats(name, mu, n, scatter, noise_floor, each)
+
+
+def _finish_stats(name: str, mu: np.ndarray, n: np.ndarray, scatter: np.ndarray, noise_floor: float | None,
+                  each: np.ndarray | None) -> IntervalStats:
+    """Scale, the degeneracy checks and the floored Bessel-corrected covariance."""
+    N = len(n)
     scale = float(np.median(np.linalg.norm(mu, axis=1)))
     spread = float(np.max(np.linalg.norm(mu - mu.mean(axis=0), axis=1))) if N > 1 else 0.0
     if not np.isfinite(scale) or (scale == 0.0 and spread == 0.0):
@@ -101,7 +117,19 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
     w, V = np.linalg.eigh(sigma)
     w = np.maximum(w, floor ** 2)
     sigma = (V * w) @ V.T
-    return IntervalStats(mu=mu, n=n, scatter=scatter, sigma_hat=sigma, scale=ref)
+    return IntervalStats(mu=mu, n=n, scatter=scatter, sigma_hat=sigma, scale=ref, interval_scatter=each,
+                         noise_floor=noise_floor)
+
+
+def stats_subset(stats: IntervalStats, idx, name: str = "sets") -> IntervalStats:
+    """The statistics of the intervals ``idx`` of ``stats`` (made with ``per_interval=True``):
+    what :func:`interval_stats` gives for those intervals' readings (equal up to rounding:
+    the scatter is summed interval by interval), in O(len(idx)) without the samples."""
+    if stats.interval_scatter is None:
+        raise ValueError("stats_subset needs interval_stats(..., per_interval=True)")
+    idx = np.asarray(idx)
+    each = stats.interval_scatter[idx]
+    return _finish_stats(name, stats.mu[idx], stats.n[idx], each.sum(axis=0), stats.noise_floor, each)
 
 
 # --- the chi-square tail, without scipy.stats (650 ms of import for one function) ------------
