@@ -55,3 +55,25 @@ def test_holdout_folds_neighbour_test_matches_kdtree():
         got = [(fit.tolist(), pred.tolist()) for fit, pred in holdout_folds(d)]
         assert got == expected
         assert sum(len(p) for _, p in expected) < len(pool)  # some lone directions are not predicted
+
+
+def test_stats_subset_equals_the_statistics_of_the_subset():
+    from mavcal.core.stats import interval_stats, stats_subset
+
+    rng = np.random.default_rng(2)
+    sets = [rng.normal(size=(int(rng.integers(3, 40)), 3)) * 0.01 + rng.normal(size=3) * 9.8 for _ in range(50)]
+    full = interval_stats(sets, "accel_sets", per_interval=True, noise_floor=1e-4)
+    plain = interval_stats(sets, "accel_sets", noise_floor=1e-4)
+    for name in ("mu", "n", "scatter", "sigma_hat"):  # per_interval changes nothing else
+        np.testing.assert_array_equal(getattr(full, name), getattr(plain, name))
+    np.testing.assert_allclose(full.interval_scatter.sum(axis=0), full.scatter, rtol=1e-12, atol=1e-18)
+    keep = [i for i in range(50) if i % 7]
+    sub = stats_subset(full, keep, "accel_sets")
+    ref = interval_stats([sets[i] for i in keep], "accel_sets", noise_floor=1e-4)
+    np.testing.assert_allclose(sub.mu, ref.mu, rtol=1e-13)
+    np.testing.assert_array_equal(sub.n, ref.n)
+    np.testing.assert_allclose(sub.scatter, ref.scatter, rtol=1e-10, atol=1e-16)
+    np.testing.assert_allclose(sub.sigma_hat, ref.sigma_hat, rtol=1e-10, atol=1e-16)
+    assert sub.scale == pytest.approx(ref.scale, rel=1e-13)
+    with pytest.raises(ValueError):
+        stats_subset(plain, keep)

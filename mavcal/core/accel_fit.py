@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.core.initial import fit_ellipsoid, fit_sphere
-from mavcal.core.stats import interval_stats
+from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
 from mavcal.errors import EstimationError, InsufficientDataError
 
 __all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "MIN_INTERVALS_DIAG", "MIN_INTERVALS_UPPER",
@@ -153,16 +153,18 @@ def _solve_lm(theta: np.ndarray, v: np.ndarray, idx, resid, L_inv: np.ndarray, w
     return theta, v, S, cost
 
 
-def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
+def fit_accel(accel_sets: Sequence[np.ndarray] | IntervalStats, *, noise_floor: float | None = None,
               form: str = "auto", start: AccelFit | None = None) -> AccelFit:
     """Fit one accelerometer from its still intervals alone (see the module docstring).
 
     ``start``: begin from this fit's K_a, b_a instead of the ellipsoid fit (the warm-started
     refits of :func:`holdout_accel_mps2`; the optimum is still that of these intervals).
+    ``accel_sets`` may also be their :class:`~mavcal.core.stats.IntervalStats` (``noise_floor`` unused).
     Raises InsufficientDataError with fewer than :data:`MIN_INTERVALS_DIAG` intervals,
     EstimationError on degenerate orientations.
     """
-    st = interval_stats(accel_sets, "accel_sets", noise_floor=noise_floor)
+    st = (accel_sets if isinstance(accel_sets, IntervalStats)
+          else interval_stats(accel_sets, "accel_sets", noise_floor=noise_floor))
     N = st.mu.shape[0]
     if N < MIN_INTERVALS_DIAG:
         raise InsufficientDataError(f"{N} still interval(s): an accelerometer alone needs at least "
@@ -305,15 +307,18 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     mu = np.array([np.asarray(s, float).mean(0) for s in sets])
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
     errs = []
-    if N > LOO_MAX_INTERVALS and (start is None or start.form != form):
+    k_fold = N > LOO_MAX_INTERVALS
+    if k_fold:  # the statistics once (each fold's from them in O(N)), the start fitted once
         try:
-            start = fit_accel(sets, noise_floor=noise_floor, form=form)
+            st = interval_stats(sets, "accel_sets", noise_floor=noise_floor, per_interval=True)
+            if start is None or start.form != form:
+                start = fit_accel(st, form=form)
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
-            start = None
+            return float("nan")
     for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
         try:
-            f = fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form,
-                          start=start if N > LOO_MAX_INTERVALS else None)
+            f = (fit_accel(stats_subset(st, keep, "accel_sets"), form=form, start=start) if k_fold else
+                 fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form))
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
             continue
         errs += list(np.linalg.norm(mu[pred] - _nearest_on_ellipsoid(f.gain, f.bias, mu[pred]), axis=1))

@@ -27,22 +27,17 @@ Pipeline of :func:`calibrate` (paper section in brackets):
    a positive definite exact Hessian (saddles are left along negative curvature first) and
    what the search showed; without it ``converged`` is False and ``message`` says why.
 
-Large N (more than ``LARGE_N`` intervals, hundreds to thousands in a long log): steps 2-5
-run on a deterministic subset of ``SUBSET_N`` intervals (:func:`mavcal.core.subset.diverse_subset`:
-every distinct pose first, by farthest-point sampling on the gravity and field directions,
-then intervals evenly spaced in the log); from the subset's optimum, the orientations of all
-N intervals (Eq. ``rotation_approximation``) and steps 4, 6, 7 with the reweighting on all N,
-so the result is the ML optimum of *all* the data at O(N) cost (the search alone is ~30 fits
-and would cost 30 x O(N)). Why the global-optimum guarantee holds: the search's job is to
-find the basin, and the basins are set by the poses, which the subset keeps (all distinct
-poses, the rest a sample of the log); adding the other intervals only sharpens the same
-cost around the same minimum (J' of all N is J' of the subset plus terms that agree on it),
-so the refinement from the subset's optimum converges to the full optimum, and the
-certificate checks it there (zero gradient, positive definite exact Hessian on all N; the
-start costs it compares are the subset's). ``tests/test_large_n.py`` compares with the
-exhaustive path on the paper's simulation. LM runs over more than ``LARGE_N`` intervals are
-bounded to ``LM_WORK`` interval-iterations (:func:`_lm_budget`), so data that do not
-converge (disturbed compasses) cost no more than a bounded number of O(N) iterations.
+Large N (above ``LARGE_N`` intervals): steps 2-5 run on a deterministic subset of
+``SUBSET_N`` (:func:`mavcal.core.subset.diverse_subset`: every distinct pose first, then
+intervals evenly spaced in the log); from the subset's optimum, the orientations of all N
+and steps 4, 6, 7 with the reweighting on all N: the ML optimum of *all* the data at O(N)
+cost (the search alone is ~30 fits). The global-optimum guarantee holds because the search
+only has to find the basin, and the basins are set by the poses, which the subset keeps; the
+other intervals add terms that agree on the same minimum and only sharpen it, so the
+refinement from the subset's optimum converges to the full optimum, certified there (zero
+gradient, positive definite exact Hessian on all N; the start costs compared are the
+subset's). Tested against the exhaustive path in ``tests/test_large_n.py``. LM runs over more
+than ``LARGE_N`` intervals are bounded to ``LM_WORK`` interval-iterations (:func:`_lm_budget`).
 
 Diagnosis behind 5-7 (benchmarks/stress_optimum.py, 2050 runs before the change): 19 runs
 ended above the optimum, 6 of them claiming convergence: the quadric start fell back to a
@@ -655,7 +650,8 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         refits of the held-out check): orientations of these intervals from its parameters,
         then the joint refinement, reweighting and model selection on these intervals alone,
         so the result is still the optimum of *this* data's cost; the start only selects the
-        basin. ``model`` should be the start's model.
+        basin. ``model`` should be the start's model. Nothing is searched, so the result
+        has no ``certificate`` (``converged`` says whether the refinement converged).
 
     Above ``LARGE_N`` intervals the search runs on a subset of ``SUBSET_N`` (see the module
     docstring), the refinement on all of them.
@@ -693,10 +689,12 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
     return _finish(spec, reason, a, m, opts, model, fit)
 
 
-def _finish(spec: ModelSpec, reason: str, a, m, opts, model: str, fit, search_dof: int | None = None) -> Calibration:
+def _finish(spec: ModelSpec, reason: str, a, m, opts, model: str, fit, search_dof: int | None = None,
+            certify: bool = True) -> Calibration:
     """Model selection, certificate (leaving a saddle first) and the Calibration of a fit
     ``(res, Sa, Sm, block_it, block_conv, start_costs)``; ``search_dof``: the degrees of
-    freedom the start costs were reached with when not those of ``res`` (a subset search)."""
+    freedom the start costs were reached with when not those of ``res`` (a subset search).
+    ``certify=False`` (warm-started refits, which search nothing): no certificate."""
     method, tol, max_iter, rng, restarts = opts
     res, Sa, Sm, block_it, block_conv, costs = fit
     if model == "auto" and res.cov is not None:
@@ -704,6 +702,8 @@ def _finish(spec: ModelSpec, reason: str, a, m, opts, model: str, fit, search_do
         if res2 is not res:  # reduced model, started from the full model's optimum
             costs, search_dof = (float(res2.cost),), None
         res, reason = res2, reason + note
+    if not certify:
+        return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
     cert = _certify(spec, res, Sa, Sm, a, m, costs, search_dof)
     if cert.min_hessian_eig < 0:  # stopped at a saddle: leave it and certify again
         res = _escape_saddles(spec, res, Sa, Sm, a, m, method, tol)
@@ -747,7 +747,8 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
                                       more_iter=LM_MORE_ITER if start is None else 0)
     if start is not None:
         costs = (float(res.cost),)
-    return _finish(spec, reason, a, m, opts, model, (res, Sa, Sm, block_it, block_conv, costs), search_dof)
+    return _finish(spec, reason, a, m, opts, model, (res, Sa, Sm, block_it, block_conv, costs), search_dof,
+                   certify=start is None)
 
 
 def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):

@@ -93,8 +93,10 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
     D = Xc - np.repeat(mu, ns, axis=0)
     scatter = D.T @ D  # sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T
     each = None
-    if per_interval:
-        each = np.add.reduceat(D[:, :, None] * D[:, None, :], starts, axis=0)
+    if per_interval:  # each interval's scatter, the 6 distinct products summed column by column
+        each = np.empty((len(ns), 3, 3))
+        for k, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+            each[:, k, j] = each[:, j, k] = np.add.reduceat(D[:, k] * D[:, j], starts)
     mu = mu + center
     return _finish_stats(name, mu, n, scatter, noise_floor, each)
 
