@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, heading_errors_deg
+from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, max_errors_deg
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import LOO_MAX_INTERVALS, AccelFit, holdout_folds, sample_accel
 from mavcal.core.calibrate import calibrate, estimate_orientations
@@ -124,15 +124,14 @@ def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot
                    holdout_accel_mps2=holdout[0], holdout_mag_mgauss=holdout[1], chi2_dof=float(chi2))
 
 
-DRAW_CHUNK = 8  # draws evaluated together: fewer calls, arrays still small enough for the cache
+DRAW_CHUNK = 16  # draws evaluated together: fewer calls, arrays still small enough for the cache
 
 
 def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
                  B_ned: np.ndarray, grid: np.ndarray) -> tuple[list[float], list[float]]:
     """Max heading and max tilt error over ``grid`` for every draw: what
-    :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw, with the grid
-    operations done for ``DRAW_CHUNK`` draws stacked at a time (each row the same arithmetic
-    as alone, so the numbers are the same to the last bit)."""
+    :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
+    ``DRAW_CHUNK`` draws at a time by :func:`mavcal.ardupilot.evaluate.max_errors_deg`."""
     M = len(grid)
     Ct = np.swapaxes(grid, 1, 2)
     f_body = Ct @ np.array([0.0, 0.0, -GRAVITY_MPS2])
@@ -147,14 +146,9 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
             ra, rm = truth_functions(d["K_a"], d["b_a"], d["K_m"], d["b_m"], d["h"], board_rot,
                                      cm.old.mount_matrix, cm.field_mgauss)
             raw_a[k], raw_m[k] = ra(f_body), rm(B_body)
-        raw_a2, raw_m2 = raw_a.reshape(-1, 3), raw_m.reshape(-1, 3)
-        tiled = np.tile(grid, (len(chunk), 1, 1))
-        dh = heading_errors_deg(lambda _, x=raw_a2: x, lambda _, x=raw_m2: x, am.new, cm.new, B_ned, tiled)
-        a = fw.apply_accel(am.new, raw_a2)
-        cos_t = np.sum(a * np.tile(f_body, (len(chunk), 1)), 1) / (np.linalg.norm(a, axis=1) * fw.GRAVITY_MSS)
-        tilt = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
-        hs += [float(x) for x in np.abs(dh).reshape(-1, M).max(axis=1)]
-        ts += [float(x) for x in tilt.reshape(-1, M).max(axis=1)]
+        h, t = max_errors_deg(raw_a, raw_m, am.new, cm.new, B_ned, grid)
+        hs += [float(x) for x in h]
+        ts += [float(x) for x in t]
     return hs, ts
 
 

@@ -101,3 +101,28 @@ def test_non_converging_large_n_fit_has_bounded_lm_work():
     assert C._lm_budget(1000, C.LM_MORE_ITER) * 1000 <= max(C.LM_WORK, C.BRANCH_PROBE_ITER * 1000)
     assert C._lm_budget(C.LARGE_N, C.LM_MORE_ITER) == C.LM_MORE_ITER  # small fits unchanged
     assert np.isfinite(cal.cost)
+
+
+def test_quality_draws_equal_per_draw_attitude_errors_to_the_last_bit():
+    """quality_of evaluates its uncertainty draws in chunks (max_errors_deg); the numbers are
+    those of attitude_errors draw by draw, exactly (printed results unchanged)."""
+    from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+    from mavcal.core.uncertainty import sample_parameters
+    from mavcal.pipeline import calibrate_source
+    from mavcal.quality import quality_of, truth_functions
+
+    run = calibrate_source("sitl_logs/sitl02.tlog")
+    cal, am, cm = run.calibration, run.mapping.accel[0], run.mapping.compass[0]
+    board = am.old.board_matrix
+    grid = attitude_grid()
+    incl = np.radians(cm.inclination_deg)
+    B_ned = cm.field_mgauss * np.array([np.cos(incl), 0.0, np.sin(incl)])
+    hs, ts = [], []
+    for d in sample_parameters(cal, 37, np.random.default_rng(3)):
+        ra, rm = truth_functions(d["K_a"], d["b_a"], d["K_m"], d["b_m"], d["h"], board, cm.old.mount_matrix,
+                                 cm.field_mgauss)
+        e = attitude_errors(ra, rm, am.new, cm.new, B_ned, grid)
+        hs.append(e.max_heading_deg)
+        ts.append(e.max_tilt_deg)
+    q = quality_of(cal, am, cm, board, 37, 3, (0.0, 0.0))
+    assert q.heading_95_deg == float(np.percentile(hs, 95)) and q.tilt_95_deg == float(np.percentile(ts, 95))
