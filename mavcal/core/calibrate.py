@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from contextvars import ContextVar
 from dataclasses import replace
 
 import numpy as np
@@ -64,7 +65,7 @@ from mavcal.core.initial import (
     rotation_hz_minima,
     search_rotation_hz,
 )
-from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
+from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec, choose_model
 from mavcal.core.reconstruct import estimate_orientations, reconstruction_error
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, blas_kernels, refit_covariances
 from mavcal.core.stats import IntervalStats, chi2_sf, interval_stats
@@ -213,14 +214,21 @@ def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
 LM_MORE_ITER = 2000  # LM iterations granted after the first 100 did not converge
 LARGE_N = 200  # above this many intervals: the search on a subset, the refinement on all (module docstring)
 SUBSET_N = 60  # ... of this many intervals
-QUICK_MORE_ITER = 100  # extra LM iterations of a subset search (it only has to find the basin)
 LM_WORK = 10_000  # above LARGE_N, one LM run gets at most this many iterations x intervals
+
+
+SUBSET_LM_ITER = 40  # LM iterations per run in the subset search (it ranks basins; all N refine after)
+_LM_CAP: ContextVar[int | None] = ContextVar("mavcal_lm_cap", default=None)
 
 
 def _lm_budget(N: int, wanted: int) -> int:
     """LM iterations for one run over N intervals: ``wanted`` up to ``LARGE_N`` intervals
     (small fits unchanged), above at most ``LM_WORK / N`` (at least ``BRANCH_PROBE_ITER``), so
-    that a fit that does not converge costs O(LM_WORK), not O(N) x 2000 iterations."""
+    that a fit that does not converge costs O(LM_WORK), not O(N) x 2000 iterations; within the
+    large-N path's subset search at most ``SUBSET_LM_ITER``."""
+    cap = _LM_CAP.get()
+    if cap is not None:
+        wanted = min(wanted, cap)
     return wanted if N <= LARGE_N else min(wanted, max(BRANCH_PROBE_ITER, LM_WORK // N))
 
 
@@ -484,30 +492,6 @@ def _check_args(method: str, tol, model: str, accel_sets) -> str:
     return method
 
 
-def _choose_model(model: str, N: int) -> tuple[ModelSpec, str]:
-    """The model to fit first and why: the most general identifiable one for "auto"."""
-    if model == "auto":
-        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
-        if not allowed:
-            raise InsufficientDataError(
-                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
-                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
-                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
-        spec = allowed[0]
-        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
-                  if spec.name == "full" else
-                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
-                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
-        return spec, reason
-    spec = MODELS[model]
-    if N < spec.min_intervals:
-        raise InsufficientDataError(
-            f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
-            f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
-            "choose a simpler model")
-    return spec, f"model {spec.name} requested"
-
-
 def _paper_path(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts):
     """refine=False: the paper's algorithm alone, its end point scored as a RefineResult."""
     if spec.name != "full":
@@ -674,7 +658,7 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
     method = _check_args(method, tol, model, accel_sets)
     a, m = _stats(accel_sets, mag_sets, noise_floor)
     rng = np.random.default_rng(seed)
-    spec, reason = _choose_model(model, a.mu.shape[0])
+    spec, reason = choose_model(model, a.mu.shape[0])
     _check_geometry(a, m)
     if not refine:
         if start is not None:
@@ -729,8 +713,12 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
     if start is None:
         idx = diverse_subset(a.mu, m.mu, SUBSET_N)
         a_s, m_s = _subset_stats(a, idx), _subset_stats(m, idx)
-        res_s, _, _, block_it, block_conv, costs = _fit_model(spec, a_s, m_s, method, tol, max_iter, rng, restarts,
-                                                              more_iter=QUICK_MORE_ITER)
+        token = _LM_CAP.set(SUBSET_LM_ITER)
+        try:
+            res_s, _, _, block_it, block_conv, costs = _fit_model(spec, a_s, m_s, method, tol, max_iter, rng,
+                                                                  restarts, more_iter=SUBSET_LM_ITER)
+        finally:
+            _LM_CAP.reset(token)
         p = res_s.params
         K_a, b_a, K_m, b_m, h_z = p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z
         search_dof = res_s.dof if len(costs) > 1 else None

@@ -133,14 +133,56 @@ class JointProblem:
 
     def residuals(self, p: JointParams) -> np.ndarray:
         """Whitened, sqrt(Delta)-weighted residuals, shape (N, 3 * n_terms)."""
+        if self.blas:
+            return self._residuals_blas(p)
         out = []
         for t, K, b, f, L, sn in zip(self.terms, p.gains, p.biases, self._fields(p.h_z), self.L, self.sn):
             pred = (K @ (p.R @ f)[..., None])[..., 0] + b
             out.append(((pred - t.mu) @ L.T) * sn[:, None])
         return np.concatenate(out, axis=1)
 
+    def _residuals_blas(self, p: JointParams) -> np.ndarray:
+        """:meth:`residuals` by 2-D matrix products over all intervals at once."""
+        N = self.N
+        R2 = p.R.reshape(3 * N, 3)
+        out = []
+        for t, K, b, f, L, sn in zip(self.terms, p.gains, p.biases, self._fields(p.h_z), self.L, self.sn):
+            pred = (R2 @ f).reshape(N, 3) @ K.T + b
+            out.append(((pred - t.mu) @ L.T) * sn[:, None])
+        return np.concatenate(out, axis=1)
+
+    def _jacobians_blas(self, p: JointParams):
+        """:meth:`jacobians` by 2-D matrix products over all intervals at once (equal up to rounding)."""
+        N, P = self.N, self.P
+        m = 3 * len(self.terms)
+        Jg = np.zeros((N, m, P))
+        Jr = np.empty((N, m, 3))
+        r = np.empty((N, m))
+        R2 = p.R.reshape(3 * N, 3)
+        col = 0
+        for s, (t, K, b, f, L, sn) in enumerate(zip(self.terms, p.gains, p.biases, self._fields(p.h_z),
+                                                     self.L, self.sn)):
+            rows = slice(3 * s, 3 * s + 3)
+            v = (R2 @ f).reshape(N, 3)
+            r[:, rows] = ((v @ K.T + b - t.mu) @ L.T) * sn[:, None]
+            k = t.form.size
+            LB = (L @ t.form.basis).reshape(3 * k, 3)  # rows (k, i): (L E_k)[i, :]
+            Jg[:, rows, col:col + k] = ((v @ LB.T).reshape(N, k, 3) * sn[:, None, None]).transpose(0, 2, 1)
+            col += k
+            Jg[:, rows, col:col + 3] = L[None] * sn[:, None, None]
+            col += 3
+            LK = L @ K
+            if t.kind == "mag":
+                Jg[:, rows, P - 1] = (p.R[:, :, 2] @ LK.T) * sn[:, None]
+            RF = (R2 @ skew(f)).reshape(N, 3, 3)  # R_n [f]x
+            Jr[:, rows, :] = -(RF.transpose(0, 2, 1).reshape(3 * N, 3) @ LK.T).reshape(N, 3, 3).transpose(0, 2, 1) \
+                * sn[:, None, None]
+        return r, Jg, Jr
+
     def jacobians(self, p: JointParams):
         """(r, Jg, Jr): residuals (N, m), global Jacobian (N, m, P), rotation Jacobian (N, m, 3)."""
+        if self.blas:
+            return self._jacobians_blas(p)
         N, P = self.N, self.P
         m = 3 * len(self.terms)
         Jg = np.zeros((N, m, P))
@@ -177,11 +219,11 @@ class JointProblem:
             Hgg, Hgr, Hrr = gauss_newton_blocks(Jg, Jr, blas=self.blas)
             gg, gr = gradient_blocks(Jg, Jr, r, blas=self.blas)
             improved = False
-            for _ in range(12):
+            for trial in range(12):
                 Dg = np.diag(Hgg) * lam + 1e-300
                 Drr = Hrr + lam * np.einsum("nii->ni", Hrr)[:, :, None] * np.eye(3)
                 try:
-                    Hrr_inv = np.linalg.inv(Drr)
+                    Hrr_inv = inv3(Drr) if self.blas else np.linalg.inv(Drr)
                 except np.linalg.LinAlgError:
                     lam *= 10.0
                     continue
@@ -202,6 +244,9 @@ class JointProblem:
                     lam = max(lam * 0.1, 1e-12)
                     improved = True
                     break
+                if (self.blas and trial == 0 and lam <= 1e-3
+                        and _model_decrease(Hgg, Hgr, Hrr, gg, gr, dth, dr) <= rtol * max(cost, 1e-300)):
+                    break  # a nearly Gauss-Newton step failed and promised nothing: at the optimum (to rounding)
                 lam *= 10.0
             if not improved:
                 converged = True  # no descent direction left: at the optimum (to rounding)
@@ -219,7 +264,8 @@ class JointProblem:
         """(J^T J)^-1 on the global parameters, orientations marginalised (Schur complement)."""
         Hgg, Hgr, Hrr = gauss_newton_blocks(Jg, Jr, blas=self.blas)
         try:
-            cov = np.linalg.inv(schur_complement(Hgg, Hgr, np.linalg.inv(Hrr), blas=self.blas))
+            Hrr_inv = inv3(Hrr) if self.blas else np.linalg.inv(Hrr)
+            cov = np.linalg.inv(schur_complement(Hgg, Hgr, Hrr_inv, blas=self.blas))
         except np.linalg.LinAlgError:
             return None
         if not np.all(np.isfinite(cov)):
@@ -267,6 +313,28 @@ def _reduced_system(Hgg, Hgr, Hrr_inv, gg, gr, blas: bool) -> tuple[np.ndarray, 
         return Hgg - W @ _wide(Hgr).T, gg - W @ gr.reshape(-1)
     HgrHi = np.einsum("npr,nrs->nps", Hgr, Hrr_inv)
     return Hgg - np.einsum("nps,nqs->pq", HgrHi, Hgr), gg - np.einsum("nps,ns->p", HgrHi, gr)
+
+
+def inv3(A: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of 3x3 matrices (N, 3, 3) by the adjugate (LinAlgError if singular)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
+    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    adj = np.empty_like(A)
+    adj[:, 0, 0], adj[:, 1, 0], adj[:, 2, 0] = e * i - f * h, f * g - d * i, d * h - e * g
+    adj[:, 0, 1], adj[:, 1, 1], adj[:, 2, 1] = c * h - b * i, a * i - c * g, b * g - a * h
+    adj[:, 0, 2], adj[:, 1, 2], adj[:, 2, 2] = b * f - c * e, c * d - a * f, a * e - b * d
+    det = a * adj[:, 0, 0] + b * adj[:, 1, 0] + c * adj[:, 2, 0]
+    if not np.all(np.isfinite(det)) or np.any(det == 0.0):
+        raise np.linalg.LinAlgError("singular 3x3 block")
+    return adj / det[:, None, None]
+
+
+def _model_decrease(Hgg, Hgr, Hrr, gg, gr, dth, dr) -> float:
+    """Decrease of the cost r^T r that the Gauss-Newton model predicts for the step (dth, dr):
+    -(2 g^T delta + delta^T J^T J delta), with the arrow-shaped blocks of J^T J."""
+    quad = dth @ Hgg @ dth + 2.0 * np.sum((dth @ Hgr) * dr) + np.sum(dr * (Hrr @ dr[:, :, None])[:, :, 0])
+    return float(-2.0 * (gg @ dth + np.sum(gr * dr)) - quad)
 
 
 def _local_steps(Hgr, Hrr_inv, gr, dth, blas: bool) -> np.ndarray:
