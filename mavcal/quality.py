@@ -23,7 +23,7 @@ import numpy as np
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, max_errors_deg
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
-from mavcal.core.accel_fit import LOO_MAX_INTERVALS, AccelFit, holdout_folds, sample_accel
+from mavcal.core.accel_fit import LOO_MAX_INTERVALS, AccelFit, holdout_folds, pool_index, sample_accel
 from mavcal.core.calibrate import calibrate, estimate_orientations
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import MODELS
@@ -185,16 +185,18 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     ea, em = [], []
     start = cal if N > LOO_MAX_INTERVALS else None  # K-fold: warm-started refits
-    if start is not None:  # the statistics once; each fold's from them in O(N)
+    folds = holdout_folds(dirs, cluster_deg=cluster_deg)
+    if start is not None and folds:  # the pool's statistics once; each fold's from them in O(pool)
+        pool, at = pool_index(folds, N)
         try:
-            sa = interval_stats(acc, "accel_sets", noise_floor=noise_floor[0], per_interval=True)
-            sm = interval_stats(mag, "mag_sets", noise_floor=noise_floor[1], per_interval=True)
+            sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
+            sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
         except MavcalError:
             return float("nan"), float("nan")
-    for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
+    for keep, pred in folds:
         try:
             if start is not None:
-                cj = calibrate(stats_subset(sa, keep, "accel_sets"), stats_subset(sm, keep, "mag_sets"),
+                cj = calibrate(stats_subset(sa, at[keep], "accel_sets"), stats_subset(sm, at[keep], "mag_sets"),
                                method=method, tol=tol, seed=seed, model=cal.model, start=start)
             else:
                 cj = calibrate([acc[i] for i in keep], [mag[i] for i in keep], method=method, tol=tol,

@@ -27,7 +27,8 @@ from mavcal.core.initial import fit_ellipsoid, fit_sphere
 from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
 from mavcal.errors import EstimationError, InsufficientDataError
 
-__all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "MIN_INTERVALS_DIAG", "MIN_INTERVALS_UPPER",
+__all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "pool_index", "MIN_INTERVALS_DIAG",
+           "MIN_INTERVALS_UPPER",
            "LOO_MAX_INTERVALS", "HOLDOUT_FOLDS", "HOLDOUT_POOL_MAX"]
 
 G_UNIT = np.array([0.0, 0.0, -1.0])
@@ -283,6 +284,15 @@ def holdout_folds(dirs: np.ndarray, *, cluster_deg: float = 30.0, loo_max: int =
     return out
 
 
+def pool_index(folds: list[tuple[np.ndarray, np.ndarray]], N: int) -> tuple[np.ndarray, np.ndarray]:
+    """The intervals any of ``folds`` uses (sorted) and, for each of the N, its position among
+    them (-1 if unused): the held-out checks compute the statistics of this pool only."""
+    pool = np.unique(np.concatenate([np.concatenate([fit, pred]) for fit, pred in folds]))
+    at = np.full(N, -1)
+    at[pool] = np.arange(len(pool))
+    return pool, at
+
+
 def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
                        form: str = "auto", cluster_deg: float = 30.0, start: AccelFit | None = None) -> float:
     """RMS held-out error of the accelerometer alone (the reading units).
@@ -293,8 +303,8 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     mean compared with the nearest point of the refit's ellipsoid. NaN when no interval
     qualifies or too few remain.
 
-    The K-fold refits start from the fit of all intervals (``start``, e.g. the
-    :func:`fit_accel` the caller already has; else it is fitted here once): each still
+    The K-fold refits start from a fit of all intervals (``start``, e.g. the
+    :func:`fit_accel` the caller already has; else one of the fold pool): each still
     minimises the cost of the intervals it keeps, the start only spares the ellipsoid fit and
     most LM iterations. Leave-one-out (small logs) starts from scratch as before.
     """
@@ -308,16 +318,18 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
     errs = []
     k_fold = N > LOO_MAX_INTERVALS
-    if k_fold:  # the statistics once (each fold's from them in O(N)), the start fitted once
+    folds = holdout_folds(dirs, cluster_deg=cluster_deg)
+    if k_fold and folds:  # the pool's statistics once (each fold's from them), the start fitted once
+        pool, at = pool_index(folds, N)
         try:
-            st = interval_stats(sets, "accel_sets", noise_floor=noise_floor, per_interval=True)
+            st = interval_stats([sets[i] for i in pool], "accel_sets", noise_floor=noise_floor, per_interval=True)
             if start is None or start.form != form:
                 start = fit_accel(st, form=form)
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
             return float("nan")
-    for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
+    for keep, pred in folds:
         try:
-            f = (fit_accel(stats_subset(st, keep, "accel_sets"), form=form, start=start) if k_fold else
+            f = (fit_accel(stats_subset(st, at[keep], "accel_sets"), form=form, start=start) if k_fold else
                  fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form))
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
             continue
