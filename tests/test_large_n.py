@@ -126,3 +126,19 @@ def test_quality_draws_equal_per_draw_attitude_errors_to_the_last_bit():
         ts.append(e.max_tilt_deg)
     q = quality_of(cal, am, cm, board, 37, 3, (0.0, 0.0))
     assert q.heading_95_deg == float(np.percentile(hs, 95)) and q.tilt_95_deg == float(np.percentile(ts, 95))
+
+
+def test_subset_weights_make_the_subset_weigh_poses_as_the_log():
+    from mavcal.core.subset import subset_weights
+
+    rng = np.random.default_rng(1)
+    poses = rng.normal(size=(6, 3))
+    poses /= np.linalg.norm(poses, axis=1, keepdims=True)
+    k = np.concatenate([np.zeros(300, int), np.repeat(np.arange(1, 6), 20)])  # pose 0 held 15x longer
+    mu_a, mu_m = 9.8 * poses[k], 400 * poses[k] @ np.diag([1.0, -1.0, 1.0]) + 100
+    n = np.full(len(k), 50.0)
+    idx = diverse_subset(mu_a, mu_m, 30)
+    w = subset_weights(mu_a, mu_m, n, idx)
+    assert w.sum() == pytest.approx(n[idx].sum()) and np.all(w >= 0)
+    share = np.bincount(k[idx], weights=w, minlength=6) / w.sum()
+    np.testing.assert_allclose(share, np.bincount(k, weights=n) / n.sum(), atol=1e-12)  # as in the log

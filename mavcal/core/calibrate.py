@@ -29,7 +29,8 @@ Pipeline of :func:`calibrate` (paper section in brackets):
 
 Large N (above ``LARGE_N`` intervals): steps 2-5 run on a deterministic subset of
 ``SUBSET_N`` (:func:`mavcal.core.subset.diverse_subset`: every distinct pose first, then
-intervals evenly spaced in the log); from the subset's optimum, the orientations of all N
+intervals evenly spaced in the log; :func:`~mavcal.core.subset.subset_weights` weigh its poses
+as the whole log does); from the subset's optimum, the orientations of all N
 and steps 4, 6, 7 with the reweighting on all N: the ML optimum of *all* the data at O(N)
 cost (the search alone is ~30 fits). The global-optimum guarantee holds because the search
 only has to find the basin, and the basins are set by the poses, which the subset keeps; the
@@ -69,7 +70,7 @@ from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec, choose_mod
 from mavcal.core.reconstruct import estimate_orientations, reconstruction_error
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, blas_kernels, refit_covariances
 from mavcal.core.stats import IntervalStats, chi2_sf, interval_stats
-from mavcal.core.subset import diverse_subset
+from mavcal.core.subset import diverse_subset, subset_weights
 from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
 from mavcal.errors import EstimationError, InsufficientDataError
 
@@ -695,10 +696,9 @@ def _finish(spec: ModelSpec, reason: str, a, m, opts, model: str, fit, search_do
     return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv, cert)
 
 
-def _subset_stats(s: IntervalStats, idx: np.ndarray) -> IntervalStats:
-    """The statistics of intervals ``idx``, keeping the pooled noise covariance of all of them
-    (the better estimate; the scatter scaled to the subset's degrees of freedom)."""
-    n = s.n[idx]
+def _subset_stats(s: IntervalStats, idx: np.ndarray, n: np.ndarray) -> IntervalStats:
+    """The statistics of intervals ``idx`` weighted by the counts ``n`` (:func:`subset_weights`),
+    keeping the pooled noise covariance of all (the scatter scaled to the subset's dof)."""
     scatter = s.scatter * ((n.sum() - len(idx)) / max(s.n.sum() - len(s.n), 1.0))
     return IntervalStats(mu=s.mu[idx], n=n, scatter=scatter, sigma_hat=s.sigma_hat, scale=s.scale)
 
@@ -712,7 +712,9 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
     search_dof = None
     if start is None:
         idx = diverse_subset(a.mu, m.mu, SUBSET_N)
-        a_s, m_s = _subset_stats(a, idx), _subset_stats(m, idx)
+        n_s = subset_weights(a.mu, m.mu, a.n + m.n, idx) / 2.0  # both sensors' counts: the poses' weights
+        a_s = _subset_stats(a, idx, n_s * (a.n[idx].sum() / n_s.sum()))
+        m_s = _subset_stats(m, idx, n_s * (m.n[idx].sum() / n_s.sum()))
         token = _LM_CAP.set(SUBSET_LM_ITER)
         try:
             res_s, _, _, block_it, block_conv, costs = _fit_model(spec, a_s, m_s, method, tol, max_iter, rng,
