@@ -98,6 +98,26 @@ def _signed_errors(raw_accel, raw_mag_sensor, accel_cal, compass_cal, field_ned_
     return a, m, f_body, B_body, dh, dc
 
 
+def max_errors_deg(raw_accel: np.ndarray, raw_mag_sensor: np.ndarray, accel_cal: fw.AccelCal,
+                   compass_cal: fw.CompassCal, field_ned_mgauss, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Max heading and max tilt error over ``grid`` (M attitudes) for each of D truths at once:
+    ``raw_accel`` / ``raw_mag_sensor`` (D, M, 3) are the raw readings of the D truths at the
+    grid's specific force and field (as the functions of :func:`attitude_errors` give them).
+    Returns (D,) arrays, equal to the last bit to ``attitude_errors``' ``max_heading_deg`` /
+    ``max_tilt_deg`` truth by truth; what does not depend on the truth is computed once."""
+    D, M = raw_accel.shape[:2]
+    Ct = np.swapaxes(grid, 1, 2)
+    f_body = Ct @ np.array([0.0, 0.0, -G0])
+    B_body = Ct @ np.asarray(field_ned_mgauss, dtype=float)
+    h_true = _heading((_level_from_accel(f_body) @ B_body[..., None])[..., 0])
+    a = fw.apply_accel(accel_cal, raw_accel.reshape(-1, 3))
+    m = fw.apply_compass(compass_cal, raw_mag_sensor.reshape(-1, 3), sensor_frame=True)
+    dh = _wrap_deg(_heading((_level_from_accel(a) @ m[..., None])[..., 0]) - np.tile(h_true, D))
+    cos_t = np.sum(a * np.tile(f_body, (D, 1)), 1) / (np.linalg.norm(a, axis=1) * G0)
+    tilt = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
+    return np.abs(dh).reshape(D, M).max(axis=1), tilt.reshape(D, M).max(axis=1)
+
+
 def heading_errors_deg(raw_accel: Callable[[np.ndarray], np.ndarray],
                        raw_mag_sensor: Callable[[np.ndarray], np.ndarray],
                        accel_cal: fw.AccelCal, compass_cal: fw.CompassCal, field_ned_mgauss,

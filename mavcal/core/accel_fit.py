@@ -24,10 +24,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.core.initial import fit_ellipsoid, fit_sphere
-from mavcal.core.stats import interval_stats
+from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
 from mavcal.errors import EstimationError, InsufficientDataError
 
-__all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "MIN_INTERVALS_DIAG", "MIN_INTERVALS_UPPER",
+__all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "pool_index", "MIN_INTERVALS_DIAG",
+           "MIN_INTERVALS_UPPER",
            "LOO_MAX_INTERVALS", "HOLDOUT_FOLDS", "HOLDOUT_POOL_MAX"]
 
 G_UNIT = np.array([0.0, 0.0, -1.0])
@@ -153,14 +154,18 @@ def _solve_lm(theta: np.ndarray, v: np.ndarray, idx, resid, L_inv: np.ndarray, w
     return theta, v, S, cost
 
 
-def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
-              form: str = "auto") -> AccelFit:
+def fit_accel(accel_sets: Sequence[np.ndarray] | IntervalStats, *, noise_floor: float | None = None,
+              form: str = "auto", start: AccelFit | None = None) -> AccelFit:
     """Fit one accelerometer from its still intervals alone (see the module docstring).
 
+    ``start``: begin from this fit's K_a, b_a instead of the ellipsoid fit (the warm-started
+    refits of :func:`holdout_accel_mps2`; the optimum is still that of these intervals).
+    ``accel_sets`` may also be their :class:`~mavcal.core.stats.IntervalStats` (``noise_floor`` unused).
     Raises InsufficientDataError with fewer than :data:`MIN_INTERVALS_DIAG` intervals,
     EstimationError on degenerate orientations.
     """
-    st = interval_stats(accel_sets, "accel_sets", noise_floor=noise_floor)
+    st = (accel_sets if isinstance(accel_sets, IntervalStats)
+          else interval_stats(accel_sets, "accel_sets", noise_floor=noise_floor))
     N = st.mu.shape[0]
     if N < MIN_INTERVALS_DIAG:
         raise InsufficientDataError(f"{N} still interval(s): an accelerometer alone needs at least "
@@ -168,9 +173,12 @@ def fit_accel(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = N
     if form == "auto":
         form = "upper" if N >= MIN_INTERVALS_UPPER else "diag"
     idx = _UPPER if form == "upper" else _DIAG
-    e = fit_ellipsoid(st.mu) if form == "upper" else fit_sphere(st.mu)
-    K0 = np.asarray(e.K) if form == "upper" else np.diag(np.abs(np.diag(np.asarray(e.K))))
-    b0 = np.asarray(e.b, float)
+    if start is not None:
+        K0, b0 = _gain(np.array([start.gain[i, j] for i, j in idx]), idx), np.asarray(start.bias, float)
+    else:
+        e = fit_ellipsoid(st.mu) if form == "upper" else fit_sphere(st.mu)
+        K0 = np.asarray(e.K) if form == "upper" else np.diag(np.abs(np.diag(np.asarray(e.K))))
+        b0 = np.asarray(e.b, float)
     v0 = (st.mu - b0) @ np.linalg.inv(K0).T
     if not np.all(np.isfinite(v0)) or np.any(np.linalg.norm(v0, axis=1) == 0):
         raise EstimationError("degenerate accelerometer start: the orientations do not span enough directions")
@@ -264,24 +272,29 @@ def holdout_folds(dirs: np.ndarray, *, cluster_deg: float = 30.0, loo_max: int =
         close = (dirs @ dirs.T) > cos_c
         every = np.arange(N)
         return [(np.delete(every, j), np.array([j])) for j in range(N) if close[j].sum() >= 2]
-    from scipy.spatial import cKDTree
-
     pool = np.unique(np.round(np.linspace(0, N - 1, min(N, pool_max))).astype(int))
-    chord = 2.0 * np.sin(np.radians(cluster_deg) / 2.0)  # |d_i - d_j| < chord <=> angle < cluster_deg
     out = []
     for f in range(k):
         held = np.zeros(len(pool), dtype=bool)
         held[f::k] = True
         fit, out_f = pool[~held], pool[held]
-        dist, _ = cKDTree(dirs[fit]).query(dirs[out_f], k=1, distance_upper_bound=chord)
-        pred = out_f[np.isfinite(dist)]
+        pred = out_f[((dirs[out_f] @ dirs[fit].T) > cos_c).any(axis=1)]  # angle < cluster_deg to a kept one
         if pred.size:
             out.append((fit, pred))
     return out
 
 
+def pool_index(folds: list[tuple[np.ndarray, np.ndarray]], N: int) -> tuple[np.ndarray, np.ndarray]:
+    """The intervals any of ``folds`` uses (sorted) and, for each of the N, its position among
+    them (-1 if unused): the held-out checks compute the statistics of this pool only."""
+    pool = np.unique(np.concatenate([np.concatenate([fit, pred]) for fit, pred in folds]))
+    at = np.full(N, -1)
+    at[pool] = np.arange(len(pool))
+    return pool, at
+
+
 def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
-                       form: str = "auto", cluster_deg: float = 30.0) -> float:
+                       form: str = "auto", cluster_deg: float = 30.0, start: AccelFit | None = None) -> float:
     """RMS held-out error of the accelerometer alone (the reading units).
 
     As :func:`mavcal.quality.holdout_errors`: each refit of :func:`holdout_folds`
@@ -289,6 +302,11 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     over at most :data:`HOLDOUT_POOL_MAX`) predicts intervals it never saw, each predicted
     mean compared with the nearest point of the refit's ellipsoid. NaN when no interval
     qualifies or too few remain.
+
+    The K-fold refits start from a fit of all intervals (``start``, e.g. the
+    :func:`fit_accel` the caller already has; else one of the fold pool): each still
+    minimises the cost of the intervals it keeps, the start only spares the ellipsoid fit and
+    most LM iterations. Leave-one-out (small logs) starts from scratch as before.
     """
     sets = list(accel_sets)
     N = len(sets)
@@ -299,9 +317,20 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     mu = np.array([np.asarray(s, float).mean(0) for s in sets])
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
     errs = []
-    for keep, pred in holdout_folds(dirs, cluster_deg=cluster_deg):
+    k_fold = N > LOO_MAX_INTERVALS
+    folds = holdout_folds(dirs, cluster_deg=cluster_deg)
+    if k_fold and folds:  # the pool's statistics once (each fold's from them), the start fitted once
+        pool, at = pool_index(folds, N)
         try:
-            f = fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form)
+            st = interval_stats([sets[i] for i in pool], "accel_sets", noise_floor=noise_floor, per_interval=True)
+            if start is None or start.form != form:
+                start = fit_accel(st, form=form)
+        except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
+            return float("nan")
+    for keep, pred in folds:
+        try:
+            f = (fit_accel(stats_subset(st, at[keep], "accel_sets"), form=form, start=start) if k_fold else
+                 fit_accel([sets[i] for i in keep], noise_floor=noise_floor, form=form))
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
             continue
         errs += list(np.linalg.norm(mu[pred] - _nearest_on_ellipsoid(f.gain, f.bias, mu[pred]), axis=1))

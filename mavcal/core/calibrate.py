@@ -27,6 +27,19 @@ Pipeline of :func:`calibrate` (paper section in brackets):
    a positive definite exact Hessian (saddles are left along negative curvature first) and
    what the search showed; without it ``converged`` is False and ``message`` says why.
 
+Large N (above ``LARGE_N`` intervals): steps 2-5 run on a deterministic subset of
+``SUBSET_N`` (:func:`mavcal.core.subset.diverse_subset`: every distinct pose first, then
+intervals evenly spaced in the log; :func:`~mavcal.core.subset.subset_weights` weigh its poses
+as the whole log does); from the subset's optimum, the orientations of all N
+and steps 4, 6, 7 with the reweighting on all N: the ML optimum of *all* the data at O(N)
+cost (the search alone is ~30 fits). The global-optimum guarantee holds because the search
+only has to find the basin, and the basins are set by the poses, which the subset keeps; the
+other intervals add terms that agree on the same minimum and only sharpen it, so the
+refinement from the subset's optimum converges to the full optimum, certified there (zero
+gradient, positive definite exact Hessian on all N; the start costs compared are the
+subset's). Tested against the exhaustive path in ``tests/test_large_n.py``. LM runs over more
+than ``LARGE_N`` intervals are bounded to ``LM_WORK`` interval-iterations (:func:`_lm_budget`).
+
 Diagnosis behind 5-7 (benchmarks/stress_optimum.py, 2050 runs before the change): 19 runs
 ended above the optimum, 6 of them claiming convergence: the quadric start fell back to a
 sphere for ellipsoids with axes beyond 4:1 (large off-diagonal gains; now 20:1), N = 8 fits
@@ -37,10 +50,10 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from contextvars import ContextVar
 from dataclasses import replace
 
 import numpy as np
-from scipy.stats import chi2
 
 from mavcal.core import steps
 from mavcal.core.certify import certificate, escape_saddle
@@ -53,13 +66,18 @@ from mavcal.core.initial import (
     rotation_hz_minima,
     search_rotation_hz,
 )
-from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec
-from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, refit_covariances
-from mavcal.core.stats import IntervalStats, interval_stats
+from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec, choose_model
+from mavcal.core.reconstruct import estimate_orientations, reconstruction_error
+from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, blas_kernels, refit_covariances
+from mavcal.core.stats import IntervalStats, chi2_sf, interval_stats
+from mavcal.core.subset import diverse_subset, subset_weights
 from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
 from mavcal.errors import EstimationError, InsufficientDataError
 
 log = logging.getLogger(__name__)
+
+__all__ = ["calibrate", "estimate_orientations", "reconstruction_error", "initial_state", "initial_states",
+           "run_block_steps", "METHODS", "LARGE_N", "SUBSET_N"]
 
 METHODS = ("ncdr", "ncar", "fcar", "dcar")
 WALD_ALPHA = 0.01  # a simpler model is accepted when its Wald test has p > 1 %
@@ -82,9 +100,14 @@ def _check_geometry(a: IntervalStats, m: IntervalStats) -> None:
 
 
 def _stats(accel_sets, mag_sets, noise_floor) -> tuple[IntervalStats, IntervalStats]:
+    """The interval statistics of both sensors (given as such, e.g. :func:`mavcal.core.stats.stats_subset`
+    of the held-out refits, or computed from the readings)."""
     nf_a, nf_m = (noise_floor if isinstance(noise_floor, (tuple, list)) else (noise_floor, noise_floor))
-    a = interval_stats(accel_sets, "accel_sets", noise_floor=nf_a)
-    m = interval_stats(mag_sets, "mag_sets", noise_floor=nf_m)
+    if isinstance(accel_sets, IntervalStats) and isinstance(mag_sets, IntervalStats):
+        a, m = accel_sets, mag_sets
+    else:
+        a = interval_stats(accel_sets, "accel_sets", noise_floor=nf_a)
+        m = interval_stats(mag_sets, "mag_sets", noise_floor=nf_m)
     if a.mu.shape[0] != m.mu.shape[0]:
         raise EstimationError(f"accel_sets has {a.mu.shape[0]} intervals but mag_sets has {m.mu.shape[0]}; "
                               "give both sensors' readings for the same still intervals")
@@ -190,12 +213,31 @@ def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
 
 
 LM_MORE_ITER = 2000  # LM iterations granted after the first 100 did not converge
+LARGE_N = 200  # above this many intervals: the search on a subset, the refinement on all (module docstring)
+SUBSET_N = 60  # ... of this many intervals
+LM_WORK = 10_000  # above LARGE_N, one LM run gets at most this many iterations x intervals
+
+
+SUBSET_LM_ITER = 40  # LM iterations per run in the subset search (it ranks basins; all N refine after)
+_LM_CAP: ContextVar[int | None] = ContextVar("mavcal_lm_cap", default=None)
+
+
+def _lm_budget(N: int, wanted: int) -> int:
+    """LM iterations for one run over N intervals: ``wanted`` up to ``LARGE_N`` intervals
+    (small fits unchanged), above at most ``LM_WORK / N`` (at least ``BRANCH_PROBE_ITER``), so
+    that a fit that does not converge costs O(LM_WORK), not O(N) x 2000 iterations; within the
+    large-N path's subset search at most ``SUBSET_LM_ITER``."""
+    cap = _LM_CAP.get()
+    if cap is not None:
+        wanted = min(wanted, cap)
+    return wanted if N <= LARGE_N else min(wanted, max(BRANCH_PROBE_ITER, LM_WORK // N))
 
 
 def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats, method: str,
             tol: float, max_lm: int = 100) -> tuple[RefineResult, np.ndarray, np.ndarray]:
     """LM to the exact optimum; for fcar/dcar alternate with the ML covariance refit."""
     Sa, Sm = st.Sigma_a, st.Sigma_m
+    max_lm = _lm_budget(a.mu.shape[0], max_lm)
     fa, fm = FORMS[spec.accel_form], FORMS[spec.mag_form]
     p = JointParams((fa.project(st.K_a), fm.project(st.K_m)), (st.b_a, st.b_m), st.h_z, st.R)
     refit = method in ("fcar", "dcar")
@@ -216,7 +258,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
             break
     if refit:  # final covariance of the parameters at the final Sigma
         prob = JointProblem(_terms(spec, a, m, Sa, Sm))
-        res = prob.solve(p)
+        res = prob.solve(p, max_iter=_lm_budget(a.mu.shape[0], 100))
         total_it += res.iterations
     res = RefineResult(res.params, res.cost, total_it, res.converged, res.cov, res.names, res.dof)
     return res, Sa, Sm
@@ -238,7 +280,7 @@ def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> tuple
         W = float(v @ np.linalg.solve(V, v))
     except np.linalg.LinAlgError:
         return np.inf, len(constraints), 0.0
-    return W, len(constraints), float(chi2.sf(W, len(constraints)))
+    return W, len(constraints), chi2_sf(W, len(constraints))
 
 
 def _theta_by_names(res: RefineResult):
@@ -272,7 +314,7 @@ def _weak_evidence(res: RefineResult) -> str:
         return "the refinement did not converge"
     if res.dof < WEAK_DOF:
         return f"only {res.dof} degrees of freedom"
-    if chi2.sf(res.cost, res.dof) < WEAK_P:
+    if chi2_sf(res.cost, res.dof) < WEAK_P:
         return f"chi2/dof = {res.cost / res.dof:.3g}"
     return ""
 
@@ -348,7 +390,8 @@ def _search(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, out):
     return (res, Sa, Sm, block_it, block_conv), (float(fits[k][0].cost),) + others
 
 
-def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start=None, refine=True):
+def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start=None, refine=True,
+               more_iter: int = LM_MORE_ITER):
     """Fit one model; when one start is not evidence enough, from a deterministic set of starts.
 
     With few intervals, or a fit that does not converge or fits worse than the noise explains,
@@ -356,6 +399,8 @@ def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, star
     discrete branches of the best result (:func:`mavcal.core.gauge.branches`); the lowest
     J' wins. Returns (res, Sa, Sm, block_it, block_conv, start_costs); ``start_costs`` are
     the J' (at the initial noise covariances) reached from each start, the chosen one first.
+    ``more_iter``: LM iterations granted when the first ones did not converge (bounded further
+    at large N by :func:`_lm_budget`).
     """
     out = _fit_model_once(spec, a, m, method, tol, max_iter, rng, restarts, start, refine, "quadric")
     if not refine:
@@ -363,11 +408,11 @@ def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, star
     costs: tuple[float, ...] = (float(out[0].cost),)
     if start is None and _weak_evidence(out[0]):
         out, costs = _search(spec, a, m, method, tol, max_iter, rng, restarts, out)
-    if not out[0].converged:  # ill-conditioned (e.g. nearly coplanar poses): LM needs more iterations
+    if not out[0].converged and more_iter > 0:  # ill-conditioned (e.g. nearly coplanar poses): LM needs more
         res, Sa, Sm, block_it, block_conv = out
         p = res.params
         st = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
-        more, Sa, Sm = _refine(spec, st, a, m, method, tol, max_lm=LM_MORE_ITER)
+        more, Sa, Sm = _refine(spec, st, a, m, method, tol, max_lm=more_iter)
         out = (replace(more, iterations=res.iterations + more.iterations), Sa, Sm, block_it, block_conv)
     return _reweight(spec, a, m, method, tol, out) + (costs,)
 
@@ -448,30 +493,6 @@ def _check_args(method: str, tol, model: str, accel_sets) -> str:
     return method
 
 
-def _choose_model(model: str, N: int) -> tuple[ModelSpec, str]:
-    """The model to fit first and why: the most general identifiable one for "auto"."""
-    if model == "auto":
-        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
-        if not allowed:
-            raise InsufficientDataError(
-                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
-                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
-                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
-        spec = allowed[0]
-        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
-                  if spec.name == "full" else
-                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
-                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
-        return spec, reason
-    spec = MODELS[model]
-    if N < spec.min_intervals:
-        raise InsufficientDataError(
-            f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
-            f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
-            "choose a simpler model")
-    return spec, f"model {spec.name} requested"
-
-
 def _paper_path(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts):
     """refine=False: the paper's algorithm alone, its end point scored as a RefineResult."""
     if spec.name != "full":
@@ -525,7 +546,8 @@ def _escape_saddles(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, to
     return res
 
 
-def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs) -> OptimumCertificate:
+def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs, search_dof: int | None = None
+             ) -> OptimumCertificate:
     """Local evidence at the final point plus what the search showed (see :mod:`mavcal.core.certify`).
 
     Global evidence: a single start is trusted only when :func:`_weak_evidence` found nothing
@@ -533,16 +555,19 @@ def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs) -> Optimum
     what the noise explains, or, with enough degrees of freedom (misfit from disturbances
     in real data), when at least two starts reached it; with few degrees of freedom and a
     misfit the data cannot tell a wrong basin from a bad model, so nothing is certified.
+    ``search_dof``: the degrees of freedom of the subset the search ran on (large N), when
+    ``costs`` are that subset's.
     """
     prob = JointProblem(_terms(spec, a, m, Sa, Sm))
     note = ""
+    dof = res.dof if search_dof is None else search_dof
     if len(costs) > 1:
         best = costs[0]
         agree = sum(1 for c in costs if abs(c - best) <= 1e-7 * max(best, 1e-300))
-        misfit = res.dof > 0 and chi2.sf(best, res.dof) < WEAK_P
-        if misfit and (res.dof < WEAK_DOF or agree < 2):
-            note = (f"the best of {len(costs)} starts leaves chi2/dof = {best / max(res.dof, 1):.3g} "
-                    f"({agree} start(s) reached it, {res.dof} degrees of freedom): a wrong basin cannot be ruled out")
+        misfit = dof > 0 and chi2_sf(best, dof) < WEAK_P
+        if misfit and (dof < WEAK_DOF or agree < 2):
+            note = (f"the best of {len(costs)} starts leaves chi2/dof = {best / max(dof, 1):.3g} "
+                    f"({agree} start(s) reached it, {dof} degrees of freedom): a wrong basin cannot be ruled out")
     return certificate(prob, res.params, res.cost, costs, note)
 
 
@@ -581,13 +606,14 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
 
 def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: int | None = None,
               model: str = "auto", max_iter: int = 1000, restarts: int = 24,
-              noise_floor=None, refine: bool = True) -> Calibration:
+              noise_floor=None, refine: bool = True, start: Calibration | None = None) -> Calibration:
     """Joint maximum-likelihood calibration of an accelerometer and a magnetometer.
 
     Parameters
     ----------
     accel_sets, mag_sets : sequences of N arrays of shape (n_i, 3)
-        Readings of each still interval (the two sensors may have different counts).
+        Readings of each still interval (the two sensors may have different counts); or
+        both their :class:`~mavcal.core.stats.IntervalStats` (``noise_floor`` then unused).
     method : {"ncar", "ncdr", "fcar", "dcar"}
         The paper's variant of the block steps (Sec. VIII): NCAR is the paper's best.
     tol : float
@@ -604,6 +630,16 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         True (default): hand over from the block steps to the joint refinement, which
         reaches the exact optimum. False: the paper's algorithm alone (full model only),
         stopping exactly by J_{k-1} - J_k < tol; used to reproduce the paper's experiments.
+    start : Calibration, optional
+        Refine from this calibration's parameters instead of searching (the warm-started
+        refits of the held-out check): orientations of these intervals from its parameters,
+        then the joint refinement, reweighting and model selection on these intervals alone,
+        so the result is still the optimum of *this* data's cost; the start only selects the
+        basin. ``model`` should be the start's model. Nothing is searched, so the result
+        has no ``certificate`` (``converged`` says whether the refinement converged).
+
+    Above ``LARGE_N`` intervals the search runs on a subset of ``SUBSET_N`` (see the module
+    docstring), the refinement on all of them.
 
     Returns
     -------
@@ -623,22 +659,86 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
     method = _check_args(method, tol, model, accel_sets)
     a, m = _stats(accel_sets, mag_sets, noise_floor)
     rng = np.random.default_rng(seed)
-    spec, reason = _choose_model(model, a.mu.shape[0])
+    spec, reason = choose_model(model, a.mu.shape[0])
     _check_geometry(a, m)
     if not refine:
+        if start is not None:
+            raise EstimationError("start= refines from a calibration; it needs refine=True")
         res, Sa, Sm, block_it, block_conv = _paper_path(spec, a, m, method, tol, max_iter, rng, restarts)
         return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
-    res, Sa, Sm, block_it, block_conv, costs = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
+    opts = (method, tol, max_iter, rng, restarts)
+    if start is not None or a.mu.shape[0] > LARGE_N:
+        with blas_kernels():  # the same sums by BLAS: equal up to rounding, several times faster at large N
+            return _large_n(spec, reason, a, m, opts, model, start)
+    fit = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
+    return _finish(spec, reason, a, m, opts, model, fit)
+
+
+def _finish(spec: ModelSpec, reason: str, a, m, opts, model: str, fit, search_dof: int | None = None,
+            certify: bool = True) -> Calibration:
+    """Model selection, certificate (leaving a saddle first) and the Calibration of a fit
+    ``(res, Sa, Sm, block_it, block_conv, start_costs)``; ``search_dof``: the degrees of
+    freedom the start costs were reached with when not those of ``res`` (a subset search).
+    ``certify=False`` (warm-started refits, which search nothing): no certificate."""
+    method, tol, max_iter, rng, restarts = opts
+    res, Sa, Sm, block_it, block_conv, costs = fit
     if model == "auto" and res.cov is not None:
         spec, res2, Sa, Sm, note = _select_model(spec, res, Sa, Sm, a, m, method, tol, max_iter, rng, restarts)
         if res2 is not res:  # reduced model, started from the full model's optimum
-            costs = (float(res2.cost),)
+            costs, search_dof = (float(res2.cost),), None
         res, reason = res2, reason + note
-    cert = _certify(spec, res, Sa, Sm, a, m, costs)
+    if not certify:
+        return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
+    cert = _certify(spec, res, Sa, Sm, a, m, costs, search_dof)
     if cert.min_hessian_eig < 0:  # stopped at a saddle: leave it and certify again
         res = _escape_saddles(spec, res, Sa, Sm, a, m, method, tol)
-        cert = _certify(spec, res, Sa, Sm, a, m, costs)
+        cert = _certify(spec, res, Sa, Sm, a, m, costs, search_dof)
     return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv, cert)
+
+
+def _subset_stats(s: IntervalStats, idx: np.ndarray, n: np.ndarray) -> IntervalStats:
+    """The statistics of intervals ``idx`` weighted by the counts ``n`` (:func:`subset_weights`),
+    keeping the pooled noise covariance of all (the scatter scaled to the subset's dof)."""
+    scatter = s.scatter * ((n.sum() - len(idx)) / max(s.n.sum() - len(s.n), 1.0))
+    return IntervalStats(mu=s.mu[idx], n=n, scatter=scatter, sigma_hat=s.sigma_hat, scale=s.scale)
+
+
+def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, opts, model: str,
+             start: Calibration | None) -> Calibration:
+    """Search on a subset (or take ``start``), then refine, reweight, select and certify on all N
+    (see the module docstring)."""
+    method, tol, max_iter, rng, restarts = opts
+    N = a.mu.shape[0]
+    search_dof = None
+    if start is None:
+        idx = diverse_subset(a.mu, m.mu, SUBSET_N)
+        n_s = subset_weights(a.mu, m.mu, a.n + m.n, idx) / 2.0  # both sensors' counts: the poses' weights
+        a_s = _subset_stats(a, idx, n_s * (a.n[idx].sum() / n_s.sum()))
+        m_s = _subset_stats(m, idx, n_s * (m.n[idx].sum() / n_s.sum()))
+        token = _LM_CAP.set(SUBSET_LM_ITER)
+        try:
+            res_s, _, _, block_it, block_conv, costs = _fit_model(spec, a_s, m_s, method, tol, max_iter, rng,
+                                                                  restarts, more_iter=SUBSET_LM_ITER)
+        finally:
+            _LM_CAP.reset(token)
+        p = res_s.params
+        K_a, b_a, K_m, b_m, h_z = p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z
+        search_dof = res_s.dof if len(costs) > 1 else None
+        reason += (f"; the search for the global optimum ran on {len(idx)} of the {N} intervals "
+                   f"(orientation-diverse, then evenly spaced), the refinement on all {N}")
+    else:
+        c = start
+        K_a, b_a, K_m, b_m, h_z = c.accel.gain, c.accel.bias, c.mag.gain, c.mag.bias, c.h_z
+        block_it, block_conv = 0, True
+        reason += "; refined from a given calibration (no search)"
+    st = steps.State(K_a, b_a, K_m, b_m, h_z, np.zeros((N, 3, 3)), a.sigma_hat, m.sigma_hat)
+    st = steps.rotations_direct(steps.rotations_approx(st, a, m), a, m)  # each R_i optimal given the start
+    res, Sa, Sm, _, _, _ = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, start=st,
+                                      more_iter=LM_MORE_ITER if start is None else 0)
+    if start is not None:
+        costs = (float(res.cost),)
+    return _finish(spec, reason, a, m, opts, model, (res, Sa, Sm, block_it, block_conv, costs), search_dof,
+                   certify=start is None)
 
 
 def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):
@@ -684,80 +784,3 @@ def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> np.ndarr
     new = _theta_by_names(new_res)[0]
     sign = np.where(np.isclose(new, -old) & (old != 0), -1.0, 1.0)
     return res.cov * np.outer(sign, sign)
-
-
-# --- orientations of new data, reconstruction error -----------------------------------------
-
-def _means(sets, name: str) -> tuple[np.ndarray, np.ndarray]:
-    seq = list(sets)
-    if not seq:
-        raise EstimationError(f"{name} is empty")
-    mus, ns = [], []
-    for i, s in enumerate(seq):
-        x = np.asarray(s, dtype=float)
-        if x.ndim == 1:
-            x = x[None]
-        if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 1:
-            raise EstimationError(f"{name}[{i}] must have shape (n_i, 3), got {x.shape}")
-        if not np.all(np.isfinite(x)):
-            raise EstimationError(f"{name}[{i}] contains NaN/inf readings")
-        mus.append(x.mean(axis=0))
-        ns.append(x.shape[0])
-    return np.array(mus), np.array(ns, dtype=float)
-
-
-def estimate_orientations(calibration: Calibration, accel_sets, mag_sets) -> np.ndarray:
-    """Orientations (M, 3, 3) of new still intervals with the calibration held fixed.
-
-    The paper's test-set procedure (Sec. VIII): the approximation of Eq.
-    ``rotation_approximation``, then direct minimisation of Eq. ``rotation_estimation``.
-    """
-    mu_a, n_a = _means(accel_sets, "accel_sets")
-    mu_m, n_m = _means(mag_sets, "mag_sets")
-    if len(mu_a) != len(mu_m):
-        raise EstimationError("accel_sets and mag_sets must have the same number of intervals")
-    c = calibration
-    a = IntervalStats(mu_a, n_a, np.zeros((3, 3)), c.accel.noise_cov, 1.0)
-    m = IntervalStats(mu_m, n_m, np.zeros((3, 3)), c.mag.noise_cov, 1.0)
-    st = steps.State(c.accel.gain, c.accel.bias, c.mag.gain, c.mag.bias, c.h_z, np.zeros((len(mu_a), 3, 3)),
-                     c.accel.noise_cov, c.mag.noise_cov)
-    st = steps.rotations_approx(st, a, m)
-    st = steps.rotations_direct(st, a, m, iterations=50, tol=1e-15)
-    return st.R
-
-
-def reconstruction_error(calibration: Calibration, truth=None, *, orientations=None, mu_accel=None,
-                         mu_mag=None, noise_cov_accel=None, noise_cov_mag=None, n_accel=None,
-                         n_mag=None) -> tuple[float, float]:
-    """The paper's delta_s (Eq. ``distance``) for both sensors: (delta_a, delta_m).
-
-    delta_s = sqrt( sum_i Delta[i] (mu_s[i] - mu_breve_s[i])^T Sigma_s^-1 (...) / sum_i Delta[i] )
-
-    mu_s[i] are the *true* means and Sigma_s the *true* covariance (from ``truth``, e.g. a
-    :class:`mavcal.sim.Truth`, or given explicitly); mu_breve_s[i] = K_s R_i s^I + b_s is
-    rebuilt from the calibration with ``orientations`` (default: the calibration's own,
-    i.e. the training set; for a test set pass :func:`estimate_orientations`).
-    """
-    if truth is not None:
-        mu_accel = truth.mu_accel if mu_accel is None else mu_accel
-        mu_mag = truth.mu_mag if mu_mag is None else mu_mag
-        noise_cov_accel = truth.noise_cov_accel if noise_cov_accel is None else noise_cov_accel
-        noise_cov_mag = truth.noise_cov_mag if noise_cov_mag is None else noise_cov_mag
-        n_accel = truth.n_accel if n_accel is None else n_accel
-        n_mag = truth.n_mag if n_mag is None else n_mag
-    if mu_accel is None or mu_mag is None or noise_cov_accel is None or noise_cov_mag is None:
-        raise EstimationError("reconstruction_error needs the true means and covariances (truth=...)")
-    R = calibration.orientations if orientations is None else np.asarray(orientations, dtype=float)
-    c = calibration
-    out = []
-    for mu, Sigma, n, sm, f in ((mu_accel, noise_cov_accel, n_accel, c.accel, c.gravity),
-                                (mu_mag, noise_cov_mag, n_mag, c.mag, c.field)):
-        mu = np.asarray(mu, dtype=float)
-        if mu.shape != (R.shape[0], 3):
-            raise EstimationError(f"true means of shape {mu.shape} do not match {R.shape[0]} orientations")
-        n = np.ones(len(mu)) if n is None else np.asarray(n, dtype=float)
-        rec = (sm.gain @ (R @ f)[..., None])[..., 0] + sm.bias
-        d = mu - rec
-        q = np.einsum("ni,ij,nj->n", d, np.linalg.inv(Sigma), d)
-        out.append(float(np.sqrt(np.sum(n * q) / np.sum(n))))
-    return out[0], out[1]

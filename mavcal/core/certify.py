@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mavcal.core.refine import JointParams, JointProblem, gauss_newton_blocks, schur_complement
+from mavcal.core.refine import JointParams, JointProblem, gauss_newton_blocks, gradient_blocks, schur_complement
 from mavcal.core.rotations import exp_so3, skew
 from mavcal.core.types import OptimumCertificate
 
@@ -53,15 +53,15 @@ def _second_order(prob: JointProblem, p: JointParams, r: np.ndarray):
     col = 0
     for s_, (t, K, f, L, sn) in enumerate(zip(prob.terms, p.gains, prob._fields(p.h_z), prob.L, prob.sn)):
         w = (r[:, 3 * s_:3 * s_ + 3] @ L) * sn[:, None]  # (N, 3) = sqrt(n) L^T r
-        y = np.einsum("nji,kj,nk->ni", p.R, K, w)  # R^T K^T w
+        y = np.einsum("nji,kj,nk->ni", p.R, K, w, optimize=prob.blas)  # R^T K^T w
         yf = y @ f
         Srr += 0.5 * (y[:, None, :] * f[None, :, None] + y[:, :, None] * f[None, None, :])
         Srr -= yf[:, None, None] * np.eye(3)
         Rfx = p.R @ skew(f)  # (N, 3, 3)
-        Sgr[:, col:col + t.form.size, :] -= np.einsum("ni,kij,njb->nkb", w, t.form.basis, Rfx)
+        Sgr[:, col:col + t.form.size, :] -= np.einsum("ni,kij,njb->nkb", w, t.form.basis, Rfx, optimize=prob.blas)
         if t.kind == "mag":
-            Sgr[:, P - 1, :] -= np.einsum("ni,ij,njb->nb", w, K, p.R @ ez_x)
-            v = np.einsum("ni,kij,nj->k", w, t.form.basis, p.R[:, :, 2])
+            Sgr[:, P - 1, :] -= np.einsum("ni,ij,njb->nb", w, K, p.R @ ez_x, optimize=prob.blas)
+            v = np.einsum("ni,kij,nj->k", w, t.form.basis, p.R[:, :, 2], optimize=prob.blas)
             Sgg[col:col + t.form.size, P - 1] += v
             Sgg[P - 1, col:col + t.form.size] += v
         col += t.form.size + 3
@@ -76,9 +76,10 @@ def exact_hessian_blocks(prob: JointProblem, p: JointParams):
     """
     r, Jg, Jr = prob.jacobians(p)
     Sgg, Sgr, Srr = _second_order(prob, p, r)
-    Hgg = 2.0 * (np.einsum("nmp,nmq->pq", Jg, Jg) + Sgg)
-    Hgr = 2.0 * (np.einsum("nmp,nmr->npr", Jg, Jr) + Sgr)
-    Hrr = 2.0 * (np.einsum("nmr,nms->nrs", Jr, Jr) + Srr)
+    Ggg, Ggr, Grr = gauss_newton_blocks(Jg, Jr, blas=prob.blas)
+    Hgg = 2.0 * (Ggg + Sgg)
+    Hgr = 2.0 * (Ggr + Sgr)
+    Hrr = 2.0 * (Grr + Srr)
     return Hgg, Hgr, Hrr
 
 
@@ -110,20 +111,19 @@ def local_evidence(prob: JointProblem, p: JointParams) -> tuple[float, float, st
     r, Jg, Jr = prob.jacobians(p)
     cost = float(np.sum(r * r))
     # Gauss-Newton decrement with the Schur complement over the orientation blocks
-    Ggg, Ggr, Grr = gauss_newton_blocks(Jg, Jr)
-    gg = np.einsum("nmp,nm->p", Jg, r)
-    gr = np.einsum("nmr,nm->nr", Jr, r)
+    Ggg, Ggr, Grr = gauss_newton_blocks(Jg, Jr, blas=prob.blas)
+    gg, gr = gradient_blocks(Jg, Jr, r, blas=prob.blas)
     try:
         Grr_inv = np.linalg.inv(Grr)
-        S = schur_complement(Ggg, Ggr, Grr_inv)
-        rhs = gg - np.einsum("npr,nrs,ns->p", Ggr, Grr_inv, gr)
-        dec = float(rhs @ np.linalg.solve(S, rhs) + np.einsum("nr,nrs,ns->", gr, Grr_inv, gr))
+        S = schur_complement(Ggg, Ggr, Grr_inv, blas=prob.blas)
+        rhs = gg - np.einsum("npr,nrs,ns->p", Ggr, Grr_inv, gr, optimize=prob.blas)
+        dec = float(rhs @ np.linalg.solve(S, rhs) + np.einsum("nr,nrs,ns->", gr, Grr_inv, gr, optimize=prob.blas))
     except np.linalg.LinAlgError:
         return np.inf, -np.inf, "the Gauss-Newton matrix is singular: the parameters are not identified"
     Hgg, Hgr, Hrr = exact_hessian_blocks(prob, p)
     if np.any(np.linalg.eigvalsh(Hrr)[:, 0] <= 0):
         return dec, -np.inf, "an orientation is at a saddle or maximum of J' (exact Hessian block not positive)"
-    Hp = schur_complement(Hgg, Hgr, np.linalg.inv(Hrr))
+    Hp = schur_complement(Hgg, Hgr, np.linalg.inv(Hrr), blas=prob.blas)
     try:  # relative to the Gauss-Newton profile Hessian 2 S: 1 for a linear problem, <= 0 at a saddle
         Li = np.linalg.inv(np.linalg.cholesky(2.0 * S))
         lam = float(np.linalg.eigvalsh(Li @ Hp @ Li.T)[0])

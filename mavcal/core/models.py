@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mavcal.errors import InsufficientDataError
+
 _IDX = {
     "upper": [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)],
     "diag": [(0, 0), (1, 1), (2, 2)],
@@ -111,3 +113,28 @@ MODELS: dict[str, ModelSpec] = {
 
 # from most to least general; each is nested in the one before it
 MODEL_CHAIN: list[str] = ["full", "diag-accel", "ardupilot", "offsets-scales"]
+
+
+def choose_model(model: str, N: int) -> tuple[ModelSpec, str]:
+    """The model to fit first for N intervals and why: the most general identifiable one for
+    "auto" (InsufficientDataError when none, or when the requested one is not identified)."""
+    if model == "auto":
+        allowed = [MODELS[k] for k in MODEL_CHAIN if MODELS[k].min_intervals <= N]
+        if not allowed:
+            raise InsufficientDataError(
+                f"{N} still intervals cannot identify even the simplest model (offsets and scales need "
+                f"{MODELS['offsets-scales'].min_intervals}; the full joint model needs "
+                f"{MODELS['full'].min_intervals}); hold the vehicle still in more orientations")
+        spec = allowed[0]
+        reason = (f"{N} intervals identify the {spec.name} model ({spec.n_global} parameters)"
+                  if spec.name == "full" else
+                  f"only {N} intervals: the full joint model needs >= {MODELS['full'].min_intervals} "
+                  f"(6N >= 3N + 22), so the most general identifiable model, {spec.name}, was fitted")
+        return spec, reason
+    spec = MODELS[model]
+    if N < spec.min_intervals:
+        raise InsufficientDataError(
+            f"{N} still intervals cannot identify the {spec.name} model ({spec.n_global} parameters "
+            f"need N >= {spec.min_intervals}, from 6N >= 3N + {spec.n_global}); add intervals or "
+            "choose a simpler model")
+    return spec, f"model {spec.name} requested"

@@ -7,6 +7,7 @@ generalised-Bessel covariance (Eq. ``covariance_initial_estimation``)
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -24,6 +25,9 @@ class IntervalStats:
     scatter : (3, 3) within-interval scatter sum_i sum_j (v - mu_hat[i])(v - mu_hat[i])^T
     sigma_hat : (3, 3) Sigma_hat (Bessel-corrected, floored to stay positive definite)
     scale : float, typical magnitude of the readings (for tolerances)
+    interval_scatter : (N, 3, 3) each interval's own scatter (``per_interval=True`` only), so
+        that :func:`stats_subset` forms the statistics of any subset without the samples
+    noise_floor : the floor the covariance was computed with
     """
 
     mu: np.ndarray
@@ -31,13 +35,16 @@ class IntervalStats:
     scatter: np.ndarray
     sigma_hat: np.ndarray
     scale: float
+    interval_scatter: np.ndarray | None = None
+    noise_floor: float | None = None
 
     @property
     def total(self) -> int:
         return int(self.n.sum())
 
 
-def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float | None = None) -> IntervalStats:
+def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float | None = None,
+                   per_interval: bool = False) -> IntervalStats:
     """Validate one sensor's interval readings and compute their statistics.
 
     Parameters
@@ -47,6 +54,7 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
     noise_floor : optional lower bound on the noise standard deviation (e.g. the
         quantisation step / sqrt(12)); by default 1e-9 of the reading scale so that
         noise-free data still give a usable (positive-definite) weighting.
+    per_interval : also keep each interval's scatter (for :func:`stats_subset`)
     """
     if isinstance(sets, np.ndarray) and sets.ndim == 3:
         sets = list(sets)
@@ -84,8 +92,19 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
     mu = np.add.reduceat(Xc, starts, axis=0) / n[:, None]
     D = Xc - np.repeat(mu, ns, axis=0)
     scatter = D.T @ D  # sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T
+    each = None
+    if per_interval:  # each interval's scatter, the 6 distinct products summed column by column
+        each = np.empty((len(ns), 3, 3))
+        for k, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+            each[:, k, j] = each[:, j, k] = np.add.reduceat(D[:, k] * D[:, j], starts)
     mu = mu + center
-    N = len(seq)
+    return _finish_stats(name, mu, n, scatter, noise_floor, each)
+
+
+def _finish_stats(name: str, mu: np.ndarray, n: np.ndarray, scatter: np.ndarray, noise_floor: float | None,
+                  each: np.ndarray | None) -> IntervalStats:
+    """Scale, the degeneracy checks and the floored Bessel-corrected covariance."""
+    N = len(n)
     scale = float(np.median(np.linalg.norm(mu, axis=1)))
     spread = float(np.max(np.linalg.norm(mu - mu.mean(axis=0), axis=1))) if N > 1 else 0.0
     if not np.isfinite(scale) or (scale == 0.0 and spread == 0.0):
@@ -100,4 +119,102 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
     w, V = np.linalg.eigh(sigma)
     w = np.maximum(w, floor ** 2)
     sigma = (V * w) @ V.T
-    return IntervalStats(mu=mu, n=n, scatter=scatter, sigma_hat=sigma, scale=ref)
+    return IntervalStats(mu=mu, n=n, scatter=scatter, sigma_hat=sigma, scale=ref, interval_scatter=each,
+                         noise_floor=noise_floor)
+
+
+def stats_subset(stats: IntervalStats, idx, name: str = "sets") -> IntervalStats:
+    """The statistics of the intervals ``idx`` of ``stats`` (made with ``per_interval=True``):
+    what :func:`interval_stats` gives for those intervals' readings (equal up to rounding:
+    the scatter is summed interval by interval), in O(len(idx)) without the samples."""
+    if stats.interval_scatter is None:
+        raise ValueError("stats_subset needs interval_stats(..., per_interval=True)")
+    idx = np.asarray(idx)
+    each = stats.interval_scatter[idx]
+    return _finish_stats(name, stats.mu[idx], stats.n[idx], each.sum(axis=0), stats.noise_floor, each)
+
+
+# --- the chi-square tail, without scipy.stats (650 ms of import for one function) ------------
+
+_LANCZOS_CUT = 10.0  # below this a, math.lgamma is exact enough (no large cancelling terms)
+
+
+def _log1pmx(x: float, a: float) -> float:
+    """log(1 + d) - d with d = (x - a) / a, accurate also for small |d| (where it cancels)."""
+    d = (x - a) / a
+    if abs(d) > 0.1:
+        return math.log(x / a) - d
+    term, total, k = d, 0.0, 2  # -d^2/2 + d^3/3 - d^4/4 ...
+    while True:
+        term *= -d
+        step = term / k
+        total += step
+        if abs(step) <= 1e-17 * abs(total):
+            return total
+        k += 1
+
+
+def _log_prefactor(a: float, x: float) -> float:
+    """log(x^a e^-x / Gamma(a)), by Stirling's series for large a so that the terms of size
+    a log x do not cancel to a relative error of a * 1e-16 (Temme's form: -a D(x/a) + ...)."""
+    if a < _LANCZOS_CUT:
+        return a * math.log(x) - x - math.lgamma(a)
+    inv = 1.0 / a
+    inv2 = inv * inv
+    corr = inv * (1 / 12 - inv2 * (1 / 360 - inv2 * (1 / 1260 - inv2 * (1 / 1680 - inv2 / 1188))))
+    return a * _log1pmx(x, a) + 0.5 * math.log(a / (2.0 * math.pi)) - corr
+
+
+def _gamma_series(a: float, x: float, log_pre: float) -> float:
+    """P(a, x) by its power series (x < a + 1)."""
+    term = total = 1.0 / a
+    ap = a
+    for _ in range(100000):
+        ap += 1.0
+        term *= x / ap
+        total += term
+        if abs(term) < abs(total) * 1e-17:
+            break
+    return total * math.exp(log_pre)
+
+
+def _gamma_cfrac(a: float, x: float, log_pre: float) -> float:
+    """Q(a, x) by its continued fraction, modified Lentz (x >= a + 1)."""
+    tiny = 1e-300
+    b = x + 1.0 - a
+    c = 1.0 / tiny
+    d = 1.0 / b
+    h = d
+    for i in range(1, 100000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
+        h *= delta
+        if abs(delta - 1.0) < 1e-15:
+            break
+    return math.exp(log_pre) * h
+
+
+def chi2_sf(x: float, k: float) -> float:
+    """Survival function of the chi-square distribution with ``k`` degrees of freedom at ``x``:
+    the regularised upper incomplete gamma Q(k/2, x/2) (series below a + 1, continued fraction
+    above). Relative accuracy ~1e-12 up to k = 1e6 and x = 1e8; tails below 1e-308 are 0."""
+    x, k = float(x), float(k)
+    if not (k > 0) or math.isnan(x):
+        return float("nan")
+    if x <= 0.0:
+        return 1.0
+    if math.isinf(x):
+        return 0.0
+    a, z = 0.5 * k, 0.5 * x
+    log_pre = _log_prefactor(a, z)
+    if log_pre < -745.0 and z > a:
+        return 0.0
+    if z < a + 1.0:
+        return max(0.0, 1.0 - _gamma_series(a, z, log_pre))
+    return _gamma_cfrac(a, z, log_pre)
