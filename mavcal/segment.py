@@ -220,15 +220,46 @@ def _collect(data) -> tuple[list[SensorSeries], list[SensorSeries], list[SensorS
     return by["accel"], by["mag"], by["gyro"]
 
 
-def _rolling(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and standard deviation of (n, d) x over windows x[i:i+w], i = 0..n-w."""
-    c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
-    c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
-    s1 = c1[w:] - c1[:-w]
-    s2 = c2[w:] - c2[:-w]
-    m = s1 / w
-    var = np.maximum(s2 / w - m * m, 0.0)
-    return m, np.sqrt(var)
+#: window starts (and samples) per step of the sliding-window statistics: their temporaries
+#: stay small (a few MB) instead of several full-length copies of the series
+_CHUNK = 1 << 16
+
+
+def _prefix(x: np.ndarray) -> np.ndarray:
+    """(n + 1, ...) running sums of ``x`` along axis 0, starting with 0."""
+    c = np.empty((len(x) + 1,) + x.shape[1:])
+    c[0] = 0.0
+    np.cumsum(x, axis=0, out=c[1:])
+    return c
+
+
+def _rolling_sd_max(x: np.ndarray, w: int, c1: np.ndarray) -> np.ndarray:
+    """Largest per-axis standard deviation of (n, d) ``x`` over the windows x[i:i+w], i = 0..n-w.
+
+    ``c1`` is :func:`_prefix` of ``x``. The running sums of squares are built a chunk at a
+    time, each chunk continuing the previous one's sum (the same sequential additions as one
+    ``cumsum`` over all rows), and every window's mean and variance uses the same expressions
+    as before (``s1 / w``, ``max(s2 / w - m * m, 0)``), so the result is bit-identical to
+    computing them over full-length arrays."""
+    n, d = x.shape
+    out = np.empty(max(n - w + 1, 0))
+    tail = np.zeros((1, d))  # running sums c2[b0 - len(tail) + 1 .. b0]
+    for b0 in range(0, n, _CHUNK):
+        b1 = min(b0 + _CHUNK, n)
+        blk = x[b0:b1] * x[b0:b1]
+        blk[0] += tail[-1]
+        np.cumsum(blk, axis=0, out=blk)
+        c2 = np.concatenate([tail, blk])  # c2[b0 - len(tail) + 1 .. b1]
+        base = b0 - len(tail) + 1  # index of c2[0]
+        k0, k1 = max(b0 - w + 1, 0), b1 - w + 1  # window starts whose end lies in (b0, b1]
+        if k1 > k0:
+            s1 = c1[k0 + w:k1 + w] - c1[k0:k1]
+            s2 = c2[k0 + w - base:k1 + w - base] - c2[k0 - base:k1 - base]
+            m = s1 / w
+            var = np.maximum(s2 / w - m * m, 0.0)
+            out[k0:k1] = np.sqrt(var).max(axis=1)
+        tail = c2[-w:]
+    return out
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -363,31 +394,60 @@ def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
     return i1 - i0, c1[i1] - c1[i0], c2[i1] - c2[i0]
 
 
+def _gyro_still(tg: np.ndarray, vg: np.ndarray, t0: np.ndarray, t1: np.ndarray, limit: float) -> np.ndarray:
+    """Per window [t0, t1]: RMS gyro rate of the samples in it below ``limit`` (no sample: still).
+
+    Chunked: the squared rates and their running sum are one value per sample; the windows
+    are evaluated a chunk at a time (same expressions, bit-identical results)."""
+    sq = np.empty(len(vg))
+    for i in range(0, len(vg), _CHUNK):
+        g = vg[i:i + _CHUNK]
+        np.sum(g * g, axis=1, out=sq[i:i + _CHUNK])
+    c1 = _prefix(sq)
+    del sq
+    out = np.empty(len(t0), dtype=bool)
+    for k in range(0, len(t0), _CHUNK):
+        i0 = np.searchsorted(tg, t0[k:k + _CHUNK], side="left")
+        i1 = np.searchsorted(tg, t1[k:k + _CHUNK], side="right")
+        cnt = i1 - i0
+        ms = np.where(cnt > 0, (c1[i1] - c1[i0]) / np.maximum(cnt, 1), 0.0)
+        out[k:k + _CHUNK] = np.sqrt(ms) < limit
+    return out
+
+
+def _norms(a: np.ndarray) -> np.ndarray:
+    """|a| per row (``np.linalg.norm(a, axis=1)``, a chunk of rows at a time)."""
+    out = np.empty(len(a))
+    for i in range(0, len(a), _CHUNK):
+        out[i:i + _CHUNK] = np.linalg.norm(a[i:i + _CHUNK], axis=1)
+    return out
+
+
 def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.ndarray] | None,
-                   mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig) -> np.ndarray:
-    """Per window start i (window = samples i..i+w-1 of accel 0): is the window still."""
+                   mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig,
+                   c1: np.ndarray | None = None) -> np.ndarray:
+    """Per window start i (window = samples i..i+w-1 of accel 0): is the window still.
+
+    ``c1``: :func:`_prefix` of ``acc`` if the caller has it."""
     n = len(t)
     if n < w:
         return np.zeros(0, dtype=bool)
-    _, sd = _rolling(acc, w)
-    ok = sd.max(axis=1) < cfg.accel_std_mps2
+    ok = _rolling_sd_max(acc, w, _prefix(acc) if c1 is None else c1) < cfg.accel_std_mps2
     starts = np.arange(n - w + 1)
-    t0, t1 = t[starts], t[starts + w - 1]
+    t0, t1 = t[:n - w + 1], t[w - 1:]  # t[starts], t[starts + w - 1]
     if gyro is not None:
-        tg, vg = gyro
-        cnt, s1, _ = _window_sums(tg, np.sum(vg * vg, axis=1)[:, None], t0, t1)
-        ms = np.where(cnt > 0, s1[:, 0] / np.maximum(cnt, 1), 0.0)
-        ok &= np.sqrt(ms) < cfg.gyro_rad_s
+        ok &= _gyro_still(gyro[0], gyro[1], t0, t1, cfg.gyro_rad_s)
     if mag is not None:
         cnt, s1, s2 = _window_sums(mag[0], mag[1], t0, t1)
         m = s1 / np.maximum(cnt, 1)[:, None]
         var = np.maximum(s2 / np.maximum(cnt, 1)[:, None] - m * m, 0.0)
         # windows with < 2 mag samples carry no information: do not veto
         ok &= np.where(cnt >= 2, np.sqrt(var).max(axis=1) < cfg.mag_std_mgauss, True)
-    norm = np.linalg.norm(acc, axis=1)
     if np.any(ok):
+        norm = _norms(acc)
         med = float(np.median(norm[_covered(starts[ok], w, n)]))
         bad = np.abs(norm - med) > cfg.accel_norm_tol * med
+        del norm
         cb = np.concatenate([[0], np.cumsum(bad)])
         ok &= (cb[starts + w] - cb[starts]) == 0
     return ok
@@ -414,10 +474,13 @@ class _Reference:
 
 def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
     ref = min(accel, key=lambda s: s.instance)
-    order = np.argsort(ref.time_s, kind="stable")
-    t, a = ref.time_s[order], ref.values[order]
-    good = np.all(np.isfinite(a), axis=1)
-    t, a = t[good], a[good]
+    t, a = ref.time_s, ref.values
+    if not (len(t) < 2 or bool(np.all(t[1:] >= t[:-1]))):  # sorted (no NaN): the stable sort is the identity
+        order = np.argsort(t, kind="stable")
+        t, a = t[order], a[order]
+    good = np.isfinite(a).all(axis=1)
+    if not good.all():
+        t, a = t[good], a[good]
     dt_all = np.diff(t)
     dt = float(np.median(dt_all[dt_all > 0])) if np.any(dt_all > 0) else 1.0
     rate = 1.0 / dt if dt > 0 else 0.0
@@ -426,12 +489,13 @@ def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
 
 
 def _sorted_finite(s: SensorSeries) -> tuple[np.ndarray, np.ndarray]:
-    """Time-sorted (stable) times and values of the finite samples of ``s``."""
+    """Time-sorted (stable) times and values of the finite samples of ``s`` (the series' own
+    arrays, no copy, when they are sorted and finite already: the usual case)."""
     t, v = s.time_s, s.values
-    if len(t) > 1 and np.any(np.diff(t) < 0):
+    if len(t) > 1 and bool(np.any(t[1:] < t[:-1])):
         o = np.argsort(t, kind="stable")
         t, v = t[o], v[o]
-    good = np.all(np.isfinite(v), axis=1)
+    good = np.isfinite(v).all(axis=1)
     return (t, v) if good.all() else (t[good], v[good])
 
 
@@ -466,9 +530,11 @@ class _Directions:
     """Sums of the accel-0 samples of a sample range and of the mag-0 samples of a time range,
     in O(1) each from prefix sums (used to decide merges)."""
 
-    def __init__(self, ref: _Reference, R_b: np.ndarray, mag: tuple[np.ndarray, np.ndarray] | None) -> None:
+    def __init__(self, ref: _Reference, R_b: np.ndarray, mag: tuple[np.ndarray, np.ndarray] | None,
+                 ca: np.ndarray) -> None:
+        """``ca``: :func:`_prefix` of the reference samples ``ref.a``."""
         self.R_b = R_b
-        self.ca = np.vstack([np.zeros((1, 3)), np.cumsum(ref.a, axis=0)])
+        self.ca = ca
         self.half = ref.dt / 2
         self.mag = mag
         self.cm = None if mag is None else np.vstack([np.zeros((1, 3)), np.cumsum(mag[1], axis=0)])
@@ -589,13 +655,14 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     mags = {s.instance: _sorted_finite(s) for s in mag}
     mag0 = min(mags) if mags else None
     mg = mags[mag0] if (cfg.use_mag and gy is None and mag0 is not None) else None
-    ok = _still_windows(ref.t, ref.a, gy, mg, ref.w, cfg)
+    ca = _prefix(ref.a)
+    ok = _still_windows(ref.t, ref.a, gy, mg, ref.w, cfg, ca)
     runs = _still_runs(ok, ref.w)
     warnings: list[str] = []
     if len(ref.t) < ref.w:
         warnings.append(f"only {len(ref.t)} accelerometer samples ({len(ref.t) * ref.dt:.1f} s): too short for a "
                         f"{ref.w}-sample window")
-    dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0])
+    dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0], ca)
     groups = _merge(_trimmed(runs, ref.dt, cfg), ref.t, dirs, cfg)
     others = {s.instance: None if s is ref.series else _sorted_finite(s) for s in accel}
     intervals = _intervals(groups, ref, others, mags, R_b, mag0)

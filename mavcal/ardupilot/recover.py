@@ -333,6 +333,32 @@ def _record(used: dict[str, list[tuple[float, float]]], params: ParamTimeline, n
         used[n] = merged
 
 
+#: rows per call of the inverse models (their temporaries stay small: no full-length copies)
+_CHUNK_ROWS = 1 << 16
+
+
+def _undo_accel_into(out: np.ndarray, cal: fw.AccelCal, v: np.ndarray, calibrating: np.ndarray | None) -> None:
+    """``out[i] = undo_accel(cal, v[i], calibrating=calibrating[i])`` (``None``: calibrating everywhere),
+    a chunk of rows at a time; each chunk computes only the interpretation its rows need (the
+    same row-wise arithmetic, so the values are those of one call on all rows)."""
+    for i in range(0, len(v), _CHUNK_ROWS):
+        j = i + _CHUNK_ROWS
+        c = None if calibrating is None else calibrating[i:j]
+        if c is None or c.all():
+            out[i:j] = fw.undo_accel(cal, v[i:j], calibrating=True)
+        elif not c.any():
+            out[i:j] = fw.undo_accel(cal, v[i:j])
+        else:
+            out[i:j] = np.where(c[:, None], fw.undo_accel(cal, v[i:j], calibrating=True), fw.undo_accel(cal, v[i:j]))
+
+
+def _undo_compass_into(out: np.ndarray, cal: fw.CompassCal, v: np.ndarray, motor: np.ndarray | None) -> None:
+    """``out = undo_compass(cal, v, motor)``, a chunk of rows at a time (row-wise arithmetic)."""
+    for i in range(0, len(v), _CHUNK_ROWS):
+        j = i + _CHUNK_ROWS
+        out[i:j] = fw.undo_compass(cal, v[i:j], None if motor is None else motor[i:j])
+
+
 def _in_periods(t: np.ndarray, periods: Sequence[tuple[float, float]]) -> np.ndarray:
     m = np.zeros(t.shape, dtype=bool)
     for a, b in periods:
@@ -445,7 +471,7 @@ def _with_known(s: SensorSeries, values: np.ndarray, extra: dict[str, np.ndarray
                 ) -> SensorSeries:
     """The recovered series; ``extra["params_known"]`` marks readings left out (NaN)."""
     if np.any(left_out):
-        values = np.where(left_out[:, None], np.nan, values)
+        values[left_out] = np.nan  # ``values`` is the caller's own new array
         extra = {**extra, "params_known": (~left_out).astype(float)}
     return SensorSeries(s.sensor, s.instance, s.message, s.time_s, values, s.log_time_s, extra)
 
@@ -478,7 +504,7 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
             unusable.append(f"{t[p.i0]:.1f} s: {exc}")
             continue
         if not have or set(p.unknown) & set(board):
-            out[sl] = fw.undo_accel(cal, s.values[sl], calibrating=True)
+            _undo_accel_into(out[sl], cal, s.values[sl], None)
             left_out[sl] = bool(p.unknown)
             continue
         if any(v == 0.0 for v in cal.scale) and not p.unknown:
@@ -487,8 +513,7 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
         c = calib[sl]
         # offsets/scale do not matter where the firmware skipped them (accel calibration)
         left_out[sl] = bool(p.unknown) & ~c
-        out[sl] = np.where(c[:, None], fw.undo_accel(cal, s.values[sl], calibrating=True),
-                           fw.undo_accel(cal, s.values[sl]))
+        _undo_accel_into(out[sl], cal, s.values[sl], c)
     if not have:
         no_board = "" if bn["orientation"] in params else " (and no AHRS_ORIENTATION: board frame = body frame)"
         warnings.append(f"accel {inst}: the log has no {an['ofs'][0][:-2]}/{an['scale'][0][:-2]} "
@@ -526,8 +551,8 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
     for p in pieces:
         try:
             cal = fw.compass_cal_from_params(p.values, inst, None if p.unknown else missing)
-            out[p.i0:p.i1] = fw.undo_compass(cal, s.values[p.i0:p.i1],
-                                             None if motor is None else motor[p.i0:p.i1])
+            _undo_compass_into(out[p.i0:p.i1], cal, s.values[p.i0:p.i1],
+                               None if motor is None else motor[p.i0:p.i1])
             left_out[p.i0:p.i1] = bool(p.unknown)
         except (ValueError, np.linalg.LinAlgError) as exc:  # e.g. a singular DIA/ODI matrix, unknown rotation
             out[p.i0:p.i1], left_out[p.i0:p.i1], bad[p.i0:p.i1] = np.nan, True, True
