@@ -220,45 +220,62 @@ def _collect(data) -> tuple[list[SensorSeries], list[SensorSeries], list[SensorS
     return by["accel"], by["mag"], by["gyro"]
 
 
-#: window starts (and samples) per step of the sliding-window statistics: their temporaries
-#: stay small (a few MB) instead of several full-length copies of the series
-_CHUNK = 1 << 16
+#: samples (and window starts) per step of the running sums and sliding-window statistics:
+#: their temporaries stay small and cached instead of full-length copies of the series
+_CHUNK = 1 << 14
 
 
-def _prefix(x: np.ndarray) -> np.ndarray:
-    """(n + 1, ...) running sums of ``x`` along axis 0, starting with 0."""
-    c = np.empty((len(x) + 1,) + x.shape[1:])
-    c[0] = 0.0
-    np.cumsum(x, axis=0, out=c[1:])
-    return c
+def _running(x: np.ndarray, b0: int, b1: int, carry: np.ndarray | None) -> np.ndarray:
+    """Running sums ``cumsum(x, axis=0)[b0:b1]`` given ``carry = cumsum(x, axis=0)[b0 - 1]`` (None
+    at ``b0 = 0``): the sum continues sequentially, so the values are those of one ``cumsum``
+    over all rows (IEEE addition commutes: ``x[b0] + carry`` is ``carry + x[b0]``)."""
+    blk = np.array(x[b0:b1], dtype=float)
+    if carry is not None and len(blk):
+        blk[0] += carry
+    return np.cumsum(blk, axis=0, out=blk)
 
 
-def _rolling_sd_max(x: np.ndarray, w: int, c1: np.ndarray) -> np.ndarray:
+def _prefix_at(x: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """The running sums ``P[idx]`` for sorted indices ``idx`` in [0, len(x)], where ``P[0] = 0`` and
+    ``P[1:] = cumsum(x, axis=0)``, computed a chunk at a time (no full-length array)."""
+    idx = np.asarray(idx, dtype=np.int64)
+    out = np.zeros((len(idx),) + x.shape[1:])  # the prefix at index 0 is 0
+    carry = None
+    for b0 in range(0, len(x), _CHUNK):
+        b1 = min(b0 + _CHUNK, len(x))
+        lo, hi = np.searchsorted(idx, [b0, b1], side="right")
+        if hi == len(idx) and lo == hi:
+            break  # nothing asked beyond here
+        c = _running(x, b0, b1, carry)
+        out[lo:hi] = c[idx[lo:hi] - b0 - 1]
+        carry = c[-1]
+    return out
+
+
+def _rolling_sd_max(x: np.ndarray, w: int) -> np.ndarray:
     """Largest per-axis standard deviation of (n, d) ``x`` over the windows x[i:i+w], i = 0..n-w.
 
-    ``c1`` is :func:`_prefix` of ``x``. The running sums of squares are built a chunk at a
-    time, each chunk continuing the previous one's sum (the same sequential additions as one
-    ``cumsum`` over all rows), and every window's mean and variance uses the same expressions
-    as before (``s1 / w``, ``max(s2 / w - m * m, 0)``), so the result is bit-identical to
-    computing them over full-length arrays."""
+    The running sums of the rows and of their squares are built a chunk at a time (see
+    :func:`_running`) with the last ``w`` of the previous chunk kept for the windows across
+    the boundary, and every window's mean and variance uses the same expressions as over
+    full-length arrays (``s1 / w``, ``max(s2 / w - m * m, 0)``): the result is bit-identical."""
     n, d = x.shape
     out = np.empty(max(n - w + 1, 0))
-    tail = np.zeros((1, d))  # running sums c2[b0 - len(tail) + 1 .. b0]
+    tail = np.zeros((1, 2 * d))  # running sums [x | x*x] at indices b0 - len(tail) + 1 .. b0
     for b0 in range(0, n, _CHUNK):
         b1 = min(b0 + _CHUNK, n)
-        blk = x[b0:b1] * x[b0:b1]
-        blk[0] += tail[-1]
-        np.cumsum(blk, axis=0, out=blk)
-        c2 = np.concatenate([tail, blk])  # c2[b0 - len(tail) + 1 .. b1]
-        base = b0 - len(tail) + 1  # index of c2[0]
+        both = np.empty((b1 - b0, 2 * d))
+        both[:, :d] = x[b0:b1]
+        np.multiply(x[b0:b1], x[b0:b1], out=both[:, d:])
+        c = np.concatenate([tail, _running(both, 0, len(both), tail[-1] if b0 else None)])
+        base = b0 - len(tail) + 1  # index of c[0]
         k0, k1 = max(b0 - w + 1, 0), b1 - w + 1  # window starts whose end lies in (b0, b1]
         if k1 > k0:
-            s1 = c1[k0 + w:k1 + w] - c1[k0:k1]
-            s2 = c2[k0 + w - base:k1 + w - base] - c2[k0 - base:k1 - base]
-            m = s1 / w
-            var = np.maximum(s2 / w - m * m, 0.0)
+            s = c[k0 + w - base:k1 + w - base] - c[k0 - base:k1 - base]
+            m = s[:, :d] / w
+            var = np.maximum(s[:, d:] / w - m * m, 0.0)
             out[k0:k1] = np.sqrt(var).max(axis=1)
-        tail = c2[-w:]
+        tail = c[-w:]
     return out
 
 
@@ -316,7 +333,7 @@ def _count_clusters(g: np.ndarray, cluster_deg: float) -> int:
         free[lead] = False
 
 
-def _largest_empty_cap_deg(g: np.ndarray, chunk: int = 1024) -> float:
+def _largest_empty_cap_deg(g: np.ndarray, chunk: int = 128) -> float:
     """Radius (deg) of the largest spherical cap without any of the unit vectors ``g``
     (over a fixed Fibonacci grid; memory bounded by ``chunk`` vectors at a time)."""
     best = np.full(_SPHERE.shape[0], -np.inf)
@@ -378,10 +395,13 @@ def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Co
 
 # --------------------------------------------------------------------------- detection
 
-def _covered(starts: np.ndarray, w: int, n: int) -> np.ndarray:
-    """(n,) bool: sample i lies in some window [s, s + w) of ``starts`` (difference array)."""
-    d = np.bincount(starts, minlength=n + 1) - np.bincount(np.minimum(starts + w, n), minlength=n + 1)
-    return np.cumsum(d[:n]) > 0
+def _covered(ok: np.ndarray, w: int, n: int) -> np.ndarray:
+    """(n,) bool: sample i lies in some window [s, s + w) with ``ok[s]`` (difference array;
+    ``len(ok) = n - w + 1``, so every window ends inside the samples)."""
+    d = np.zeros(n + 1, dtype=np.int32 if w < 2**31 // 2 else np.int64)
+    d[:len(ok)] += ok
+    d[w:w + len(ok)] -= ok
+    return np.cumsum(d[:n], out=d[:n]) > 0
 
 
 def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
@@ -399,12 +419,12 @@ def _gyro_still(tg: np.ndarray, vg: np.ndarray, t0: np.ndarray, t1: np.ndarray, 
 
     Chunked: the squared rates and their running sum are one value per sample; the windows
     are evaluated a chunk at a time (same expressions, bit-identical results)."""
-    sq = np.empty(len(vg))
+    c1 = np.empty(len(vg) + 1)
+    c1[0] = 0.0
     for i in range(0, len(vg), _CHUNK):
         g = vg[i:i + _CHUNK]
-        np.sum(g * g, axis=1, out=sq[i:i + _CHUNK])
-    c1 = _prefix(sq)
-    del sq
+        sq = np.sum(g * g, axis=1)
+        c1[i + 1:i + 1 + len(sq)] = _running(sq, 0, len(sq), c1[i] if i else None)
     out = np.empty(len(t0), dtype=bool)
     for k in range(0, len(t0), _CHUNK):
         i0 = np.searchsorted(tg, t0[k:k + _CHUNK], side="left")
@@ -424,17 +444,13 @@ def _norms(a: np.ndarray) -> np.ndarray:
 
 
 def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.ndarray] | None,
-                   mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig,
-                   c1: np.ndarray | None = None) -> np.ndarray:
-    """Per window start i (window = samples i..i+w-1 of accel 0): is the window still.
-
-    ``c1``: :func:`_prefix` of ``acc`` if the caller has it."""
+                   mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig) -> np.ndarray:
+    """Per window start i (window = samples i..i+w-1 of accel 0): is the window still."""
     n = len(t)
     if n < w:
         return np.zeros(0, dtype=bool)
-    ok = _rolling_sd_max(acc, w, _prefix(acc) if c1 is None else c1) < cfg.accel_std_mps2
-    starts = np.arange(n - w + 1)
-    t0, t1 = t[:n - w + 1], t[w - 1:]  # t[starts], t[starts + w - 1]
+    ok = _rolling_sd_max(acc, w) < cfg.accel_std_mps2
+    t0, t1 = t[:n - w + 1], t[w - 1:]  # per window start i: t[i], t[i + w - 1]
     if gyro is not None:
         ok &= _gyro_still(gyro[0], gyro[1], t0, t1, cfg.gyro_rad_s)
     if mag is not None:
@@ -445,19 +461,19 @@ def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.nd
         ok &= np.where(cnt >= 2, np.sqrt(var).max(axis=1) < cfg.mag_std_mgauss, True)
     if np.any(ok):
         norm = _norms(acc)
-        med = float(np.median(norm[_covered(starts[ok], w, n)]))
+        med = float(np.median(norm[_covered(ok, w, n)], overwrite_input=True))  # the median of a copy
         bad = np.abs(norm - med) > cfg.accel_norm_tol * med
         del norm
-        cb = np.concatenate([[0], np.cumsum(bad)])
-        ok &= (cb[starts + w] - cb[starts]) == 0
+        cb = np.zeros(n + 1, dtype=np.int32 if n < 2**31 else np.int64)  # bad samples before each index
+        np.cumsum(bad, out=cb[1:])
+        ok &= cb[w:] == cb[:n - w + 1]  # no bad sample in the window
     return ok
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[i0, i1) index ranges of True runs."""
     m = np.concatenate([[False], mask, [False]])
-    d = np.diff(m.astype(int))
-    return list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
+    return list(zip(np.flatnonzero(m[1:] & ~m[:-1]).tolist(), np.flatnonzero(~m[1:] & m[:-1]).tolist()))
 
 
 @dataclass(frozen=True, eq=False)
@@ -482,7 +498,10 @@ def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
     if not good.all():
         t, a = t[good], a[good]
     dt_all = np.diff(t)
-    dt = float(np.median(dt_all[dt_all > 0])) if np.any(dt_all > 0) else 1.0
+    pos = dt_all[dt_all > 0]
+    del dt_all
+    dt = float(np.median(pos, overwrite_input=True)) if len(pos) else 1.0  # the median of a copy
+    del pos
     rate = 1.0 / dt if dt > 0 else 0.0
     w = max(int(cfg.min_window_samples), int(round(cfg.window_s * rate)))
     return _Reference(ref, t, a, dt, rate, w)
@@ -527,28 +546,35 @@ def _trimmed(runs: Sequence[tuple[int, int]], dt: float, cfg: StillConfig) -> li
 
 
 class _Directions:
-    """Sums of the accel-0 samples of a sample range and of the mag-0 samples of a time range,
-    in O(1) each from prefix sums (used to decide merges)."""
+    """Sums of the accel-0 samples of each span and of the mag-0 samples within half a sample
+    period of it (used to decide merges): the running sums at the span edges only, computed a
+    chunk at a time (the values of full-length prefix sums, without holding them)."""
 
     def __init__(self, ref: _Reference, R_b: np.ndarray, mag: tuple[np.ndarray, np.ndarray] | None,
-                 ca: np.ndarray) -> None:
-        """``ca``: :func:`_prefix` of the reference samples ``ref.a``."""
+                 spans: Sequence[tuple[int, int]]) -> None:
         self.R_b = R_b
-        self.ca = ca
-        self.half = ref.dt / 2
-        self.mag = mag
-        self.cm = None if mag is None else np.vstack([np.zeros((1, 3)), np.cumsum(mag[1], axis=0)])
+        edges = np.asarray(spans, dtype=np.int64).reshape(-1, 2)
+        ia = np.unique(edges)
+        ca = _prefix_at(ref.a, ia)
+        self._accel = {(int(i0), int(i1)): ca[np.searchsorted(ia, i1)] - ca[np.searchsorted(ia, i0)]
+                       for i0, i1 in edges.tolist()}
+        self._field: dict[tuple[int, int], np.ndarray] | None = None
+        if mag is not None:
+            half = ref.dt / 2
+            j0 = np.searchsorted(mag[0], ref.t[edges[:, 0]] - half, side="left")
+            j1 = np.searchsorted(mag[0], ref.t[edges[:, 1] - 1] + half, side="right")
+            jm = np.unique(np.concatenate([j0, j1]))
+            cm = _prefix_at(mag[1], jm)
+            self._field = {(int(i0), int(i1)): cm[np.searchsorted(jm, b)] - cm[np.searchsorted(jm, a)]
+                           for (i0, i1), a, b in zip(edges.tolist(), j0.tolist(), j1.tolist())}
 
     def accel_sum(self, i0: int, i1: int) -> np.ndarray:
-        return self.ca[i1] - self.ca[i0]
+        """Sum of the accel-0 samples [i0, i1) of a span."""
+        return self._accel[(i0, i1)]
 
-    def field_sum(self, t0: float, t1: float) -> np.ndarray | None:
-        """Sum of the mag-0 samples within half a sample period of [t0, t1] (None: no compass)."""
-        if self.mag is None or self.cm is None:
-            return None
-        j0 = int(np.searchsorted(self.mag[0], t0 - self.half, side="left"))
-        j1 = int(np.searchsorted(self.mag[0], t1 + self.half, side="right"))
-        return self.cm[j1] - self.cm[j0]
+    def field_sum(self, i0: int, i1: int) -> np.ndarray | None:
+        """Sum of the mag-0 samples within half a sample period of the span (None: no compass)."""
+        return None if self._field is None else self._field[(i0, i1)]
 
 
 def _field_angle_deg(a: np.ndarray | None, b: np.ndarray | None) -> float:
@@ -569,7 +595,7 @@ def _merge(spans: Sequence[tuple[int, int]], t: np.ndarray, dirs: _Directions,
     groups: list[list[tuple[int, int]]] = []
     sums: list[tuple[np.ndarray, np.ndarray | None]] = []  # per group: accel-0 sum, mag-0 sum
     for sp in spans:
-        a_sp, m_sp = dirs.accel_sum(*sp), dirs.field_sum(t[sp[0]], t[sp[1] - 1])
+        a_sp, m_sp = dirs.accel_sum(*sp), dirs.field_sum(*sp)
         if groups:
             a_g, m_g = sums[-1]
             gap = t[sp[0]] - t[groups[-1][-1][1] - 1]
@@ -655,15 +681,15 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     mags = {s.instance: _sorted_finite(s) for s in mag}
     mag0 = min(mags) if mags else None
     mg = mags[mag0] if (cfg.use_mag and gy is None and mag0 is not None) else None
-    ca = _prefix(ref.a)
-    ok = _still_windows(ref.t, ref.a, gy, mg, ref.w, cfg, ca)
+    ok = _still_windows(ref.t, ref.a, gy, mg, ref.w, cfg)
     runs = _still_runs(ok, ref.w)
     warnings: list[str] = []
     if len(ref.t) < ref.w:
         warnings.append(f"only {len(ref.t)} accelerometer samples ({len(ref.t) * ref.dt:.1f} s): too short for a "
                         f"{ref.w}-sample window")
-    dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0], ca)
-    groups = _merge(_trimmed(runs, ref.dt, cfg), ref.t, dirs, cfg)
+    spans = _trimmed(runs, ref.dt, cfg)
+    dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0], spans)
+    groups = _merge(spans, ref.t, dirs, cfg)
     others = {s.instance: None if s is ref.series else _sorted_finite(s) for s in accel}
     intervals = _intervals(groups, ref, others, mags, R_b, mag0)
     return _finish(intervals, cfg, ref, gy is not None, mg is not None, accel, mag, warnings)
