@@ -27,6 +27,7 @@ import logging
 import os
 import re
 from collections.abc import Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -360,7 +361,12 @@ def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAUL
     out_parts: dict[int, ColumnBuffer] = {mid: ColumnBuffer() for mid in wanted}
     stats = TlogStats()
     expected = 8  # first STX after the first timestamp
-    with open(path, "rb") as fh:
+    # two stages: the framing of a chunk needs where the previous chunk's last frame ends, the
+    # decoding of its frames does not; a worker thread decodes chunk k (numpy releases the
+    # GIL in its loops) while this thread frames chunk k + 1. One chunk in flight: the
+    # columns grow in file order and every count is the same as in one thread.
+    with open(path, "rb") as fh, ThreadPoolExecutor(max_workers=1) as pool:
+        pending: Future | None = None
         for base, start, end, b in file_chunks(fh, size, chunk_size, 8, _MAX_FRAME + 8):
             if expected < end:
                 frames, nxt, skipped, resyncs = _frames_in(b, start - base, end - base, expected - base)
@@ -368,13 +374,18 @@ def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAUL
                 stats.resyncs += resyncs
                 if frames is not None:
                     expected = base + nxt
-                    _decode_frames(b, frames, wanted, out_parts, stats, base + len(b) == size, check_all_crc)
+                    if pending is not None:
+                        pending.result()
+                    pending = pool.submit(_decode_frames, b, frames, wanted, out_parts, stats,
+                                          base + len(b) == size, check_all_crc, stats.frames)
                     stats.frames += len(frames["pos"])
                 else:
                     expected = max(expected, end)
             del b
             if progress:
                 progress(end, size)
+        if pending is not None:
+            pending.result()
     return _join(wanted, out_parts), stats
 
 
@@ -390,12 +401,14 @@ def _join(wanted, out_parts) -> dict[str, dict[str, np.ndarray]]:
     return columns
 
 
-def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False):
+def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False, first_frame=0):
+    """Check and decode the frames ``fr`` of chunk ``b`` (``first_frame``: the file's frame
+    number of the first one) into ``out_parts``, counting in ``stats`` what is skipped."""
     nb = len(b)
     pos, isv2, hlen, plen, flen = fr["pos"], fr["isv2"], fr["hlen"], fr["plen"], fr["flen"]
     inside = pos + flen <= nb
     ntrunc = int((~inside).sum())
-    frame_no = np.arange(len(pos), dtype=np.int64) + stats.frames
+    frame_no = np.arange(len(pos), dtype=np.int64) + first_frame
     incompat, signed = fr["incompat"], fr["signed"]
     if ntrunc:
         if at_eof:
@@ -451,7 +464,7 @@ def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False)
         if len(short):  # v2 payloads truncated of trailing zeros: zero-pad
             raw[short] = np.where(np.arange(full)[None, :] < pl[short, None], raw[short], 0)
         rec = raw.view(dt).ravel()
-        part = {n: np.array(rec[n]) for n in names}
+        part = {n: rec[n] for n in names}  # field views: copied once, into the column buffer
         if "ts" not in windows:  # big-endian u8 at every byte offset (unaligned view, no copy)
             windows["ts"] = np.ndarray((nb - 7,), dtype=">u8", buffer=b, strides=(1,))
         ts = windows["ts"][pos[sel] - 8]
