@@ -83,7 +83,13 @@ def _text(v) -> str:
 
 
 def _vec(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
-    return np.column_stack([np.asarray(c[n], dtype=float) for n in names])
+    """(n, len(names)) float64 of the columns ``names`` (each cast straight into its column:
+    no float copy of each column before the interleaving)."""
+    cols = [np.asarray(c[n]) for n in names]
+    out = np.empty((len(cols[0]) if cols else 0, len(cols)))
+    for j, col in enumerate(cols):
+        out[:, j] = col.reshape(len(col)) if col.ndim != 1 else col
+    return out
 
 
 def _n(c: Mapping[str, np.ndarray] | None) -> int:

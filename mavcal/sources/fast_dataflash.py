@@ -256,7 +256,7 @@ def _decode_records(b: np.ndarray, recs, wanted: Wanted, parts: dict[int, Column
         rec = np.lib.stride_tricks.sliding_window_view(b, f.length - 3)[pos[sel] + 3].view(dt).ravel()
         part = {}
         for name in dt.names or ():
-            col = np.array(rec[name])
+            col = rec[name]  # a field view: copied once, into the column buffer
             m = mults.get(name)
             if m is not None:
                 # as DFReader: dividing by 1e2/1e7 is more accurate than multiplying
