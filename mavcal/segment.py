@@ -494,8 +494,8 @@ def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
     if not (len(t) < 2 or bool(np.all(t[1:] >= t[:-1]))):  # sorted (no NaN): the stable sort is the identity
         order = np.argsort(t, kind="stable")
         t, a = t[order], a[order]
-    good = np.isfinite(a).all(axis=1)
-    if not good.all():
+    if not np.isfinite(np.sum(a)):  # some value is not finite (else the sum is finite)
+        good = np.isfinite(a).all(axis=1)
         t, a = t[good], a[good]
     dt_all = np.diff(t)
     pos = dt_all[dt_all > 0]
@@ -514,6 +514,8 @@ def _sorted_finite(s: SensorSeries) -> tuple[np.ndarray, np.ndarray]:
     if len(t) > 1 and bool(np.any(t[1:] < t[:-1])):
         o = np.argsort(t, kind="stable")
         t, v = t[o], v[o]
+    if np.isfinite(np.sum(v)):  # every value finite (a NaN or an infinity makes the sum non-finite)
+        return t, v
     good = np.isfinite(v).all(axis=1)
     return (t, v) if good.all() else (t[good], v[good])
 
@@ -609,10 +611,9 @@ def _merge(spans: Sequence[tuple[int, int]], t: np.ndarray, dirs: _Directions,
     return groups
 
 
-def _pieces(ts: np.ndarray, vs: np.ndarray, bounds: Sequence[tuple[float, float]]) -> np.ndarray:
-    """Rows of ``vs`` whose time (sorted ``ts``) lies within one of the [lo, hi] ``bounds``
-    (sorted, disjoint): the same time mask for every sensor."""
-    parts = [vs[np.searchsorted(ts, lo, side="left"):np.searchsorted(ts, hi, side="right")] for lo, hi in bounds]
+def _pieces(vs: np.ndarray, i0: np.ndarray, i1: np.ndarray) -> np.ndarray:
+    """Rows ``vs[i0[k]:i1[k]]`` of every span k of an interval, in time order."""
+    parts = [vs[a:b] for a, b in zip(i0.tolist(), i1.tolist())]
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
@@ -622,15 +623,24 @@ def _intervals(groups: Sequence[Sequence[tuple[int, int]]], ref: _Reference,
                mag0: int | None) -> list[StillInterval]:
     """The StillIntervals of the merged span groups. Every sensor keeps only the samples of
     the still spans of its group: the reference (None in ``accels``) its samples of the spans,
-    the other accelerometers and the compasses theirs within half a sample period of a span;
-    the motion between merged spans is in no sensor's samples."""
+    the other accelerometers and the compasses theirs whose time (sorted) lies within half a
+    sample period of a span (the same time mask for every sensor; one sorted search per
+    sensor for all spans); the motion between merged spans is in no sensor's samples."""
     t, a, dt = ref.t, ref.a, ref.dt
+    edges = np.array([sp for spans in groups for sp in spans], dtype=np.int64).reshape(-1, 2)
+    lo, hi = t[edges[:, 0]] - dt / 2, t[edges[:, 1] - 1] + dt / 2
+    first = np.cumsum([0] + [len(spans) for spans in groups])
+    rows = {("a", inst): (tv[1], np.searchsorted(tv[0], lo, side="left"), np.searchsorted(tv[0], hi, side="right"))
+            for inst, tv in accels.items() if tv is not None}
+    rows.update({("m", inst): (vs, np.searchsorted(ts, lo, side="left"), np.searchsorted(ts, hi, side="right"))
+                 for inst, (ts, vs) in mags.items()})
     out: list[StillInterval] = []
-    for spans in groups:
-        bounds = [(float(t[s0]) - dt / 2, float(t[s1 - 1]) + dt / 2) for s0, s1 in spans]
+    for g, spans in enumerate(groups):
+        k = slice(first[g], first[g + 1])
         a_ref = a[spans[0][0]:spans[0][1]] if len(spans) == 1 else np.concatenate([a[s0:s1] for s0, s1 in spans])
-        am = {inst: a_ref if tv is None else _pieces(tv[0], tv[1], bounds) for inst, tv in accels.items()}
-        mm = {inst: _pieces(ts, vs, bounds) for inst, (ts, vs) in mags.items()}
+        am = {inst: a_ref if tv is None else _pieces(rows["a", inst][0], rows["a", inst][1][k], rows["a", inst][2][k])
+              for inst, tv in accels.items()}
+        mm = {inst: _pieces(rows["m", inst][0], rows["m", inst][1][k], rows["m", inst][2][k]) for inst in mags}
         field = None
         if mag0 is not None and len(mm[mag0]):
             field = _unit(mm[mag0].mean(axis=0))

@@ -163,8 +163,10 @@ def crc_x25(data: np.ndarray, starts: np.ndarray, lengths: np.ndarray, extra: np
         if odd:  # the first byte alone, then whole words
             crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ buf[:, 1]) & 0xFF]
             words = words[1:]
-        for w in words:
-            crc = _CRC_TABLE16[crc ^ w]
+        x = np.empty_like(crc)
+        for w in words:  # crc = T16[crc ^ w], without a temporary per step
+            np.bitwise_xor(crc, w, out=x)
+            np.take(_CRC_TABLE16, x, out=crc)
         out[grp] = crc
     return out
 
@@ -442,12 +444,18 @@ def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False,
         for i, c in zip(ids.tolist(), cnt.tolist()):
             stats.bad_crc_by_id[i] = stats.bad_crc_by_id.get(i, 0) + c
     good = kk[ok_k]
+    # the good frames grouped by message id, each group in frame order (a stable radix sort:
+    # the decoded ids are < 65536)
     gid = msgid[good]
+    small = len(gid) == 0 or int(gid.max()) < 65536
+    by_id = np.argsort(gid.astype(np.uint16) if small else gid, kind="stable")
+    gid_sorted = gid[by_id]
     windows = {}
     for mid, (_name, dt, names) in wanted.items():
-        sel = good[gid == mid]
-        if len(sel) == 0:
+        g0, g1 = np.searchsorted(gid_sorted, [mid, mid + 1])
+        if g1 == g0:
             continue
+        sel = good[by_id[g0:g1]]
         full = dt.itemsize
         p0 = pos[sel] + hlen[sel]
         pl = plen[sel]
@@ -461,8 +469,10 @@ def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False,
             raw[fits] = windows[full][p0[fits]]
             raw[~fits] = b[np.minimum(p0[~fits, None] + np.arange(full), nb - 1)]
         short = np.flatnonzero(pl < full)
-        if len(short):  # v2 payloads truncated of trailing zeros: zero-pad
-            raw[short] = np.where(np.arange(full)[None, :] < pl[short, None], raw[short], 0)
+        if len(short):  # v2 payloads truncated of trailing zeros: zero-pad (per truncated length)
+            ls = pl[short]
+            for n_kept in np.unique(ls).tolist():
+                raw[short[ls == n_kept], n_kept:] = 0
         rec = raw.view(dt).ravel()
         part = {n: rec[n] for n in names}  # field views: copied once, into the column buffer
         if "ts" not in windows:  # big-endian u8 at every byte offset (unaligned view, no copy)
