@@ -6,6 +6,8 @@ these tests compare against the copying path and against one chunk covering ever
 """
 from __future__ import annotations
 
+import sys
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -14,11 +16,15 @@ import pytest
 import mavcal.ardupilot.recover as recover_mod
 import mavcal.segment as segment_mod
 import mavcal.sources.quantization as quant_mod
+from mavcal.ardupilot.recover import recover_raw
 from mavcal.pipeline import Options, prepare
-from mavcal.segment import StillConfig
+from mavcal.segment import StillConfig, find_still_intervals
 from mavcal.sources.quantization import untruncate_log
 from mavcal.sources.reader import read_log
 from mavcal.sources.types import ImuLog, SensorSeries
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import biglogs  # noqa: E402
 
 SITL = Path(__file__).resolve().parents[1] / "sitl_logs"
 
@@ -110,3 +116,38 @@ def test_chunked_window_deviation_is_the_full_length_formula(monkeypatch, w):
     for chunk in (64, 101, 10**6):
         monkeypatch.setattr(segment_mod, "_CHUNK", chunk)
         assert _same(sd_max(x, w), ref)
+
+
+def _prepare_stage_memory(path):
+    """Traced heap peaks (bytes) of the untruncation, the raw recovery beyond its result and
+    the segmentation, and the accel-0 sample count."""
+    log = read_log(path)
+    tracemalloc.start()
+    try:
+        log, _ = untruncate_log(log, in_place=True)
+        _, untruncate_peak = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        raw = recover_raw(log)
+        after, peak = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        find_still_intervals(raw)
+        _, seg_peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return untruncate_peak, peak - after, seg_peak - after, len(raw.accel[0])
+
+
+def test_prepare_working_memory_is_bounded_by_chunks(tmp_path, monkeypatch):
+    """Beyond their results, the untruncation and the raw recovery hold a chunk's work and the
+    segmentation a few bytes per sample (the full-length version: hundreds)."""
+    for mod, name in ((segment_mod, "_CHUNK"), (recover_mod, "_CHUNK_ROWS"), (quant_mod, "_CHUNK_ROWS")):
+        monkeypatch.setattr(mod, name, 4096)
+    small, big = tmp_path / "s.tlog", tmp_path / "b.tlog"
+    biglogs.build_tlog(small, 2e6)
+    biglogs.build_tlog(big, 12e6)
+    u_s, r_s, s_s, n_s = _prepare_stage_memory(small)
+    u_b, r_b, s_b, n_b = _prepare_stage_memory(big)
+    assert n_b > 5 * n_s
+    assert max(u_s, u_b) < 4096 * 3 * 8 * 2  # one chunk of one series
+    assert max(r_s, r_b) < 1 << 20  # a few chunks of temporaries, whatever the length
+    assert (s_b - s_s) / (n_b - n_s) < 32  # bytes per accel-0 sample (the accel samples alone: 24)
