@@ -193,19 +193,21 @@ def find_accel_cal_periods(log_: ImuLog, margin_s: float = 4.0, min_step_mps2: f
     if not wins:
         return []
     acc = log_.get("accel", 0)
+    srt = acc is not None and _is_sorted(acc.time_s)  # once, not once per period
     min_step = float(min_step_mps2)
     out: list[tuple[float, float]] = []
     for start, end, cmd in wins:
         try:
-            out.append(_refine_period(log_, acc, start, end, cmd, margin_s, min_step))
+            out.append(_refine_period(log_, acc, start, end, cmd, margin_s, min_step, srt))
         except (ValueError, np.linalg.LinAlgError):  # parameters that cannot be applied: keep the event times
             out.append((float(start), float(end if np.isfinite(end) else np.inf)))
     return out
 
 
 def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: float, cmd: float,
-                   margin_s: float, min_step: float) -> tuple[float, float]:
-    """One calibration period, its edges moved to where the raw readings are continuous."""
+                   margin_s: float, min_step: float, srt: bool) -> tuple[float, float]:
+    """One calibration period, its edges moved to where the raw readings are continuous
+    (``srt``: the accelerometer's times are sorted)."""
     s_edge, e_edge = start, end
     if acc is not None and len(acc) > 2:
         t, v = acc.time_s, acc.values
@@ -215,7 +217,7 @@ def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: fl
             e_edge = float(t[-1]) + 1e-6
         # start edge: corrected before, uncorrected after
         lo = start - margin_s if np.isnan(cmd) else max(start - margin_s, cmd)
-        sel = np.nonzero((t >= lo) & (t <= start + margin_s))[0]
+        sel = _index_in(t, lo, start + margin_s, srt)
         if len(sel) > 1:
             p = log_.params
             cal_b = _accel_cal_at(p, 0, t[sel[0]])
@@ -226,7 +228,7 @@ def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: fl
                 if k is not None:
                     s_edge = float(t[sel[k]])
         if np.isfinite(end):
-            sel = np.nonzero((t >= end - margin_s) & (t <= end + margin_s))[0]
+            sel = _index_in(t, end - margin_s, end + margin_s, srt)
             if len(sel) > 1:
                 cal_a = _accel_cal_at(log_.params, 0, t[sel[-1]])
                 u_raw = fw.undo_accel(cal_a, v[sel], calibrating=True)
@@ -245,21 +247,54 @@ def accel_cal_without_imu(log_: ImuLog, min_coverage: float = 0.2) -> list[tuple
     the calibration ran. Each as (first prompt, end) in seconds; an unfinished calibration ends
     at the last event of the log."""
     evs = [e.time_s for e in log_.events]
+    windows = _event_windows(log_.events)
+    if not windows:
+        return []
     accs = [s for s in log_.series if s.sensor == "accel" and len(s)]
+    srt = [_is_sorted(s.time_s) for s in accs]
+    periods: dict[int, float] = {}  # per series, once (not once per calibration): its median sample period
     out = []
-    for start, end, _cmd in _event_windows(log_.events):
+    for start, end, _cmd in windows:
         stop = end if np.isfinite(end) else max(evs)
         if not stop > start:
             stop = start + 1.0
         covered = 0.0
-        for s in accs:
-            t = s.time_s[(s.time_s >= start) & (s.time_s < stop)]
-            if len(t) > 1:
-                dt = float(np.median(np.diff(s.time_s[np.isfinite(s.time_s)]))) if len(s) > 1 else 0.0
-                covered = max(covered, min(len(t) * dt, stop - start))
+        for k, s in enumerate(accs):
+            n_in = _count_in(s.time_s, start, stop, srt[k])
+            if n_in > 1:
+                if k not in periods:
+                    periods[k] = float(np.median(np.diff(s.time_s[np.isfinite(s.time_s)]))) if len(s) > 1 else 0.0
+                covered = max(covered, min(n_in * periods[k], stop - start))
         if covered < min_coverage * (stop - start):
             out.append((float(start), float(stop)))
     return out
+
+
+def _is_sorted(t: np.ndarray) -> bool:
+    """Non-decreasing and free of NaN (so that a sorted search selects what a mask selects)."""
+    return len(t) < 2 or bool(np.all(t[1:] >= t[:-1]))
+
+
+def _range_in(t: np.ndarray, lo: float, hi: float, is_sorted: bool, *, closed_hi: bool) -> tuple[int, int] | None:
+    """[i0, i1) of the samples with ``lo <= t < hi`` (``<= hi`` if ``closed_hi``) when ``t`` is
+    sorted (two binary searches: no full-length mask per call), else None."""
+    if not is_sorted:
+        return None
+    i0 = int(np.searchsorted(t, lo, side="left"))
+    i1 = int(np.searchsorted(t, hi, side="right" if closed_hi else "left"))
+    return i0, max(i0, i1)
+
+
+def _count_in(t: np.ndarray, lo: float, hi: float, is_sorted: bool) -> int:
+    """How many of ``t`` lie in [lo, hi)."""
+    r = _range_in(t, lo, hi, is_sorted, closed_hi=False)
+    return int(np.count_nonzero((t >= lo) & (t < hi))) if r is None else r[1] - r[0]
+
+
+def _index_in(t: np.ndarray, lo: float, hi: float, is_sorted: bool) -> np.ndarray:
+    """Indices of the samples with ``lo <= t <= hi``, in order."""
+    r = _range_in(t, lo, hi, is_sorted, closed_hi=True)
+    return np.nonzero((t >= lo) & (t <= hi))[0] if r is None else np.arange(r[0], r[1])
 
 
 # --------------------------------------------------------------------------- helpers
@@ -360,9 +395,15 @@ def _undo_compass_into(out: np.ndarray, cal: fw.CompassCal, v: np.ndarray, motor
 
 
 def _in_periods(t: np.ndarray, periods: Sequence[tuple[float, float]]) -> np.ndarray:
+    """Samples with ``a <= t < b`` for some period (a sorted ``t``: two searches per period)."""
     m = np.zeros(t.shape, dtype=bool)
+    srt = bool(periods) and _is_sorted(t)
     for a, b in periods:
-        m |= (t >= a) & (t < b)
+        r = _range_in(t, a, b, srt, closed_hi=False)
+        if r is None:
+            m |= (t >= a) & (t < b)
+        else:
+            m[r[0]:r[1]] = True
     return m
 
 
