@@ -48,7 +48,7 @@ STX_V2 = 0xFD
 _TS_MIN_US = 946684800 * 10**6  # 2000-01-01
 _TS_MAX_US = 4102444800 * 10**6  # 2100-01-01
 _MAX_FRAME = 10 + 255 + 2 + 13
-DEFAULT_CHUNK = 4 * 1024 * 1024  # small enough for the temporaries to stay cached/reused (faster than 32 MiB)
+DEFAULT_CHUNK = 2 * 1024 * 1024  # small enough for the temporaries to stay cached/reused (faster than 4 or 32 MiB)
 
 
 
