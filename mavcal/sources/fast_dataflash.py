@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 HEAD1, HEAD2 = 0xA3, 0x95
 FMT_TYPE = 0x80
 FMT_LEN = 89
-DEFAULT_CHUNK = 2 * 1024 * 1024  # the working memory is a few times this (32 MiB made it ~110 MB; 2 MiB is faster than 4)
+DEFAULT_CHUNK = 2 * 1024 * 1024  # working memory: a few times this (32 MiB made it ~110 MB; 2 MiB is faster than 4)
 
 # DataFlash format character -> (numpy dtype, multiplier)  (pymavlink DFReader.FORMAT_TO_STRUCT)
 FORMAT_TO_DTYPE = {
