@@ -295,12 +295,13 @@ def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
     from mavcal.sources.quantization import quantization_step, untruncate_log
 
     opts = options
-    log_ = source if isinstance(source, ImuLog) else open_source(source, progress=progress)
+    own = not isinstance(source, ImuLog)  # read here: nobody else holds it, so it is changed in place
+    log_ = open_source(source, progress=progress) if own else source
     warnings: list[str] = list(log_.warnings)
     steps = {(s.sensor, s.instance): quantization_step(s) for s in log_.series}
     report(progress, STAGE_RECOVER, 0, 1)
     if opts.untruncate:
-        log_, _ = untruncate_log(log_)
+        log_, _ = untruncate_log(log_, in_place=own)
     raw = recover_raw(log_)
     report(progress, STAGE_RECOVER, 1, 1)
     warnings += list(raw.warnings)

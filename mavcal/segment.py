@@ -220,15 +220,63 @@ def _collect(data) -> tuple[list[SensorSeries], list[SensorSeries], list[SensorS
     return by["accel"], by["mag"], by["gyro"]
 
 
-def _rolling(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and standard deviation of (n, d) x over windows x[i:i+w], i = 0..n-w."""
-    c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
-    c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
-    s1 = c1[w:] - c1[:-w]
-    s2 = c2[w:] - c2[:-w]
-    m = s1 / w
-    var = np.maximum(s2 / w - m * m, 0.0)
-    return m, np.sqrt(var)
+#: samples (and window starts) per step of the running sums and sliding-window statistics:
+#: their temporaries stay small and cached instead of full-length copies of the series
+_CHUNK = 1 << 14
+
+
+def _running(x: np.ndarray, b0: int, b1: int, carry: np.ndarray | None) -> np.ndarray:
+    """Running sums ``cumsum(x, axis=0)[b0:b1]`` given ``carry = cumsum(x, axis=0)[b0 - 1]`` (None
+    at ``b0 = 0``): the sum continues sequentially, so the values are those of one ``cumsum``
+    over all rows (IEEE addition commutes: ``x[b0] + carry`` is ``carry + x[b0]``)."""
+    blk = np.array(x[b0:b1], dtype=float)
+    if carry is not None and len(blk):
+        blk[0] += carry
+    return np.cumsum(blk, axis=0, out=blk)
+
+
+def _prefix_at(x: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """The running sums ``P[idx]`` for sorted indices ``idx`` in [0, len(x)], where ``P[0] = 0`` and
+    ``P[1:] = cumsum(x, axis=0)``, computed a chunk at a time (no full-length array)."""
+    idx = np.asarray(idx, dtype=np.int64)
+    out = np.zeros((len(idx),) + x.shape[1:])  # the prefix at index 0 is 0
+    carry = None
+    for b0 in range(0, len(x), _CHUNK):
+        b1 = min(b0 + _CHUNK, len(x))
+        lo, hi = np.searchsorted(idx, [b0, b1], side="right")
+        if hi == len(idx) and lo == hi:
+            break  # nothing asked beyond here
+        c = _running(x, b0, b1, carry)
+        out[lo:hi] = c[idx[lo:hi] - b0 - 1]
+        carry = c[-1]
+    return out
+
+
+def _rolling_sd_max(x: np.ndarray, w: int) -> np.ndarray:
+    """Largest per-axis standard deviation of (n, d) ``x`` over the windows x[i:i+w], i = 0..n-w.
+
+    The running sums of the rows and of their squares are built a chunk at a time (see
+    :func:`_running`) with the last ``w`` of the previous chunk kept for the windows across
+    the boundary, and every window's mean and variance uses the same expressions as over
+    full-length arrays (``s1 / w``, ``max(s2 / w - m * m, 0)``): the result is bit-identical."""
+    n, d = x.shape
+    out = np.empty(max(n - w + 1, 0))
+    tail = np.zeros((1, 2 * d))  # running sums [x | x*x] at indices b0 - len(tail) + 1 .. b0
+    for b0 in range(0, n, _CHUNK):
+        b1 = min(b0 + _CHUNK, n)
+        both = np.empty((b1 - b0, 2 * d))
+        both[:, :d] = x[b0:b1]
+        np.multiply(x[b0:b1], x[b0:b1], out=both[:, d:])
+        c = np.concatenate([tail, _running(both, 0, len(both), tail[-1] if b0 else None)])
+        base = b0 - len(tail) + 1  # index of c[0]
+        k0, k1 = max(b0 - w + 1, 0), b1 - w + 1  # window starts whose end lies in (b0, b1]
+        if k1 > k0:
+            s = c[k0 + w - base:k1 + w - base] - c[k0 - base:k1 - base]
+            m = s[:, :d] / w
+            var = np.maximum(s[:, d:] / w - m * m, 0.0)
+            out[k0:k1] = np.sqrt(var).max(axis=1)
+        tail = c[-w:]
+    return out
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -285,7 +333,7 @@ def _count_clusters(g: np.ndarray, cluster_deg: float) -> int:
         free[lead] = False
 
 
-def _largest_empty_cap_deg(g: np.ndarray, chunk: int = 1024) -> float:
+def _largest_empty_cap_deg(g: np.ndarray, chunk: int = 128) -> float:
     """Radius (deg) of the largest spherical cap without any of the unit vectors ``g``
     (over a fixed Fibonacci grid; memory bounded by ``chunk`` vectors at a time)."""
     best = np.full(_SPHERE.shape[0], -np.inf)
@@ -347,10 +395,13 @@ def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Co
 
 # --------------------------------------------------------------------------- detection
 
-def _covered(starts: np.ndarray, w: int, n: int) -> np.ndarray:
-    """(n,) bool: sample i lies in some window [s, s + w) of ``starts`` (difference array)."""
-    d = np.bincount(starts, minlength=n + 1) - np.bincount(np.minimum(starts + w, n), minlength=n + 1)
-    return np.cumsum(d[:n]) > 0
+def _covered(ok: np.ndarray, w: int, n: int) -> np.ndarray:
+    """(n,) bool: sample i lies in some window [s, s + w) with ``ok[s]`` (difference array;
+    ``len(ok) = n - w + 1``, so every window ends inside the samples)."""
+    d = np.zeros(n + 1, dtype=np.int32 if w < 2**31 // 2 else np.int64)
+    d[:len(ok)] += ok
+    d[w:w + len(ok)] -= ok
+    return np.cumsum(d[:n], out=d[:n]) > 0
 
 
 def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
@@ -363,41 +414,66 @@ def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
     return i1 - i0, c1[i1] - c1[i0], c2[i1] - c2[i0]
 
 
+def _gyro_still(tg: np.ndarray, vg: np.ndarray, t0: np.ndarray, t1: np.ndarray, limit: float) -> np.ndarray:
+    """Per window [t0, t1]: RMS gyro rate of the samples in it below ``limit`` (no sample: still).
+
+    Chunked: the squared rates and their running sum are one value per sample; the windows
+    are evaluated a chunk at a time (same expressions, bit-identical results)."""
+    c1 = np.empty(len(vg) + 1)
+    c1[0] = 0.0
+    for i in range(0, len(vg), _CHUNK):
+        g = vg[i:i + _CHUNK]
+        sq = np.sum(g * g, axis=1)
+        c1[i + 1:i + 1 + len(sq)] = _running(sq, 0, len(sq), c1[i] if i else None)
+    out = np.empty(len(t0), dtype=bool)
+    for k in range(0, len(t0), _CHUNK):
+        i0 = np.searchsorted(tg, t0[k:k + _CHUNK], side="left")
+        i1 = np.searchsorted(tg, t1[k:k + _CHUNK], side="right")
+        cnt = i1 - i0
+        ms = np.where(cnt > 0, (c1[i1] - c1[i0]) / np.maximum(cnt, 1), 0.0)
+        out[k:k + _CHUNK] = np.sqrt(ms) < limit
+    return out
+
+
+def _norms(a: np.ndarray) -> np.ndarray:
+    """|a| per row (``np.linalg.norm(a, axis=1)``, a chunk of rows at a time)."""
+    out = np.empty(len(a))
+    for i in range(0, len(a), _CHUNK):
+        out[i:i + _CHUNK] = np.linalg.norm(a[i:i + _CHUNK], axis=1)
+    return out
+
+
 def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.ndarray] | None,
                    mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig) -> np.ndarray:
     """Per window start i (window = samples i..i+w-1 of accel 0): is the window still."""
     n = len(t)
     if n < w:
         return np.zeros(0, dtype=bool)
-    _, sd = _rolling(acc, w)
-    ok = sd.max(axis=1) < cfg.accel_std_mps2
-    starts = np.arange(n - w + 1)
-    t0, t1 = t[starts], t[starts + w - 1]
+    ok = _rolling_sd_max(acc, w) < cfg.accel_std_mps2
+    t0, t1 = t[:n - w + 1], t[w - 1:]  # per window start i: t[i], t[i + w - 1]
     if gyro is not None:
-        tg, vg = gyro
-        cnt, s1, _ = _window_sums(tg, np.sum(vg * vg, axis=1)[:, None], t0, t1)
-        ms = np.where(cnt > 0, s1[:, 0] / np.maximum(cnt, 1), 0.0)
-        ok &= np.sqrt(ms) < cfg.gyro_rad_s
+        ok &= _gyro_still(gyro[0], gyro[1], t0, t1, cfg.gyro_rad_s)
     if mag is not None:
         cnt, s1, s2 = _window_sums(mag[0], mag[1], t0, t1)
         m = s1 / np.maximum(cnt, 1)[:, None]
         var = np.maximum(s2 / np.maximum(cnt, 1)[:, None] - m * m, 0.0)
         # windows with < 2 mag samples carry no information: do not veto
         ok &= np.where(cnt >= 2, np.sqrt(var).max(axis=1) < cfg.mag_std_mgauss, True)
-    norm = np.linalg.norm(acc, axis=1)
     if np.any(ok):
-        med = float(np.median(norm[_covered(starts[ok], w, n)]))
+        norm = _norms(acc)
+        med = float(np.median(norm[_covered(ok, w, n)], overwrite_input=True))  # the median of a copy
         bad = np.abs(norm - med) > cfg.accel_norm_tol * med
-        cb = np.concatenate([[0], np.cumsum(bad)])
-        ok &= (cb[starts + w] - cb[starts]) == 0
+        del norm
+        cb = np.zeros(n + 1, dtype=np.int32 if n < 2**31 else np.int64)  # bad samples before each index
+        np.cumsum(bad, out=cb[1:])
+        ok &= cb[w:] == cb[:n - w + 1]  # no bad sample in the window
     return ok
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[i0, i1) index ranges of True runs."""
     m = np.concatenate([[False], mask, [False]])
-    d = np.diff(m.astype(int))
-    return list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
+    return list(zip(np.flatnonzero(m[1:] & ~m[:-1]).tolist(), np.flatnonzero(~m[1:] & m[:-1]).tolist()))
 
 
 @dataclass(frozen=True, eq=False)
@@ -414,24 +490,33 @@ class _Reference:
 
 def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
     ref = min(accel, key=lambda s: s.instance)
-    order = np.argsort(ref.time_s, kind="stable")
-    t, a = ref.time_s[order], ref.values[order]
-    good = np.all(np.isfinite(a), axis=1)
-    t, a = t[good], a[good]
+    t, a = ref.time_s, ref.values
+    if not (len(t) < 2 or bool(np.all(t[1:] >= t[:-1]))):  # sorted (no NaN): the stable sort is the identity
+        order = np.argsort(t, kind="stable")
+        t, a = t[order], a[order]
+    if not np.isfinite(np.sum(a)):  # some value is not finite (else the sum is finite)
+        good = np.isfinite(a).all(axis=1)
+        t, a = t[good], a[good]
     dt_all = np.diff(t)
-    dt = float(np.median(dt_all[dt_all > 0])) if np.any(dt_all > 0) else 1.0
+    pos = dt_all[dt_all > 0]
+    del dt_all
+    dt = float(np.median(pos, overwrite_input=True)) if len(pos) else 1.0  # the median of a copy
+    del pos
     rate = 1.0 / dt if dt > 0 else 0.0
     w = max(int(cfg.min_window_samples), int(round(cfg.window_s * rate)))
     return _Reference(ref, t, a, dt, rate, w)
 
 
 def _sorted_finite(s: SensorSeries) -> tuple[np.ndarray, np.ndarray]:
-    """Time-sorted (stable) times and values of the finite samples of ``s``."""
+    """Time-sorted (stable) times and values of the finite samples of ``s`` (the series' own
+    arrays, no copy, when they are sorted and finite already: the usual case)."""
     t, v = s.time_s, s.values
-    if len(t) > 1 and np.any(np.diff(t) < 0):
+    if len(t) > 1 and bool(np.any(t[1:] < t[:-1])):
         o = np.argsort(t, kind="stable")
         t, v = t[o], v[o]
-    good = np.all(np.isfinite(v), axis=1)
+    if np.isfinite(np.sum(v)):  # every value finite (a NaN or an infinity makes the sum non-finite)
+        return t, v
+    good = np.isfinite(v).all(axis=1)
     return (t, v) if good.all() else (t[good], v[good])
 
 
@@ -463,26 +548,35 @@ def _trimmed(runs: Sequence[tuple[int, int]], dt: float, cfg: StillConfig) -> li
 
 
 class _Directions:
-    """Sums of the accel-0 samples of a sample range and of the mag-0 samples of a time range,
-    in O(1) each from prefix sums (used to decide merges)."""
+    """Sums of the accel-0 samples of each span and of the mag-0 samples within half a sample
+    period of it (used to decide merges): the running sums at the span edges only, computed a
+    chunk at a time (the values of full-length prefix sums, without holding them)."""
 
-    def __init__(self, ref: _Reference, R_b: np.ndarray, mag: tuple[np.ndarray, np.ndarray] | None) -> None:
+    def __init__(self, ref: _Reference, R_b: np.ndarray, mag: tuple[np.ndarray, np.ndarray] | None,
+                 spans: Sequence[tuple[int, int]]) -> None:
         self.R_b = R_b
-        self.ca = np.vstack([np.zeros((1, 3)), np.cumsum(ref.a, axis=0)])
-        self.half = ref.dt / 2
-        self.mag = mag
-        self.cm = None if mag is None else np.vstack([np.zeros((1, 3)), np.cumsum(mag[1], axis=0)])
+        edges = np.asarray(spans, dtype=np.int64).reshape(-1, 2)
+        ia = np.unique(edges)
+        ca = _prefix_at(ref.a, ia)
+        self._accel = {(int(i0), int(i1)): ca[np.searchsorted(ia, i1)] - ca[np.searchsorted(ia, i0)]
+                       for i0, i1 in edges.tolist()}
+        self._field: dict[tuple[int, int], np.ndarray] | None = None
+        if mag is not None:
+            half = ref.dt / 2
+            j0 = np.searchsorted(mag[0], ref.t[edges[:, 0]] - half, side="left")
+            j1 = np.searchsorted(mag[0], ref.t[edges[:, 1] - 1] + half, side="right")
+            jm = np.unique(np.concatenate([j0, j1]))
+            cm = _prefix_at(mag[1], jm)
+            self._field = {(int(i0), int(i1)): cm[np.searchsorted(jm, b)] - cm[np.searchsorted(jm, a)]
+                           for (i0, i1), a, b in zip(edges.tolist(), j0.tolist(), j1.tolist())}
 
     def accel_sum(self, i0: int, i1: int) -> np.ndarray:
-        return self.ca[i1] - self.ca[i0]
+        """Sum of the accel-0 samples [i0, i1) of a span."""
+        return self._accel[(i0, i1)]
 
-    def field_sum(self, t0: float, t1: float) -> np.ndarray | None:
-        """Sum of the mag-0 samples within half a sample period of [t0, t1] (None: no compass)."""
-        if self.mag is None or self.cm is None:
-            return None
-        j0 = int(np.searchsorted(self.mag[0], t0 - self.half, side="left"))
-        j1 = int(np.searchsorted(self.mag[0], t1 + self.half, side="right"))
-        return self.cm[j1] - self.cm[j0]
+    def field_sum(self, i0: int, i1: int) -> np.ndarray | None:
+        """Sum of the mag-0 samples within half a sample period of the span (None: no compass)."""
+        return None if self._field is None else self._field[(i0, i1)]
 
 
 def _field_angle_deg(a: np.ndarray | None, b: np.ndarray | None) -> float:
@@ -503,7 +597,7 @@ def _merge(spans: Sequence[tuple[int, int]], t: np.ndarray, dirs: _Directions,
     groups: list[list[tuple[int, int]]] = []
     sums: list[tuple[np.ndarray, np.ndarray | None]] = []  # per group: accel-0 sum, mag-0 sum
     for sp in spans:
-        a_sp, m_sp = dirs.accel_sum(*sp), dirs.field_sum(t[sp[0]], t[sp[1] - 1])
+        a_sp, m_sp = dirs.accel_sum(*sp), dirs.field_sum(*sp)
         if groups:
             a_g, m_g = sums[-1]
             gap = t[sp[0]] - t[groups[-1][-1][1] - 1]
@@ -517,10 +611,9 @@ def _merge(spans: Sequence[tuple[int, int]], t: np.ndarray, dirs: _Directions,
     return groups
 
 
-def _pieces(ts: np.ndarray, vs: np.ndarray, bounds: Sequence[tuple[float, float]]) -> np.ndarray:
-    """Rows of ``vs`` whose time (sorted ``ts``) lies within one of the [lo, hi] ``bounds``
-    (sorted, disjoint): the same time mask for every sensor."""
-    parts = [vs[np.searchsorted(ts, lo, side="left"):np.searchsorted(ts, hi, side="right")] for lo, hi in bounds]
+def _pieces(vs: np.ndarray, i0: np.ndarray, i1: np.ndarray) -> np.ndarray:
+    """Rows ``vs[i0[k]:i1[k]]`` of every span k of an interval, in time order."""
+    parts = [vs[a:b] for a, b in zip(i0.tolist(), i1.tolist())]
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
@@ -530,15 +623,24 @@ def _intervals(groups: Sequence[Sequence[tuple[int, int]]], ref: _Reference,
                mag0: int | None) -> list[StillInterval]:
     """The StillIntervals of the merged span groups. Every sensor keeps only the samples of
     the still spans of its group: the reference (None in ``accels``) its samples of the spans,
-    the other accelerometers and the compasses theirs within half a sample period of a span;
-    the motion between merged spans is in no sensor's samples."""
+    the other accelerometers and the compasses theirs whose time (sorted) lies within half a
+    sample period of a span (the same time mask for every sensor; one sorted search per
+    sensor for all spans); the motion between merged spans is in no sensor's samples."""
     t, a, dt = ref.t, ref.a, ref.dt
+    edges = np.array([sp for spans in groups for sp in spans], dtype=np.int64).reshape(-1, 2)
+    lo, hi = t[edges[:, 0]] - dt / 2, t[edges[:, 1] - 1] + dt / 2
+    first = np.cumsum([0] + [len(spans) for spans in groups])
+    rows = {("a", inst): (tv[1], np.searchsorted(tv[0], lo, side="left"), np.searchsorted(tv[0], hi, side="right"))
+            for inst, tv in accels.items() if tv is not None}
+    rows.update({("m", inst): (vs, np.searchsorted(ts, lo, side="left"), np.searchsorted(ts, hi, side="right"))
+                 for inst, (ts, vs) in mags.items()})
     out: list[StillInterval] = []
-    for spans in groups:
-        bounds = [(float(t[s0]) - dt / 2, float(t[s1 - 1]) + dt / 2) for s0, s1 in spans]
+    for g, spans in enumerate(groups):
+        k = slice(first[g], first[g + 1])
         a_ref = a[spans[0][0]:spans[0][1]] if len(spans) == 1 else np.concatenate([a[s0:s1] for s0, s1 in spans])
-        am = {inst: a_ref if tv is None else _pieces(tv[0], tv[1], bounds) for inst, tv in accels.items()}
-        mm = {inst: _pieces(ts, vs, bounds) for inst, (ts, vs) in mags.items()}
+        am = {inst: a_ref if tv is None else _pieces(rows["a", inst][0], rows["a", inst][1][k], rows["a", inst][2][k])
+              for inst, tv in accels.items()}
+        mm = {inst: _pieces(rows["m", inst][0], rows["m", inst][1][k], rows["m", inst][2][k]) for inst in mags}
         field = None
         if mag0 is not None and len(mm[mag0]):
             field = _unit(mm[mag0].mean(axis=0))
@@ -595,8 +697,9 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     if len(ref.t) < ref.w:
         warnings.append(f"only {len(ref.t)} accelerometer samples ({len(ref.t) * ref.dt:.1f} s): too short for a "
                         f"{ref.w}-sample window")
-    dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0])
-    groups = _merge(_trimmed(runs, ref.dt, cfg), ref.t, dirs, cfg)
+    spans = _trimmed(runs, ref.dt, cfg)
+    dirs = _Directions(ref, R_b, None if mag0 is None else mags[mag0], spans)
+    groups = _merge(spans, ref.t, dirs, cfg)
     others = {s.instance: None if s is ref.series else _sorted_finite(s) for s in accel}
     intervals = _intervals(groups, ref, others, mags, R_b, mag0)
     return _finish(intervals, cfg, ref, gy is not None, mg is not None, accel, mag, warnings)

@@ -131,3 +131,29 @@ def test_many_parameter_changes_match_a_per_sample_lookup():
     expect = np.array([fw.undo_compass(fw.compass_cal_from_params(params.snapshot(float(tt)), 0), v[None])[0]
                        for tt, v in zip(t, logged)])
     np.testing.assert_allclose(raw.get("mag", 0).values, expect, rtol=1e-12, atol=1e-9)  # float rounding
+
+
+def _calibrating_mask(t, periods):
+    m = np.zeros(len(t), bool)
+    for a, b in periods:
+        m |= (t >= a) & (t < b)
+    return m
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_many_accel_calibrations_each_mark_their_own_samples(shuffled):
+    """Hundreds of calibration windows (a day's log): each window's samples are found by a
+    sorted search (by a mask when the times are not sorted), with the same result."""
+    rng = np.random.default_rng(7)
+    t = np.arange(40000) * 0.02
+    acc = np.tile([0.0, 0.0, -9.80665], (len(t), 1)) + rng.normal(0, 0.01, (len(t), 3))
+    starts = np.arange(10.0, 790.0, 4.0)
+    events = [e for s in starts for e in (LogEvent(float(s), "statustext", "Place vehicle level and press any key"),
+                                          LogEvent(float(s) + 2.0, "statustext", "Calibration successful"))]
+    order = rng.permutation(len(t)) if shuffled else np.arange(len(t))
+    log_ = ImuLog("x", "tlog", (SensorSeries("accel", 0, "RAW_IMU", t[order], acc[order]),), events=tuple(events))
+    raw = recover_raw(log_)
+    assert len(raw.accel_cal_periods) == len(starts)
+    assert shuffled or not raw.accel_cal_without_imu  # (unsorted times have no meaningful sample period)
+    got = raw.get("accel", 0)
+    np.testing.assert_array_equal(got.extra["calibrating"] == 1.0, _calibrating_mask(got.time_s, raw.accel_cal_periods))

@@ -193,19 +193,21 @@ def find_accel_cal_periods(log_: ImuLog, margin_s: float = 4.0, min_step_mps2: f
     if not wins:
         return []
     acc = log_.get("accel", 0)
+    srt = acc is not None and _is_sorted(acc.time_s)  # once, not once per period
     min_step = float(min_step_mps2)
     out: list[tuple[float, float]] = []
     for start, end, cmd in wins:
         try:
-            out.append(_refine_period(log_, acc, start, end, cmd, margin_s, min_step))
+            out.append(_refine_period(log_, acc, start, end, cmd, margin_s, min_step, srt))
         except (ValueError, np.linalg.LinAlgError):  # parameters that cannot be applied: keep the event times
             out.append((float(start), float(end if np.isfinite(end) else np.inf)))
     return out
 
 
 def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: float, cmd: float,
-                   margin_s: float, min_step: float) -> tuple[float, float]:
-    """One calibration period, its edges moved to where the raw readings are continuous."""
+                   margin_s: float, min_step: float, srt: bool) -> tuple[float, float]:
+    """One calibration period, its edges moved to where the raw readings are continuous
+    (``srt``: the accelerometer's times are sorted)."""
     s_edge, e_edge = start, end
     if acc is not None and len(acc) > 2:
         t, v = acc.time_s, acc.values
@@ -215,7 +217,7 @@ def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: fl
             e_edge = float(t[-1]) + 1e-6
         # start edge: corrected before, uncorrected after
         lo = start - margin_s if np.isnan(cmd) else max(start - margin_s, cmd)
-        sel = np.nonzero((t >= lo) & (t <= start + margin_s))[0]
+        sel = _index_in(t, lo, start + margin_s, srt)
         if len(sel) > 1:
             p = log_.params
             cal_b = _accel_cal_at(p, 0, t[sel[0]])
@@ -226,7 +228,7 @@ def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: fl
                 if k is not None:
                     s_edge = float(t[sel[k]])
         if np.isfinite(end):
-            sel = np.nonzero((t >= end - margin_s) & (t <= end + margin_s))[0]
+            sel = _index_in(t, end - margin_s, end + margin_s, srt)
             if len(sel) > 1:
                 cal_a = _accel_cal_at(log_.params, 0, t[sel[-1]])
                 u_raw = fw.undo_accel(cal_a, v[sel], calibrating=True)
@@ -245,21 +247,54 @@ def accel_cal_without_imu(log_: ImuLog, min_coverage: float = 0.2) -> list[tuple
     the calibration ran. Each as (first prompt, end) in seconds; an unfinished calibration ends
     at the last event of the log."""
     evs = [e.time_s for e in log_.events]
+    windows = _event_windows(log_.events)
+    if not windows:
+        return []
     accs = [s for s in log_.series if s.sensor == "accel" and len(s)]
+    srt = [_is_sorted(s.time_s) for s in accs]
+    periods: dict[int, float] = {}  # per series, once (not once per calibration): its median sample period
     out = []
-    for start, end, _cmd in _event_windows(log_.events):
+    for start, end, _cmd in windows:
         stop = end if np.isfinite(end) else max(evs)
         if not stop > start:
             stop = start + 1.0
         covered = 0.0
-        for s in accs:
-            t = s.time_s[(s.time_s >= start) & (s.time_s < stop)]
-            if len(t) > 1:
-                dt = float(np.median(np.diff(s.time_s[np.isfinite(s.time_s)]))) if len(s) > 1 else 0.0
-                covered = max(covered, min(len(t) * dt, stop - start))
+        for k, s in enumerate(accs):
+            n_in = _count_in(s.time_s, start, stop, srt[k])
+            if n_in > 1:
+                if k not in periods:
+                    periods[k] = float(np.median(np.diff(s.time_s[np.isfinite(s.time_s)]))) if len(s) > 1 else 0.0
+                covered = max(covered, min(n_in * periods[k], stop - start))
         if covered < min_coverage * (stop - start):
             out.append((float(start), float(stop)))
     return out
+
+
+def _is_sorted(t: np.ndarray) -> bool:
+    """Non-decreasing and free of NaN (so that a sorted search selects what a mask selects)."""
+    return len(t) < 2 or bool(np.all(t[1:] >= t[:-1]))
+
+
+def _range_in(t: np.ndarray, lo: float, hi: float, is_sorted: bool, *, closed_hi: bool) -> tuple[int, int] | None:
+    """[i0, i1) of the samples with ``lo <= t < hi`` (``<= hi`` if ``closed_hi``) when ``t`` is
+    sorted (two binary searches: no full-length mask per call), else None."""
+    if not is_sorted:
+        return None
+    i0 = int(np.searchsorted(t, lo, side="left"))
+    i1 = int(np.searchsorted(t, hi, side="right" if closed_hi else "left"))
+    return i0, max(i0, i1)
+
+
+def _count_in(t: np.ndarray, lo: float, hi: float, is_sorted: bool) -> int:
+    """How many of ``t`` lie in [lo, hi)."""
+    r = _range_in(t, lo, hi, is_sorted, closed_hi=False)
+    return int(np.count_nonzero((t >= lo) & (t < hi))) if r is None else r[1] - r[0]
+
+
+def _index_in(t: np.ndarray, lo: float, hi: float, is_sorted: bool) -> np.ndarray:
+    """Indices of the samples with ``lo <= t <= hi``, in order."""
+    r = _range_in(t, lo, hi, is_sorted, closed_hi=True)
+    return np.nonzero((t >= lo) & (t <= hi))[0] if r is None else np.arange(r[0], r[1])
 
 
 # --------------------------------------------------------------------------- helpers
@@ -333,10 +368,42 @@ def _record(used: dict[str, list[tuple[float, float]]], params: ParamTimeline, n
         used[n] = merged
 
 
+#: rows per call of the inverse models (their temporaries stay small: no full-length copies)
+_CHUNK_ROWS = 1 << 16
+
+
+def _undo_accel_into(out: np.ndarray, cal: fw.AccelCal, v: np.ndarray, calibrating: np.ndarray | None) -> None:
+    """``out[i] = undo_accel(cal, v[i], calibrating=calibrating[i])`` (``None``: calibrating everywhere),
+    a chunk of rows at a time; each chunk computes only the interpretation its rows need (the
+    same row-wise arithmetic, so the values are those of one call on all rows)."""
+    for i in range(0, len(v), _CHUNK_ROWS):
+        j = i + _CHUNK_ROWS
+        c = None if calibrating is None else calibrating[i:j]
+        if c is None or c.all():
+            out[i:j] = fw.undo_accel(cal, v[i:j], calibrating=True)
+        elif not c.any():
+            out[i:j] = fw.undo_accel(cal, v[i:j])
+        else:
+            out[i:j] = np.where(c[:, None], fw.undo_accel(cal, v[i:j], calibrating=True), fw.undo_accel(cal, v[i:j]))
+
+
+def _undo_compass_into(out: np.ndarray, cal: fw.CompassCal, v: np.ndarray, motor: np.ndarray | None) -> None:
+    """``out = undo_compass(cal, v, motor)``, a chunk of rows at a time (row-wise arithmetic)."""
+    for i in range(0, len(v), _CHUNK_ROWS):
+        j = i + _CHUNK_ROWS
+        out[i:j] = fw.undo_compass(cal, v[i:j], None if motor is None else motor[i:j])
+
+
 def _in_periods(t: np.ndarray, periods: Sequence[tuple[float, float]]) -> np.ndarray:
+    """Samples with ``a <= t < b`` for some period (a sorted ``t``: two searches per period)."""
     m = np.zeros(t.shape, dtype=bool)
+    srt = bool(periods) and _is_sorted(t)
     for a, b in periods:
-        m |= (t >= a) & (t < b)
+        r = _range_in(t, a, b, srt, closed_hi=False)
+        if r is None:
+            m |= (t >= a) & (t < b)
+        else:
+            m[r[0]:r[1]] = True
     return m
 
 
@@ -445,7 +512,7 @@ def _with_known(s: SensorSeries, values: np.ndarray, extra: dict[str, np.ndarray
                 ) -> SensorSeries:
     """The recovered series; ``extra["params_known"]`` marks readings left out (NaN)."""
     if np.any(left_out):
-        values = np.where(left_out[:, None], np.nan, values)
+        values[left_out] = np.nan  # ``values`` is the caller's own new array
         extra = {**extra, "params_known": (~left_out).astype(float)}
     return SensorSeries(s.sensor, s.instance, s.message, s.time_s, values, s.log_time_s, extra)
 
@@ -478,7 +545,7 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
             unusable.append(f"{t[p.i0]:.1f} s: {exc}")
             continue
         if not have or set(p.unknown) & set(board):
-            out[sl] = fw.undo_accel(cal, s.values[sl], calibrating=True)
+            _undo_accel_into(out[sl], cal, s.values[sl], None)
             left_out[sl] = bool(p.unknown)
             continue
         if any(v == 0.0 for v in cal.scale) and not p.unknown:
@@ -487,8 +554,7 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
         c = calib[sl]
         # offsets/scale do not matter where the firmware skipped them (accel calibration)
         left_out[sl] = bool(p.unknown) & ~c
-        out[sl] = np.where(c[:, None], fw.undo_accel(cal, s.values[sl], calibrating=True),
-                           fw.undo_accel(cal, s.values[sl]))
+        _undo_accel_into(out[sl], cal, s.values[sl], c)
     if not have:
         no_board = "" if bn["orientation"] in params else " (and no AHRS_ORIENTATION: board frame = body frame)"
         warnings.append(f"accel {inst}: the log has no {an['ofs'][0][:-2]}/{an['scale'][0][:-2]} "
@@ -526,8 +592,8 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
     for p in pieces:
         try:
             cal = fw.compass_cal_from_params(p.values, inst, None if p.unknown else missing)
-            out[p.i0:p.i1] = fw.undo_compass(cal, s.values[p.i0:p.i1],
-                                             None if motor is None else motor[p.i0:p.i1])
+            _undo_compass_into(out[p.i0:p.i1], cal, s.values[p.i0:p.i1],
+                               None if motor is None else motor[p.i0:p.i1])
             left_out[p.i0:p.i1] = bool(p.unknown)
         except (ValueError, np.linalg.LinAlgError) as exc:  # e.g. a singular DIA/ODI matrix, unknown rotation
             out[p.i0:p.i1], left_out[p.i0:p.i1], bad[p.i0:p.i1] = np.nan, True, True

@@ -83,7 +83,13 @@ def _text(v) -> str:
 
 
 def _vec(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
-    return np.column_stack([np.asarray(c[n], dtype=float) for n in names])
+    """(n, len(names)) float64 of the columns ``names`` (each cast straight into its column:
+    no float copy of each column before the interleaving)."""
+    cols = [np.asarray(c[n]) for n in names]
+    out = np.empty((len(cols[0]) if cols else 0, len(cols)))
+    for j, col in enumerate(cols):
+        out[:, j] = col.reshape(len(col)) if col.ndim != 1 else col
+    return out
 
 
 def _n(c: Mapping[str, np.ndarray] | None) -> int:
@@ -148,8 +154,8 @@ def _boot_time(name: str, c: Mapping[str, np.ndarray]) -> np.ndarray:
 def _next_reboot(boot: np.ndarray, i0: int) -> int | None:
     """First ``i > i0`` with ``boot[i] < max(boot[i0:i]) - REBOOT_BACKSTEP_S``, else None.
 
-    Scans windows of doubling length, so that finding k reboots costs about the length of
-    the log rather than k times it.
+    Scans windows of doubling length (up to 2**18 samples, which bounds the temporaries), so
+    that finding k reboots costs about the length of the log rather than k times it.
     """
     n = len(boot)
     i = i0 + 1
@@ -165,7 +171,7 @@ def _next_reboot(boot: np.ndarray, i0: int) -> int | None:
             return i + int(drop[0])
         prior = max(prior, seg.max())
         i += len(seg)
-        w *= 2
+        w = min(2 * w, 1 << 18)  # long enough to be linear, short enough for small temporaries
     return None
 
 
@@ -195,13 +201,17 @@ class _TimeBase:
         prev_end_log = None
         for k in range(len(starts)):
             a, b = bounds[k], bounds[k + 1]
-            self.delay[k] = float(np.median(logt[a:b] - boot[a:b]))
+            log_a, log_max = logt[a], float(logt[a:b].max())
+            # the median of (log - boot) over the segment, computed in the segment's own log
+            # times (not needed afterwards): no full-length temporary
+            np.subtract(logt[a:b], boot[a:b], out=logt[a:b])
+            self.delay[k] = float(np.median(logt[a:b], overwrite_input=True))
             if k > 0:
-                self.offset[k] = prev_end_time + (logt[a] - prev_end_log) - boot[a]
+                self.offset[k] = prev_end_time + (log_a - prev_end_log) - boot[a]
                 self.reboot_s[k] = float(np.nextafter(prev_end_time, np.inf))
-            seg_t = boot[a:b] + self.offset[k]
-            prev_end_time = float(seg_t.max())
-            prev_end_log = float(logt[a:b].max())
+            # max(boot + offset) = max(boot) + offset: rounding is monotonic
+            prev_end_time = float(boot[a:b].max() + self.offset[k])
+            prev_end_log = log_max
         self.reboots = len(starts) - 1
 
     def segment(self, index: np.ndarray) -> np.ndarray:
@@ -273,7 +283,8 @@ def _tlog_vehicle_imu(cols: Columns, source: str, warns: list[str]) -> tuple[int
         m = np.asarray(c["_sysid"]) == sysid
         if n == "SCALED_IMU" and "RAW_IMU" in imu and m.any():
             # not used (RAW_IMU carries instance 0): keep only what the time base needs, release the rest
-            imu[n] = _take({k: v for k, v in c.items() if k in _TIME_COLUMNS}, m)
+            times = {k: v for k, v in c.items() if k in _TIME_COLUMNS}
+            imu[n] = times if m.all() else _take(times, m)
             if isinstance(cols, dict):
                 del cols[n]
         elif m.all():
@@ -430,7 +441,7 @@ def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = ()) -> I
     warns = list(warnings)
     sysid, imu = _tlog_vehicle_imu(cols, source, warns)
     # time base from all IMU messages of the vehicle
-    tb = _TimeBase(np.concatenate([imu[n]["_index"] for n in imu]).astype(np.int64),
+    tb = _TimeBase(np.concatenate([imu[n]["_index"] for n in imu]).astype(np.int64, copy=False),
                    lambda: np.concatenate([_boot_time(n, imu[n]) for n in imu]),
                    lambda: np.concatenate([np.asarray(imu[n]["_log_time_s"], float) for n in imu]))
     if tb.reboots:
@@ -513,7 +524,8 @@ def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int,
                          f"({', '.join(map(str, bad)) or 'not a number'}; valid 0..{limit - 1}): corrupt records")
         inst = np.where(ok, raw, -1).astype(int)
         for i in np.unique(inst[ok]).tolist():
-            yield i, _take(c, inst == i)
+            m = inst == i
+            yield i, (c if m.all() else _take(c, m))  # one instance (the usual case): no copy
     else:
         digit = name[-1]
         if digit.isdigit():  # IMU2 -> 1, MAG3 -> 2, ACC1 -> 0
@@ -530,6 +542,8 @@ def _df_add(out: _SeriesSet, sensor: str, inst: int, msg: str, t: np.ndarray, v:
     ok = np.isfinite(v).all(axis=1)
     if (~ok).any():
         out.warns.append(f"dropped {int((~ok).sum())} {msg} samples with non-finite values")
+    else:  # every sample finite (the usual case): no copy
+        ok = slice(None)
     out.keep(sensor, inst, msg, t[ok], v[ok], None, {k: a[ok] for k, a in (extra or {}).items()},
              dup_label=f"{msg}[{inst}]")
 
@@ -568,21 +582,30 @@ class _DfRecordTime:
     latest timed record before it."""
 
     def __init__(self, cols: Columns) -> None:
-        timed = [(np.asarray(c["_index"]), _df_time(c)) for n, c in cols.items()
-                 if _n(c) and ("TimeUS" in c or "TimeMS" in c) and "_index" in c]
-        if timed:
-            t_idx = np.concatenate([a for a, _ in timed])
-            t_val = np.concatenate([b for _, b in timed])
-            o = np.argsort(t_idx, kind="stable")
-            self.t_idx, self.t_val = t_idx[o], np.maximum.accumulate(t_val[o])
-        else:
-            self.t_idx, self.t_val = np.zeros(1, np.int64), np.zeros(1)
+        self.cols = cols
+        self._timeline: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _timed(self) -> tuple[np.ndarray, np.ndarray]:
+        """(record numbers, running-max times) of every timed record, built when first needed
+        (only for records without a time of their own: most logs never need them)."""
+        if self._timeline is None:
+            timed = [(np.asarray(c["_index"]), _df_time(c)) for n, c in self.cols.items()
+                     if _n(c) and ("TimeUS" in c or "TimeMS" in c) and "_index" in c]
+            if timed:
+                t_idx = np.concatenate([a for a, _ in timed])
+                t_val = np.concatenate([b for _, b in timed])
+                o = np.argsort(t_idx, kind="stable")
+                self._timeline = (t_idx[o], np.maximum.accumulate(t_val[o]))
+            else:
+                self._timeline = (np.zeros(1, np.int64), np.zeros(1))
+        return self._timeline
 
     def __call__(self, c: Mapping[str, np.ndarray]) -> np.ndarray:
         if "TimeUS" in c or "TimeMS" in c:
             return _df_time(c)
-        k = np.searchsorted(self.t_idx, np.asarray(c["_index"]), side="right") - 1
-        return np.where(k >= 0, self.t_val[np.clip(k, 0, None)], self.t_val[0])
+        t_idx, t_val = self._timed()
+        k = np.searchsorted(t_idx, np.asarray(c["_index"]), side="right") - 1
+        return np.where(k >= 0, t_val[np.clip(k, 0, None)], t_val[0])
 
 
 def _df_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[str]) -> ParamTimeline:

@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 HEAD1, HEAD2 = 0xA3, 0x95
 FMT_TYPE = 0x80
 FMT_LEN = 89
-DEFAULT_CHUNK = 4 * 1024 * 1024  # the working memory is a few times this (32 MiB made it ~110 MB)
+DEFAULT_CHUNK = 2 * 1024 * 1024  # working memory: a few times this (32 MiB made it ~110 MB; 2 MiB is faster than 4)
 
 # DataFlash format character -> (numpy dtype, multiplier)  (pymavlink DFReader.FORMAT_TO_STRUCT)
 FORMAT_TO_DTYPE = {
@@ -256,7 +256,7 @@ def _decode_records(b: np.ndarray, recs, wanted: Wanted, parts: dict[int, Column
         rec = np.lib.stride_tricks.sliding_window_view(b, f.length - 3)[pos[sel] + 3].view(dt).ravel()
         part = {}
         for name in dt.names or ():
-            col = np.array(rec[name])
+            col = rec[name]  # a field view: copied once, into the column buffer
             m = mults.get(name)
             if m is not None:
                 # as DFReader: dividing by 1e2/1e7 is more accurate than multiplying

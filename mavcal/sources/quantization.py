@@ -30,6 +30,10 @@ def quantization_step(series: SensorSeries) -> float:
     return TRUNCATED_UNITS.get(series.message, {}).get(series.sensor, 0.0)
 
 
+#: rows per step of the in-place untruncation (temporaries stay small and cached)
+_CHUNK_ROWS = 1 << 16
+
+
 def untruncate(series: SensorSeries) -> SensorSeries:
     """The series with half a unit added away from zero to every non-zero integer reading."""
     q = quantization_step(series)
@@ -39,11 +43,62 @@ def untruncate(series: SensorSeries) -> SensorSeries:
     return replace(series, values=v + 0.5 * q * np.sign(v))
 
 
-def untruncate_log(log: ImuLog) -> tuple[ImuLog, int]:
-    """Apply :func:`untruncate` to every series of ``log``; returns (log, series changed)."""
+def _owner(a: np.ndarray) -> np.ndarray | None:
+    """The array that owns ``a``'s memory when ``a`` covers all of it (a reshaped view or the
+    array itself), else None (a slice or a view of foreign memory: not ours to write)."""
+    root = a
+    while isinstance(root.base, np.ndarray):
+        root = root.base
+    if root.base is not None or not root.flags.c_contiguous or root.nbytes != a.nbytes:
+        return None
+    if root.__array_interface__["data"][0] != a.__array_interface__["data"][0] or root.dtype != np.float64:
+        return None
+    return root
+
+
+def _untruncate_in_place(root: np.ndarray, q: float) -> None:
+    """``root += 0.5 * q * sign(root)`` chunk by chunk: the same arithmetic as :func:`untruncate`
+    (``(0.5 * q) * sign(v)`` added to ``v``), so the values are bit-identical, with no full-size
+    temporary."""
+    half = 0.5 * q
+    was_writeable = root.flags.writeable
+    root.setflags(write=True)
+    try:
+        flat = root.reshape(-1)
+        tmp = np.empty(min(len(flat), _CHUNK_ROWS * 3))
+        for i in range(0, len(flat), len(tmp)):
+            v = flat[i:i + len(tmp)]
+            t = tmp[:len(v)]
+            np.sign(v, out=t)
+            t *= half
+            v += t
+    finally:
+        root.setflags(write=was_writeable)
+
+
+def untruncate_log(log: ImuLog, *, in_place: bool = False) -> tuple[ImuLog, int]:
+    """Apply :func:`untruncate` to every series of ``log``; returns (log, series changed).
+
+    With ``in_place=True`` (for a log nobody else holds, e.g. one :func:`mavcal.pipeline.prepare`
+    has just read) the values are changed in their own arrays, without a second copy of the
+    series, and ``log`` itself is returned; a series whose values are a view of memory it does
+    not own, or that another series shares, is copied as usual. The values are bit-identical
+    either way.
+    """
+    arrays = [[s.values, *s.extra.values()] for s in log.series]
     out, n = [], 0
-    for s in log.series:
+    for k, s in enumerate(log.series):
+        q = quantization_step(s)
+        root = _owner(s.values) if (in_place and q != 0.0) else None
+        if root is not None and not any(np.may_share_memory(root, a) for j, arrs in enumerate(arrays)
+                                        if j != k for a in arrs):
+            _untruncate_in_place(root, q)
+            out.append(s)
+            n += 1
+            continue
         t = untruncate(s)
         n += t is not s
         out.append(t)
+    if in_place and all(a is b for a, b in zip(out, log.series)):
+        return log, n
     return replace(log, series=tuple(out)), n
