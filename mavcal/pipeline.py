@@ -544,7 +544,7 @@ def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | No
     am = joint if joint is not None else map_accel(fit.gain, fit.bias,
                                                    fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
     tilt = accel_tilt_bounds(fit, am, opts.uncertainty_draws, opts.seed)
-    ho = holdout_accel_mps2(acc, noise_floor=floor) if opts.holdout else float("nan")
+    ho = holdout_accel_mps2(acc, noise_floor=floor, start=fit) if opts.holdout else float("nan")
     dirs = np.array([prep.segmentation.intervals[k].gravity_dir for k in used])
     n_orient = _n_orientations(dirs, prep.segmentation)
     gates = gates_mod.accel_gates(am, n_intervals=len(used), n_orientations=n_orient, tilt_95_deg=tilt[0],
