@@ -263,7 +263,7 @@ def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbe
     return read_log(src, progress=progress)
 
 
-def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
+def prepare(source, options: Options = Options(), *, progress=None, owned: bool = False) -> Prepared:
     """Read a source and make it ready for the fit (everything before the estimation).
 
     Undoes the integer truncation of the telemetry, undoes ArduPilot's correction with the
@@ -279,6 +279,11 @@ def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
         Passed to :func:`open_source`; an object that also has ``stage(name, done, total)``
         (:class:`mavcal.sources.progress.ProgressPrinter`, :class:`~mavcal.sources.progress.CallbackProgress`)
         is told the later stages too (:data:`STAGE_RECOVER`, :data:`STAGE_SEGMENT`).
+    owned : bool
+        ``source`` is an :class:`ImuLog` the caller hands over (it has just read it and keeps
+        no other use for the readings as read): the truncation is undone in its own arrays
+        instead of in a copy of every series (on a 100 MB tlog, 80 MB less). The values are
+        bit-identical either way; a log read here from a path is always owned.
 
     Returns
     -------
@@ -295,8 +300,9 @@ def prepare(source, options: Options = Options(), *, progress=None) -> Prepared:
     from mavcal.sources.quantization import quantization_step, untruncate_log
 
     opts = options
-    own = not isinstance(source, ImuLog)  # read here: nobody else holds it, so it is changed in place
-    log_ = open_source(source, progress=progress) if own else source
+    given = isinstance(source, ImuLog)
+    own = owned or not given  # nobody else reads it as read: changed in place
+    log_ = source if given else open_source(source, progress=progress)
     warnings: list[str] = list(log_.warnings)
     steps = {(s.sensor, s.instance): quantization_step(s) for s in log_.series}
     report(progress, STAGE_RECOVER, 0, 1)

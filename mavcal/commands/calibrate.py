@@ -172,7 +172,7 @@ def _single(args, source: str) -> int:
                                  on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))
         else:
             log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))
-        prep = prepare(log_, opts, progress=progress)
+        prep = prepare(log_, opts, progress=progress, owned=True)
         run = calibrate_prepared(prep, opts, progress=progress)
     except MavcalError as exc:  # no fit at all: the JSON still says why, per sensor
         if isinstance(exc, UsageError):

@@ -173,7 +173,7 @@ def _segment(args, cfg):
         from mavcal.segment import find_still_intervals
 
         return log_, None, find_still_intervals(log_, cfg)
-    prep = prepare(log_, Options(still=cfg))
+    prep = prepare(log_, Options(still=cfg), owned=True)
     return prep.log, prep.raw, prep.segmentation
 
 
