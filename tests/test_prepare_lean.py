@@ -88,6 +88,20 @@ def test_prepare_of_a_path_equals_prepare_of_its_log_and_leaves_a_given_log_alon
         assert _same(s.values, k)
 
 
+def test_prepare_of_an_owned_log_untruncates_in_its_own_arrays_with_the_same_result():
+    """``owned=True`` (what ``mavcal calibrate`` and ``segments`` pass): no copy of the series,
+    the log handed over is the prepared log, and every value equals the copying path's."""
+    path = SITL / "sitl02.tlog"
+    handed = read_log(path)
+    arrays = [s.values for s in handed.series]
+    mine = prepare(handed, owned=True)
+    assert mine.log is handed
+    assert all(s.values is a for s, a in zip(mine.log.series, arrays))
+    as_read = read_log(path)
+    assert any(not _same(s.values, r.values) for s, r in zip(mine.log.series, as_read.series))  # changed in place
+    _assert_same_prepared(mine, prepare(as_read))
+
+
 @pytest.mark.parametrize("window_s", [0.5, 2.0])
 def test_chunked_statistics_are_bit_identical(monkeypatch, window_s):
     """Tiny chunks (and windows longer than a chunk) give exactly what one chunk gives."""
