@@ -91,6 +91,47 @@ def test_k_fold_holdout_warm_start_equals_cold_refits(monkeypatch):
     assert holdout_accel_mps2(acc, start=fit) == pytest.approx(holdout_accel_mps2(acc), rel=1e-9)
 
 
+def test_leave_one_out_holdout_warm_start_equals_cold_refits(monkeypatch):
+    """Leave-one-out (N <= 60): the warm-started refits reach the optimum a refit from scratch
+    reaches (same held-out numbers), without the search."""
+    acc, mag = _sim(24, 8, 0.3)
+    cal = C.calibrate(acc, mag, seed=0)
+    assert cal.converged
+    orig = C.calibrate
+    starts = []
+
+    def spy(*args, start=None, **kw):
+        starts.append(start)
+        return orig(*args, start=start, **kw)
+
+    monkeypatch.setattr("mavcal.quality.calibrate", spy)
+    warm = holdout_errors(acc, mag, cal)
+    assert len(starts) >= 20 and all(s is cal for s in starts)  # one refit per interval whose pose recurs
+
+    def cold(*args, start=None, **kw):  # the former refits: from scratch, with the search
+        return orig(*args, **kw)
+
+    monkeypatch.setattr("mavcal.quality.calibrate", cold)
+    ref = holdout_errors(acc, mag, cal)
+    assert np.all(np.isfinite(warm))
+    np.testing.assert_allclose(warm, ref, rtol=1e-6)
+
+
+def test_leave_one_out_holdout_of_a_non_converging_fit_is_bounded():
+    """A compass disturbed far beyond its noise in every pose (as the disturbed ArduSub .BIN):
+    the 30 held-out refits are refinements from the full fit with a bounded LM, not 30 searches
+    with the 2000-iteration extension; the number is still a finite prediction error."""
+    acc, mag = _sim(30, 9, 40.0)
+    cal = C.calibrate(acc, mag, seed=0)
+    t0 = time.perf_counter()
+    ho = holdout_errors(acc, mag, cal)
+    t1 = time.perf_counter()
+    C.calibrate(acc, mag, seed=0)
+    t2 = time.perf_counter()
+    assert np.all(np.isfinite(ho)) and ho[1] > 0
+    assert t1 - t0 < 10 * (t2 - t1) + 0.5  # 30 refits cost a few full fits, not 30
+
+
 def test_non_converging_large_n_fit_has_bounded_lm_work():
     """A magnetometer disturbed far beyond its noise in every pose: whatever the fit does,
     each LM run over all N is bounded to LM_WORK interval-iterations."""
