@@ -27,7 +27,7 @@ from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_ac
 from mavcal.core.calibrate import calibrate, estimate_orientations
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import MODELS
-from mavcal.core.stats import interval_stats, stats_subset
+from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
 from mavcal.core.types import Calibration
 from mavcal.core.uncertainty import sample_parameters
 from mavcal.errors import MavcalError
@@ -155,7 +155,8 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
 def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Calibration, *,
                    method: str = "ncar", tol: float = 1e-4, seed: int = 0,
                    noise_floor: tuple[float | None, float | None] = (None, None),
-                   cluster_deg: float = 30.0) -> tuple[float, float]:
+                   cluster_deg: float = 30.0, stats: tuple[IntervalStats, IntervalStats] | None = None
+                   ) -> tuple[float, float]:
     """RMS held-out error: refit without some intervals, predict their means.
 
     The refits are :func:`mavcal.core.accel_fit.holdout_folds`': leave-one-interval-out up
@@ -183,6 +184,10 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     prediction from data that excluded the predicted interval, near that data's optimum;
     the unbounded search would spend seconds per interval polishing it to digits the
     gate does not read.
+
+    ``stats``: the accelerometer's and compass's :func:`~mavcal.core.stats.interval_stats` of
+    these intervals with ``per_interval=True`` (e.g. the fit's own), used when the refits
+    draw on all of them instead of computing them again (the same numbers).
     """
 
     N = len(acc)
@@ -196,8 +201,11 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
         return float("nan"), float("nan")
     pool, at = pool_index(folds, N)  # the pool's statistics once; each refit's from them in O(pool)
     try:
-        sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
-        sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
+        if stats is not None and len(pool) == N:
+            sa, sm = stats
+        else:
+            sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
+            sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
     except MavcalError:
         return float("nan"), float("nan")
     for keep, pred in folds:
