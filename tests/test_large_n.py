@@ -183,3 +183,29 @@ def test_subset_weights_make_the_subset_weigh_poses_as_the_log():
     assert w.sum() == pytest.approx(n[idx].sum()) and np.all(w >= 0)
     share = np.bincount(k[idx], weights=w, minlength=6) / w.sum()
     np.testing.assert_allclose(share, np.bincount(k, weights=n) / n.sum(), atol=1e-12)  # as in the log
+
+
+def test_fit_stage_computes_each_sensors_interval_statistics_once(monkeypatch, sitl_dir):
+    """The pairs of one accelerometer or compass, its own fit and the held-out checks share
+    its interval statistics (computed once per run), and the result is what it was."""
+    from mavcal import pipeline
+    from mavcal.core import calibrate as core_cal
+
+    prep = pipeline.prepare(str(sitl_dir / "sitl01.tlog"))
+    ref = pipeline.calibrate_prepared(prep)
+    real = pipeline.interval_stats
+    calls: list[str] = []
+
+    def spy(sets, name, **kw):
+        calls.append(name)
+        return real(sets, name, **kw)
+
+    def refuse(*args, **kw):
+        raise AssertionError("the pair fits recomputed interval statistics")
+
+    monkeypatch.setattr(pipeline, "interval_stats", spy)
+    monkeypatch.setattr(core_cal, "interval_stats", refuse)
+    run = pipeline.calibrate_prepared(prep)
+    n_sensors = len(prep.raw.accel_instances()) + len(prep.raw.mag_instances())
+    assert len(run.others) >= 2 and len(calls) == n_sensors  # 3 pair fits + 2 accel fits, one per sensor
+    assert run.mapping.new == ref.mapping.new and run.quality == ref.quality
