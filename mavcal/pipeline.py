@@ -22,6 +22,7 @@ from mavcal.ardupilot.recover import RawImu, recover_raw
 from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
+from mavcal.core.stats import IntervalStats, interval_stats
 from mavcal.core.types import Calibration
 from mavcal.errors import EXIT_PARTIAL, EstimationError, GateError, InsufficientDataError, MavcalError, SourceError
 from mavcal.quality import Quality, accel_tilt_bounds, holdout_errors, quality_of
@@ -409,7 +410,8 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
     pairs = _other_pairs(prep, opts)
     n_fits = 1 + len(pairs) + (len(prep.raw.accel_instances()) if opts.sensors == "both" else 0)
     report(progress, STAGE_FIT, 0, n_fits)
-    primary = _calibrate_pair(prep, opts)
+    stats: _StatsCache = {}
+    primary = _calibrate_pair(prep, opts, stats)
     report(progress, STAGE_FIT, 1, n_fits)
     warnings += list(primary.warnings)
     others = []
@@ -417,7 +419,7 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
         report(progress, STAGE_FIT, 1 + k, n_fits)
         try:
             others.append(_calibrate_pair(prep, replace(options, accel_instance=a, mag_instance=m,
-                                                        holdout=opts.holdout and a == ai)))
+                                                        holdout=opts.holdout and a == ai), stats))
         except MavcalError as exc:
             warnings.append(f"accelerometer {a} / compass {m} not calibrated: {exc}")
     compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
@@ -433,7 +435,7 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
             report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits)
             try:
                 am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, joint[a].mapping.accel[0]
-                                                     if a in joint and mi_ok else None)
+                                                     if a in joint and mi_ok else None, stats)
             except MavcalError as exc:
                 warnings.append(f"accelerometer {a} not calibrated: {exc}")
                 continue
@@ -537,20 +539,39 @@ def _accel_sets(prep: Prepared, a: int) -> tuple[list[int], list[np.ndarray]]:
     return used, [prep.segmentation.intervals[k].accel_mps2[a] for k in used]
 
 
-def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | None):
+_StatsCache = dict[tuple[str, int, tuple[int, ...]], IntervalStats]
+
+
+def _stats_of(prep: Prepared, cache: _StatsCache, kind: str, inst: int, used: list[int]) -> IntervalStats:
+    """The interval statistics (:func:`mavcal.core.stats.interval_stats`, per interval too) of
+    sensor ``kind`` ``inst`` over the intervals ``used``, computed once per run: the pairs of
+    one accelerometer or compass, its own fit and the held-out checks share them (the same
+    numbers, to the bit, as each computing them from the readings)."""
+    key = (kind, inst, tuple(used))
+    if key not in cache:
+        q = prep.quantization.get((kind, inst), 0.0)
+        ivs = prep.segmentation.intervals
+        sets = [ivs[k].accel_mps2[inst] if kind == "accel" else ivs[k].mag_mgauss[inst] for k in used]
+        cache[key] = interval_stats(sets, f"{kind}_sets", noise_floor=q / np.sqrt(12) if q else None,
+                                    per_interval=True)
+    return cache[key]
+
+
+def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | None, stats: _StatsCache):
     """Accelerometer ``a`` on its own: its fit, written values (``joint``'s when given, else
     its own), gates, (tilt 95 %, nominal) and held-out error."""
     used, acc = _accel_sets(prep, a)
     q = prep.quantization.get(("accel", a), 0.0)
     floor = q / np.sqrt(12) if q else None
     try:
-        fit = fit_accel(acc, noise_floor=floor)
+        st = _stats_of(prep, stats, "accel", a, used)
+        fit = fit_accel(st)
     except (InsufficientDataError, EstimationError) as exc:
         raise _with_blind_cal(prep, exc) from None
     am = joint if joint is not None else map_accel(fit.gain, fit.bias,
                                                    fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
     tilt = accel_tilt_bounds(fit, am, opts.uncertainty_draws, opts.seed)
-    ho = holdout_accel_mps2(acc, noise_floor=floor, start=fit) if opts.holdout else float("nan")
+    ho = holdout_accel_mps2(acc, noise_floor=floor, start=fit, stats=st) if opts.holdout else float("nan")
     dirs = np.array([prep.segmentation.intervals[k].gravity_dir for k in used])
     n_orient = _n_orientations(dirs, prep.segmentation)
     gates = gates_mod.accel_gates(am, n_intervals=len(used), n_orientations=n_orient, tilt_95_deg=tilt[0],
@@ -583,7 +604,7 @@ def _accel_only(prep: Prepared, opts: Options, warnings: list[str], progress=Non
     for k, a in enumerate(wanted):
         report(progress, STAGE_FIT, k, len(wanted))
         try:
-            am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None)
+            am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None, {})
         except MavcalError as exc:
             errors.append(exc)
             warnings.append(f"accelerometer {a} not calibrated: {exc}")
@@ -632,8 +653,9 @@ def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
     return used
 
 
-def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
-    """calibrate -> map -> quality -> gates for one accelerometer/compass pair."""
+def _calibrate_pair(prep: Prepared, options: Options, stats: _StatsCache) -> CalibrationRun:
+    """calibrate -> map -> quality -> gates for one accelerometer/compass pair (``stats``:
+    the run's interval statistics, :func:`_stats_of`)."""
     opts = options
     log_, seg = prep.log, prep.segmentation
     warnings: list[str] = list(prep.warnings)
@@ -644,8 +666,8 @@ def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
     qa, qm = prep.quantization.get(("accel", ai), 0.0), prep.quantization.get(("mag", mi), 0.0)
     noise_floor = (qa / np.sqrt(12) if qa else None, qm / np.sqrt(12) if qm else None)
     try:
-        cal = calibrate(acc, mag, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model,
-                        noise_floor=noise_floor)
+        sa, sm = _stats_of(prep, stats, "accel", ai, used), _stats_of(prep, stats, "mag", mi, used)
+        cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
     except (InsufficientDataError, EstimationError) as exc:
         raise _with_blind_cal(prep, exc) from None
     params_now = log_.params.snapshot()
@@ -656,8 +678,8 @@ def _calibrate_pair(prep: Prepared, options: Options) -> CalibrationRun:
                               field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,
                               allow_custom=opts.allow_custom, force_external=opts.force_external)
     am, cm = mapping.accel[0], mapping.compass[0]
-    ho = (holdout_errors(acc, mag, cal, method=opts.method, tol=opts.tol, seed=opts.seed, noise_floor=noise_floor)
-          if opts.holdout else (float("nan"), float("nan")))
+    ho = (holdout_errors(acc, mag, cal, method=opts.method, tol=opts.tol, seed=opts.seed, noise_floor=noise_floor,
+                         stats=(sa, sm)) if opts.holdout else (float("nan"), float("nan")))
     quality = quality_of(cal, am, cm, am.old.board_matrix, opts.uncertainty_draws, opts.seed, ho)
     dirs = np.array([seg.intervals[k].gravity_dir for k in used])
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(

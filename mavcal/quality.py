@@ -23,11 +23,11 @@ import numpy as np
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, max_errors_deg
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
-from mavcal.core.accel_fit import LOO_MAX_INTERVALS, AccelFit, holdout_folds, pool_index, sample_accel
+from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel
 from mavcal.core.calibrate import calibrate, estimate_orientations
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import MODELS
-from mavcal.core.stats import interval_stats, stats_subset
+from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
 from mavcal.core.types import Calibration
 from mavcal.core.uncertainty import sample_parameters
 from mavcal.errors import MavcalError
@@ -155,7 +155,8 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
 def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Calibration, *,
                    method: str = "ncar", tol: float = 1e-4, seed: int = 0,
                    noise_floor: tuple[float | None, float | None] = (None, None),
-                   cluster_deg: float = 30.0) -> tuple[float, float]:
+                   cluster_deg: float = 30.0, stats: tuple[IntervalStats, IntervalStats] | None = None
+                   ) -> tuple[float, float]:
     """RMS held-out error: refit without some intervals, predict their means.
 
     The refits are :func:`mavcal.core.accel_fit.holdout_folds`': leave-one-interval-out up
@@ -170,12 +171,23 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     none qualifies. The prediction is the paper's model ``K R_j g + b`` (Eq.
     ``sensor_reading_model``) with R_j estimated from interval j alone.
 
-    The K-fold refits are warm-started from ``cal`` (``calibrate(..., start=cal)``: no
-    search, orientations from its parameters, then the joint refinement on the kept
-    intervals alone). This keeps the held-out meaning: each refit still minimises the cost
-    of the intervals it keeps, never seeing the ones it predicts; the start only selects the
-    basin, the one the full fit found (a fit from scratch on 90 % of the same poses lands in
-    it too, at 30 times the cost). Leave-one-out (small logs) refits from scratch as before.
+    Every refit, leave-one-out or K-fold, is warm-started from ``cal``
+    (``calibrate(..., start=cal)``: no search, orientations from its parameters, then the
+    joint refinement on the kept intervals alone, its LM bounded: 100 iterations per run,
+    no 2000-iteration extension), from statistics computed once for all intervals
+    (:func:`~mavcal.core.stats.stats_subset`). This keeps the held-out meaning: each refit
+    still minimises the cost of the intervals it keeps, never seeing the ones it predicts;
+    the start only selects the basin, the one the full fit found (a fit from scratch on
+    all but one of the same poses lands in it too, at 10-30 times the cost: the same
+    optimum, the same digits). A refit whose LM stops at its bound before converging (a
+    fit that does not converge from scratch either, e.g. a disturbed compass) is still a
+    prediction from data that excluded the predicted interval, near that data's optimum;
+    the unbounded search would spend seconds per interval polishing it to digits the
+    gate does not read.
+
+    ``stats``: the accelerometer's and compass's :func:`~mavcal.core.stats.interval_stats` of
+    these intervals with ``per_interval=True`` (e.g. the fit's own), used when the refits
+    draw on all of them instead of computing them again (the same numbers).
     """
 
     N = len(acc)
@@ -184,23 +196,22 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     dirs = np.array([a.mean(0) for a in acc])
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     ea, em = [], []
-    start = cal if N > LOO_MAX_INTERVALS else None  # K-fold: warm-started refits
     folds = holdout_folds(dirs, cluster_deg=cluster_deg)
-    if start is not None and folds:  # the pool's statistics once; each fold's from them in O(pool)
-        pool, at = pool_index(folds, N)
-        try:
+    if not folds:
+        return float("nan"), float("nan")
+    pool, at = pool_index(folds, N)  # the pool's statistics once; each refit's from them in O(pool)
+    try:
+        if stats is not None and len(pool) == N:
+            sa, sm = stats
+        else:
             sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
             sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
-        except MavcalError:
-            return float("nan"), float("nan")
+    except MavcalError:
+        return float("nan"), float("nan")
     for keep, pred in folds:
         try:
-            if start is not None:
-                cj = calibrate(stats_subset(sa, at[keep], "accel_sets"), stats_subset(sm, at[keep], "mag_sets"),
-                               method=method, tol=tol, seed=seed, model=cal.model, start=start)
-            else:
-                cj = calibrate([acc[i] for i in keep], [mag[i] for i in keep], method=method, tol=tol,
-                               seed=seed, model=cal.model, noise_floor=noise_floor)
+            cj = calibrate(stats_subset(sa, at[keep], "accel_sets"), stats_subset(sm, at[keep], "mag_sets"),
+                           method=method, tol=tol, seed=seed, model=cal.model, start=cal)
         except MavcalError:
             continue
         Rs = estimate_orientations(cj, [acc[j] for j in pred], [mag[j] for j in pred])

@@ -91,6 +91,47 @@ def test_k_fold_holdout_warm_start_equals_cold_refits(monkeypatch):
     assert holdout_accel_mps2(acc, start=fit) == pytest.approx(holdout_accel_mps2(acc), rel=1e-9)
 
 
+def test_leave_one_out_holdout_warm_start_equals_cold_refits(monkeypatch):
+    """Leave-one-out (N <= 60): the warm-started refits reach the optimum a refit from scratch
+    reaches (same held-out numbers), without the search."""
+    acc, mag = _sim(24, 8, 0.3)
+    cal = C.calibrate(acc, mag, seed=0)
+    assert cal.converged
+    orig = C.calibrate
+    starts = []
+
+    def spy(*args, start=None, **kw):
+        starts.append(start)
+        return orig(*args, start=start, **kw)
+
+    monkeypatch.setattr("mavcal.quality.calibrate", spy)
+    warm = holdout_errors(acc, mag, cal)
+    assert len(starts) >= 20 and all(s is cal for s in starts)  # one refit per interval whose pose recurs
+
+    def cold(*args, start=None, **kw):  # the former refits: from scratch, with the search
+        return orig(*args, **kw)
+
+    monkeypatch.setattr("mavcal.quality.calibrate", cold)
+    ref = holdout_errors(acc, mag, cal)
+    assert np.all(np.isfinite(warm))
+    np.testing.assert_allclose(warm, ref, rtol=1e-6)
+
+
+def test_leave_one_out_holdout_of_a_non_converging_fit_is_bounded():
+    """A compass disturbed far beyond its noise in every pose (as the disturbed ArduSub .BIN):
+    the 30 held-out refits are refinements from the full fit with a bounded LM, not 30 searches
+    with the 2000-iteration extension; the number is still a finite prediction error."""
+    acc, mag = _sim(30, 9, 40.0)
+    cal = C.calibrate(acc, mag, seed=0)
+    t0 = time.perf_counter()
+    ho = holdout_errors(acc, mag, cal)
+    t1 = time.perf_counter()
+    C.calibrate(acc, mag, seed=0)
+    t2 = time.perf_counter()
+    assert np.all(np.isfinite(ho)) and ho[1] > 0
+    assert t1 - t0 < 10 * (t2 - t1) + 0.5  # 30 refits cost a few full fits, not 30
+
+
 def test_non_converging_large_n_fit_has_bounded_lm_work():
     """A magnetometer disturbed far beyond its noise in every pose: whatever the fit does,
     each LM run over all N is bounded to LM_WORK interval-iterations."""
@@ -142,3 +183,29 @@ def test_subset_weights_make_the_subset_weigh_poses_as_the_log():
     assert w.sum() == pytest.approx(n[idx].sum()) and np.all(w >= 0)
     share = np.bincount(k[idx], weights=w, minlength=6) / w.sum()
     np.testing.assert_allclose(share, np.bincount(k, weights=n) / n.sum(), atol=1e-12)  # as in the log
+
+
+def test_fit_stage_computes_each_sensors_interval_statistics_once(monkeypatch, sitl_dir):
+    """The pairs of one accelerometer or compass, its own fit and the held-out checks share
+    its interval statistics (computed once per run), and the result is what it was."""
+    from mavcal import pipeline
+    from mavcal.core import calibrate as core_cal
+
+    prep = pipeline.prepare(str(sitl_dir / "sitl01.tlog"))
+    ref = pipeline.calibrate_prepared(prep)
+    real = pipeline.interval_stats
+    calls: list[str] = []
+
+    def spy(sets, name, **kw):
+        calls.append(name)
+        return real(sets, name, **kw)
+
+    def refuse(*args, **kw):
+        raise AssertionError("the pair fits recomputed interval statistics")
+
+    monkeypatch.setattr(pipeline, "interval_stats", spy)
+    monkeypatch.setattr(core_cal, "interval_stats", refuse)
+    run = pipeline.calibrate_prepared(prep)
+    n_sensors = len(prep.raw.accel_instances()) + len(prep.raw.mag_instances())
+    assert len(run.others) >= 2 and len(calls) == n_sensors  # 3 pair fits + 2 accel fits, one per sensor
+    assert run.mapping.new == ref.mapping.new and run.quality == ref.quality

@@ -294,7 +294,8 @@ def pool_index(folds: list[tuple[np.ndarray, np.ndarray]], N: int) -> tuple[np.n
 
 
 def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float | None = None,
-                       form: str = "auto", cluster_deg: float = 30.0, start: AccelFit | None = None) -> float:
+                       form: str = "auto", cluster_deg: float = 30.0, start: AccelFit | None = None,
+                       stats: IntervalStats | None = None) -> float:
     """RMS held-out error of the accelerometer alone (the reading units).
 
     As :func:`mavcal.quality.holdout_errors`: each refit of :func:`holdout_folds`
@@ -307,6 +308,8 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     :func:`fit_accel` the caller already has; else one of the fold pool): each still
     minimises the cost of the intervals it keeps, the start only spares the ellipsoid fit and
     most LM iterations. Leave-one-out (small logs) starts from scratch as before.
+    ``stats``: the :func:`interval_stats` of ``accel_sets`` with ``per_interval=True`` (e.g.
+    the start's own), used when the folds draw on all the intervals (the same numbers).
     """
     sets = list(accel_sets)
     N = len(sets)
@@ -322,7 +325,8 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     if k_fold and folds:  # the pool's statistics once (each fold's from them), the start fitted once
         pool, at = pool_index(folds, N)
         try:
-            st = interval_stats([sets[i] for i in pool], "accel_sets", noise_floor=noise_floor, per_interval=True)
+            st = (stats if stats is not None and len(pool) == N else
+                  interval_stats([sets[i] for i in pool], "accel_sets", noise_floor=noise_floor, per_interval=True))
             if start is None or start.form != form:
                 start = fit_accel(st, form=form)
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
