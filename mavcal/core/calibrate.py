@@ -712,13 +712,13 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
     search_dof = None
     if start is None:
         idx = diverse_subset(a.mu, m.mu, SUBSET_N)
-        n_s = subset_weights(a.mu, m.mu, a.n + m.n, idx) / 2.0  # both sensors' counts: the poses' weights
+        n_s = subset_weights(a.mu, m.mu, a.n + m.n, idx)  # both sensors' counts: the poses' weights
         a_s = _subset_stats(a, idx, n_s * (a.n[idx].sum() / n_s.sum()))
         m_s = _subset_stats(m, idx, n_s * (m.n[idx].sum() / n_s.sum()))
         token = _LM_CAP.set(SUBSET_LM_ITER)
         try:
             res_s, _, _, block_it, block_conv, costs = _fit_model(spec, a_s, m_s, method, tol, max_iter, rng,
-                                                                  restarts, more_iter=SUBSET_LM_ITER)
+                                                                  restarts)  # every LM run capped by _LM_CAP
         finally:
             _LM_CAP.reset(token)
         p = res_s.params
