@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, max_errors_deg
+from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, body_vectors, max_errors_deg
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel
 from mavcal.core.calibrate import calibrate, estimate_orientations
@@ -133,9 +133,7 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
     :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
     ``DRAW_CHUNK`` draws at a time by :func:`mavcal.ardupilot.evaluate.max_errors_deg`."""
     M = len(grid)
-    Ct = np.swapaxes(grid, 1, 2)
-    f_body = Ct @ np.array([0.0, 0.0, -GRAVITY_MPS2])
-    B_body = Ct @ B_ned
+    f_body, B_body = body_vectors(grid, B_ned)
     hs: list[float] = []
     ts: list[float] = []
     for c0 in range(0, len(draws), DRAW_CHUNK):

@@ -84,10 +84,15 @@ def _wrap_deg(x: np.ndarray) -> np.ndarray:
     return np.degrees((x + np.pi) % (2 * np.pi) - np.pi)
 
 
+def body_vectors(grid: np.ndarray, field_ned_mgauss) -> tuple[np.ndarray, np.ndarray]:
+    """The true specific force (m/s^2) and field (mGauss) in the body frame at each attitude of
+    ``grid`` (M, 3, 3): what the raw-reading functions of :func:`attitude_errors` are given."""
+    Ct = np.swapaxes(grid, 1, 2)
+    return Ct @ np.array([0.0, 0.0, -G0]), Ct @ np.asarray(field_ned_mgauss, dtype=float)
+
+
 def _signed_errors(raw_accel, raw_mag_sensor, accel_cal, compass_cal, field_ned_mgauss, C):
-    Ct = np.swapaxes(C, 1, 2)
-    f_body = Ct @ np.array([0.0, 0.0, -G0])
-    B_body = Ct @ np.asarray(field_ned_mgauss, dtype=float)
+    f_body, B_body = body_vectors(C, field_ned_mgauss)
     a = fw.apply_accel(accel_cal, raw_accel(f_body))
     m = fw.apply_compass(compass_cal, raw_mag_sensor(B_body), sensor_frame=True)
     L_est = _level_from_accel(a)
@@ -102,13 +107,11 @@ def max_errors_deg(raw_accel: np.ndarray, raw_mag_sensor: np.ndarray, accel_cal:
                    compass_cal: fw.CompassCal, field_ned_mgauss, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Max heading and max tilt error over ``grid`` (M attitudes) for each of D truths at once:
     ``raw_accel`` / ``raw_mag_sensor`` (D, M, 3) are the raw readings of the D truths at the
-    grid's specific force and field (as the functions of :func:`attitude_errors` give them).
+    grid's specific force and field (:func:`body_vectors`).
     Returns (D,) arrays, equal to the last bit to ``attitude_errors``' ``max_heading_deg`` /
     ``max_tilt_deg`` truth by truth; what does not depend on the truth is computed once."""
     D, M = raw_accel.shape[:2]
-    Ct = np.swapaxes(grid, 1, 2)
-    f_body = Ct @ np.array([0.0, 0.0, -G0])
-    B_body = Ct @ np.asarray(field_ned_mgauss, dtype=float)
+    f_body, B_body = body_vectors(grid, field_ned_mgauss)
     h_true = _heading((_level_from_accel(f_body) @ B_body[..., None])[..., 0])
     a = fw.apply_accel(accel_cal, raw_accel.reshape(-1, 3))
     m = fw.apply_compass(compass_cal, raw_mag_sensor.reshape(-1, 3), sensor_frame=True)
