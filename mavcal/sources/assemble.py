@@ -44,6 +44,7 @@ from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_SET_MESSAGE_INTERVAL
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
+from mavcal.sources.decoded import DecodedImu, PreparedImu
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 
 __all__ = ["assemble_tlog", "assemble_dataflash", "imu_series", "Columns", "IMU_MESSAGES", "TLOG_MESSAGES",
@@ -214,6 +215,14 @@ class _TimeBase:
             prev_end_log = log_max
         self.reboots = len(starts) - 1
 
+    @classmethod
+    def from_segments(cls, p: PreparedImu) -> _TimeBase:
+        """The time base a decoder built while reading (:class:`PreparedImu`)."""
+        tb = cls.__new__(cls)
+        tb.seg_index, tb.delay, tb.offset, tb.reboot_s = p.seg_index, p.delay, p.offset, p.reboot_s
+        tb.reboots = len(p.seg_index) - 1
+        return tb
+
     def segment(self, index: np.ndarray) -> np.ndarray:
         return np.clip(np.searchsorted(self.seg_index, index, side="right") - 1, 0, len(self.seg_index) - 1)
 
@@ -294,7 +303,8 @@ def _tlog_vehicle_imu(cols: Columns, source: str, warns: list[str]) -> tuple[int
     return sysid, imu
 
 
-def _integer_imu_series(imu: Columns, tb: _TimeBase, out: _SeriesSet, consumed: Callable[[str], None]) -> None:
+def _integer_imu_series(imu: Mapping[str, DecodedImu | Mapping[str, np.ndarray]], tb: _TimeBase, out: _SeriesSet,
+                        consumed: Callable[[str], None]) -> None:
     """RAW_IMU / SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 -> accel, gyro, mag series.
 
     Each message's columns are released (``consumed(name)``) once its series are built, and
@@ -304,22 +314,24 @@ def _integer_imu_series(imu: Columns, tb: _TimeBase, out: _SeriesSet, consumed: 
         c = imu.get(name)
         if c is None:
             continue
-        if "xacc" not in c:  # SCALED_IMU beside RAW_IMU: its time columns alone (_tlog_vehicle_imu)
+        unused = c.accel_mps2 is None if isinstance(c, DecodedImu) else "xacc" not in c
+        if unused:  # SCALED_IMU beside RAW_IMU: its time columns alone (_tlog_vehicle_imu)
             out.warns.append("SCALED_IMU not used: RAW_IMU carries the same instance 0")
             consumed(name)
             continue
         inst = SCALED_INSTANCE[name]
+        if isinstance(c, DecodedImu):
+            _decoded_imu_series(name, inst, c, out)
+            consumed(name)
+            continue
         t = tb.from_boot(c["_index"], _boot_time(name, c))
         lt = np.asarray(c["_log_time_s"], float)
         # zero tests on the integer fields (same result as on the float copies, cheaper)
         has_imu = _any_nonzero(c, ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro"))
         has_mag = _any_nonzero(c, ("xmag", "ymag", "zmag"))
         nz = int((~has_imu).sum())
-        if nz and has_imu.any():
-            out.warns.append(f"dropped {nz} {name} samples with all-zero accel and gyro")
-        elif nz:
-            out.warns.append(f"{name}: accel and gyro are all zero (no IMU {inst + 1}); used its mag only")
-        if has_imu.any():
+        _zero_imu_warning(out, name, inst, nz, len(t))
+        if nz < len(t):
             keep = slice(None) if not nz else has_imu
             acc = _vec(c, ("xacc", "yacc", "zacc"))[keep]
             acc *= MG_TO_MS2
@@ -333,6 +345,34 @@ def _integer_imu_series(imu: Columns, tb: _TimeBase, out: _SeriesSet, consumed: 
         out.add("mag", inst, name, t[keep], _vec(c, ("xmag", "ymag", "zmag"))[keep], lt[keep])
         del c
         consumed(name)
+
+
+def _zero_imu_warning(out: _SeriesSet, name: str, inst: int, nz: int, n: int) -> None:
+    if nz and nz < n:
+        out.warns.append(f"dropped {nz} {name} samples with all-zero accel and gyro")
+    elif nz:
+        out.warns.append(f"{name}: accel and gyro are all zero (no IMU {inst + 1}); used its mag only")
+
+
+def _rows_nonzero(*arrays: np.ndarray) -> np.ndarray:
+    out = (arrays[0] != 0).any(axis=1)
+    for a in arrays[1:]:
+        out |= (a != 0).any(axis=1)
+    return out
+
+
+def _decoded_imu_series(name: str, inst: int, c: DecodedImu, out: _SeriesSet) -> None:
+    """The series of a message decoded into its final arrays (same rules as from columns)."""
+    t, lt, n = c.time_s, c.log_time_s, len(c.time_s)
+    assert c.accel_mps2 is not None and c.gyro_rads is not None and c.mag_mgauss is not None
+    nz = c.imu_zero_rows
+    _zero_imu_warning(out, name, inst, nz, n)
+    if nz < n:
+        keep = slice(None) if not nz else _rows_nonzero(c.accel_mps2, c.gyro_rads)
+        out.add("accel", inst, name, t[keep], c.accel_mps2[keep], lt[keep])
+        out.add("gyro", inst, name, t[keep], c.gyro_rads[keep], lt[keep])
+    keep_m = slice(None) if not c.mag_zero_rows else _rows_nonzero(c.mag_mgauss)
+    out.add("mag", inst, name, t[keep_m], c.mag_mgauss[keep_m], lt[keep_m])
 
 
 def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _SeriesSet) -> None:
@@ -430,20 +470,29 @@ def _tlog_vehicle(cols: Columns, sysid: int, firmware: str | None) -> dict[str, 
     return vehicle
 
 
-def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
+def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = (),
+                  prepared: PreparedImu | None = None) -> ImuLog:
     """Build an ImuLog from tlog message columns (fast decoder, pymavlink or a live recording).
 
     ``cols[name]`` holds the message fields plus ``_log_time_s``, ``_index`` (frame order),
     ``_sysid``, ``_compid``. ``cols`` is consumed: the columns of the integer IMU messages
     are removed from it as soon as their series are built (that is what keeps a long log's
-    peak memory near the size of its series); pass a copy to keep them.
+    peak memory near the size of its series); pass a copy to keep them. ``prepared``: the
+    vehicle's IMU messages and time base decoded by :mod:`mavcal.sources.tlog_imu` (then
+    ``cols`` holds the other messages).
     """
     warns = list(warnings)
-    sysid, imu = _tlog_vehicle_imu(cols, source, warns)
-    # time base from all IMU messages of the vehicle
-    tb = _TimeBase(np.concatenate([imu[n]["_index"] for n in imu]).astype(np.int64, copy=False),
-                   lambda: np.concatenate([_boot_time(n, imu[n]) for n in imu]),
-                   lambda: np.concatenate([np.asarray(imu[n]["_log_time_s"], float) for n in imu]))
+    imu: dict[str, DecodedImu | Mapping[str, np.ndarray]]
+    if prepared is None:
+        sysid, imu_cols = _tlog_vehicle_imu(cols, source, warns)
+        imu = dict(imu_cols)
+        # time base from all IMU messages of the vehicle
+        tb = _TimeBase(np.concatenate([imu_cols[n]["_index"] for n in imu_cols]).astype(np.int64, copy=False),
+                       lambda: np.concatenate([_boot_time(n, imu_cols[n]) for n in imu_cols]),
+                       lambda: np.concatenate([np.asarray(imu_cols[n]["_log_time_s"], float) for n in imu_cols]))
+        del imu_cols
+    else:
+        sysid, imu, tb = prepared.sysid, dict(prepared.imu), _TimeBase.from_segments(prepared)
     if tb.reboots:
         shifts = [f"{o:+.3f}" for o in tb.offset[1:]]
         shown = ", ".join(shifts[:3]) + (f" ... ({len(shifts) - 3} more)" if len(shifts) > 3 else "")
@@ -457,8 +506,9 @@ def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = ()) -> I
             del cols[name]
 
     _integer_imu_series(imu, tb, out, consumed)
-    if "HIGHRES_IMU" in imu:
-        _highres_imu_series(imu["HIGHRES_IMU"], tb, out)
+    hr = imu.get("HIGHRES_IMU")
+    if hr is not None and not isinstance(hr, DecodedImu):
+        _highres_imu_series(hr, tb, out)
     if not out.series:
         raise SourceError(f"no usable IMU samples in {source} (all IMU messages are empty)")
     params = _tlog_params(cols, sysid, tb, warns)

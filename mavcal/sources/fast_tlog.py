@@ -322,7 +322,8 @@ def _frames_in(b: np.ndarray, lo: int, hi: int, expected: int):
     return _frame_arrays(b, cand[idx]), nxt, skipped, resyncs
 
 
-def _wanted(msg_names: Iterable[str]) -> dict[int, tuple[str, np.dtype, list[str]]]:
+def wanted_messages(msg_names: Iterable[str]) -> dict[int, tuple[str, np.dtype, list[str]]]:
+    """Message id -> (name, structured payload dtype, field names) of the given message names."""
     wanted = {}
     for name in msg_names:
         mid = msgid_of(name)
@@ -358,9 +359,43 @@ def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAUL
         ``_index`` (frame number in the file), ``_sysid``, ``_compid``.
     stats : TlogStats
     """
-    wanted = _wanted(msg_names)
+    wanted = wanted_messages(msg_names)
+    sink = ColumnSink(wanted)
+    stats = scan_tlog(path, wanted, sink, chunk_size=chunk_size, progress=progress, check_all_crc=check_all_crc)
+    return sink.columns(), stats
+
+
+class ColumnSink:
+    """Receives the decoded records of :func:`scan_tlog` as the columns :func:`decode_tlog` returns."""
+
+    def __init__(self, wanted: dict[int, tuple[str, np.dtype, list[str]]]) -> None:
+        self.wanted = wanted
+        self.parts: dict[int, ColumnBuffer] = {mid: ColumnBuffer() for mid in wanted}
+
+    def take(self, mid: int, rec: np.ndarray, ts_us: np.ndarray, frame_no: np.ndarray, sysid: np.ndarray,
+             compid: np.ndarray) -> None:
+        """Records ``rec`` (structured) of message ``mid`` with their tlog time (µs), frame numbers and ids."""
+        part = {n: rec[n] for n in self.wanted[mid][2]}  # field views: copied once, into the column buffer
+        part["_log_time_s"] = ts_us.astype(np.float64) * 1.0e-6
+        part["_index"] = frame_no
+        part["_sysid"] = sysid
+        part["_compid"] = compid
+        self.parts[mid].append(part)
+
+    def chunk_done(self) -> None:
+        """Every record of one chunk has been taken (in message-id order)."""
+
+    def columns(self) -> dict[str, dict[str, np.ndarray]]:
+        return _join(self.wanted, self.parts)
+
+
+def scan_tlog(path: str, wanted: dict[int, tuple[str, np.dtype, list[str]]], sink, *,
+              chunk_size: int = DEFAULT_CHUNK, progress: ProgressFn | None = None,
+              check_all_crc: bool = False) -> TlogStats:
+    """Frame a tlog chunk by chunk and hand the good records of the ``wanted`` ids (see
+    :func:`wanted_messages`) to ``sink.take`` (then ``sink.chunk_done()`` per chunk), in file
+    order. :func:`decode_tlog` is this with a :class:`ColumnSink`."""
     size = os.path.getsize(path)
-    out_parts: dict[int, ColumnBuffer] = {mid: ColumnBuffer() for mid in wanted}
     stats = TlogStats()
     expected = 8  # first STX after the first timestamp
     # two stages: the framing of a chunk needs where the previous chunk's last frame ends, the
@@ -378,7 +413,7 @@ def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAUL
                     expected = base + nxt
                     if pending is not None:
                         pending.result()
-                    pending = pool.submit(_decode_frames, b, frames, wanted, out_parts, stats,
+                    pending = pool.submit(_decode_frames, b, frames, wanted, sink, stats,
                                           base + len(b) == size, check_all_crc, stats.frames)
                     stats.frames += len(frames["pos"])
                 else:
@@ -388,7 +423,7 @@ def decode_tlog(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAUL
                 progress(end, size)
         if pending is not None:
             pending.result()
-    return _join(wanted, out_parts), stats
+    return stats
 
 
 def _join(wanted, out_parts) -> dict[str, dict[str, np.ndarray]]:
@@ -403,9 +438,9 @@ def _join(wanted, out_parts) -> dict[str, dict[str, np.ndarray]]:
     return columns
 
 
-def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False, first_frame=0):
+def _decode_frames(b, fr, wanted, sink, stats, at_eof, check_all_crc=False, first_frame=0):
     """Check and decode the frames ``fr`` of chunk ``b`` (``first_frame``: the file's frame
-    number of the first one) into ``out_parts``, counting in ``stats`` what is skipped."""
+    number of the first one) into ``sink``, counting in ``stats`` what is skipped."""
     nb = len(b)
     pos, isv2, hlen, plen, flen = fr["pos"], fr["isv2"], fr["hlen"], fr["plen"], fr["flen"]
     inside = pos + flen <= nb
@@ -451,7 +486,7 @@ def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False,
     by_id = np.argsort(gid.astype(np.uint16) if small else gid, kind="stable")
     gid_sorted = gid[by_id]
     windows = {}
-    for mid, (_name, dt, names) in wanted.items():
+    for mid, (_name, dt, _names) in wanted.items():
         g0, g1 = np.searchsorted(gid_sorted, [mid, mid + 1])
         if g1 == g0:
             continue
@@ -474,12 +509,10 @@ def _decode_frames(b, fr, wanted, out_parts, stats, at_eof, check_all_crc=False,
             for n_kept in np.unique(ls).tolist():
                 raw[short[ls == n_kept], n_kept:] = 0
         rec = raw.view(dt).ravel()
-        part = {n: rec[n] for n in names}  # field views: copied once, into the column buffer
         if "ts" not in windows:  # big-endian u8 at every byte offset (unaligned view, no copy)
             windows["ts"] = np.ndarray((nb - 7,), dtype=">u8", buffer=b, strides=(1,))
-        ts = windows["ts"][pos[sel] - 8]
-        part["_log_time_s"] = ts.astype(np.float64) * 1.0e-6
-        part["_index"] = frame_no[sel]
-        part["_sysid"] = b[pos[sel] + np.where(isv2[sel], 5, 3)]
-        part["_compid"] = b[pos[sel] + np.where(isv2[sel], 6, 4)]
-        out_parts[mid].append(part)
+        ps = pos[sel]
+        v2 = isv2[sel]
+        sink.take(mid, rec, windows["ts"][ps - 8], frame_no[sel], b[ps + np.where(v2, 5, 3)],
+                  b[ps + np.where(v2, 6, 4)])
+    sink.chunk_done()

@@ -16,7 +16,8 @@ from collections.abc import Iterator, Mapping
 
 import numpy as np
 
-__all__ = ["mark_path", "first_at_or_after", "path_from", "ColumnBuffer", "file_chunks"]
+__all__ = ["mark_path", "first_at_or_after", "path_from", "ColumnBuffer", "GrowArray", "OwnedMap", "owned_map_of",
+           "file_chunks"]
 
 
 def mark_path(succ: np.ndarray, start: int) -> np.ndarray:
@@ -83,6 +84,72 @@ def path_from(succ: np.ndarray, start: int) -> np.ndarray:
     return np.cumsum(cover[:n]) > 0
 
 
+class OwnedMap(mmap.mmap):
+    """An anonymous private memory map made by this package for decoded columns.
+
+    Arrays over such a map are this process's own memory (no file behind them), as safe to
+    change in place as a heap array: :func:`owned_map_of` tells them from views of foreign
+    memory (e.g. a ``numpy.memmap`` of a file)."""
+
+
+def _new_map(nbytes: int) -> OwnedMap:
+    return OwnedMap(-1, max(nbytes, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+
+
+def owned_map_of(a: np.ndarray) -> OwnedMap | None:
+    """The :class:`OwnedMap` whose memory the base array ``a`` is, else None."""
+    buf = a.base
+    if isinstance(buf, memoryview):
+        buf = buf.obj
+    return buf if isinstance(buf, OwnedMap) else None
+
+
+class GrowArray:
+    """One column of fixed dtype and row shape, grown in place in an :class:`OwnedMap`.
+
+    :meth:`extend` adds rows and returns a writable view of them to fill: the values are
+    decoded straight into the final array (no piece per chunk, no join). Rows that are not
+    written stay zero without ever becoming resident (fresh anonymous pages), so an all-zero
+    column costs no memory. :meth:`array` trims the map to the rows and returns the column.
+    """
+
+    def __init__(self, dtype, shape: tuple[int, ...] = ()) -> None:
+        self.dtype = np.dtype(dtype)
+        self.shape = tuple(shape)
+        self._row = self.dtype.itemsize * int(np.prod(self.shape, dtype=np.int64))
+        self._map: OwnedMap | None = _new_map(4096 * self._row)
+        self._cap = 4096
+        self.n = 0
+
+    def _view(self, rows: int) -> np.ndarray:
+        assert self._map is not None
+        return np.frombuffer(self._map, dtype=self.dtype,
+                             count=rows * (self._row // self.dtype.itemsize)).reshape((rows,) + self.shape)
+
+    def extend(self, m: int) -> np.ndarray:
+        """Add ``m`` rows (zero) and return a view of them; drop the view before the next call."""
+        need = self.n + m
+        if need > self._cap:
+            self._cap = max(need, 2 * self._cap)
+            assert self._map is not None
+            self._map.resize(self._cap * self._row)
+        out = self._view(need)[self.n:]
+        self.n = need
+        return out
+
+    def rows(self) -> np.ndarray:
+        """The rows so far (a view: drop it before the next :meth:`extend`)."""
+        return self._view(self.n)
+
+    def array(self) -> np.ndarray:
+        """The column (its map trimmed to the rows); the buffer is empty afterwards."""
+        assert self._map is not None
+        self._map.resize(max(self.n, 1) * self._row)
+        out = self._view(self.n)
+        self._map, self._cap, self.n = None, 0, 0
+        return out
+
+
 class ColumnBuffer:
     """Columns that grow in place as per-chunk pieces are appended (no join at the end).
 
@@ -118,7 +185,7 @@ class ColumnBuffer:
         for key, v in part.items():
             if key not in self._maps:
                 size = self._cap * v.dtype.itemsize * int(np.prod(v.shape[1:], dtype=np.int64))
-                mm = mmap.mmap(-1, max(size, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+                mm = _new_map(size)
                 self._maps[key] = (mm, v.dtype, tuple(v.shape[1:]))
             self._view(key, need)[self.n:need] = v
         self.n = need

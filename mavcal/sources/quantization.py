@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from mavcal.core.constants import GRAVITY_MPS2
+from mavcal.sources.framing import owned_map_of
 from mavcal.sources.types import ImuLog, SensorSeries
 
 # message -> sensor -> telemetry unit in the series' units
@@ -45,11 +46,14 @@ def untruncate(series: SensorSeries) -> SensorSeries:
 
 def _owner(a: np.ndarray) -> np.ndarray | None:
     """The array that owns ``a``'s memory when ``a`` covers all of it (a reshaped view or the
-    array itself), else None (a slice or a view of foreign memory: not ours to write)."""
+    array itself), else None (a slice or a view of foreign memory: not ours to write). A
+    column decoded into an :class:`~mavcal.sources.framing.OwnedMap` counts as owned."""
     root = a
     while isinstance(root.base, np.ndarray):
         root = root.base
-    if root.base is not None or not root.flags.c_contiguous or root.nbytes != a.nbytes:
+    # heap memory of its own, or a column the decoders grew in an anonymous map of their own
+    mine = root.base is None or owned_map_of(root) is not None
+    if not mine or not root.flags.c_contiguous or root.nbytes != a.nbytes:
         return None
     if root.__array_interface__["data"][0] != a.__array_interface__["data"][0] or root.dtype != np.float64:
         return None

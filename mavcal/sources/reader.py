@@ -209,6 +209,13 @@ def _kind_of(path: Path) -> str:
     raise SourceError(f"unknown log type '{path.suffix or path.name}' of {path}: expected .tlog, .bin, .log or .csv")
 
 
+def _check_tlog(src: str, stats) -> None:
+    if stats.frames == 0:
+        raise SourceError(f"no MAVLink frames in {src}: not a tlog, or corrupt")
+    for note in stats.notes():
+        log.debug("%s: %s", src, note)
+
+
 def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv_rate_hz: float = DEFAULT_CSV_RATE_HZ,
              chunk_size: int | None = None) -> ImuLog:
     """Read a log file into an :class:`ImuLog`.
@@ -250,12 +257,15 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
         if kind == "tlog":
             if fast:
                 from mavcal.sources.fast_tlog import decode_tlog
+                from mavcal.sources.tlog_imu import decode_tlog_lean
 
+                lean = decode_tlog_lean(src, progress=progress, **kw)
+                if lean is not None:  # one system sends IMU messages (the usual case)
+                    cols, prepared, stats = lean
+                    _check_tlog(src, stats)
+                    return assemble_tlog(cols, src, stats.warnings(), prepared=prepared)
                 cols, stats = decode_tlog(src, TLOG_MESSAGES, progress=progress, **kw)
-                if stats.frames == 0:
-                    raise SourceError(f"no MAVLink frames in {src}: not a tlog, or corrupt")
-                for note in stats.notes():
-                    log.debug("%s: %s", src, note)
+                _check_tlog(src, stats)
                 return assemble_tlog(cols, src, stats.warnings())
             cols, warns = pymavlink_tlog_columns(src)
             return assemble_tlog(cols, src, warns)
