@@ -601,7 +601,12 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
         cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
         method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
         n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
-        dof=int(res.dof), certificate=cert)
+        dof=int(res.dof), certificate=cert, noise_inflation=(_inflation(Sa, a), _inflation(Sm, m)))
+
+
+def _inflation(S: np.ndarray, s: IntervalStats) -> float:
+    """trace(Sigma) / trace(Sigma_hat): 1.0 exactly when ``S`` is the sample covariance itself."""
+    return 1.0 if S is s.sigma_hat else float(np.trace(S) / np.trace(s.sigma_hat))
 
 
 def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: int | None = None,
@@ -637,6 +642,8 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         so the result is still the optimum of *this* data's cost; the start only selects the
         basin. ``model`` should be the start's model. Nothing is searched, so the result
         has no ``certificate`` (``converged`` says whether the refinement converged).
+        Above ``LARGE_N`` intervals the refit begins at the start's noise weights
+        (``start.noise_inflation``, see :func:`_start_weights`).
 
     Above ``LARGE_N`` intervals the search runs on a subset of ``SUBSET_N`` (see the module
     docstring), the refinement on all of them.
@@ -724,14 +731,16 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
         p = res_s.params
         K_a, b_a, K_m, b_m, h_z = p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z
         search_dof = res_s.dof if len(costs) > 1 else None
+        Sa, Sm = a.sigma_hat, m.sigma_hat  # as the exhaustive path: the reweighting's end point is the same
         reason += (f"; the search for the global optimum ran on {len(idx)} of the {N} intervals "
                    f"(orientation-diverse, then evenly spaced), the refinement on all {N}")
     else:
         c = start
         K_a, b_a, K_m, b_m, h_z = c.accel.gain, c.accel.bias, c.mag.gain, c.mag.bias, c.h_z
+        Sa, Sm = _start_weights(c, a, m, method)
         block_it, block_conv = 0, True
         reason += "; refined from a given calibration (no search)"
-    st = steps.State(K_a, b_a, K_m, b_m, h_z, np.zeros((N, 3, 3)), a.sigma_hat, m.sigma_hat)
+    st = steps.State(K_a, b_a, K_m, b_m, h_z, np.zeros((N, 3, 3)), Sa, Sm)
     st = steps.rotations_direct(steps.rotations_approx(st, a, m), a, m)  # each R_i optimal given the start
     res, Sa, Sm, _, _, _ = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, start=st,
                                       more_iter=LM_MORE_ITER if start is None else 0)
@@ -739,6 +748,27 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
         costs = (float(res.cost),)
     return _finish(spec, reason, a, m, opts, model, (res, Sa, Sm, block_it, block_conv, costs), search_dof,
                    certify=start is None)
+
+
+def _start_weights(c: Calibration, a: IntervalStats, m: IntervalStats, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """The noise covariances a refit from ``c`` starts at: these intervals' Sigma_hat inflated
+    as ``c``'s were (``c.noise_inflation``, NCAR/NCDR, whose Sigma is Sigma_hat times the
+    reweighting factors; FCAR/DCAR refit Sigma themselves).
+
+    Above ``LARGE_N`` intervals, where an LM run gets at most ``LM_WORK / N`` iterations,
+    starting at the start's weights is what lets the refit converge within that budget:
+    begun at the uninflated Sigma_hat, a sensor whose misfit the reweighting had tamed (a
+    disturbed compass) dominates the first LM run, which walks the shared orientations
+    away and spends the budget before the reweighting brings the weights back (on a
+    275-interval log: 40 wasted LM iterations per refit). The reweighting
+    (:func:`_reweight`) still runs on the refit's own residuals, so its result obeys the
+    same rule as the full fit's. Up to ``LARGE_N`` (LM budgets of 100 + 2000 iterations)
+    the refit starts at Sigma_hat as before.
+    """
+    if a.mu.shape[0] <= LARGE_N:  # unbounded LM budgets: the weights cost time, not the optimum; unchanged
+        return a.sigma_hat, m.sigma_hat
+    fa, fm = c.noise_inflation if method in ("ncar", "ncdr") else (1.0, 1.0)
+    return (a.sigma_hat if fa == 1.0 else a.sigma_hat * fa), (m.sigma_hat if fm == 1.0 else m.sigma_hat * fm)
 
 
 def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):
