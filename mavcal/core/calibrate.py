@@ -66,9 +66,10 @@ from mavcal.core.initial import (
     rotation_hz_minima,
     search_rotation_hz,
 )
+from mavcal.core.misfit import inflated_covariance, joint_terms, misfit_factors
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec, choose_model
 from mavcal.core.reconstruct import estimate_orientations, reconstruction_error
-from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, blas_kernels, refit_covariances
+from mavcal.core.refine import JointParams, JointProblem, RefineResult, blas_kernels, refit_covariances
 from mavcal.core.stats import IntervalStats, chi2_sf, interval_stats
 from mavcal.core.subset import diverse_subset, subset_weights
 from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
@@ -207,11 +208,6 @@ def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method:
 
 # --- joint refinement per model ------------------------------------------------------------
 
-def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
-    return [Term("accel", FORMS[spec.accel_form], a.mu, a.n, Sa),
-            Term("mag", FORMS[spec.mag_form], m.mu, m.n, Sm)]
-
-
 LM_MORE_ITER = 2000  # LM iterations granted after the first 100 did not converge
 LARGE_N = 200  # above this many intervals: the search on a subset, the refinement on all (module docstring)
 SUBSET_N = 60  # ... of this many intervals
@@ -243,7 +239,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
     refit = method in ("fcar", "dcar")
     total_it = 0
     for _ in range(50 if refit else 1):
-        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
         res = prob.solve(p, max_iter=max_lm)
         total_it += res.iterations
         p = res.params
@@ -257,7 +253,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
         if J_old - J_new < 1e-3 * tol:
             break
     if refit:  # final covariance of the parameters at the final Sigma
-        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
         res = prob.solve(p, max_iter=_lm_budget(a.mu.shape[0], 100))
         total_it += res.iterations
     res = RefineResult(res.params, res.cost, total_it, res.converged, res.cov, res.names, res.dof)
@@ -330,7 +326,7 @@ def _branch_fits(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol):
     stalls far above, and would otherwise cost the full iteration budget).
     """
     p = res.params
-    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
     out = []
     for _, K_m, h_z in branches(p.gains[1], p.h_z):
         st = steps.State(p.gains[0], p.biases[0], K_m, p.biases[1], h_z, p.R, Sa, Sm)
@@ -434,7 +430,7 @@ def _reweight(spec: ModelSpec, a, m, method, tol, out):
     for _ in range(6):
         if res.dof <= 0:
             break
-        fa, fm = _misfit_factors(spec, a, m, Sa, Sm, res.params)
+        fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
         if max(fa, fm) <= REWEIGHT_LIMIT:
             break
         Sa, Sm = Sa * fa, Sm * fm
@@ -499,7 +495,7 @@ def _paper_path(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts):
         raise EstimationError("refine=False runs the paper's algorithm, which fits the full model only; "
                               f"{a.mu.shape[0]} intervals call for the {spec.name} model")
     st, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, refine=False)
-    prob = JointProblem(_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
+    prob = JointProblem(joint_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
     p = JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R)
     r, Jg, Jr = prob.jacobians(p)
     res = RefineResult(p, float(np.sum(r * r)), 0, True, prob.covariance(Jg, Jr), prob.names,
@@ -534,7 +530,7 @@ def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol,
 def _escape_saddles(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol) -> RefineResult:
     """Leave saddles of J' (where Gauss-Newton stops) along negative curvature and refine again."""
     for _ in range(3):
-        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
         q = escape_saddle(prob, res.params, res.cost)
         if q is None:
             break
@@ -558,7 +554,7 @@ def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs, search_dof
     ``search_dof``: the degrees of freedom of the subset the search ran on (large N), when
     ``costs`` are that subset's.
     """
-    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
     note = ""
     dof = res.dof if search_dof is None else search_dof
     if len(costs) > 1:
@@ -579,7 +575,7 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
     if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
         res = replace(res, cov=_transform_cov(res, p, K_a, K_m, h_z))
     p = JointParams((K_a, K_m), p.biases, h_z, R)
-    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res)
+    cov = inflated_covariance(spec, a, m, Sa, Sm, p, res)
     converged = bool(block_conv and res.converged)
     msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
            f"{res.iterations} joint refinement iterations"
@@ -751,58 +747,17 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
 
 
 def _start_weights(c: Calibration, a: IntervalStats, m: IntervalStats, method: str) -> tuple[np.ndarray, np.ndarray]:
-    """The noise covariances a refit from ``c`` starts at: these intervals' Sigma_hat inflated
-    as ``c``'s were (``c.noise_inflation``, NCAR/NCDR, whose Sigma is Sigma_hat times the
-    reweighting factors; FCAR/DCAR refit Sigma themselves).
-
-    Above ``LARGE_N`` intervals, where an LM run gets at most ``LM_WORK / N`` iterations,
-    starting at the start's weights is what lets the refit converge within that budget:
-    begun at the uninflated Sigma_hat, a sensor whose misfit the reweighting had tamed (a
-    disturbed compass) dominates the first LM run, which walks the shared orientations
-    away and spends the budget before the reweighting brings the weights back (on a
-    275-interval log: 40 wasted LM iterations per refit). The reweighting
-    (:func:`_reweight`) still runs on the refit's own residuals, so its result obeys the
-    same rule as the full fit's. Up to ``LARGE_N`` (LM budgets of 100 + 2000 iterations)
-    the refit starts at Sigma_hat as before.
-    """
-    if a.mu.shape[0] <= LARGE_N:  # unbounded LM budgets: the weights cost time, not the optimum; unchanged
+    """The noise covariances a refit from ``c`` starts at. Above ``LARGE_N`` (LM runs of at most
+    ``LM_WORK / N`` iterations): these intervals' Sigma_hat inflated as ``c``'s were
+    (``c.noise_inflation``; NCAR/NCDR, whose Sigma is Sigma_hat times the reweighting factors).
+    Begun at the raw Sigma_hat, a sensor the reweighting had tamed (a disturbed compass)
+    dominates the first run, walks the orientations away and spends the budget (275
+    intervals: 40 wasted LM iterations per refit). :func:`_reweight` still runs on the refit's
+    own residuals. Up to ``LARGE_N``: Sigma_hat, as before."""
+    if a.mu.shape[0] <= LARGE_N:
         return a.sigma_hat, m.sigma_hat
     fa, fm = c.noise_inflation if method in ("ncar", "ncdr") else (1.0, 1.0)
     return (a.sigma_hat if fa == 1.0 else a.sigma_hat * fa), (m.sigma_hat if fm == 1.0 else m.sigma_hat * fm)
-
-
-def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):
-    """max(1, chi2_s / dof_s) per sensor; dof_s = the sensor's share 3N - P_s - 3N/2."""
-    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
-    r = prob.residuals(p)
-    N = r.shape[0]
-    chi_a, chi_m = float(np.sum(r[:, :3] ** 2)), float(np.sum(r[:, 3:] ** 2))
-    Pa = FORMS[spec.accel_form].size + 3
-    Pm = FORMS[spec.mag_form].size + 3 + 1
-    dof_a = max(3 * N - Pa - 1.5 * N, 1.0)
-    dof_m = max(3 * N - Pm - 1.5 * N, 1.0)
-    return max(1.0, chi_a / dof_a), max(1.0, chi_m / dof_m)
-
-
-def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,
-                         res: RefineResult) -> np.ndarray | None:
-    """Parameter covariance honest about misfit, sensor by sensor.
-
-    When a sensor's weighted residuals exceed what its noise covariance explains
-    (chi2_s / dof_s > 1, e.g. magnetic disturbance that differs between poses, or a
-    vehicle not quite still), its covariance is inflated by that factor before the Fisher
-    information is formed, so one sensor's misfit does not inflate (or hide in) the
-    other's uncertainty. dof_s is the sensor's share 3N - P_s - 3N/2 of the degrees of freedom.
-    """
-    if res.cov is None or res.dof <= 0:
-        return res.cov
-    fa, fm = _misfit_factors(spec, a, m, Sa, Sm, p)
-    if fa == 1.0 and fm == 1.0:
-        return res.cov
-    prob2 = JointProblem(_terms(spec, a, m, Sa * fa, Sm * fm))
-    _, Jg, Jr = prob2.jacobians(p)
-    cov = prob2.covariance(Jg, Jr)
-    return res.cov * max(1.0, res.cost / res.dof) if cov is None else cov
 
 
 def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> np.ndarray | None:
