@@ -413,7 +413,7 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
     opts, warnings = _resolve(prep, options)
     if opts.sensors == "accel":
         return _accel_only(prep, opts, warnings, progress)
-    ai, mi = opts.accel_instance, opts.mag_instance
+    ai = opts.accel_instance
     pairs = _other_pairs(prep, opts)
     n_fits = 1 + len(pairs) + (len(prep.raw.accel_instances()) if opts.sensors == "both" else 0)
     report(progress, STAGE_FIT, 0, n_fits)
@@ -438,32 +438,41 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
         compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
         gates = [g for r in compass_runs for g in r.gates.gates]
         compasses = [r.mapping.compass[0] for r in compass_runs]
-        accels: list[AccelMapping] = []
-        accel_gates: list[gates_mod.Gate] = []
-        fits: list[tuple[int, AccelFit]] = []
-        if opts.sensors == "both":
-            mi_ok = all(g.ok for g in primary.gates.gates)
-            joint = {r.mapping.accel[0].instance: r for r in [primary] + others if r.mapping.compass[0].instance == mi}
-            insts = prep.raw.accel_instances()
-            judged = pool.map(_accel_job, [(opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok else None)
-                                           for a in insts],
-                              done=lambda k: report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits))
-            for a, (ok, out) in zip(insts, judged):
-                if not ok:
-                    warnings.append(f"accelerometer {a} not calibrated: {out}")
-                    continue
-                am, ag, fit, _, _ = out
-                accels.append(am)
-                fits.append((a, fit))
-                accel_gates += ag
-                if a in joint and not mi_ok:
-                    warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
-                                    "was rejected")
+        accels, fits, accel_gates = (_judge_accels(pool, prep, opts, [primary] + others, warnings,
+                                                   lambda k: report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits))
+                                     if opts.sensors == "both" else ([], [], []))
     report(progress, STAGE_FIT, n_fits, n_fits)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+
+
+def _judge_accels(pool: ForkPool, prep: Prepared, opts: Options, runs: list[CalibrationRun], warnings: list[str],
+                  done) -> tuple[list[AccelMapping], list[tuple[int, AccelFit]], list[gates_mod.Gate]]:
+    """Every accelerometer judged on its own fit, written from its joint fit with compass
+    ``opts.mag_instance`` (in ``runs``, the primary first) when that compass is accepted."""
+    mi = opts.mag_instance
+    mi_ok = all(g.ok for g in runs[0].gates.gates)
+    joint = {r.mapping.accel[0].instance: r for r in runs if r.mapping.compass[0].instance == mi}
+    insts = prep.raw.accel_instances()
+    judged = pool.map(_accel_job, [(opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok else None)
+                                   for a in insts], done=done)
+    accels: list[AccelMapping] = []
+    fits: list[tuple[int, AccelFit]] = []
+    gates: list[gates_mod.Gate] = []
+    for a, (ok, out) in zip(insts, judged):
+        if not ok:
+            warnings.append(f"accelerometer {a} not calibrated: {out}")
+            continue
+        am, ag, fit, _, _ = out
+        accels.append(am)
+        fits.append((a, fit))
+        gates += ag
+        if a in joint and not mi_ok:
+            warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
+                            "was rejected")
+    return accels, fits, gates
 
 
 _Shared = tuple[Prepared, "_StatsCache"]  # what the fit jobs share (inherited by forked workers)
