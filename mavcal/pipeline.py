@@ -418,9 +418,11 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
     n_fits = 1 + len(pairs) + (len(prep.raw.accel_instances()) if opts.sensors == "both" else 0)
     report(progress, STAGE_FIT, 0, n_fits)
     stats: _StatsCache = {}
+    jobs = [opts] + [replace(options, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
+                     for a, m in pairs]
     with ForkPool((prep, stats), opts.workers) as pool:
-        jobs = [opts] + [replace(options, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
-                         for a, m in pairs]
+        if pool.workers > 1:
+            _prefill_stats(prep, jobs, stats, opts.sensors == "both")
         runs = pool.map(_pair_job, jobs[:1] if pool.workers == 1 else jobs,  # in turn: the primary first
                         done=lambda k: report(progress, STAGE_FIT, k, n_fits))
         if not runs[0][0]:
@@ -473,6 +475,31 @@ def _judge_accels(pool: ForkPool, prep: Prepared, opts: Options, runs: list[Cali
             warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
                             "was rejected")
     return accels, fits, gates
+
+
+def _prefill_stats(prep: Prepared, jobs: list[Options], stats: _StatsCache, accels: bool) -> None:
+    """Every interval statistic the fit jobs will ask for, computed here before the workers
+    fork: each is computed once (not once per worker) and its full-length working arrays
+    are this process's, not one more copy per worker. A job whose data are refused raises
+    that itself, later."""
+    wanted = []
+    for o in jobs:
+        try:
+            used = _intervals_of_pair(prep, o.accel_instance, o.mag_instance)
+        except MavcalError:
+            continue
+        wanted += [("accel", o.accel_instance, used), ("mag", o.mag_instance, used)]
+    if accels:
+        for a in prep.raw.accel_instances():
+            try:
+                wanted.append(("accel", a, _accel_sets(prep, a)[0]))
+            except MavcalError:
+                continue
+    for kind, inst, used in wanted:
+        try:
+            _stats_of(prep, stats, kind, inst, used)
+        except MavcalError:
+            continue
 
 
 _Shared = tuple[Prepared, "_StatsCache"]  # what the fit jobs share (inherited by forked workers)
