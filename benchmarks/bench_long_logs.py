@@ -33,6 +33,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -71,28 +72,85 @@ print(len(rows))
 """
 
 
+def _descendants(root: int) -> list[int]:
+    """``root`` and every process below it (from the parent ids in /proc/*/stat)."""
+    children: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            children.setdefault(ppid, []).append(int(d))
+    out, todo = [], [root]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo += children.get(p, [])
+    return out
+
+
+def _pss_mb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1]) * 1024 / 1e6
+    except OSError:
+        pass
+    return 0.0
+
+
+class TreeMemory(threading.Thread):
+    """Samples, every ``period_s``, the summed PSS of a process and its descendants (the fit
+    worker processes of ``mavcal calibrate``): the physical memory of the whole tree, each
+    shared page counted once, which the max-RSS of ``/usr/bin/time`` (the largest single
+    process, shared pages counted in each) does not give when there are workers."""
+
+    def __init__(self, pid: int, period_s: float = 0.025) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.period_s, self.peak_mb = pid, period_s, 0.0
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        while not self._stop_event.is_set():
+            self.peak_mb = max(self.peak_mb, sum(_pss_mb(p) for p in _descendants(self.pid)))
+            self._stop_event.wait(self.period_s)
+
+    def stop(self) -> float:
+        self._stop_event.set()
+        self.join()
+        return round(self.peak_mb, 1)
+
+
 def run(cmd: list, timeout_s: float, stdout=subprocess.DEVNULL) -> dict:
     """Run ``cmd`` under ``/usr/bin/time``: wall time, the child's peak RSS and exit code.
 
-    The peak RSS comes from ``/usr/bin/time -f %M`` (its child's ``wait4`` rusage): asking
-    ``os.wait4`` for a child forked from this process would report at least this process's
-    own resident size, which a fork copies into the child's high-water mark.
+    The peak RSS comes from ``/usr/bin/time -f %M`` (its child's ``wait4`` rusage, the
+    largest process of the tree): asking ``os.wait4`` for a child forked from this process
+    would report at least this process's own resident size, which a fork copies into the
+    child's high-water mark. ``peak_pss_mb`` is the tree's summed PSS (:class:`TreeMemory`).
     """
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
     with tempfile.NamedTemporaryFile("r", prefix="mavcal-time-", dir="/tmp") as tf:
         t0 = time.perf_counter()
         proc = subprocess.Popen(["/usr/bin/time", "-f", "%M", "-o", tf.name] + cmd, stdout=stdout,
                                 stderr=subprocess.PIPE, env=env, cwd="/tmp")
+        mem = TreeMemory(proc.pid)
+        mem.start()
         try:
             _, err = proc.communicate(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.communicate()
+            mem.stop()
             return dict(wall_s=None, peak_rss_mb=None, rc="timeout")
         wall = time.perf_counter() - t0
+        pss = mem.stop()
         lines = tf.read().split()
     out: dict = dict(wall_s=round(wall, 2), peak_rss_mb=round(int(lines[-1]) * 1024 / 1e6, 1) if lines else None,
-                     rc=proc.returncode)
+                     peak_pss_mb=pss, rc=proc.returncode)
     if proc.returncode not in (0, 4):  # 4 = calibration rejected by a gate: still a complete run
         out["stderr_tail"] = err.decode(errors="replace").strip().splitlines()[-3:]
     return out
@@ -120,7 +178,7 @@ def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, t
         (tmp / "cal.json").unlink(missing_ok=True)
         r = run(cmd, timeout_s)
         r.update(kind=kind, size_mb=round(size_mb, 1), copies=copies, tool=tool,
-                 rss_per_file=round(r["peak_rss_mb"] / size_mb, 2) if r["peak_rss_mb"] else None,
+                 rss_per_file=round(max(r["peak_rss_mb"], r["peak_pss_mb"]) / size_mb, 2) if r["peak_rss_mb"] else None,
                  intervals=_n_intervals(tmp / "cal.json") if tool == "mavcal calibrate" else None)
         rows.append(r)
         print(r, file=sys.stderr, flush=True)
@@ -158,12 +216,13 @@ def bar_lines(rows: list) -> list[str]:
 
 
 def write_results(rows: list, env: str, command: str = "") -> str:
-    md = ["| log | size MB | copies / poses | intervals | tool | wall s | peak RSS MB | RSS / file | time / pymavlink "
-          "| size x | time x | rc |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    md = ["| log | size MB | copies / poses | intervals | tool | wall s | peak RSS MB | peak PSS MB (tree) "
+          "| peak / file | time / pymavlink | size x | time x | rc |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         md.append(f"| {r['kind']} | {r['size_mb']} | {r['copies']} | {r.get('intervals') or ''} | {r['tool']} | "
-                  f"{r['wall_s']} | {r['peak_rss_mb']} | {r['rss_per_file']} | {r['time_vs_pymavlink']} | "
+                  f"{r['wall_s']} | {r['peak_rss_mb']} | {r.get('peak_pss_mb')} | {r['rss_per_file']} | "
+                  f"{r['time_vs_pymavlink']} | "
                   f"{r['size_x']} | {r['time_x']} | {r['rc']} |")
     text = ("# Long logs end to end (benchmarks/bench_long_logs.py)\n\n" + "\n".join(md) + "\n\n"
             + "\n".join(bar_lines(rows)) +
@@ -171,7 +230,9 @@ def write_results(rows: list, env: str, command: str = "") -> str:
             "Each row is one subprocess: `mavcal calibrate LOG --json OUT`, `mavcal segments LOG --json`, or "
             "pymavlink reading the IMU messages (tlog: recv_match over RAW_IMU, SCALED_IMU2; .bin: DFReader over "
             "IMU, MAG) and collecting the values. Peak RSS = `/usr/bin/time -f %M` of the run, interpreter "
-            "included (MB = 1e6 bytes); RSS / file = peak RSS over the file size. size x / time x: ratio to "
+            "included (MB = 1e6 bytes): the largest process of the run; peak PSS (tree) = the largest sum of "
+            "the proportional set sizes of the run's processes (mavcal calibrate forks fit workers), sampled "
+            "every 25 ms; peak / file = the larger of the two over the file size. size x / time x: ratio to "
             "the smallest size of the same log kind and tool (linear = equal); for kind sim, the ratio of "
             "the pose counts (simulated sessions, biglogs.build_intervals_tlog) and its time, i.e. the cost "
             "against the interval count. intervals: still intervals of the calibrate run. rc 4 = calibration "

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from mavcal import __version__
@@ -70,6 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # every matrix here is small (3N x P at most): BLAS threads only spin up, and with the fit
+    # worker processes (calibrate --jobs) they would compete for the same cores; one each,
+    # unless the user chose otherwise (read when numpy is first imported, i.e. after this)
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):

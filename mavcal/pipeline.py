@@ -29,6 +29,7 @@ from mavcal.quality import Quality, accel_tilt_bounds, holdout_errors, quality_o
 from mavcal.segment import Segmentation, StillConfig, find_still_intervals
 from mavcal.sources.progress import ProgressFn, report
 from mavcal.sources.types import ImuLog
+from mavcal.workers import ForkPool
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,11 @@ class Options:
         Compute the leave-one-interval-out (held-out) errors; costs one refit per interval.
     gates : GateConfig
         Limits of the quality gates (:class:`mavcal.ardupilot.gates.GateConfig`).
+    workers : int
+        Processes for the fits (:class:`mavcal.workers.ForkPool`): with more than 1, the
+        accelerometer/compass pairs, then the accelerometers, are fitted in that many forked
+        worker processes; the results are the same to the bit. 1 (default): in this process,
+        as a host application with its own threads (MAVProxy) needs.
     """
 
     still: StillConfig = StillConfig()
@@ -107,6 +113,7 @@ class Options:
     uncertainty_draws: int = 200
     holdout: bool = True
     gates: gates_mod.GateConfig = gates_mod.GateConfig()
+    workers: int = 1  # fit the pairs, then the accelerometers, in this many forked processes (mavcal.workers)
     sensors: str = "both"  # "accel": accelerometers alone (no compass needed); "compass": compasses only
     only_instances: tuple[int, ...] | None = None  # with sensors "accel"/"compass": just these instances
 
@@ -406,50 +413,114 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
     opts, warnings = _resolve(prep, options)
     if opts.sensors == "accel":
         return _accel_only(prep, opts, warnings, progress)
-    ai, mi = opts.accel_instance, opts.mag_instance
+    ai = opts.accel_instance
     pairs = _other_pairs(prep, opts)
     n_fits = 1 + len(pairs) + (len(prep.raw.accel_instances()) if opts.sensors == "both" else 0)
     report(progress, STAGE_FIT, 0, n_fits)
     stats: _StatsCache = {}
-    primary = _calibrate_pair(prep, opts, stats)
-    report(progress, STAGE_FIT, 1, n_fits)
-    warnings += list(primary.warnings)
-    others = []
-    for k, (a, m) in enumerate(pairs):
-        report(progress, STAGE_FIT, 1 + k, n_fits)
-        try:
-            others.append(_calibrate_pair(prep, replace(options, accel_instance=a, mag_instance=m,
-                                                        holdout=opts.holdout and a == ai), stats))
-        except MavcalError as exc:
-            warnings.append(f"accelerometer {a} / compass {m} not calibrated: {exc}")
-    compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
-    gates = [g for r in compass_runs for g in r.gates.gates]
-    compasses = [r.mapping.compass[0] for r in compass_runs]
-    accels: list[AccelMapping] = []
-    accel_gates: list[gates_mod.Gate] = []
-    fits: list[tuple[int, AccelFit]] = []
-    if opts.sensors == "both":
-        mi_ok = all(g.ok for g in primary.gates.gates)
-        joint = {r.mapping.accel[0].instance: r for r in [primary] + others if r.mapping.compass[0].instance == mi}
-        for k, a in enumerate(prep.raw.accel_instances()):
-            report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits)
-            try:
-                am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, joint[a].mapping.accel[0]
-                                                     if a in joint and mi_ok else None, stats)
-            except MavcalError as exc:
-                warnings.append(f"accelerometer {a} not calibrated: {exc}")
-                continue
-            accels.append(am)
-            fits.append((a, fit))
-            accel_gates += ag
-            if a in joint and not mi_ok:
-                warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
-                                "was rejected")
+    jobs = [opts] + [replace(options, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
+                     for a, m in pairs]
+    with ForkPool((prep, stats), opts.workers) as pool:
+        if pool.workers > 1:
+            _prefill_stats(prep, jobs, stats, opts.sensors == "both")
+        runs = pool.map(_pair_job, jobs[:1] if pool.workers == 1 else jobs,  # in turn: the primary first
+                        done=lambda k: report(progress, STAGE_FIT, k, n_fits))
+        if not runs[0][0]:
+            raise runs[0][1]
+        if pool.workers == 1:
+            runs += pool.map(_pair_job, jobs[1:], done=lambda k: report(progress, STAGE_FIT, 1 + k, n_fits))
+        primary = _attach(runs[0][1], prep)
+        warnings += list(primary.warnings)
+        others = []
+        for (a, m), (ok, r) in zip(pairs, runs[1:]):
+            if ok:
+                others.append(_attach(r, prep))
+            else:
+                warnings.append(f"accelerometer {a} / compass {m} not calibrated: {r}")
+        compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
+        gates = [g for r in compass_runs for g in r.gates.gates]
+        compasses = [r.mapping.compass[0] for r in compass_runs]
+        accels, fits, accel_gates = (_judge_accels(pool, prep, opts, [primary] + others, warnings,
+                                                   lambda k: report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits))
+                                     if opts.sensors == "both" else ([], [], []))
     report(progress, STAGE_FIT, n_fits, n_fits)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+
+
+def _judge_accels(pool: ForkPool, prep: Prepared, opts: Options, runs: list[CalibrationRun], warnings: list[str],
+                  done) -> tuple[list[AccelMapping], list[tuple[int, AccelFit]], list[gates_mod.Gate]]:
+    """Every accelerometer judged on its own fit, written from its joint fit with compass
+    ``opts.mag_instance`` (in ``runs``, the primary first) when that compass is accepted."""
+    mi = opts.mag_instance
+    mi_ok = all(g.ok for g in runs[0].gates.gates)
+    joint = {r.mapping.accel[0].instance: r for r in runs if r.mapping.compass[0].instance == mi}
+    insts = prep.raw.accel_instances()
+    judged = pool.map(_accel_job, [(opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok else None)
+                                   for a in insts], done=done)
+    accels: list[AccelMapping] = []
+    fits: list[tuple[int, AccelFit]] = []
+    gates: list[gates_mod.Gate] = []
+    for a, (ok, out) in zip(insts, judged):
+        if not ok:
+            warnings.append(f"accelerometer {a} not calibrated: {out}")
+            continue
+        am, ag, fit, _, _ = out
+        accels.append(am)
+        fits.append((a, fit))
+        gates += ag
+        if a in joint and not mi_ok:
+            warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
+                            "was rejected")
+    return accels, fits, gates
+
+
+def _prefill_stats(prep: Prepared, jobs: list[Options], stats: _StatsCache, accels: bool) -> None:
+    """Every interval statistic the fit jobs will ask for, computed here before the workers
+    fork: each is computed once (not once per worker) and its full-length working arrays
+    are this process's, not one more copy per worker. A job whose data are refused raises
+    that itself, later."""
+    wanted = []
+    for o in jobs:
+        try:
+            used = _intervals_of_pair(prep, o.accel_instance, o.mag_instance)
+        except MavcalError:
+            continue
+        wanted += [("accel", o.accel_instance, used), ("mag", o.mag_instance, used)]
+    if accels:
+        for a in prep.raw.accel_instances():
+            try:
+                wanted.append(("accel", a, _accel_sets(prep, a)[0]))
+            except MavcalError:
+                continue
+    for kind, inst, used in wanted:
+        try:
+            _stats_of(prep, stats, kind, inst, used)
+        except MavcalError:
+            continue
+
+
+_Shared = tuple[Prepared, "_StatsCache"]  # what the fit jobs share (inherited by forked workers)
+
+
+def _pair_job(shared: _Shared, opts: Options) -> CalibrationRun:
+    """One accelerometer/compass pair (:func:`_calibrate_pair`) without the readings (a worker
+    sends back only the fit: :func:`_attach` puts the recording back)."""
+    prep, stats = shared
+    return replace(_calibrate_pair(prep, opts, stats), log=None, raw=None, segmentation=None)
+
+
+def _attach(run: CalibrationRun, prep: Prepared) -> CalibrationRun:
+    return replace(run, log=prep.log, raw=prep.raw, segmentation=prep.segmentation)
+
+
+def _accel_job(shared: _Shared, item: tuple[Options, int, AccelMapping | None]):
+    """One accelerometer judged on its own fit (:func:`_judge_accel`)."""
+    prep, stats = shared
+    opts, a, joint = item
+    return _judge_accel(prep, opts, a, joint, stats)
 
 
 def _other_pairs(prep: Prepared, opts: Options) -> list[tuple[int, int]]:

@@ -96,7 +96,7 @@ def test_analytic_hessian_matches_finite_differences_at_the_optimum():
     for model in ("full", "ardupilot"):
         cal = mavcal.calibrate(d.accel_sets, d.mag_sets, seed=1, model=model)
         a, m = C._stats(d.accel_sets, d.mag_sets, None)
-        prob = JointProblem(C._terms(MODELS[model], a, m, cal.accel.noise_cov, cal.mag.noise_cov))
+        prob = JointProblem(C.joint_terms(MODELS[model], a, m, cal.accel.noise_cov, cal.mag.noise_cov))
         p = JointParams((cal.accel.gain, cal.mag.gain), (cal.accel.bias, cal.mag.bias), cal.h_z, cal.orientations)
         for x, y in zip(exact_hessian_blocks(prob, p), exact_hessian_fd(prob, p)):
             assert np.abs(x - y).max() <= 1e-5 * np.abs(y).max()  # forward-difference error

@@ -209,3 +209,32 @@ def test_fit_stage_computes_each_sensors_interval_statistics_once(monkeypatch, s
     n_sensors = len(prep.raw.accel_instances()) + len(prep.raw.mag_instances())
     assert len(run.others) >= 2 and len(calls) == n_sensors  # 3 pair fits + 2 accel fits, one per sensor
     assert run.mapping.new == ref.mapping.new and run.quality == ref.quality
+
+
+def test_large_n_refits_start_at_the_full_fits_noise_weights(monkeypatch):
+    """Above LARGE_N a held-out refit begins at the noise weights the full fit's reweighting
+    reached (``noise_inflation``), so its budgeted LM converges where, begun at the raw
+    Sigma_hat, the disturbed compass would dominate the first run and spend its budget; the
+    held-out numbers are the same prediction errors to within their own scatter."""
+    acc, mag = _sim(300, 11, 6.0)  # compass disturbed between poses: its Sigma is inflated
+    cal = C.calibrate(acc, mag, seed=0)
+    assert cal.noise_inflation[1] > C.REWEIGHT_LIMIT and cal.noise_inflation[0] >= 1.0
+    orig = C.calibrate
+    refits = []
+
+    def spy(*args, **kw):
+        refits.append(orig(*args, **kw))
+        return refits[-1]
+
+    monkeypatch.setattr("mavcal.quality.calibrate", spy)
+    new = holdout_errors(acc, mag, cal)
+    new_its = [r.refine_iterations for r in refits]
+    assert len(refits) == 10 and all(r.n_intervals > C.LARGE_N and r.converged for r in refits)
+    refits.clear()
+    monkeypatch.setattr(C, "_start_weights", lambda c, a, m, method: (a.sigma_hat, m.sigma_hat))  # the former start
+    old = holdout_errors(acc, mag, cal)
+    assert sum(new_its) < 0.5 * sum(r.refine_iterations for r in refits)
+    np.testing.assert_allclose(new, old, rtol=0.05)
+    small = C.calibrate(acc[:120], mag[:120], seed=0)  # up to LARGE_N: the start is Sigma_hat, as before
+    a, m = C._stats(acc[:100], mag[:100], None)
+    assert all(x is y for x, y in zip(C._start_weights(small, a, m, "ncar"), (a.sigma_hat, m.sigma_hat)))

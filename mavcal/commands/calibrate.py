@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
 
@@ -60,7 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="write the new parameters as a .param file (MAVProxy/Mission Planner)")
     out.add_argument("--json", metavar="F", help="write the full JSON report ('-' for stdout)")
     out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
-    out.add_argument("--jobs", type=int, default=1, metavar="N", help="with several logs: parallel processes")
+    out.add_argument("--jobs", type=int, default=None, metavar="N",
+                     help="parallel processes: with several logs, logs at once (default 1); with one log, its "
+                          "sensor fits at once (default: the CPUs, at most 4)")
     fit = p.add_argument_group("calibration")
     fit.add_argument("--method", default="ncar", choices=["ncar", "ncdr", "fcar", "dcar"], help="paper variant")
     fit.add_argument("--model", default="auto", choices=["auto", "full", "diag-accel", "ardupilot", "offsets-scales"])
@@ -159,8 +162,9 @@ def _single(args, source: str) -> int:
     from mavcal.pipeline import calibrate_prepared, prepare
     from mavcal.sources.progress import auto_progress
     from mavcal.sources.reader import is_device, read_log
+    from mavcal.workers import default_workers
 
-    opts = _options(args)
+    opts = replace(_options(args), workers=args.jobs or default_workers())
     device = is_device(source)
     prep = None
     progress = None if device else auto_progress(f"reading {Path(source).name}")
@@ -198,7 +202,7 @@ def _single(args, source: str) -> int:
 
 
 def run(args) -> int:
-    if args.jobs < 1:
+    if args.jobs is not None and args.jobs < 1:
         raise UsageError("--jobs must be at least 1")
     check_optional_dependencies(args)
     if len(args.sources) == 1:
@@ -209,7 +213,7 @@ def run(args) -> int:
 
     from mavcal.batch import calibrate_many, format_fleet_table
 
-    rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs)
+    rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1)
     print(format_fleet_table(rows))
     if args.json:
         write_text_output(args.json, json.dumps([asdict(r) for r in rows], indent=1, default=str))

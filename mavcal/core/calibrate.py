@@ -66,9 +66,10 @@ from mavcal.core.initial import (
     rotation_hz_minima,
     search_rotation_hz,
 )
+from mavcal.core.misfit import inflated_covariance, joint_terms, misfit_factors
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec, choose_model
 from mavcal.core.reconstruct import estimate_orientations, reconstruction_error
-from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term, blas_kernels, refit_covariances
+from mavcal.core.refine import JointParams, JointProblem, RefineResult, blas_kernels, refit_covariances
 from mavcal.core.stats import IntervalStats, chi2_sf, interval_stats
 from mavcal.core.subset import diverse_subset, subset_weights
 from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
@@ -207,11 +208,6 @@ def run_block_steps(st: steps.State, a: IntervalStats, m: IntervalStats, method:
 
 # --- joint refinement per model ------------------------------------------------------------
 
-def _terms(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm):
-    return [Term("accel", FORMS[spec.accel_form], a.mu, a.n, Sa),
-            Term("mag", FORMS[spec.mag_form], m.mu, m.n, Sm)]
-
-
 LM_MORE_ITER = 2000  # LM iterations granted after the first 100 did not converge
 LARGE_N = 200  # above this many intervals: the search on a subset, the refinement on all (module docstring)
 SUBSET_N = 60  # ... of this many intervals
@@ -243,7 +239,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
     refit = method in ("fcar", "dcar")
     total_it = 0
     for _ in range(50 if refit else 1):
-        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
         res = prob.solve(p, max_iter=max_lm)
         total_it += res.iterations
         p = res.params
@@ -257,7 +253,7 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
         if J_old - J_new < 1e-3 * tol:
             break
     if refit:  # final covariance of the parameters at the final Sigma
-        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
         res = prob.solve(p, max_iter=_lm_budget(a.mu.shape[0], 100))
         total_it += res.iterations
     res = RefineResult(res.params, res.cost, total_it, res.converged, res.cov, res.names, res.dof)
@@ -330,7 +326,7 @@ def _branch_fits(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol):
     stalls far above, and would otherwise cost the full iteration budget).
     """
     p = res.params
-    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
     out = []
     for _, K_m, h_z in branches(p.gains[1], p.h_z):
         st = steps.State(p.gains[0], p.biases[0], K_m, p.biases[1], h_z, p.R, Sa, Sm)
@@ -434,7 +430,7 @@ def _reweight(spec: ModelSpec, a, m, method, tol, out):
     for _ in range(6):
         if res.dof <= 0:
             break
-        fa, fm = _misfit_factors(spec, a, m, Sa, Sm, res.params)
+        fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
         if max(fa, fm) <= REWEIGHT_LIMIT:
             break
         Sa, Sm = Sa * fa, Sm * fm
@@ -499,7 +495,7 @@ def _paper_path(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts):
         raise EstimationError("refine=False runs the paper's algorithm, which fits the full model only; "
                               f"{a.mu.shape[0]} intervals call for the {spec.name} model")
     st, block_it, block_conv = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, refine=False)
-    prob = JointProblem(_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
+    prob = JointProblem(joint_terms(spec, a, m, st.Sigma_a, st.Sigma_m))
     p = JointParams((st.K_a, st.K_m), (st.b_a, st.b_m), st.h_z, st.R)
     r, Jg, Jr = prob.jacobians(p)
     res = RefineResult(p, float(np.sum(r * r)), 0, True, prob.covariance(Jg, Jr), prob.names,
@@ -534,7 +530,7 @@ def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol,
 def _escape_saddles(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol) -> RefineResult:
     """Leave saddles of J' (where Gauss-Newton stops) along negative curvature and refine again."""
     for _ in range(3):
-        prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+        prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
         q = escape_saddle(prob, res.params, res.cost)
         if q is None:
             break
@@ -558,7 +554,7 @@ def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs, search_dof
     ``search_dof``: the degrees of freedom of the subset the search ran on (large N), when
     ``costs`` are that subset's.
     """
-    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
+    prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
     note = ""
     dof = res.dof if search_dof is None else search_dof
     if len(costs) > 1:
@@ -579,7 +575,7 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
     if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
         res = replace(res, cov=_transform_cov(res, p, K_a, K_m, h_z))
     p = JointParams((K_a, K_m), p.biases, h_z, R)
-    cov = _inflated_covariance(spec, a, m, Sa, Sm, p, res)
+    cov = inflated_covariance(spec, a, m, Sa, Sm, p, res)
     converged = bool(block_conv and res.converged)
     msg = (f"{spec.name} model, {method}: J'={res.cost:.6g} after {block_it} block iterations and "
            f"{res.iterations} joint refinement iterations"
@@ -601,7 +597,12 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
         cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
         method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
         n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
-        dof=int(res.dof), certificate=cert)
+        dof=int(res.dof), certificate=cert, noise_inflation=(_inflation(Sa, a), _inflation(Sm, m)))
+
+
+def _inflation(S: np.ndarray, s: IntervalStats) -> float:
+    """trace(Sigma) / trace(Sigma_hat): 1.0 exactly when ``S`` is the sample covariance itself."""
+    return 1.0 if S is s.sigma_hat else float(np.trace(S) / np.trace(s.sigma_hat))
 
 
 def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: int | None = None,
@@ -637,6 +638,8 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         so the result is still the optimum of *this* data's cost; the start only selects the
         basin. ``model`` should be the start's model. Nothing is searched, so the result
         has no ``certificate`` (``converged`` says whether the refinement converged).
+        Above ``LARGE_N`` intervals the refit begins at the start's noise weights
+        (``start.noise_inflation``, see :func:`_start_weights`).
 
     Above ``LARGE_N`` intervals the search runs on a subset of ``SUBSET_N`` (see the module
     docstring), the refinement on all of them.
@@ -724,14 +727,16 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
         p = res_s.params
         K_a, b_a, K_m, b_m, h_z = p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z
         search_dof = res_s.dof if len(costs) > 1 else None
+        Sa, Sm = a.sigma_hat, m.sigma_hat  # as the exhaustive path: the reweighting's end point is the same
         reason += (f"; the search for the global optimum ran on {len(idx)} of the {N} intervals "
                    f"(orientation-diverse, then evenly spaced), the refinement on all {N}")
     else:
         c = start
         K_a, b_a, K_m, b_m, h_z = c.accel.gain, c.accel.bias, c.mag.gain, c.mag.bias, c.h_z
+        Sa, Sm = _start_weights(c, a, m, method)
         block_it, block_conv = 0, True
         reason += "; refined from a given calibration (no search)"
-    st = steps.State(K_a, b_a, K_m, b_m, h_z, np.zeros((N, 3, 3)), a.sigma_hat, m.sigma_hat)
+    st = steps.State(K_a, b_a, K_m, b_m, h_z, np.zeros((N, 3, 3)), Sa, Sm)
     st = steps.rotations_direct(steps.rotations_approx(st, a, m), a, m)  # each R_i optimal given the start
     res, Sa, Sm, _, _, _ = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, start=st,
                                       more_iter=LM_MORE_ITER if start is None else 0)
@@ -741,38 +746,18 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
                    certify=start is None)
 
 
-def _misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams):
-    """max(1, chi2_s / dof_s) per sensor; dof_s = the sensor's share 3N - P_s - 3N/2."""
-    prob = JointProblem(_terms(spec, a, m, Sa, Sm))
-    r = prob.residuals(p)
-    N = r.shape[0]
-    chi_a, chi_m = float(np.sum(r[:, :3] ** 2)), float(np.sum(r[:, 3:] ** 2))
-    Pa = FORMS[spec.accel_form].size + 3
-    Pm = FORMS[spec.mag_form].size + 3 + 1
-    dof_a = max(3 * N - Pa - 1.5 * N, 1.0)
-    dof_m = max(3 * N - Pm - 1.5 * N, 1.0)
-    return max(1.0, chi_a / dof_a), max(1.0, chi_m / dof_m)
-
-
-def _inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,
-                         res: RefineResult) -> np.ndarray | None:
-    """Parameter covariance honest about misfit, sensor by sensor.
-
-    When a sensor's weighted residuals exceed what its noise covariance explains
-    (chi2_s / dof_s > 1, e.g. magnetic disturbance that differs between poses, or a
-    vehicle not quite still), its covariance is inflated by that factor before the Fisher
-    information is formed, so one sensor's misfit does not inflate (or hide in) the
-    other's uncertainty. dof_s is the sensor's share 3N - P_s - 3N/2 of the degrees of freedom.
-    """
-    if res.cov is None or res.dof <= 0:
-        return res.cov
-    fa, fm = _misfit_factors(spec, a, m, Sa, Sm, p)
-    if fa == 1.0 and fm == 1.0:
-        return res.cov
-    prob2 = JointProblem(_terms(spec, a, m, Sa * fa, Sm * fm))
-    _, Jg, Jr = prob2.jacobians(p)
-    cov = prob2.covariance(Jg, Jr)
-    return res.cov * max(1.0, res.cost / res.dof) if cov is None else cov
+def _start_weights(c: Calibration, a: IntervalStats, m: IntervalStats, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """The noise covariances a refit from ``c`` starts at. Above ``LARGE_N`` (LM runs of at most
+    ``LM_WORK / N`` iterations): these intervals' Sigma_hat inflated as ``c``'s were
+    (``c.noise_inflation``; NCAR/NCDR, whose Sigma is Sigma_hat times the reweighting factors).
+    Begun at the raw Sigma_hat, a sensor the reweighting had tamed (a disturbed compass)
+    dominates the first run, walks the orientations away and spends the budget (275
+    intervals: 40 wasted LM iterations per refit). :func:`_reweight` still runs on the refit's
+    own residuals. Up to ``LARGE_N``: Sigma_hat, as before."""
+    if a.mu.shape[0] <= LARGE_N:
+        return a.sigma_hat, m.sigma_hat
+    fa, fm = c.noise_inflation if method in ("ncar", "ncdr") else (1.0, 1.0)
+    return (a.sigma_hat if fa == 1.0 else a.sigma_hat * fa), (m.sigma_hat if fm == 1.0 else m.sigma_hat * fm)
 
 
 def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> np.ndarray | None:

@@ -154,6 +154,11 @@ class Calibration:
     certificate : OptimumCertificate or None
         Evidence that the result is the global optimum (None on the paper's path,
         ``refine=False``); ``converged`` is False when it is not certified.
+    noise_inflation : (float, float)
+        trace(Sigma_s) / trace(Sigma_hat_s) per sensor (accel, mag): how much the misfit
+        reweighting inflated each sensor's sample noise covariance (1.0 where the noise
+        model fitted and nothing was inflated). A warm-started refit
+        (``calibrate(..., start=this)``) begins at these weights.
     """
 
     accel: SensorModel
@@ -176,6 +181,7 @@ class Calibration:
     refine_iterations: int = 0
     dof: int = 0
     certificate: OptimumCertificate | None = None
+    noise_inflation: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
         for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):

@@ -1,0 +1,117 @@
+"""The fits of one recording in several processes: :class:`ForkPool`.
+
+One recording's accelerometer/compass pairs (and then its accelerometers) are fitted
+independently of each other, each from the same prepared readings. With ``workers > 1``
+:class:`ForkPool` runs them in worker processes **forked** from this one, so a worker
+inherits the readings (hundreds of MB on a long log) without copying or pickling them:
+only each job's arguments (options, a few small arrays) go to the worker and only its
+result (parameters, gates, numbers: never the readings) comes back. The fits are seeded
+and deterministic, so the results are the same, to the bit, as with ``workers = 1``,
+where the jobs run in this process one after the other.
+
+Forking needs an operating system that forks (Linux, macOS); elsewhere, and for a single
+job, the jobs run in this process. Fork only from a program that owns its process: the
+CLI does (``mavcal calibrate --jobs``), a host application with its own threads (MAVProxy)
+keeps ``workers = 1``. Each worker is one more process with its own BLAS: set
+``OPENBLAS_NUM_THREADS=1`` (the CLI does), or the BLAS threads of the workers compete for
+the cores the workers use.
+
+Memory: a forked worker shares the parent's pages until either writes them; what it adds
+is its own fit's working arrays (tens of MB). ``ru_maxrss`` of the process tree, which
+counts the shared pages in each process, is the parent's peak plus about that.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from typing import Any, Generic, TypeVar
+
+from mavcal.errors import MavcalError
+
+__all__ = ["ForkPool", "can_fork", "default_workers", "Outcome"]
+
+S = TypeVar("S")
+
+#: (ok, value): the job's result, or the MavcalError it raised (any other exception propagates)
+Outcome = tuple[bool, Any]
+
+_SHARED: Any = None  # what the forked workers inherit (set before the first fork)
+
+
+def default_workers(most: int = 4) -> int:
+    """The CPUs this process may run on, at most ``most`` (a recording has a few pairs to fit)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        n = os.cpu_count() or 1
+    return max(1, min(n, most))
+
+
+def can_fork() -> bool:
+    """Whether worker processes can be forked here."""
+    return "fork" in multiprocessing.get_all_start_methods()
+
+
+def _run(fn: Callable[[Any, Any], Any], shared: Any, item: Any) -> Outcome:
+    try:
+        return True, fn(shared, item)
+    except MavcalError as exc:
+        return False, exc
+
+
+def _in_worker(fn: Callable[[Any, Any], Any], item: Any) -> Outcome:
+    return _run(fn, _SHARED, item)
+
+
+class ForkPool(Generic[S]):
+    """Run ``fn(shared, item)`` jobs in ``workers`` forked processes (or here).
+
+    Use as a context manager; :meth:`map` may be called several times (the workers are
+    forked once, at the first job that goes to them). ``shared`` is handed to every job:
+    inherited by the workers, never pickled; ``fn`` and the items must pickle (module-level
+    functions, dataclasses, arrays).
+    """
+
+    def __init__(self, shared: S, workers: int) -> None:
+        self.shared = shared
+        self.workers = max(1, int(workers)) if can_fork() else 1
+        self._pool: ProcessPoolExecutor | None = None
+
+    def __enter__(self) -> ForkPool[S]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        global _SHARED
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+            _SHARED = None
+
+    def map(self, fn: Callable[[S, Any], Any], items: Sequence[Any],
+            done: Callable[[int], None] | None = None) -> list[Outcome]:
+        """The outcome of ``fn(shared, item)`` for every item, in the order of ``items``;
+        ``done(k)`` is called as the k-th job finishes (in this process)."""
+        if self.workers == 1 or len(items) <= 1:
+            out = []
+            for k, item in enumerate(items):
+                out.append(_run(fn, self.shared, item))
+                if done is not None:
+                    done(k + 1)
+            return out
+        pool = self._executor()
+        futures: list[Future] = [pool.submit(_in_worker, fn, item) for item in items]
+        for k, _ in enumerate(as_completed(futures)):
+            if done is not None:
+                done(k + 1)
+        return [f.result() for f in futures]
+
+    def _executor(self) -> ProcessPoolExecutor:
+        global _SHARED
+        if self._pool is None:
+            if _SHARED is not None:
+                raise RuntimeError("one ForkPool with workers at a time")
+            _SHARED = self.shared
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("fork"))
+        return self._pool

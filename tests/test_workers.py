@@ -1,0 +1,70 @@
+"""Issue 11: one recording's fits in forked worker processes (mavcal.workers.ForkPool,
+Options.workers, ``mavcal calibrate --jobs``): the same results to the bit, errors per job."""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from mavcal import workers as W
+from mavcal.errors import InsufficientDataError
+from mavcal.pipeline import Options, calibrate_prepared, prepare
+from mavcal.report.json import to_json
+from mavcal.sources.reader import read_log
+
+pytestmark = pytest.mark.skipif(not W.can_fork(), reason="needs fork")
+
+
+def _job(shared, item):
+    """Sum of the inherited array times ``item``, and the process it ran in."""
+    if item < 0:
+        raise InsufficientDataError(f"item {item} refused")
+    return float(shared["x"].sum()) * item, os.getpid()
+
+
+def test_fork_pool_runs_jobs_in_workers_that_inherit_the_shared_data():
+    shared = {"x": np.arange(1_000_000, dtype=float)}  # inherited, never pickled
+    done = []
+    with W.ForkPool(shared, 2) as pool:
+        out = pool.map(_job, [1, 2, -1, 3], done=done.append)
+        again = pool.map(_job, [4, 5])  # the same workers, still holding the shared data
+    assert [ok for ok, _ in out] == [True, True, False, True]
+    assert [v[0] for ok, v in out if ok] == [shared["x"].sum() * k for k in (1, 2, 3)]
+    assert isinstance(out[2][1], InsufficientDataError) and "item -1 refused" in str(out[2][1])
+    assert all(v[1] != os.getpid() for ok, v in out + again if ok)  # not this process
+    assert done == [1, 2, 3, 4] and again[1][1][0] == shared["x"].sum() * 5
+    assert W._SHARED is None  # released at exit
+
+
+def test_fork_pool_with_one_worker_or_no_fork_runs_here(monkeypatch):
+    with W.ForkPool({"x": np.ones(3)}, 1) as pool:
+        out = pool.map(_job, [1, -2])
+    assert out[0] == (True, (3.0, os.getpid())) and not out[1][0]
+    monkeypatch.setattr(W, "can_fork", lambda: False)
+    with W.ForkPool({"x": np.ones(3)}, 4) as pool:
+        assert pool.workers == 1 and pool.map(_job, [2])[0] == (True, (6.0, os.getpid()))
+    assert 1 <= W.default_workers() <= 4 and W.default_workers(most=1) == 1
+
+
+def test_other_exceptions_propagate():
+    with W.ForkPool({"x": None}, 2) as pool, pytest.raises(AttributeError):
+        pool.map(_job, [1, 2])  # None.sum(): a bug, not bad input, is raised here
+
+
+def test_fits_in_two_workers_equal_the_fits_in_this_process(sitl_dir):
+    prep = prepare(read_log(str(sitl_dir / "sitl02.tlog")))
+    stages = []
+
+    class Progress:
+        def stage(self, name, done, total):
+            stages.append((name, done, total))
+
+    one = calibrate_prepared(prep, Options(workers=1))
+    two = calibrate_prepared(prep, Options(workers=2), progress=Progress())
+    assert len(two.others) == len(one.others) >= 2 and two.log is prep.log and two.raw is prep.raw
+    assert all(r.segmentation is prep.segmentation for r in two.others)
+    assert json.dumps(to_json(two), sort_keys=True) == json.dumps(to_json(one), sort_keys=True)
+    assert two.warnings == one.warnings and two.params_to_write() == one.params_to_write()
+    assert stages[-1][1] == stages[-1][2] and len(stages) >= 1 + len(two.others) + 1
