@@ -359,6 +359,63 @@ def _rows(v) -> np.ndarray:
     return a
 
 
+def _special_rows(x: np.ndarray) -> np.ndarray | None:
+    """Indices of the rows of (n, 3) ``x`` that hold a zero or a non-finite value, None when none
+    do. Only there can a product by a matrix of exact zeros and ones in BLAS/LAPACK differ
+    from the elementwise shortcut (``0 * inf`` spreading NaN to the other axes, the sign of a
+    zero sum): those rows take the library call itself."""
+    with np.errstate(over="ignore", invalid="ignore"):  # a sum that overflows only means: look closer
+        if np.isfinite(np.sum(x)) and np.all(x):  # no zero; a NaN or an infinity makes the sum non-finite
+            return None
+    rows = np.flatnonzero(~(np.isfinite(x) & (x != 0.0)).all(axis=-1))
+    return rows if len(rows) else None
+
+
+def _two_rows(x: np.ndarray) -> np.ndarray:
+    """(n, 3) ``x`` with a row of ones appended when n = 1: a library call on several rows takes
+    the same code path as on the whole array (one row alone may take another)."""
+    return np.vstack([x, np.ones((1, 3))]) if len(x) == 1 else x
+
+
+def _solve_rows(m: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``M^-1 c`` per row of (..., 3) ``c``, the values ``np.linalg.solve(m, c.T).T`` gives, as a new array.
+
+    A diagonal ``m`` (the identity of an unset soft-iron matrix, or DIA without ODI) is
+    LAPACK's LU with nothing to pivot or eliminate: every row is ``c * (1 / diag)`` (the
+    back substitution multiplies by the reciprocal of each pivot; the eliminations subtract
+    exact zeros), bit for bit, without the solver's cost. Rows with a zero or a non-finite
+    value and any other matrix go through ``np.linalg.solve``."""
+    c2 = c.reshape(-1, 3)
+    d = np.diagonal(m)
+    if len(c2) < 2 or not (np.all(m == np.diag(d)) and np.all(np.isfinite(d)) and np.all(d != 0.0)):
+        # (one right-hand side takes another LAPACK path, which divides by the pivots)
+        return np.linalg.solve(m, c2.T).T.reshape(c.shape)
+    x = c2 * (1.0 / d)
+    rows = _special_rows(c2)
+    if rows is not None:
+        x[rows] = np.linalg.solve(m, _two_rows(c2[rows]).T).T[:len(rows)]
+    return x.reshape(c.shape)
+
+
+def _times_matrix(a: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """``a @ r`` for (..., 3) ``a``, as a new array (the values of the matrix product).
+
+    A signed permutation ``r`` (every board rotation by multiples of 90 deg, the identity
+    included: entries exactly 0 and +-1) only picks and negates columns: ``a[:, k] * (+-1)``,
+    bit for bit what the product gives where the other terms add exact zeros. Rows with a
+    zero or a non-finite value and any other matrix take the product itself."""
+    a2 = a.reshape(-1, 3)
+    src = np.argmax(np.abs(r), axis=0)  # per output column j: the row k with r[k, j] != 0
+    sign = r[src, np.arange(3)]
+    if len(a2) < 2 or not (np.all(np.abs(sign) == 1.0) and np.count_nonzero(r) == 3):
+        return a @ r
+    u = a2[:, src] * sign
+    rows = _special_rows(a2)
+    if rows is not None:
+        u[rows] = (_two_rows(a2[rows]) @ r)[:len(rows)]
+    return u.reshape(a.shape)
+
+
 def apply_compass(cal: CompassCal, raw_mgauss, motor_ofs_mgauss=None, sensor_frame: bool = True) -> np.ndarray:
     """Forward model: what the firmware reports for a raw compass reading.
 
@@ -403,8 +460,9 @@ def undo_compass(cal: CompassCal, corrected_mgauss, motor_ofs_mgauss=None, senso
     c = _rows(corrected_mgauss)
     if motor_ofs_mgauss is not None:
         c = c - _rows(motor_ofs_mgauss)
-    b = np.linalg.solve(cal.matrix, c.reshape(-1, 3).T).T.reshape(c.shape) / cal.k
-    b = b - np.asarray(cal.ofs_mgauss)
+    b = _solve_rows(cal.matrix, c)
+    b /= cal.k  # b is a new array: in place, the values of ``b / k``
+    b -= np.asarray(cal.ofs_mgauss)
     if sensor_frame:
         b = b @ cal.mount_matrix
     return b
@@ -434,13 +492,17 @@ def undo_accel(cal: AccelCal, corrected_mps2, calibrating: bool = False) -> np.n
     offsets and scale) only ``R_A`` is undone. A zero scale element (an unused IMU slot)
     gives NaN for that axis.
     """
-    u = _rows(corrected_mps2) @ cal.board_matrix
+    u = _times_matrix(_rows(corrected_mps2), cal.board_matrix)
     if calibrating:
         return u
     s = np.asarray(cal.scale)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(s != 0.0, u / np.where(s != 0.0, s, 1.0), np.nan)
-    return u + np.asarray(cal.ofs_mps2)
+    if np.all(s != 0.0):
+        u /= s  # u is a new array: in place, the values of ``u / s``
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.where(s != 0.0, u / np.where(s != 0.0, s, 1.0), np.nan)
+    u += np.asarray(cal.ofs_mps2)
+    return u
 
 
 # --------------------------------------------------------------------------- from params
