@@ -376,22 +376,26 @@ def _undo_accel_into(out: np.ndarray, cal: fw.AccelCal, v: np.ndarray, calibrati
     """``out[i] = undo_accel(cal, v[i], calibrating=calibrating[i])`` (``None``: calibrating everywhere),
     a chunk of rows at a time; each chunk computes only the interpretation its rows need (the
     same row-wise arithmetic, so the values are those of one call on all rows)."""
+    scratch = np.empty((min(_CHUNK_ROWS, len(v)), 3))
     for i in range(0, len(v), _CHUNK_ROWS):
         j = i + _CHUNK_ROWS
         c = None if calibrating is None else calibrating[i:j]
         if c is None or c.all():
-            out[i:j] = fw.undo_accel(cal, v[i:j], calibrating=True)
+            out[i:j] = fw.undo_accel(cal, v[i:j], calibrating=True, out=scratch[:len(v[i:j])])
         elif not c.any():
-            out[i:j] = fw.undo_accel(cal, v[i:j])
+            out[i:j] = fw.undo_accel(cal, v[i:j], out=scratch[:len(v[i:j])])
         else:
             out[i:j] = np.where(c[:, None], fw.undo_accel(cal, v[i:j], calibrating=True), fw.undo_accel(cal, v[i:j]))
 
 
 def _undo_compass_into(out: np.ndarray, cal: fw.CompassCal, v: np.ndarray, motor: np.ndarray | None) -> None:
-    """``out = undo_compass(cal, v, motor)``, a chunk of rows at a time (row-wise arithmetic)."""
+    """``out = undo_compass(cal, v, motor)``, a chunk of rows at a time (row-wise arithmetic), each
+    worked out in one reused (cached) buffer and copied once into ``out``, whose fresh pages are
+    slow to touch more than once."""
+    scratch = np.empty((min(_CHUNK_ROWS, len(v)), 3))
     for i in range(0, len(v), _CHUNK_ROWS):
         j = i + _CHUNK_ROWS
-        out[i:j] = fw.undo_compass(cal, v[i:j], None if motor is None else motor[i:j])
+        out[i:j] = fw.undo_compass(cal, v[i:j], None if motor is None else motor[i:j], out=scratch[:len(v[i:j])])
 
 
 def _in_periods(t: np.ndarray, periods: Sequence[tuple[float, float]]) -> np.ndarray:
@@ -568,7 +572,9 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
     if w:
         warnings.append(w)
     warnings += _unusable_warning(f"accel {inst}", unusable)
-    return _with_known(s, out, {**dict(s.extra), "calibrating": calib.astype(float)}, left_out)
+    # (no calibration in the data, the usual case: zeros that need not be written)
+    flags = calib.astype(float) if calib.any() else np.zeros(len(calib))
+    return _with_known(s, out, {**dict(s.extra), "calibrating": flags}, left_out)
 
 
 def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.ChangeEvent],
