@@ -543,9 +543,9 @@ def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
         good = np.isfinite(a).all(axis=1)
         t, a = t[good], a[good]
     dt_all = np.diff(t)
-    pos = dt_all[dt_all > 0]
+    pos = dt_all if (len(dt_all) and dt_all.min() > 0) else dt_all[dt_all > 0]  # (increasing: all of them)
     del dt_all
-    dt = float(np.median(pos, overwrite_input=True)) if len(pos) else 1.0  # the median of a copy
+    dt = float(np.median(pos, overwrite_input=True)) if len(pos) else 1.0  # (pos is our own array)
     del pos
     rate = 1.0 / dt if dt > 0 else 0.0
     w = max(int(cfg.min_window_samples), int(round(cfg.window_s * rate)))
@@ -737,7 +737,7 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     accel, mag, gyro = _collect(data)
     accel = [s for s in accel if len(s)]
     mag = [s for s in mag if len(s)]
-    gyro = [s for s in gyro if len(s) and np.any(s.values != 0.0)]
+    gyro = [s for s in gyro if len(s) and (np.count_nonzero(s.values[:64]) or np.count_nonzero(s.values))]
     if not accel:
         raise SegmentationError("no accelerometer data: still intervals cannot be detected")
     if board_rotation is None:

@@ -174,3 +174,12 @@ def test_interval_directions_are_the_mean_and_norm_of_their_samples():
         assert _same(iv.accel_dir, a / np.linalg.norm(a))
         m = iv.mag_mgauss[0].mean(axis=0)
         assert _same(iv.mag_dir, m / np.linalg.norm(m))
+
+
+def test_nonzero_check_reads_like_the_full_comparison():
+    import mavcal.ardupilot.recover as recover_mod
+
+    late = np.zeros((1000, 3))
+    late[900, 2] = 1e-300  # the first non-zero value far down
+    for x in (np.zeros((500, 3)), np.full((500, 3), -0.0), late, np.full((3, 3), np.nan), np.ones((2, 3))):
+        assert recover_mod._any_nonzero(x) == bool(np.any(x != 0.0))

@@ -484,7 +484,7 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
             continue
         mag_out.append(_recover_mag(log_.params, s, events, used, warnings))
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
-                 and not (drop_zero_series and not np.any(g.values != 0.0)))
+                 and not (drop_zero_series and not _any_nonzero(g.values)))
     for w in warnings:
         log.warning("%s", w)
     return RawImu(
@@ -501,11 +501,17 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
     )
 
 
+def _any_nonzero(x: np.ndarray) -> bool:
+    """``np.any(x != 0.0)`` (NaN counts as non-zero), looking at the first rows first: a real
+    series shows a non-zero value at once, and only an all-zero one is read to its end."""
+    return bool(np.count_nonzero(x[:64])) or bool(np.count_nonzero(x))
+
+
 def _usable(s: SensorSeries | None, sensor: str, drop_zero: bool, warnings: list[str]) -> SensorSeries | None:
     """The series, or None when it is empty or (``drop_zero``) all zero (with a warning)."""
     if s is None or len(s) == 0:
         return None
-    if drop_zero and not np.any(s.values != 0.0):
+    if drop_zero and not _any_nonzero(s.values):
         what = "no such IMU" if sensor == "accel" else "no such compass"
         warnings.append(f"{sensor} {s.instance} ({s.message}) is all zero ({what}); dropped")
         return None
