@@ -225,62 +225,73 @@ def _collect(data) -> tuple[list[SensorSeries], list[SensorSeries], list[SensorS
 _CHUNK = 1 << 14
 
 
-def _running(x: np.ndarray, b0: int, b1: int, carry: np.ndarray | None) -> np.ndarray:
-    """Running sums ``cumsum(x, axis=0)[b0:b1]`` given ``carry = cumsum(x, axis=0)[b0 - 1]`` (None
-    at ``b0 = 0``): the sum continues sequentially, so the values are those of one ``cumsum``
-    over all rows (IEEE addition commutes: ``x[b0] + carry`` is ``carry + x[b0]``)."""
-    blk = np.array(x[b0:b1], dtype=float)
-    if carry is not None and len(blk):
-        blk[0] += carry
-    return np.cumsum(blk, axis=0, out=blk)
-
-
 def _prefix_at(x: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """The running sums ``P[idx]`` for sorted indices ``idx`` in [0, len(x)], where ``P[0] = 0`` and
-    ``P[1:] = cumsum(x, axis=0)``, computed a chunk at a time (no full-length array)."""
+    ``P[1:] = cumsum(x, axis=0)``, computed a chunk at a time (no full-length array), one axis
+    per contiguous row: each sum continues sequentially (``x[b0] + carry``; IEEE addition
+    commutes), so the values are those of one ``cumsum`` over all rows."""
     idx = np.asarray(idx, dtype=np.int64)
-    out = np.zeros((len(idx),) + x.shape[1:])  # the prefix at index 0 is 0
+    x2 = x.reshape(len(x), -1)
+    out = np.zeros((len(idx), x2.shape[1]))  # the prefix at index 0 is 0
     carry = None
-    for b0 in range(0, len(x), _CHUNK):
-        b1 = min(b0 + _CHUNK, len(x))
+    for b0 in range(0, len(x2), _CHUNK):
+        b1 = min(b0 + _CHUNK, len(x2))
         lo, hi = np.searchsorted(idx, [b0, b1], side="right")
         if hi == len(idx) and lo == hi:
             break  # nothing asked beyond here
-        c = _running(x, b0, b1, carry)
-        out[lo:hi] = c[idx[lo:hi] - b0 - 1]
-        carry = c[-1]
-    return out
+        c = np.array(x2[b0:b1].T, dtype=float, order="C")  # a copy, whatever the layout of x
+        if carry is not None and c.shape[1]:
+            c[:, 0] += carry
+        np.cumsum(c, axis=1, out=c)
+        out[lo:hi] = c[:, idx[lo:hi] - b0 - 1].T
+        carry = c[:, -1].copy()
+    return out.reshape((len(idx),) + x.shape[1:])
 
 
 def _rolling_sd_max(x: np.ndarray, w: int) -> np.ndarray:
     """Largest per-axis standard deviation of (n, d) ``x`` over the windows x[i:i+w], i = 0..n-w.
 
-    The running sums of the rows and of their squares are built a chunk at a time (see
-    :func:`_running`) with the last ``w`` of the previous chunk kept for the windows across
-    the boundary, and every window's mean and variance uses the same expressions as over
-    full-length arrays (``s1 / w``, ``max(s2 / w - m * m, 0)``): the result is bit-identical."""
+    The running sums of the rows and of their squares are built a chunk at a time, one axis per
+    row of a buffer (contiguous: fast) that keeps the last ``w`` of the previous chunk ahead of
+    it (the windows across the boundary); each sum continues sequentially (``x[b0] + carry``:
+    IEEE addition commutes), so the sums are those of one ``cumsum`` over all rows. Every
+    window's mean and variance use the full-length expressions (``s1 / w``,
+    ``max(s2 / w - m * m, 0)``); the square root of the largest variance is the largest square
+    root (it is monotonic and correctly rounded): the result is bit-identical."""
     n, d = x.shape
     out = np.empty(max(n - w + 1, 0))
-    tail = np.zeros((1, 2 * d))  # running sums [x | x*x] at indices b0 - len(tail) + 1 .. b0
+    buf = np.empty((2 * d, w + min(_CHUNK, n)))  # running sums [x | x*x] (per axis) at prefix indices base..
+    buf[:, 0] = 0.0  # the prefix at index 0
+    held = 1  # columns of buf before this chunk's (the prefixes b0 - held + 1 .. b0)
     for b0 in range(0, n, _CHUNK):
         b1 = min(b0 + _CHUNK, n)
-        both = np.empty((b1 - b0, 2 * d))
-        both[:, :d] = x[b0:b1]
-        np.multiply(x[b0:b1], x[b0:b1], out=both[:, d:])
-        c = np.concatenate([tail, _running(both, 0, len(both), tail[-1] if b0 else None)])
-        base = b0 - len(tail) + 1  # index of c[0]
+        c = buf[:, held:held + b1 - b0]
+        xt = x[b0:b1].T
+        c[:d] = xt
+        np.multiply(xt, xt, out=c[d:])
+        if b0:
+            c[:, 0] += buf[:, held - 1]
+        np.cumsum(c, axis=1, out=c)
+        base = b0 - held + 1  # prefix index of buf[:, 0]
         k0, k1 = max(b0 - w + 1, 0), b1 - w + 1  # window starts whose end lies in (b0, b1]
         if k1 > k0:
-            s = c[k0 + w - base:k1 + w - base] - c[k0 - base:k1 - base]
-            m = s[:, :d] / w
-            var = np.maximum(s[:, d:] / w - m * m, 0.0)
-            out[k0:k1] = np.sqrt(var).max(axis=1)
-        tail = c[-w:]
+            sw = buf[:, k0 + w - base:k1 + w - base] - buf[:, k0 - base:k1 - base]
+            sw /= w  # [m | s2 / w]
+            var = sw[d:]
+            var -= sw[:d] * sw[:d]
+            np.maximum(var, 0.0, out=var)
+            big = var[0]
+            for j in range(1, d):
+                np.maximum(big, var[j], out=big)
+            np.sqrt(big, out=out[k0:k1])
+        keep = min(w, held + b1 - b0)
+        buf[:, :keep] = buf[:, held + b1 - b0 - keep:held + b1 - b0]
+        held = keep
     return out
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v)
+    n = np.sqrt(v.dot(v))  # what np.linalg.norm computes for a 1-d float vector, without its overhead
     return v / n if n > 0 else v
 
 
@@ -333,12 +344,22 @@ def _count_clusters(g: np.ndarray, cluster_deg: float) -> int:
         free[lead] = False
 
 
+#: grid points per product in :func:`_largest_empty_cap_deg`: a (400, 128) block is 400 kB and
+#: small enough for BLAS to run it on one thread (no thread start-up on a loaded machine)
+_SPHERE_ROWS = 400
+
+
 def _largest_empty_cap_deg(g: np.ndarray, chunk: int = 128) -> float:
     """Radius (deg) of the largest spherical cap without any of the unit vectors ``g``
-    (over a fixed Fibonacci grid; memory bounded by ``chunk`` vectors at a time)."""
+    (over a fixed Fibonacci grid; memory bounded by ``chunk`` vectors and
+    :data:`_SPHERE_ROWS` grid points at a time: every product is a row of the one with all the
+    grid points, the same values)."""
     best = np.full(_SPHERE.shape[0], -np.inf)
     for k in range(0, g.shape[0], chunk):
-        np.maximum(best, np.max(_SPHERE @ g[k:k + chunk].T, axis=1), out=best)
+        gk = g[k:k + chunk].T
+        for r in range(0, _SPHERE.shape[0], _SPHERE_ROWS):
+            b = best[r:r + _SPHERE_ROWS]
+            np.maximum(b, np.max(_SPHERE[r:r + _SPHERE_ROWS] @ gk, axis=1), out=b)
     return float(np.degrees(np.arccos(np.clip(best, -1, 1))).max())
 
 
@@ -414,32 +435,56 @@ def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
     return i1 - i0, c1[i1] - c1[i0], c2[i1] - c2[i0]
 
 
-def _gyro_still(tg: np.ndarray, vg: np.ndarray, t0: np.ndarray, t1: np.ndarray, limit: float) -> np.ndarray:
+def _gyro_still(tg: np.ndarray, vg: np.ndarray, t0: np.ndarray, t1: np.ndarray, limit: float,
+                w: int | None = None) -> np.ndarray:
     """Per window [t0, t1]: RMS gyro rate of the samples in it below ``limit`` (no sample: still).
 
     Chunked: the squared rates and their running sum are one value per sample; the windows
-    are evaluated a chunk at a time (same expressions, bit-identical results)."""
+    are evaluated a chunk at a time (same expressions, bit-identical results). ``w``: the gyro
+    samples are the reference's own times, strictly increasing, and the windows its ``w``-sample
+    windows (a gyro in the accelerometer's message): window k holds samples k..k+w-1, which
+    the sorted searches would find."""
     c1 = np.empty(len(vg) + 1)
     c1[0] = 0.0
     for i in range(0, len(vg), _CHUNK):
         g = vg[i:i + _CHUNK]
         sq = np.sum(g * g, axis=1)
-        c1[i + 1:i + 1 + len(sq)] = _running(sq, 0, len(sq), c1[i] if i else None)
+        if i:
+            sq[0] += c1[i]
+        np.cumsum(sq, out=c1[i + 1:i + 1 + len(sq)])
     out = np.empty(len(t0), dtype=bool)
     for k in range(0, len(t0), _CHUNK):
-        i0 = np.searchsorted(tg, t0[k:k + _CHUNK], side="left")
-        i1 = np.searchsorted(tg, t1[k:k + _CHUNK], side="right")
-        cnt = i1 - i0
-        ms = np.where(cnt > 0, (c1[i1] - c1[i0]) / np.maximum(cnt, 1), 0.0)
-        out[k:k + _CHUNK] = np.sqrt(ms) < limit
+        if w is not None:
+            m = len(t0[k:k + _CHUNK])
+            ms = c1[k + w:k + w + m] - c1[k:k + m]
+            ms /= w  # the count of every window
+        else:
+            i0 = np.searchsorted(tg, t0[k:k + _CHUNK], side="left")
+            i1 = np.searchsorted(tg, t1[k:k + _CHUNK], side="right")
+            cnt = i1 - i0
+            ms = np.where(cnt > 0, (c1[i1] - c1[i0]) / np.maximum(cnt, 1), 0.0)
+        out[k:k + _CHUNK] = np.sqrt(ms, out=ms) < limit
     return out
+
+
+def _same_times(tg: np.ndarray, t: np.ndarray) -> bool:
+    """``tg`` holds exactly the strictly increasing times ``t`` (no duplicate, no NaN)."""
+    if len(tg) != len(t) or not (tg is t or np.array_equal(tg, t)):
+        return False
+    for i in range(0, len(t) - 1, _CHUNK):  # chunked: no full-length temporary
+        seg = t[i:i + _CHUNK + 1]
+        if not bool(np.all(seg[1:] > seg[:-1])):
+            return False
+    return True
 
 
 def _norms(a: np.ndarray) -> np.ndarray:
     """|a| per row (``np.linalg.norm(a, axis=1)``, a chunk of rows at a time)."""
     out = np.empty(len(a))
     for i in range(0, len(a), _CHUNK):
-        out[i:i + _CHUNK] = np.linalg.norm(a[i:i + _CHUNK], axis=1)
+        c = a[i:i + _CHUNK]
+        # what np.linalg.norm(c, axis=1) computes for real rows, without its conj() copy
+        np.sqrt(np.add.reduce(c * c, axis=1), out=out[i:i + _CHUNK])
     return out
 
 
@@ -452,7 +497,7 @@ def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.nd
     ok = _rolling_sd_max(acc, w) < cfg.accel_std_mps2
     t0, t1 = t[:n - w + 1], t[w - 1:]  # per window start i: t[i], t[i + w - 1]
     if gyro is not None:
-        ok &= _gyro_still(gyro[0], gyro[1], t0, t1, cfg.gyro_rad_s)
+        ok &= _gyro_still(gyro[0], gyro[1], t0, t1, cfg.gyro_rad_s, w if _same_times(gyro[0], t) else None)
     if mag is not None:
         cnt, s1, s2 = _window_sums(mag[0], mag[1], t0, t1)
         m = s1 / np.maximum(cnt, 1)[:, None]
@@ -498,9 +543,9 @@ def _reference(accel: Sequence[SensorSeries], cfg: StillConfig) -> _Reference:
         good = np.isfinite(a).all(axis=1)
         t, a = t[good], a[good]
     dt_all = np.diff(t)
-    pos = dt_all[dt_all > 0]
+    pos = dt_all if (len(dt_all) and dt_all.min() > 0) else dt_all[dt_all > 0]  # (increasing: all of them)
     del dt_all
-    dt = float(np.median(pos, overwrite_input=True)) if len(pos) else 1.0  # the median of a copy
+    dt = float(np.median(pos, overwrite_input=True)) if len(pos) else 1.0  # (pos is our own array)
     del pos
     rate = 1.0 / dt if dt > 0 else 0.0
     w = max(int(cfg.min_window_samples), int(round(cfg.window_s * rate)))
@@ -558,8 +603,9 @@ class _Directions:
         edges = np.asarray(spans, dtype=np.int64).reshape(-1, 2)
         ia = np.unique(edges)
         ca = _prefix_at(ref.a, ia)
-        self._accel = {(int(i0), int(i1)): ca[np.searchsorted(ia, i1)] - ca[np.searchsorted(ia, i0)]
-                       for i0, i1 in edges.tolist()}
+        sums = ca[np.searchsorted(ia, edges[:, 1])] - ca[np.searchsorted(ia, edges[:, 0])]
+        keys = [(i0, i1) for i0, i1 in edges.tolist()]
+        self._accel = dict(zip(keys, sums))
         self._field: dict[tuple[int, int], np.ndarray] | None = None
         if mag is not None:
             half = ref.dt / 2
@@ -567,8 +613,7 @@ class _Directions:
             j1 = np.searchsorted(mag[0], ref.t[edges[:, 1] - 1] + half, side="right")
             jm = np.unique(np.concatenate([j0, j1]))
             cm = _prefix_at(mag[1], jm)
-            self._field = {(int(i0), int(i1)): cm[np.searchsorted(jm, b)] - cm[np.searchsorted(jm, a)]
-                           for (i0, i1), a, b in zip(edges.tolist(), j0.tolist(), j1.tolist())}
+            self._field = dict(zip(keys, cm[np.searchsorted(jm, j1)] - cm[np.searchsorted(jm, j0)]))
 
     def accel_sum(self, i0: int, i1: int) -> np.ndarray:
         """Sum of the accel-0 samples [i0, i1) of a span."""
@@ -611,9 +656,9 @@ def _merge(spans: Sequence[tuple[int, int]], t: np.ndarray, dirs: _Directions,
     return groups
 
 
-def _pieces(vs: np.ndarray, i0: np.ndarray, i1: np.ndarray) -> np.ndarray:
+def _pieces(vs: np.ndarray, i0: Sequence[int], i1: Sequence[int]) -> np.ndarray:
     """Rows ``vs[i0[k]:i1[k]]`` of every span k of an interval, in time order."""
-    parts = [vs[a:b] for a, b in zip(i0.tolist(), i1.tolist())]
+    parts = [vs[a:b] for a, b in zip(i0, i1)]
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
@@ -625,28 +670,41 @@ def _intervals(groups: Sequence[Sequence[tuple[int, int]]], ref: _Reference,
     the still spans of its group: the reference (None in ``accels``) its samples of the spans,
     the other accelerometers and the compasses theirs whose time (sorted) lies within half a
     sample period of a span (the same time mask for every sensor; one sorted search per
-    sensor for all spans); the motion between merged spans is in no sensor's samples."""
+    sensor for all spans); the motion between merged spans is in no sensor's samples.
+
+    The means are those of ``ndarray.mean`` (``add.reduce`` over the rows, divided by their
+    count), the unit vectors those of :func:`_unit`."""
     t, a, dt = ref.t, ref.a, ref.dt
     edges = np.array([sp for spans in groups for sp in spans], dtype=np.int64).reshape(-1, 2)
     lo, hi = t[edges[:, 0]] - dt / 2, t[edges[:, 1] - 1] + dt / 2
-    first = np.cumsum([0] + [len(spans) for spans in groups])
-    rows = {("a", inst): (tv[1], np.searchsorted(tv[0], lo, side="left"), np.searchsorted(tv[0], hi, side="right"))
-            for inst, tv in accels.items() if tv is not None}
-    rows.update({("m", inst): (vs, np.searchsorted(ts, lo, side="left"), np.searchsorted(ts, hi, side="right"))
+    t_first, t_last = t[edges[:, 0]].tolist(), t[edges[:, 1] - 1].tolist()
+    rows: dict[tuple[str, int], tuple[np.ndarray, list[int], list[int]]] = {
+        ("a", inst): (tv[1], np.searchsorted(tv[0], lo, side="left").tolist(),
+                      np.searchsorted(tv[0], hi, side="right").tolist())
+        for inst, tv in accels.items() if tv is not None}
+    rows.update({("m", inst): (vs, np.searchsorted(ts, lo, side="left").tolist(),
+                               np.searchsorted(ts, hi, side="right").tolist())
                  for inst, (ts, vs) in mags.items()})
+    keys = [("a", inst) if tv is not None else None for inst, tv in accels.items()]
     out: list[StillInterval] = []
-    for g, spans in enumerate(groups):
-        k = slice(first[g], first[g + 1])
-        a_ref = a[spans[0][0]:spans[0][1]] if len(spans) == 1 else np.concatenate([a[s0:s1] for s0, s1 in spans])
-        am = {inst: a_ref if tv is None else _pieces(rows["a", inst][0], rows["a", inst][1][k], rows["a", inst][2][k])
-              for inst, tv in accels.items()}
-        mm = {inst: _pieces(rows["m", inst][0], rows["m", inst][1][k], rows["m", inst][2][k]) for inst in mags}
+    k0 = 0
+    for spans in groups:
+        k1 = k0 + len(spans)
+        if len(spans) == 1:
+            a_ref = a[spans[0][0]:spans[0][1]]
+            cut = {key: vs[i0[k0]:i1[k0]] for key, (vs, i0, i1) in rows.items()}
+        else:
+            a_ref = np.concatenate([a[s0:s1] for s0, s1 in spans])
+            cut = {key: _pieces(vs, i0[k0:k1], i1[k0:k1]) for key, (vs, i0, i1) in rows.items()}
+        am = {inst: a_ref if key is None else cut[key] for inst, key in zip(accels, keys)}
+        mm = {inst: cut["m", inst] for inst in mags}
         field = None
         if mag0 is not None and len(mm[mag0]):
-            field = _unit(mm[mag0].mean(axis=0))
-        pieces = tuple((float(t[s0]), float(t[s1 - 1])) for s0, s1 in spans)
-        out.append(StillInterval(pieces[0][0], pieces[-1][1], am, mm, _unit(R_b @ a_ref.mean(axis=0)), field, dt,
-                                 pieces))
+            field = _unit(np.add.reduce(mm[mag0], axis=0) / len(mm[mag0]))
+        pieces = tuple(zip(t_first[k0:k1], t_last[k0:k1]))
+        out.append(StillInterval(pieces[0][0], pieces[-1][1], am, mm,
+                                 _unit(R_b @ (np.add.reduce(a_ref, axis=0) / len(a_ref))), field, dt, pieces))
+        k0 = k1
     return out
 
 
@@ -679,7 +737,7 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     accel, mag, gyro = _collect(data)
     accel = [s for s in accel if len(s)]
     mag = [s for s in mag if len(s)]
-    gyro = [s for s in gyro if len(s) and np.any(s.values != 0.0)]
+    gyro = [s for s in gyro if len(s) and (np.count_nonzero(s.values[:64]) or np.count_nonzero(s.values))]
     if not accel:
         raise SegmentationError("no accelerometer data: still intervals cannot be detected")
     if board_rotation is None:

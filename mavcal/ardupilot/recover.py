@@ -376,22 +376,26 @@ def _undo_accel_into(out: np.ndarray, cal: fw.AccelCal, v: np.ndarray, calibrati
     """``out[i] = undo_accel(cal, v[i], calibrating=calibrating[i])`` (``None``: calibrating everywhere),
     a chunk of rows at a time; each chunk computes only the interpretation its rows need (the
     same row-wise arithmetic, so the values are those of one call on all rows)."""
+    scratch = np.empty((min(_CHUNK_ROWS, len(v)), 3))
     for i in range(0, len(v), _CHUNK_ROWS):
         j = i + _CHUNK_ROWS
         c = None if calibrating is None else calibrating[i:j]
         if c is None or c.all():
-            out[i:j] = fw.undo_accel(cal, v[i:j], calibrating=True)
+            out[i:j] = fw.undo_accel(cal, v[i:j], calibrating=True, out=scratch[:len(v[i:j])])
         elif not c.any():
-            out[i:j] = fw.undo_accel(cal, v[i:j])
+            out[i:j] = fw.undo_accel(cal, v[i:j], out=scratch[:len(v[i:j])])
         else:
             out[i:j] = np.where(c[:, None], fw.undo_accel(cal, v[i:j], calibrating=True), fw.undo_accel(cal, v[i:j]))
 
 
 def _undo_compass_into(out: np.ndarray, cal: fw.CompassCal, v: np.ndarray, motor: np.ndarray | None) -> None:
-    """``out = undo_compass(cal, v, motor)``, a chunk of rows at a time (row-wise arithmetic)."""
+    """``out = undo_compass(cal, v, motor)``, a chunk of rows at a time (row-wise arithmetic), each
+    worked out in one reused (cached) buffer and copied once into ``out``, whose fresh pages are
+    slow to touch more than once."""
+    scratch = np.empty((min(_CHUNK_ROWS, len(v)), 3))
     for i in range(0, len(v), _CHUNK_ROWS):
         j = i + _CHUNK_ROWS
-        out[i:j] = fw.undo_compass(cal, v[i:j], None if motor is None else motor[i:j])
+        out[i:j] = fw.undo_compass(cal, v[i:j], None if motor is None else motor[i:j], out=scratch[:len(v[i:j])])
 
 
 def _in_periods(t: np.ndarray, periods: Sequence[tuple[float, float]]) -> np.ndarray:
@@ -480,7 +484,7 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
             continue
         mag_out.append(_recover_mag(log_.params, s, events, used, warnings))
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
-                 and not (drop_zero_series and not np.any(g.values != 0.0)))
+                 and not (drop_zero_series and not _any_nonzero(g.values)))
     for w in warnings:
         log.warning("%s", w)
     return RawImu(
@@ -497,11 +501,17 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
     )
 
 
+def _any_nonzero(x: np.ndarray) -> bool:
+    """``np.any(x != 0.0)`` (NaN counts as non-zero), looking at the first rows first: a real
+    series shows a non-zero value at once, and only an all-zero one is read to its end."""
+    return bool(np.count_nonzero(x[:64])) or bool(np.count_nonzero(x))
+
+
 def _usable(s: SensorSeries | None, sensor: str, drop_zero: bool, warnings: list[str]) -> SensorSeries | None:
     """The series, or None when it is empty or (``drop_zero``) all zero (with a warning)."""
     if s is None or len(s) == 0:
         return None
-    if drop_zero and not np.any(s.values != 0.0):
+    if drop_zero and not _any_nonzero(s.values):
         what = "no such IMU" if sensor == "accel" else "no such compass"
         warnings.append(f"{sensor} {s.instance} ({s.message}) is all zero ({what}); dropped")
         return None
@@ -568,7 +578,9 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
     if w:
         warnings.append(w)
     warnings += _unusable_warning(f"accel {inst}", unusable)
-    return _with_known(s, out, {**dict(s.extra), "calibrating": calib.astype(float)}, left_out)
+    # (no calibration in the data, the usual case: zeros that need not be written)
+    flags = calib.astype(float) if calib.any() else np.zeros(len(calib))
+    return _with_known(s, out, {**dict(s.extra), "calibrating": flags}, left_out)
 
 
 def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.ChangeEvent],
