@@ -21,13 +21,14 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, body_vectors, max_errors_deg
+from mavcal.ardupilot.evaluate import GridErrors, attitude_errors, attitude_grid, body_vectors
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel
-from mavcal.core.calibrate import calibrate, estimate_orientations
+from mavcal.core.calibrate import calibrate
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import MODELS
-from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
+from mavcal.core.reconstruct import orientations_from_means
+from mavcal.core.stats import IntervalStats, interval_means, interval_stats, stats_subset
 from mavcal.core.types import Calibration
 from mavcal.core.uncertainty import sample_parameters
 from mavcal.errors import MavcalError
@@ -131,9 +132,11 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
                  B_ned: np.ndarray, grid: np.ndarray) -> tuple[list[float], list[float]]:
     """Max heading and max tilt error over ``grid`` for every draw: what
     :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
-    ``DRAW_CHUNK`` draws at a time by :func:`mavcal.ardupilot.evaluate.max_errors_deg`."""
+    ``DRAW_CHUNK`` draws at a time by :func:`mavcal.ardupilot.evaluate.max_errors_deg` (its
+    :class:`~mavcal.ardupilot.evaluate.GridErrors`, the grid's truth once for all chunks)."""
     M = len(grid)
     f_body, B_body = body_vectors(grid, B_ned)
+    max_errors = GridErrors(am.new, cm.new, B_ned, grid)
     hs: list[float] = []
     ts: list[float] = []
     for c0 in range(0, len(draws), DRAW_CHUNK):
@@ -144,7 +147,7 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
             ra, rm = truth_functions(d["K_a"], d["b_a"], d["K_m"], d["b_m"], d["h"], board_rot,
                                      cm.old.mount_matrix, cm.field_mgauss)
             raw_a[k], raw_m[k] = ra(f_body), rm(B_body)
-        h, t = max_errors_deg(raw_a, raw_m, am.new, cm.new, B_ned, grid)
+        h, t = max_errors(raw_a, raw_m)
         hs += [float(x) for x in h]
         ts += [float(x) for x in t]
     return hs, ts
@@ -184,26 +187,27 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     gate does not read.
 
     ``stats``: the accelerometer's and compass's :func:`~mavcal.core.stats.interval_stats` of
-    these intervals with ``per_interval=True`` (e.g. the fit's own), used when the refits
-    draw on all of them instead of computing them again (the same numbers).
+    these intervals with ``per_interval=True`` (e.g. the fit's own): each refit's statistics
+    are then taken from them (:func:`~mavcal.core.stats.stats_subset`, O(pool)) instead of
+    from the readings. Where the refits use all N intervals (N <= ``HOLDOUT_POOL_MAX``) these
+    are the same numbers; on longer logs they equal the pool's own statistics up to rounding
+    (the means centred on all the readings rather than the pool's, the scatter summed
+    interval by interval).
     """
 
     N = len(acc)
     if N - 1 < MODELS[cal.model].min_intervals:
         return float("nan"), float("nan")
-    dirs = np.array([a.mean(0) for a in acc])
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    acc = [np.asarray(a, dtype=float) for a in acc]
+    mag = [np.asarray(m, dtype=float) for m in mag]
+    mu_a = interval_means(acc)  # each interval's mean once (the directions, the predictions' targets)
+    dirs = mu_a / np.linalg.norm(mu_a, axis=1, keepdims=True)
     ea, em = [], []
     folds = holdout_folds(dirs, cluster_deg=cluster_deg)
     if not folds:
         return float("nan"), float("nan")
-    pool, at = pool_index(folds, N)  # the pool's statistics once; each refit's from them in O(pool)
     try:
-        if stats is not None and len(pool) == N:
-            sa, sm = stats
-        else:
-            sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
-            sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
+        sa, sm, at = _refit_stats(acc, mag, folds, noise_floor, stats)
     except MavcalError:
         return float("nan"), float("nan")
     for keep, pred in folds:
@@ -212,12 +216,29 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
                            method=method, tol=tol, seed=seed, model=cal.model, start=cal)
         except MavcalError:
             continue
-        Rs = estimate_orientations(cj, [acc[j] for j in pred], [mag[j] for j in pred])
-        for j, R in zip(pred, Rs):
+        mu_m = interval_means([mag[j] for j in pred])
+        Rs = orientations_from_means(cj, mu_a[pred], np.array([len(acc[j]) for j in pred], dtype=float),
+                                     mu_m, np.array([len(mag[j]) for j in pred], dtype=float))
+        for j, R, mj in zip(pred, Rs, mu_m):
             pa = cj.accel.gain @ R @ cj.gravity + cj.accel.bias
             pm = cj.mag.gain @ R @ cj.field + cj.mag.bias
-            ea.append(np.linalg.norm(acc[j].mean(0) - pa))
-            em.append(np.linalg.norm(mag[j].mean(0) - pm))
+            ea.append(np.linalg.norm(mu_a[j] - pa))
+            em.append(np.linalg.norm(mj - pm))
     if not ea:
         return float("nan"), float("nan")
     return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))
+
+
+def _refit_stats(acc: list[np.ndarray], mag: list[np.ndarray], folds: list[tuple[np.ndarray, np.ndarray]],
+                 noise_floor: tuple[float | None, float | None],
+                 stats: tuple[IntervalStats, IntervalStats] | None) -> tuple[IntervalStats, IntervalStats, np.ndarray]:
+    """The statistics the refits of ``folds`` take their subsets from, and the position of each
+    of the N intervals in them: ``stats`` (all N) when given with their per-interval scatter,
+    else those of the pool of intervals the folds use, computed from the readings."""
+    N = len(acc)
+    if stats is not None and stats[0].interval_scatter is not None and stats[1].interval_scatter is not None:
+        return stats[0], stats[1], np.arange(N)
+    pool, at = pool_index(folds, N)
+    sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
+    sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
+    return sa, sm, at
