@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import GridErrors, attitude_errors, attitude_grid, body_vectors
+from mavcal.ardupilot.evaluate import GridErrors, attitude_errors, attitude_grid
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel
 from mavcal.core.calibrate import calibrate
@@ -132,22 +132,21 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
                  B_ned: np.ndarray, grid: np.ndarray) -> tuple[list[float], list[float]]:
     """Max heading and max tilt error over ``grid`` for every draw: what
     :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
-    ``DRAW_CHUNK`` draws at a time by :func:`mavcal.ardupilot.evaluate.max_errors_deg` (its
-    :class:`~mavcal.ardupilot.evaluate.GridErrors`, the grid's truth once for all chunks)."""
-    M = len(grid)
-    f_body, B_body = body_vectors(grid, B_ned)
+    ``DRAW_CHUNK`` draws at a time by :class:`mavcal.ardupilot.evaluate.GridErrors` (the grid's
+    truth once for all chunks, the accelerometer's readings at its distinct specific forces)."""
     max_errors = GridErrors(am.new, cm.new, B_ned, grid)
+    f_unique, B_body = max_errors.f_unique, max_errors.B_body
     hs: list[float] = []
     ts: list[float] = []
     for c0 in range(0, len(draws), DRAW_CHUNK):
         chunk = draws[c0:c0 + DRAW_CHUNK]
-        raw_a = np.empty((len(chunk), M, 3))
-        raw_m = np.empty((len(chunk), M, 3))
+        raw_a = np.empty((len(chunk), len(f_unique), 3))
+        raw_m = np.empty((len(chunk), len(B_body), 3))
         for k, d in enumerate(chunk):
             ra, rm = truth_functions(d["K_a"], d["b_a"], d["K_m"], d["b_m"], d["h"], board_rot,
                                      cm.old.mount_matrix, cm.field_mgauss)
-            raw_a[k], raw_m[k] = ra(f_body), rm(B_body)
-        h, t = max_errors(raw_a, raw_m)
+            raw_a[k], raw_m[k] = ra(f_unique), rm(B_body)
+        h, t = max_errors.at_unique(raw_a, raw_m)
         hs += [float(x) for x in h]
         ts += [float(x) for x in t]
     return hs, ts

@@ -102,6 +102,7 @@ def test_grid_errors_equal_attitude_errors_batch_after_batch():
     acal = fw.AccelCal(ofs_mps2=(0.1, -0.05, 0.2), scale=(1.01, 0.99, 1.0))
     ccal = fw.CompassCal(ofs_mgauss=(20.0, -10.0, 5.0), dia=(1.02, 0.98, 1.0), odi=(0.01, 0.0, -0.02))
     evaluate = GridErrors(acal, ccal, B_ned, grid)
+    assert len(evaluate.f_unique) == 49 and len(grid) == 1176  # every yaw of 7 x 7 roll/pitch
     D = 5
     for _ in range(3):  # one evaluator, batch after batch
         Ka = [np.eye(3) + 0.02 * rng.normal(size=(3, 3)) for _ in range(D)]
@@ -111,6 +112,10 @@ def test_grid_errors_equal_attitude_errors_batch_after_batch():
         raw_m = np.array([B_body @ Km[k].T + bm[k] for k in range(D)])
         h, t = evaluate(raw_a, raw_m)
         h2, t2 = max_errors_deg(raw_a, raw_m, acal, ccal, B_ned, grid)
+        raw_u = np.array([evaluate.f_unique @ Ka[k].T + ba[k] for k in range(D)])  # at the distinct forces only
+        h3, t3 = evaluate.at_unique(raw_u, raw_m)
+        np.testing.assert_array_equal(h3, h)
+        np.testing.assert_array_equal(t3, t)
         for k in range(D):
             e = attitude_errors(lambda f, K=Ka[k], b=ba[k]: f @ K.T + b,
                                 lambda B, K=Km[k], b=bm[k]: B @ K.T + b, acal, ccal, B_ned, grid)
