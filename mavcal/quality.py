@@ -77,14 +77,22 @@ def truth_functions(K_a: np.ndarray, b_a: np.ndarray, K_m: np.ndarray, b_m: np.n
 
 
 def _max_tilt_deg(K_a: np.ndarray, b_a: np.ndarray, written: fw.AccelCal, board_rot: np.ndarray,
-                  f_body: np.ndarray) -> float:
-    """Largest angle between the specific force ``f_body`` and what ``written`` makes of the
-    readings ``K_a R g + b_a`` (paper Eq. ``sensor_reading_model``) of that force."""
-    _, _, P = accel_frame(K_a)
-    to_E = (board_rot @ P).T
-    a = fw.apply_accel(written, (f_body @ to_E.T / GRAVITY_MPS2) @ K_a.T + b_a)
-    cos_t = np.sum(a * f_body, 1) / (np.linalg.norm(a, axis=1) * GRAVITY_MPS2)
-    return float(np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0))).max())
+                  f_body: np.ndarray) -> np.ndarray:
+    """Largest angle between the specific force ``f_body`` (M, 3) and what ``written`` makes of
+    the readings ``K_a R g + b_a`` (paper Eq. ``sensor_reading_model``) of that force, for each
+    of D accelerometer models ``K_a`` (D, 3, 3), ``b_a`` (D, 3) at once: (D,) degrees, each
+    to the last bit what the model alone gives (row-by-row arithmetic, the dot product and norm
+    summed x + y + z in that order as ``np.sum(axis=1)`` and ``np.linalg.norm`` do)."""
+    D, M = len(K_a), len(f_body)
+    to_E_T = np.empty((D, 3, 3))
+    for k in range(D):
+        to_E_T[k] = board_rot @ accel_frame(K_a[k])[2]  # (engine -> body)^T
+    raw = (f_body @ to_E_T / GRAVITY_MPS2) @ np.swapaxes(K_a, 1, 2) + b_a[:, None]
+    a = fw.apply_accel(written, raw.reshape(-1, 3))
+    a0, a1, a2 = a[:, 0].reshape(D, M), a[:, 1].reshape(D, M), a[:, 2].reshape(D, M)
+    cos_t = (a0 * f_body[:, 0] + a1 * f_body[:, 1] + a2 * f_body[:, 2]) / (
+        np.sqrt(a0 * a0 + a1 * a1 + a2 * a2) * GRAVITY_MPS2)
+    return np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0))).max(axis=1)
 
 
 def accel_tilt_bounds(fit: AccelFit, am: AccelMapping, draws: int, seed: int) -> tuple[float, float]:
@@ -95,10 +103,12 @@ def accel_tilt_bounds(fit: AccelFit, am: AccelMapping, draws: int, seed: int) ->
     C = grid[::int(round(360 / 15))]  # yaw 0 of every roll/pitch
     f_body = np.swapaxes(C, 1, 2) @ np.array([0.0, 0.0, -GRAVITY_MPS2])
     board = am.old.board_matrix
-    nominal = _max_tilt_deg(fit.gain, fit.bias, am.new, board, f_body)
-    ts = [_max_tilt_deg(K, b, am.new, board, f_body) for K, b in sample_accel(fit, draws,
-                                                                               np.random.default_rng(seed))]
-    return (float(np.percentile(ts, 95)) if ts else nominal), nominal
+    nominal = float(_max_tilt_deg(fit.gain[None], np.asarray(fit.bias, float)[None], am.new, board, f_body)[0])
+    sampled = sample_accel(fit, draws, np.random.default_rng(seed))
+    if not sampled:
+        return nominal, nominal
+    ts = _max_tilt_deg(np.array([K for K, _ in sampled]), np.array([b for _, b in sampled]), am.new, board, f_body)
+    return float(np.percentile(ts, 95)), nominal
 
 
 def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,

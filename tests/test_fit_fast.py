@@ -158,3 +158,80 @@ def test_k_fold_holdout_above_the_pool_takes_subsets_of_the_fit_statistics(monke
     sub = stats_subset(full, np.arange(0, len(acc), 3), "accel_sets")
     own = orig([acc[i] for i in range(0, len(acc), 3)], "accel_sets")
     np.testing.assert_allclose(sub.sigma_hat, own.sigma_hat, rtol=1e-10, atol=1e-18)
+
+
+def _reference_draws(cal, n, rng):
+    """sample_parameters as it was written before: one dict per draw, entry by entry."""
+    from mavcal.core.models import MODELS
+    from mavcal.core.uncertainty import parameter_vector
+
+    theta = parameter_vector(cal)
+    C = np.asarray(cal.param_cov)
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    draws = theta + rng.standard_normal((n, len(theta))) @ (V * np.sqrt(np.maximum(w, 0.0))).T
+    spec = MODELS[cal.model]
+    forms = {"K_a": spec.accel_form, "K_m": spec.mag_form}
+    out = []
+    for th in draws:
+        d = {"K_a": np.array(cal.accel.gain), "b_a": np.array(cal.accel.bias), "K_m": np.array(cal.mag.gain),
+             "b_m": np.array(cal.mag.bias), "h": np.array(cal.field)}
+        for name, val in zip(cal.param_names, th):
+            val = float(val)
+            sym, lab = (name.split("[") + [""])[:2]
+            lab = lab.rstrip("]")
+            if name == "h_z":
+                d["h"][2] = val
+            elif sym in ("K_a", "K_m") and lab == "s":
+                d[sym][:] = val * np.eye(3)
+            elif sym in ("K_a", "K_m"):
+                r, c = int(lab[0]) - 1, int(lab[1]) - 1
+                d[sym][r, c] = val
+                if forms[sym] == "sym":
+                    d[sym][c, r] = val
+            else:
+                d[sym]["xyz".index(lab)] = val
+        out.append(d)
+    return out
+
+
+@pytest.mark.parametrize("model", ["full", "diag-accel", "ardupilot", "offsets-scales"])
+def test_sample_parameters_equal_the_draw_by_draw_assignment(model):
+    from mavcal.core.uncertainty import sample_parameters
+
+    sim = simulate(14, seed=2, samples=(50, 80))
+    cal = C.calibrate(sim.accel_sets, sim.mag_sets, seed=0, model=model)
+    got = sample_parameters(cal, 23, np.random.default_rng(9))
+    ref = _reference_draws(cal, 23, np.random.default_rng(9))
+    assert len(got) == len(ref) == 23
+    for g, r in zip(got, ref):
+        assert g.keys() == r.keys()
+        for k in r:
+            np.testing.assert_array_equal(g[k], r[k])
+    assert sample_parameters(cal, 0, np.random.default_rng(9)) == []
+
+
+def test_accel_tilt_bounds_equal_the_draw_by_draw_form():
+    """The accelerometer's tilt bound from all its draws at once equals, to the bit, the former
+    per-draw evaluation (spelled out here)."""
+    from mavcal.ardupilot import firmware as fw
+    from mavcal.ardupilot.evaluate import attitude_grid
+    from mavcal.ardupilot.mapping import accel_frame, map_accel
+    from mavcal.core.accel_fit import fit_accel, sample_accel
+    from mavcal.core.constants import GRAVITY_MPS2
+    from mavcal.quality import accel_tilt_bounds
+
+    sim = simulate(20, seed=6, samples=(50, 80))
+    fit = fit_accel(sim.accel_sets)
+    am = map_accel(fit.gain, fit.bias, fw.AccelCal(board_orient=2), 0)
+    f_body = np.swapaxes(attitude_grid()[::24], 1, 2) @ np.array([0.0, 0.0, -GRAVITY_MPS2])
+    board = am.old.board_matrix
+
+    def one(K, b):
+        to_E = (board @ accel_frame(K)[2]).T
+        a = fw.apply_accel(am.new, (f_body @ to_E.T / GRAVITY_MPS2) @ K.T + b)
+        cos_t = np.sum(a * f_body, 1) / (np.linalg.norm(a, axis=1) * GRAVITY_MPS2)
+        return float(np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0))).max())
+
+    ts = [one(K, b) for K, b in sample_accel(fit, 57, np.random.default_rng(4))]
+    assert accel_tilt_bounds(fit, am, 57, 4) == (float(np.percentile(ts, 95)), one(fit.gain, fit.bias))
+    assert accel_tilt_bounds(fit, am, 0, 4) == (one(fit.gain, fit.bias),) * 2
