@@ -228,11 +228,10 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
         mu_m = interval_means([mag[j] for j in pred])
         Rs = orientations_from_means(cj, mu_a[pred], np.array([len(acc[j]) for j in pred], dtype=float),
                                      mu_m, np.array([len(mag[j]) for j in pred], dtype=float))
-        for j, R, mj in zip(pred, Rs, mu_m):
-            pa = cj.accel.gain @ R @ cj.gravity + cj.accel.bias
-            pm = cj.mag.gain @ R @ cj.field + cj.mag.bias
-            ea.append(np.linalg.norm(mu_a[j] - pa))
-            em.append(np.linalg.norm(mj - pm))
+        pa = cj.accel.gain @ Rs @ cj.gravity + cj.accel.bias  # K R_j g + b, interval by interval
+        pm = cj.mag.gain @ Rs @ cj.field + cj.mag.bias
+        ea += [np.linalg.norm(d) for d in mu_a[pred] - pa]  # a vector norm each (its own rounding)
+        em += [np.linalg.norm(d) for d in mu_m - pm]
     if not ea:
         return float("nan"), float("nan")
     return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))
