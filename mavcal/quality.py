@@ -21,13 +21,14 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid, body_vectors, max_errors_deg
+from mavcal.ardupilot.evaluate import GridErrors, attitude_errors, attitude_grid
 from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel
-from mavcal.core.calibrate import calibrate, estimate_orientations
+from mavcal.core.calibrate import calibrate
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import MODELS
-from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
+from mavcal.core.reconstruct import orientations_from_means
+from mavcal.core.stats import IntervalStats, interval_means, interval_stats, stats_subset
 from mavcal.core.types import Calibration
 from mavcal.core.uncertainty import sample_parameters
 from mavcal.errors import MavcalError
@@ -76,14 +77,22 @@ def truth_functions(K_a: np.ndarray, b_a: np.ndarray, K_m: np.ndarray, b_m: np.n
 
 
 def _max_tilt_deg(K_a: np.ndarray, b_a: np.ndarray, written: fw.AccelCal, board_rot: np.ndarray,
-                  f_body: np.ndarray) -> float:
-    """Largest angle between the specific force ``f_body`` and what ``written`` makes of the
-    readings ``K_a R g + b_a`` (paper Eq. ``sensor_reading_model``) of that force."""
-    _, _, P = accel_frame(K_a)
-    to_E = (board_rot @ P).T
-    a = fw.apply_accel(written, (f_body @ to_E.T / GRAVITY_MPS2) @ K_a.T + b_a)
-    cos_t = np.sum(a * f_body, 1) / (np.linalg.norm(a, axis=1) * GRAVITY_MPS2)
-    return float(np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0))).max())
+                  f_body: np.ndarray) -> np.ndarray:
+    """Largest angle between the specific force ``f_body`` (M, 3) and what ``written`` makes of
+    the readings ``K_a R g + b_a`` (paper Eq. ``sensor_reading_model``) of that force, for each
+    of D accelerometer models ``K_a`` (D, 3, 3), ``b_a`` (D, 3) at once: (D,) degrees, each
+    to the last bit what the model alone gives (row-by-row arithmetic, the dot product and norm
+    summed x + y + z in that order as ``np.sum(axis=1)`` and ``np.linalg.norm`` do)."""
+    D, M = len(K_a), len(f_body)
+    to_E_T = np.empty((D, 3, 3))
+    for k in range(D):
+        to_E_T[k] = board_rot @ accel_frame(K_a[k])[2]  # (engine -> body)^T
+    raw = (f_body @ to_E_T / GRAVITY_MPS2) @ np.swapaxes(K_a, 1, 2) + b_a[:, None]
+    a = fw.apply_accel(written, raw.reshape(-1, 3))
+    a0, a1, a2 = a[:, 0].reshape(D, M), a[:, 1].reshape(D, M), a[:, 2].reshape(D, M)
+    cos_t = (a0 * f_body[:, 0] + a1 * f_body[:, 1] + a2 * f_body[:, 2]) / (
+        np.sqrt(a0 * a0 + a1 * a1 + a2 * a2) * GRAVITY_MPS2)
+    return np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0))).max(axis=1)
 
 
 def accel_tilt_bounds(fit: AccelFit, am: AccelMapping, draws: int, seed: int) -> tuple[float, float]:
@@ -94,10 +103,12 @@ def accel_tilt_bounds(fit: AccelFit, am: AccelMapping, draws: int, seed: int) ->
     C = grid[::int(round(360 / 15))]  # yaw 0 of every roll/pitch
     f_body = np.swapaxes(C, 1, 2) @ np.array([0.0, 0.0, -GRAVITY_MPS2])
     board = am.old.board_matrix
-    nominal = _max_tilt_deg(fit.gain, fit.bias, am.new, board, f_body)
-    ts = [_max_tilt_deg(K, b, am.new, board, f_body) for K, b in sample_accel(fit, draws,
-                                                                               np.random.default_rng(seed))]
-    return (float(np.percentile(ts, 95)) if ts else nominal), nominal
+    nominal = float(_max_tilt_deg(fit.gain[None], np.asarray(fit.bias, float)[None], am.new, board, f_body)[0])
+    sampled = sample_accel(fit, draws, np.random.default_rng(seed))
+    if not sampled:
+        return nominal, nominal
+    ts = _max_tilt_deg(np.array([K for K, _ in sampled]), np.array([b for _, b in sampled]), am.new, board, f_body)
+    return float(np.percentile(ts, 95)), nominal
 
 
 def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
@@ -131,20 +142,21 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
                  B_ned: np.ndarray, grid: np.ndarray) -> tuple[list[float], list[float]]:
     """Max heading and max tilt error over ``grid`` for every draw: what
     :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
-    ``DRAW_CHUNK`` draws at a time by :func:`mavcal.ardupilot.evaluate.max_errors_deg`."""
-    M = len(grid)
-    f_body, B_body = body_vectors(grid, B_ned)
+    ``DRAW_CHUNK`` draws at a time by :class:`mavcal.ardupilot.evaluate.GridErrors` (the grid's
+    truth once for all chunks, the accelerometer's readings at its distinct specific forces)."""
+    max_errors = GridErrors(am.new, cm.new, B_ned, grid)
+    f_unique, B_body = max_errors.f_unique, max_errors.B_body
     hs: list[float] = []
     ts: list[float] = []
     for c0 in range(0, len(draws), DRAW_CHUNK):
         chunk = draws[c0:c0 + DRAW_CHUNK]
-        raw_a = np.empty((len(chunk), M, 3))
-        raw_m = np.empty((len(chunk), M, 3))
+        raw_a = np.empty((len(chunk), len(f_unique), 3))
+        raw_m = np.empty((len(chunk), len(B_body), 3))
         for k, d in enumerate(chunk):
             ra, rm = truth_functions(d["K_a"], d["b_a"], d["K_m"], d["b_m"], d["h"], board_rot,
                                      cm.old.mount_matrix, cm.field_mgauss)
-            raw_a[k], raw_m[k] = ra(f_body), rm(B_body)
-        h, t = max_errors_deg(raw_a, raw_m, am.new, cm.new, B_ned, grid)
+            raw_a[k], raw_m[k] = ra(f_unique), rm(B_body)
+        h, t = max_errors.at_unique(raw_a, raw_m)
         hs += [float(x) for x in h]
         ts += [float(x) for x in t]
     return hs, ts
@@ -184,26 +196,27 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     gate does not read.
 
     ``stats``: the accelerometer's and compass's :func:`~mavcal.core.stats.interval_stats` of
-    these intervals with ``per_interval=True`` (e.g. the fit's own), used when the refits
-    draw on all of them instead of computing them again (the same numbers).
+    these intervals with ``per_interval=True`` (e.g. the fit's own): each refit's statistics
+    are then taken from them (:func:`~mavcal.core.stats.stats_subset`, O(pool)) instead of
+    from the readings. Where the refits use all N intervals (N <= ``HOLDOUT_POOL_MAX``) these
+    are the same numbers; on longer logs they equal the pool's own statistics up to rounding
+    (the means centred on all the readings rather than the pool's, the scatter summed
+    interval by interval).
     """
 
     N = len(acc)
     if N - 1 < MODELS[cal.model].min_intervals:
         return float("nan"), float("nan")
-    dirs = np.array([a.mean(0) for a in acc])
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    acc = [np.asarray(a, dtype=float) for a in acc]
+    mag = [np.asarray(m, dtype=float) for m in mag]
+    mu_a = interval_means(acc)  # each interval's mean once (the directions, the predictions' targets)
+    dirs = mu_a / np.linalg.norm(mu_a, axis=1, keepdims=True)
     ea, em = [], []
     folds = holdout_folds(dirs, cluster_deg=cluster_deg)
     if not folds:
         return float("nan"), float("nan")
-    pool, at = pool_index(folds, N)  # the pool's statistics once; each refit's from them in O(pool)
     try:
-        if stats is not None and len(pool) == N:
-            sa, sm = stats
-        else:
-            sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
-            sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
+        sa, sm, at = _refit_stats(acc, mag, folds, noise_floor, stats)
     except MavcalError:
         return float("nan"), float("nan")
     for keep, pred in folds:
@@ -212,12 +225,28 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
                            method=method, tol=tol, seed=seed, model=cal.model, start=cal)
         except MavcalError:
             continue
-        Rs = estimate_orientations(cj, [acc[j] for j in pred], [mag[j] for j in pred])
-        for j, R in zip(pred, Rs):
-            pa = cj.accel.gain @ R @ cj.gravity + cj.accel.bias
-            pm = cj.mag.gain @ R @ cj.field + cj.mag.bias
-            ea.append(np.linalg.norm(acc[j].mean(0) - pa))
-            em.append(np.linalg.norm(mag[j].mean(0) - pm))
+        mu_m = interval_means([mag[j] for j in pred])
+        Rs = orientations_from_means(cj, mu_a[pred], np.array([len(acc[j]) for j in pred], dtype=float),
+                                     mu_m, np.array([len(mag[j]) for j in pred], dtype=float))
+        pa = cj.accel.gain @ Rs @ cj.gravity + cj.accel.bias  # K R_j g + b, interval by interval
+        pm = cj.mag.gain @ Rs @ cj.field + cj.mag.bias
+        ea += [np.linalg.norm(d) for d in mu_a[pred] - pa]  # a vector norm each (its own rounding)
+        em += [np.linalg.norm(d) for d in mu_m - pm]
     if not ea:
         return float("nan"), float("nan")
     return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))
+
+
+def _refit_stats(acc: list[np.ndarray], mag: list[np.ndarray], folds: list[tuple[np.ndarray, np.ndarray]],
+                 noise_floor: tuple[float | None, float | None],
+                 stats: tuple[IntervalStats, IntervalStats] | None) -> tuple[IntervalStats, IntervalStats, np.ndarray]:
+    """The statistics the refits of ``folds`` take their subsets from, and the position of each
+    of the N intervals in them: ``stats`` (all N) when given with their per-interval scatter,
+    else those of the pool of intervals the folds use, computed from the readings."""
+    N = len(acc)
+    if stats is not None and stats[0].interval_scatter is not None and stats[1].interval_scatter is not None:
+        return stats[0], stats[1], np.arange(N)
+    pool, at = pool_index(folds, N)
+    sa = interval_stats([acc[i] for i in pool], "accel_sets", noise_floor=noise_floor[0], per_interval=True)
+    sm = interval_stats([mag[i] for i in pool], "mag_sets", noise_floor=noise_floor[1], per_interval=True)
+    return sa, sm, at

@@ -109,16 +109,56 @@ def max_errors_deg(raw_accel: np.ndarray, raw_mag_sensor: np.ndarray, accel_cal:
     ``raw_accel`` / ``raw_mag_sensor`` (D, M, 3) are the raw readings of the D truths at the
     grid's specific force and field (:func:`body_vectors`).
     Returns (D,) arrays, equal to the last bit to ``attitude_errors``' ``max_heading_deg`` /
-    ``max_tilt_deg`` truth by truth; what does not depend on the truth is computed once."""
-    D, M = raw_accel.shape[:2]
-    f_body, B_body = body_vectors(grid, field_ned_mgauss)
-    h_true = _heading((_level_from_accel(f_body) @ B_body[..., None])[..., 0])
-    a = fw.apply_accel(accel_cal, raw_accel.reshape(-1, 3))
-    m = fw.apply_compass(compass_cal, raw_mag_sensor.reshape(-1, 3), sensor_frame=True)
-    dh = _wrap_deg(_heading((_level_from_accel(a) @ m[..., None])[..., 0]) - np.tile(h_true, D))
-    cos_t = np.sum(a * np.tile(f_body, (D, 1)), 1) / (np.linalg.norm(a, axis=1) * G0)
-    tilt = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
-    return np.abs(dh).reshape(D, M).max(axis=1), tilt.reshape(D, M).max(axis=1)
+    ``max_tilt_deg`` truth by truth; what does not depend on the truth is computed once
+    (:class:`GridErrors`, which evaluates many batches against one grid)."""
+    return GridErrors(accel_cal, compass_cal, field_ned_mgauss, grid)(raw_accel, raw_mag_sensor)
+
+
+class GridErrors:
+    """:func:`max_errors_deg` for one set of written parameters, field and grid, called with
+    batch after batch of truths: the grid's true specific force, field and heading once.
+
+    The specific force does not depend on the heading, so a grid of every yaw at each roll and
+    pitch holds few distinct ones (``f_unique``, 49 of the default grid's 1176):
+    :meth:`at_unique` takes the accelerometer readings at those only and gives, to the last
+    bit, what ``__call__`` gives from the readings at every attitude (the readings of equal
+    forces are equal, and so is everything computed from them row by row)."""
+
+    def __init__(self, accel_cal: fw.AccelCal, compass_cal: fw.CompassCal, field_ned_mgauss, grid: np.ndarray):
+        self.accel_cal, self.compass_cal = accel_cal, compass_cal
+        self.f_body, self.B_body = body_vectors(grid, field_ned_mgauss)
+        self.h_true = _heading((_level_from_accel(self.f_body) @ self.B_body[..., None])[..., 0])
+        f_unique, index = np.unique(self.f_body, axis=0, return_inverse=True)
+        self.f_unique, self.unique_index = f_unique, np.asarray(index).reshape(-1)
+
+    def __call__(self, raw_accel: np.ndarray, raw_mag_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(max heading error, max tilt error) in degrees, (D,) each, of the D truths whose raw
+        readings at the grid are ``raw_accel`` / ``raw_mag_sensor`` (D, M, 3)."""
+        return self._errors(raw_accel, self.f_body, None, raw_mag_sensor)
+
+    def at_unique(self, raw_accel: np.ndarray, raw_mag_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As ``__call__`` with the accelerometer readings (D, len(f_unique), 3) at the distinct
+        specific forces ``f_unique`` only (the compass's still at every attitude)."""
+        return self._errors(raw_accel, self.f_unique, self.unique_index, raw_mag_sensor)
+
+    def _errors(self, raw_accel: np.ndarray, f: np.ndarray, index: np.ndarray | None,
+                raw_mag_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The arithmetic of :func:`attitude_errors` element by element; the dot product and
+        the norm summed x + y + z in that order, as ``np.sum(axis=1)`` and ``np.linalg.norm``
+        sum three terms, without full-length tiled copies of the grid."""
+        D, K = raw_accel.shape[:2]
+        M = raw_mag_sensor.shape[1]
+        a = fw.apply_accel(self.accel_cal, raw_accel.reshape(-1, 3))
+        m = fw.apply_compass(self.compass_cal, raw_mag_sensor.reshape(-1, 3), sensor_frame=True)
+        L = _level_from_accel(a)
+        if index is not None:
+            L = L.reshape(D, K, 3, 3)[:, index].reshape(-1, 3, 3)
+        dh = _wrap_deg(_heading((L @ m[..., None])[..., 0]).reshape(D, M) - self.h_true)
+        a0, a1, a2 = a[:, 0].reshape(D, K), a[:, 1].reshape(D, K), a[:, 2].reshape(D, K)
+        dot = a0 * f[:, 0] + a1 * f[:, 1] + a2 * f[:, 2]
+        cos_t = dot / (np.sqrt(a0 * a0 + a1 * a1 + a2 * a2) * G0)
+        tilt = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
+        return np.abs(dh).max(axis=1), tilt.max(axis=1)
 
 
 def heading_errors_deg(raw_accel: Callable[[np.ndarray], np.ndarray],

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.core.initial import fit_ellipsoid, fit_sphere
-from mavcal.core.stats import IntervalStats, interval_stats, stats_subset
+from mavcal.core.stats import IntervalStats, interval_means, interval_stats, stats_subset
 from mavcal.errors import EstimationError, InsufficientDataError
 
 __all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "pool_index", "MIN_INTERVALS_DIAG",
@@ -305,11 +305,13 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     qualifies or too few remain.
 
     The K-fold refits start from a fit of all intervals (``start``, e.g. the
-    :func:`fit_accel` the caller already has; else one of the fold pool): each still
+    :func:`fit_accel` the caller already has; else one of the statistics the folds draw on): each still
     minimises the cost of the intervals it keeps, the start only spares the ellipsoid fit and
     most LM iterations. Leave-one-out (small logs) starts from scratch as before.
     ``stats``: the :func:`interval_stats` of ``accel_sets`` with ``per_interval=True`` (e.g.
-    the start's own), used when the folds draw on all the intervals (the same numbers).
+    the start's own): each fold's statistics are taken from them (:func:`stats_subset`),
+    the same numbers as the pool's own where the pool is all N, equal up to rounding on
+    longer logs (as in :func:`mavcal.quality.holdout_errors`).
     """
     sets = list(accel_sets)
     N = len(sets)
@@ -317,16 +319,18 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
         return float("nan")
     if form == "auto":
         form = "upper" if N - 1 >= MIN_INTERVALS_UPPER else "diag"
-    mu = np.array([np.asarray(s, float).mean(0) for s in sets])
+    mu = interval_means([np.asarray(s, float) for s in sets])
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
     errs = []
     k_fold = N > LOO_MAX_INTERVALS
     folds = holdout_folds(dirs, cluster_deg=cluster_deg)
     if k_fold and folds:  # the pool's statistics once (each fold's from them), the start fitted once
-        pool, at = pool_index(folds, N)
         try:
-            st = (stats if stats is not None and len(pool) == N else
-                  interval_stats([sets[i] for i in pool], "accel_sets", noise_floor=noise_floor, per_interval=True))
+            if stats is not None and stats.interval_scatter is not None:
+                st, at = stats, np.arange(N)
+            else:
+                pool, at = pool_index(folds, N)
+                st = interval_stats([sets[i] for i in pool], "accel_sets", noise_floor=noise_floor, per_interval=True)
             if start is None or start.form != form:
                 start = fit_accel(st, form=form)
         except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):

@@ -1,23 +1,24 @@
 """Orientations of new still intervals with a calibration held fixed, and the paper's
 reconstruction error (Sec. VIII): :func:`estimate_orientations`, :func:`reconstruction_error`
-(also importable from :mod:`mavcal.core.calibrate`)."""
+(also importable from :mod:`mavcal.core.calibrate`); :func:`orientations_from_means` when the
+interval means are already known."""
 from __future__ import annotations
 
 import numpy as np
 
 from mavcal.core import steps
-from mavcal.core.stats import IntervalStats
+from mavcal.core.stats import IntervalStats, interval_means
 from mavcal.core.types import Calibration
 from mavcal.errors import EstimationError
 
-__all__ = ["estimate_orientations", "reconstruction_error"]
+__all__ = ["estimate_orientations", "orientations_from_means", "reconstruction_error"]
 
 
 def _means(sets, name: str) -> tuple[np.ndarray, np.ndarray]:
     seq = list(sets)
     if not seq:
         raise EstimationError(f"{name} is empty")
-    mus, ns = [], []
+    xs = []
     for i, s in enumerate(seq):
         x = np.asarray(s, dtype=float)
         if x.ndim == 1:
@@ -26,9 +27,8 @@ def _means(sets, name: str) -> tuple[np.ndarray, np.ndarray]:
             raise EstimationError(f"{name}[{i}] must have shape (n_i, 3), got {x.shape}")
         if not np.all(np.isfinite(x)):
             raise EstimationError(f"{name}[{i}] contains NaN/inf readings")
-        mus.append(x.mean(axis=0))
-        ns.append(x.shape[0])
-    return np.array(mus), np.array(ns, dtype=float)
+        xs.append(x)
+    return interval_means(xs), np.array([x.shape[0] for x in xs], dtype=float)
 
 
 def estimate_orientations(calibration: Calibration, accel_sets, mag_sets) -> np.ndarray:
@@ -39,6 +39,14 @@ def estimate_orientations(calibration: Calibration, accel_sets, mag_sets) -> np.
     """
     mu_a, n_a = _means(accel_sets, "accel_sets")
     mu_m, n_m = _means(mag_sets, "mag_sets")
+    return orientations_from_means(calibration, mu_a, n_a, mu_m, n_m)
+
+
+def orientations_from_means(calibration: Calibration, mu_a: np.ndarray, n_a: np.ndarray, mu_m: np.ndarray,
+                            n_m: np.ndarray) -> np.ndarray:
+    """:func:`estimate_orientations` of M intervals given by their mean readings ``mu_a``,
+    ``mu_m`` (M, 3) and sample counts ``n_a``, ``n_m`` (M,) (the same result, to the bit, as
+    from the readings whose :func:`~mavcal.core.stats.interval_means` they are)."""
     if len(mu_a) != len(mu_m):
         raise EstimationError("accel_sets and mag_sets must have the same number of intervals")
     c = calibration

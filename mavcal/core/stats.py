@@ -65,7 +65,7 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
                               f"got {type(sets).__name__}") from None
     if not seq:
         raise EstimationError(f"{name} is empty: pass one (n_i, 3) array of readings per still interval")
-    arrays, ns = [], []
+    arrays = []
     for i, s in enumerate(seq):
         try:
             a = np.asarray(s, dtype=float)
@@ -79,30 +79,62 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
             raise EstimationError(f"{name}[{i}] has {a.shape[0]} sample(s); every still interval needs at "
                                   "least 2 samples to estimate the noise (hold each pose longer)")
         arrays.append(a)
-        ns.append(a.shape[0])
-    X = np.concatenate(arrays)
-    if not np.all(np.isfinite(X)):
+    moments = _moments(arrays, per_interval)
+    if moments is None:
         bad = [i for i, a in enumerate(arrays) if not np.all(np.isfinite(a))]
         raise EstimationError(f"{name}[{bad[0]}] contains NaN/inf readings ({len(bad)} interval(s) affected); "
                               "drop them before calibrating")
-    n = np.array(ns, dtype=float)
+    return _finish_stats(name, *moments, noise_floor)
+
+
+def interval_means(sets: Sequence[np.ndarray]) -> np.ndarray:
+    """(N, 3) the mean reading of each of the N (n_i, 3) arrays ``sets``: ``a.mean(axis=0)``
+    to the last bit (the same sequential sum divided by n_i), without ``mean``'s per-call
+    overhead (thousands of intervals on long logs)."""
+    mus = [np.add.reduce(a, axis=0) / a.shape[0] if a.dtype == np.float64 else a.mean(axis=0) for a in sets]
+    return np.array(mus) if mus else np.empty((0, 3))
+
+
+_PRODUCTS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the distinct entries of a 3x3 scatter
+
+
+def _moments(arrays: list[np.ndarray], per_interval: bool
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """Means, counts, pooled scatter and (``per_interval``) each interval's scatter of the
+    intervals ``arrays`` ((n_i, 3) each); None when a reading is NaN/inf.
+
+    The arithmetic of the straightforward form (centre = mean of all readings, means by
+    ``add.reduceat`` of the centred readings, ``D^T D`` of the deviations ``D`` as an (n, 3)
+    array, per-interval products summed by ``add.reduceat``), to the last bit, on a
+    coordinate-major copy (3, n): each column contiguous, the sums in place, no full-length
+    temporary per step. The centre is the sequential sum of ``mean(axis=0)`` (a running sum
+    of each coordinate, ``add.accumulate``); ``reduceat`` sums pairwise whatever the stride.
+    """
+    ns = np.array([a.shape[0] for a in arrays])
+    XT = np.concatenate([a.T for a in arrays], axis=1)  # (3, n), each coordinate contiguous
+    total = XT.shape[1]
+    run = np.empty(total)
+    center = np.array([np.add.accumulate(XT[k], out=run)[-1] for k in range(3)]) / total
+    if not np.all(np.isfinite(center)) and not np.all(np.isfinite(XT)):  # finite readings have a finite sum
+        return None
+    n = ns.astype(float)
     starts = np.concatenate([[0], np.cumsum(ns)[:-1]])
-    center = X.mean(axis=0)
-    Xc = X - center
-    mu = np.add.reduceat(Xc, starts, axis=0) / n[:, None]
-    D = Xc - np.repeat(mu, ns, axis=0)
+    XT -= center[:, None]
+    mu = np.add.reduceat(XT, starts, axis=1).T / n[:, None]
+    for k in range(3):
+        XT[k] -= np.repeat(mu[:, k], ns)  # the deviations v[i,j] - mu_hat[i]
+    D = XT.T.copy()
     scatter = D.T @ D  # sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T
     each = None
-    if per_interval:  # each interval's scatter, the 6 distinct products summed column by column
+    if per_interval:  # each interval's scatter, the 6 distinct products summed interval by interval
         each = np.empty((len(ns), 3, 3))
-        for k, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
-            each[:, k, j] = each[:, j, k] = np.add.reduceat(D[:, k] * D[:, j], starts)
-    mu = mu + center
-    return _finish_stats(name, mu, n, scatter, noise_floor, each)
+        for k, j in _PRODUCTS:
+            each[:, k, j] = each[:, j, k] = np.add.reduceat(np.multiply(XT[k], XT[j], out=run), starts)
+    return np.ascontiguousarray(mu + center), n, scatter, each  # C order, as downstream BLAS calls had it
 
 
-def _finish_stats(name: str, mu: np.ndarray, n: np.ndarray, scatter: np.ndarray, noise_floor: float | None,
-                  each: np.ndarray | None) -> IntervalStats:
+def _finish_stats(name: str, mu: np.ndarray, n: np.ndarray, scatter: np.ndarray, each: np.ndarray | None,
+                  noise_floor: float | None) -> IntervalStats:
     """Scale, the degeneracy checks and the floored Bessel-corrected covariance."""
     N = len(n)
     scale = float(np.median(np.linalg.norm(mu, axis=1)))
@@ -131,7 +163,7 @@ def stats_subset(stats: IntervalStats, idx, name: str = "sets") -> IntervalStats
         raise ValueError("stats_subset needs interval_stats(..., per_interval=True)")
     idx = np.asarray(idx)
     each = stats.interval_scatter[idx]
-    return _finish_stats(name, stats.mu[idx], stats.n[idx], each.sum(axis=0), stats.noise_floor, each)
+    return _finish_stats(name, stats.mu[idx], stats.n[idx], each.sum(axis=0), each, stats.noise_floor)
 
 
 # --- the chi-square tail, without scipy.stats (650 ms of import for one function) ------------

@@ -36,23 +36,25 @@ def param_value(Ka, ba, Km, bm, hz, name: str) -> float:
     raise KeyError(name)
 
 
-def _set(d: dict[str, np.ndarray], name: str, value: float, forms: dict[str, str]) -> None:
+def _set(d: dict[str, np.ndarray], name: str, values: np.ndarray, forms: dict[str, str]) -> None:
+    """Set the global parameter ``name`` of n stacked parameter sets (``d["K_a"]`` (n, 3, 3),
+    ``d["b_a"]`` (n, 3), ...) to ``values`` (n,)."""
     if name == "h_z":
-        d["h"][2] = value
+        d["h"][:, 2] = values
         return
     sym, lab = name.split("[")
     lab = lab.rstrip("]")
     if sym in ("K_a", "K_m"):
         K = d[sym]
         if lab == "s":
-            K[:] = value * np.eye(3)
+            K[:] = values[:, None, None] * np.eye(3)
             return
         r, c = int(lab[0]) - 1, int(lab[1]) - 1
-        K[r, c] = value
+        K[:, r, c] = values
         if forms[sym] == "sym":
-            K[c, r] = value
+            K[:, c, r] = values
     else:
-        d[sym]["xyz".index(lab)] = value
+        d[sym][:, "xyz".index(lab)] = values
 
 
 def _forms(cal: Calibration) -> dict[str, str]:
@@ -79,13 +81,10 @@ def sample_parameters(cal: Calibration, n: int, rng: np.random.Generator | None 
     L = V * np.sqrt(np.maximum(w, 0.0))
     draws = theta + rng.standard_normal((n, len(theta))) @ L.T
     forms = _forms(cal)
-    out = []
-    for th in draws:
-        d = {k: v.copy() for k, v in base.items()}
-        for name, val in zip(cal.param_names, th):
-            _set(d, name, float(val), forms)
-        out.append(d)
-    return out
+    stacked = {k: np.repeat(v[None], n, axis=0) for k, v in base.items()}  # every draw at once
+    for col, name in enumerate(cal.param_names):
+        _set(stacked, name, draws[:, col], forms)
+    return [{k: v[i] for k, v in stacked.items()} for i in range(n)]
 
 
 def parameter_std(cal: Calibration) -> dict[str, float]:
