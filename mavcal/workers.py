@@ -22,10 +22,12 @@ counts the shared pages in each process, is the parent's peak plus about that.
 """
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Generic, TypeVar
 
 from mavcal.errors import MavcalError
@@ -33,6 +35,7 @@ from mavcal.errors import MavcalError
 __all__ = ["ForkPool", "can_fork", "default_workers", "Outcome"]
 
 S = TypeVar("S")
+log = logging.getLogger(__name__)
 
 #: (ok, value): the job's result, or the MavcalError it raised (any other exception propagates)
 Outcome = tuple[bool, Any]
@@ -83,6 +86,9 @@ class ForkPool(Generic[S]):
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self._close()
+
+    def _close(self) -> None:
         global _SHARED
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
@@ -102,10 +108,16 @@ class ForkPool(Generic[S]):
             return out
         pool = self._executor()
         futures: list[Future] = [pool.submit(_in_worker, fn, item) for item in items]
-        for k, _ in enumerate(as_completed(futures)):
-            if done is not None:
-                done(k + 1)
-        return [f.result() for f in futures]
+        try:
+            for k, _ in enumerate(as_completed(futures)):
+                if done is not None:
+                    done(k + 1)
+            return [f.result() for f in futures]
+        except BrokenProcessPool:  # a worker was killed (out of memory?): nothing is lost but time
+            log.warning("a fit worker process died (out of memory?); the fits run in this process instead")
+            self._close()
+            self.workers = 1
+            return self.map(fn, items, done)
 
     def _executor(self) -> ProcessPoolExecutor:
         global _SHARED

@@ -48,6 +48,23 @@ def test_fork_pool_with_one_worker_or_no_fork_runs_here(monkeypatch):
     assert 1 <= W.default_workers() <= 4 and W.default_workers(most=1) == 1
 
 
+_PARENT = os.getpid()
+
+
+def _dies_in_worker(shared, item):
+    if os.getpid() != _PARENT:
+        os._exit(3)  # as the kernel's out-of-memory killer would end it
+    return shared * item
+
+
+def test_a_killed_worker_costs_time_not_results(caplog):
+    with W.ForkPool(10, 2) as pool:
+        out = pool.map(_dies_in_worker, [1, 2, 3])
+        assert pool.workers == 1 and W._SHARED is None
+    assert out == [(True, 10), (True, 20), (True, 30)]
+    assert "worker process died" in caplog.text
+
+
 def test_other_exceptions_propagate():
     with W.ForkPool({"x": None}, 2) as pool, pytest.raises(AttributeError):
         pool.map(_job, [1, 2])  # None.sum(): a bug, not bad input, is raised here
