@@ -1,0 +1,388 @@
+"""The fits of one prepared recording, sensor by sensor, and each sensor's verdict.
+
+Every compass is fitted jointly with the primary accelerometer (:func:`mavcal.core.calibrate.calibrate`),
+mapped onto ArduPilot's parameters, checked (held-out error, heading/tilt bounds) and
+gated; every accelerometer is judged on its own fit (:mod:`mavcal.core.accel_fit`). The
+fits are independent of each other, so :func:`fit_recording` hands them to worker
+processes (:class:`mavcal.workers.ForkPool`, ``Options.workers``); with one worker they run
+here, in the same order, with the same results to the bit.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+
+from mavcal.ardupilot import firmware as fw
+from mavcal.ardupilot import gates as gates_mod
+from mavcal.ardupilot.mapping import AccelMapping, combine, map_accel, map_calibration
+from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
+from mavcal.core.calibrate import calibrate
+from mavcal.core.models import MODEL_CHAIN, MODELS
+from mavcal.core.stats import IntervalStats, interval_stats
+from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
+from mavcal.quality import Quality, accel_tilt_bounds, holdout_errors, quality_of
+from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
+from mavcal.segment import Segmentation
+from mavcal.sources.progress import report
+from mavcal.workers import ForkPool
+
+log = logging.getLogger(__name__)
+
+__all__ = ["fit_recording", "refusal_verdicts"]
+
+
+def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
+    """:func:`mavcal.pipeline.calibrate_prepared` (its docstring says what it does)."""
+    opts, warnings = _resolve(prep, options)
+    if opts.sensors == "accel":
+        return _accel_only(prep, opts, warnings, progress)
+    ai = opts.accel_instance
+    pairs = _other_pairs(prep, opts)
+    n_fits = 1 + len(pairs) + (len(prep.raw.accel_instances()) if opts.sensors == "both" else 0)
+    report(progress, STAGE_FIT, 0, n_fits)
+    stats: _StatsCache = {}
+    jobs = [opts] + [replace(options, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
+                     for a, m in pairs]
+    with ForkPool((prep, stats), opts.workers) as pool:
+        if pool.workers > 1:
+            _prefill_stats(prep, jobs, stats, opts.sensors == "both")
+        runs = pool.map(_pair_job, jobs[:1] if pool.workers == 1 else jobs,  # in turn: the primary first
+                        done=lambda k: report(progress, STAGE_FIT, k, n_fits))
+        if not runs[0][0]:
+            raise runs[0][1]
+        if pool.workers == 1:
+            runs += pool.map(_pair_job, jobs[1:], done=lambda k: report(progress, STAGE_FIT, 1 + k, n_fits))
+        primary = _attach(runs[0][1], prep)
+        warnings += list(primary.warnings)
+        others = []
+        for (a, m), (ok, r) in zip(pairs, runs[1:]):
+            if ok:
+                others.append(_attach(r, prep))
+            else:
+                warnings.append(f"accelerometer {a} / compass {m} not calibrated: {r}")
+        compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
+        gates = [g for r in compass_runs for g in r.gates.gates]
+        compasses = [r.mapping.compass[0] for r in compass_runs]
+        accels, fits, accel_gates = (_judge_accels(pool, prep, opts, [primary] + others, warnings,
+                                                   lambda k: report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits))
+                                     if opts.sensors == "both" else ([], [], []))
+    report(progress, STAGE_FIT, n_fits, n_fits)
+    notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
+    mapping = combine(accels, compasses, primary.params_before, notes)
+    return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
+                   others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+
+
+def _judge_accels(pool: ForkPool, prep: Prepared, opts: Options, runs: list[CalibrationRun], warnings: list[str],
+                  done) -> tuple[list[AccelMapping], list[tuple[int, AccelFit]], list[gates_mod.Gate]]:
+    """Every accelerometer judged on its own fit, written from its joint fit with compass
+    ``opts.mag_instance`` (in ``runs``, the primary first) when that compass is accepted."""
+    mi = opts.mag_instance
+    mi_ok = all(g.ok for g in runs[0].gates.gates)
+    joint = {r.mapping.accel[0].instance: r for r in runs if r.mapping.compass[0].instance == mi}
+    insts = prep.raw.accel_instances()
+    judged = pool.map(_accel_job, [(opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok else None)
+                                   for a in insts], done=done)
+    accels: list[AccelMapping] = []
+    fits: list[tuple[int, AccelFit]] = []
+    gates: list[gates_mod.Gate] = []
+    for a, (ok, out) in zip(insts, judged):
+        if not ok:
+            warnings.append(f"accelerometer {a} not calibrated: {out}")
+            continue
+        am, ag, fit, _, _ = out
+        accels.append(am)
+        fits.append((a, fit))
+        gates += ag
+        if a in joint and not mi_ok:
+            warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
+                            "was rejected")
+    return accels, fits, gates
+
+
+def _prefill_stats(prep: Prepared, jobs: list[Options], stats: _StatsCache, accels: bool) -> None:
+    """Every interval statistic the fit jobs will ask for, computed here before the workers
+    fork: each is computed once (not once per worker) and its full-length working arrays
+    are this process's, not one more copy per worker. A job whose data are refused raises
+    that itself, later."""
+    wanted = []
+    for o in jobs:
+        try:
+            used = _intervals_of_pair(prep, o.accel_instance, o.mag_instance)
+        except MavcalError:
+            continue
+        wanted += [("accel", o.accel_instance, used), ("mag", o.mag_instance, used)]
+    if accels:
+        for a in prep.raw.accel_instances():
+            try:
+                wanted.append(("accel", a, _accel_sets(prep, a)[0]))
+            except MavcalError:
+                continue
+    for kind, inst, used in wanted:
+        try:
+            _stats_of(prep, stats, kind, inst, used)
+        except MavcalError:
+            continue
+
+
+_Shared = tuple[Prepared, "_StatsCache"]  # what the fit jobs share (inherited by forked workers)
+
+
+def _pair_job(shared: _Shared, opts: Options) -> CalibrationRun:
+    """One accelerometer/compass pair (:func:`_calibrate_pair`) without the readings (a worker
+    sends back only the fit: :func:`_attach` puts the recording back)."""
+    prep, stats = shared
+    return replace(_calibrate_pair(prep, opts, stats), log=None, raw=None, segmentation=None)
+
+
+def _attach(run: CalibrationRun, prep: Prepared) -> CalibrationRun:
+    return replace(run, log=prep.log, raw=prep.raw, segmentation=prep.segmentation)
+
+
+def _accel_job(shared: _Shared, item: tuple[Options, int, AccelMapping | None]):
+    """One accelerometer judged on its own fit (:func:`_judge_accel`)."""
+    prep, stats = shared
+    opts, a, joint = item
+    return _judge_accel(prep, opts, a, joint, stats)
+
+
+def _other_pairs(prep: Prepared, opts: Options) -> list[tuple[int, int]]:
+    """The accelerometer/compass pairs fitted besides the primary one (``opts.all_instances``)."""
+    ai, mi = opts.accel_instance, opts.mag_instance
+    pairs: list[tuple[int, int]] = []
+    if opts.all_instances:
+        if opts.sensors == "both":
+            pairs += [(a, mi) for a in prep.raw.accel_instances() if a != ai]
+        pairs += [(ai, m) for m in _wanted(prep.raw.mag_instances(), opts, "compass") if m != mi]
+    return pairs
+
+
+def _wanted(instances, opts: Options, kind: str) -> list[int]:
+    inst = list(instances)
+    if opts.sensors == kind and opts.only_instances is not None:
+        inst = [i for i in inst if i in opts.only_instances]
+    return inst
+
+
+def _resolve(prep: Prepared, options: Options) -> tuple[Options, list[str]]:
+    """The options as they apply to this log (a log without compass: accelerometers alone)."""
+    opts, warnings = options, []
+    if opts.sensors not in ("both", "accel", "compass"):
+        raise MavcalError(f"sensors must be both, accel or compass; got {opts.sensors!r}")
+    if opts.sensors == "both" and not prep.raw.mag_instances():
+        warnings.append("the log has no compass data: the accelerometers were calibrated alone")
+        opts = replace(opts, sensors="accel", only_instances=None)
+    if opts.sensors in ("accel", "compass") and opts.only_instances is not None:
+        have = prep.raw.accel_instances() if opts.sensors == "accel" else prep.raw.mag_instances()
+        missing = [i for i in opts.only_instances if i not in have]
+        if missing:
+            raise SourceError(f"{prep.log.source}: no {opts.sensors} {', '.join(map(str, missing))} data "
+                              f"(the log has {opts.sensors} {', '.join(map(str, have)) or 'none'})")
+        first = opts.only_instances[0]
+        opts = replace(opts, **({"accel_instance": first} if opts.sensors == "accel" else {"mag_instance": first}))
+    return opts, warnings
+
+
+def refusal_verdicts(prep: Prepared, error: Exception, options: Options = Options()
+                     ) -> tuple[gates_mod.SensorVerdict, ...]:
+    """A verdict for every sensor with data of a recording that could not be calibrated at all
+    (``error``: the refusal): each rejected, with how many still intervals it has and ``error``."""
+    seg, raw, none = prep.segmentation, prep.raw, np.empty((0, 3))
+    ai = options.accel_instance
+    out = []
+    for kind, label, insts in (("accel", "accel", raw.accel_instances()), ("compass", "compass",
+                                                                           raw.mag_instances())):
+        if options.sensors not in ("both", kind):
+            continue
+        for i in _wanted(insts, options, kind):
+            if kind == "accel":
+                used = [iv for iv in seg.intervals if iv.accel_mps2.get(i, none).shape[0] >= 2]
+                what = f"accelerometer {i} data"
+            else:
+                used = [iv for iv in seg.intervals if iv.mag_mgauss.get(i, none).shape[0] >= 2
+                        and iv.accel_mps2.get(ai, none).shape[0] >= 2]
+                what = f"compass {i} and accelerometer {ai} data"
+            dirs = np.array([iv.gravity_dir for iv in used]).reshape(-1, 3)
+            first = (f"not calibrated: {len(used)} still interval(s) with {what}, in "
+                     f"{_n_orientations(dirs, seg) if len(used) else 0} distinct orientation(s)")
+            out.append(gates_mod.SensorVerdict(f"{label}{i}", False, tuple(dict.fromkeys([first, str(error)]))))
+    return tuple(out)
+
+
+def _blind_cal(prep: Prepared) -> list[str]:
+    """The refusal's reason when the log holds calibration prompts but no IMU data during them."""
+    return [f"the log holds ArduPilot's accelerometer calibration ({a:.1f}..{b:.1f} s: 'Place vehicle' prompts) "
+            "but no IMU data during it (the ground station stopped streaming RAW_IMU?), so its poses are lost; "
+            "record the IMU stream while calibrating" for a, b in prep.raw.accel_cal_without_imu]
+
+
+def _with_blind_cal(prep: Prepared, exc: MavcalError) -> MavcalError:
+    """``exc``, or (when the log holds calibration prompts without IMU data) an
+    InsufficientDataError that gives that reason as well."""
+    return InsufficientDataError("; ".join([str(exc)] + _blind_cal(prep))) if _blind_cal(prep) else exc
+
+
+def _accel_sets(prep: Prepared, a: int) -> tuple[list[int], list[np.ndarray]]:
+    none = np.empty((0, 3))
+    used = [k for k, iv in enumerate(prep.segmentation.intervals) if iv.accel_mps2.get(a, none).shape[0] >= 2]
+    if prep.raw.get("accel", a) is None:
+        raise SourceError(f"{prep.log.source}: no accelerometer {a} data")
+    if not used:
+        raise InsufficientDataError(f"{prep.log.source}: no still interval with accelerometer {a} data; "
+                                    + "; ".join(list(prep.segmentation.coverage.messages) + _blind_cal(prep)))
+    return used, [prep.segmentation.intervals[k].accel_mps2[a] for k in used]
+
+
+_StatsCache = dict[tuple[str, int, tuple[int, ...]], IntervalStats]
+
+
+def _stats_of(prep: Prepared, cache: _StatsCache, kind: str, inst: int, used: list[int]) -> IntervalStats:
+    """The interval statistics (:func:`mavcal.core.stats.interval_stats`, per interval too) of
+    sensor ``kind`` ``inst`` over the intervals ``used``, computed once per run: the pairs of
+    one accelerometer or compass, its own fit and the held-out checks share them (the same
+    numbers, to the bit, as each computing them from the readings)."""
+    key = (kind, inst, tuple(used))
+    if key not in cache:
+        q = prep.quantization.get((kind, inst), 0.0)
+        ivs = prep.segmentation.intervals
+        sets = [ivs[k].accel_mps2[inst] if kind == "accel" else ivs[k].mag_mgauss[inst] for k in used]
+        cache[key] = interval_stats(sets, f"{kind}_sets", noise_floor=q / np.sqrt(12) if q else None,
+                                    per_interval=True)
+    return cache[key]
+
+
+def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | None, stats: _StatsCache):
+    """Accelerometer ``a`` on its own: its fit, written values (``joint``'s when given, else
+    its own), gates, (tilt 95 %, nominal) and held-out error."""
+    used, acc = _accel_sets(prep, a)
+    q = prep.quantization.get(("accel", a), 0.0)
+    floor = q / np.sqrt(12) if q else None
+    try:
+        st = _stats_of(prep, stats, "accel", a, used)
+        fit = fit_accel(st)
+    except (InsufficientDataError, EstimationError) as exc:
+        raise _with_blind_cal(prep, exc) from None
+    am = joint if joint is not None else map_accel(fit.gain, fit.bias,
+                                                   fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
+    tilt = accel_tilt_bounds(fit, am, opts.uncertainty_draws, opts.seed)
+    ho = holdout_accel_mps2(acc, noise_floor=floor, start=fit, stats=st) if opts.holdout else float("nan")
+    dirs = np.array([prep.segmentation.intervals[k].gravity_dir for k in used])
+    n_orient = _n_orientations(dirs, prep.segmentation)
+    gates = gates_mod.accel_gates(am, n_intervals=len(used), n_orientations=n_orient, tilt_95_deg=tilt[0],
+                                  holdout_mps2=ho, config=opts.gates)
+    return am, gates, fit, tilt, ho
+
+
+def _n_orientations(dirs: np.ndarray, seg: Segmentation) -> int:
+    """Distinct gravity directions among ``dirs`` (greedy clusters of the segmentation's size)."""
+    if len(dirs) == len(seg.intervals):
+        return seg.coverage.n_orientations
+    cos_c = np.cos(np.radians(30.0))
+    centres: list[np.ndarray] = []
+    for d in dirs:
+        if not any(float(d @ c) > cos_c for c in centres):
+            centres.append(d)
+    return len(centres)
+
+
+def _accel_only(prep: Prepared, opts: Options, warnings: list[str], progress=None) -> CalibrationRun:
+    """Every wanted accelerometer calibrated from its own intervals alone."""
+    params_now = prep.log.params.snapshot()
+    accels, gates, fits = [], [], []
+    quality = None
+    first_used: tuple[int, ...] = ()
+    wanted = _wanted(prep.raw.accel_instances(), opts, "accel")
+    if not wanted:
+        raise SourceError(f"{prep.log.source}: no accelerometer data")
+    errors = []
+    for k, a in enumerate(wanted):
+        report(progress, STAGE_FIT, k, len(wanted))
+        try:
+            am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None, {})
+        except MavcalError as exc:
+            errors.append(exc)
+            warnings.append(f"accelerometer {a} not calibrated: {exc}")
+            continue
+        accels.append(am)
+        gates += ag
+        fits.append((a, fit))
+        if quality is None:
+            quality = Quality(float("nan"), tilt[0], float("nan"), tilt[1], ho, float("nan"),
+                              fit.cost / fit.dof if fit.dof > 0 else float("nan"))
+            first_used = tuple(_accel_sets(prep, a)[0])
+    report(progress, STAGE_FIT, len(wanted), len(wanted))
+    if quality is None:
+        raise errors[0]
+    if not params_now:
+        warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
+    mapping = combine(accels, [], params_now, [f"accelerometer {am.instance} calibrated alone (no compass)"
+                                               for am in accels])
+    return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=prep.segmentation,
+                          intervals_used=first_used, calibration=None, mapping=mapping, quality=quality,
+                          gates=gates_mod.GateReport(tuple(gates)), params_before=params_now,
+                          warnings=tuple(dict.fromkeys(list(prep.warnings) + warnings)), accel_fits=tuple(fits))
+
+
+def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
+    """The still intervals holding samples of both accelerometer ``ai`` and compass ``mi``;
+    InsufficientDataError/SourceError when too few for any model."""
+    log_, raw, seg = prep.log, prep.raw, prep.segmentation
+    none = np.empty((0, 3))
+    used = [k for k, iv in enumerate(seg.intervals)
+            if iv.accel_mps2.get(ai, none).shape[0] >= 2 and iv.mag_mgauss.get(mi, none).shape[0] >= 2]
+    if not used:
+        if raw.get("accel", ai) is None:
+            raise SourceError(f"{log_.source}: no accelerometer {ai} data")
+        if raw.get("mag", mi) is None:
+            raise SourceError(f"{log_.source}: no compass {mi} data")
+        raise InsufficientDataError(f"{log_.source}: no still intervals found ({len(seg.intervals)} detected, none "
+                                    "with both sensors); " + "; ".join(list(seg.coverage.messages) + _blind_cal(prep)))
+    n_min = MODELS[MODEL_CHAIN[-1]].min_intervals
+    if len(used) < n_min:
+        why = "; ".join(_blind_cal(prep) + list(seg.coverage.messages)) \
+            or f"{seg.coverage.n_orientations} distinct orientation(s)"
+        raise InsufficientDataError(
+            f"{log_.source}: {len(used)} still interval(s) with accelerometer {ai} and compass {mi} data; at least "
+            f"{n_min} in different orientations are needed ({MODELS['full'].min_intervals} for the full model): {why}")
+    return used
+
+
+def _calibrate_pair(prep: Prepared, options: Options, stats: _StatsCache) -> CalibrationRun:
+    """calibrate -> map -> quality -> gates for one accelerometer/compass pair (``stats``:
+    the run's interval statistics, :func:`_stats_of`)."""
+    opts = options
+    log_, seg = prep.log, prep.segmentation
+    warnings: list[str] = list(prep.warnings)
+    ai, mi = opts.accel_instance, opts.mag_instance
+    used = _intervals_of_pair(prep, ai, mi)
+    acc = [seg.intervals[k].accel_mps2[ai] for k in used]
+    mag = [seg.intervals[k].mag_mgauss[mi] for k in used]
+    qa, qm = prep.quantization.get(("accel", ai), 0.0), prep.quantization.get(("mag", mi), 0.0)
+    noise_floor = (qa / np.sqrt(12) if qa else None, qm / np.sqrt(12) if qm else None)
+    try:
+        sa, sm = _stats_of(prep, stats, "accel", ai, used), _stats_of(prep, stats, "mag", mi, used)
+        cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
+    except (InsufficientDataError, EstimationError) as exc:
+        raise _with_blind_cal(prep, exc) from None
+    params_now = log_.params.snapshot()
+    if not params_now:
+        warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
+    mapping = map_calibration(cal, params_now, np.array([m.mean(0) for m in mag]), accel_instance=ai,
+                              mag_instance=mi, location=opts.location or log_.position,
+                              field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,
+                              allow_custom=opts.allow_custom, force_external=opts.force_external)
+    am, cm = mapping.accel[0], mapping.compass[0]
+    ho = (holdout_errors(acc, mag, cal, method=opts.method, tol=opts.tol, seed=opts.seed, noise_floor=noise_floor,
+                         stats=(sa, sm)) if opts.holdout else (float("nan"), float("nan")))
+    quality = quality_of(cal, am, cm, am.old.board_matrix, opts.uncertainty_draws, opts.seed, ho)
+    dirs = np.array([seg.intervals[k].gravity_dir for k in used])
+    report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
+        cm, params_now, n_intervals=len(used), n_orientations=_n_orientations(dirs, seg),
+        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates,
+        fit_converged=cal.converged,
+        fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message)))
+    return CalibrationRun(source=log_.source, log=log_, raw=prep.raw, segmentation=seg, intervals_used=tuple(used),
+                          calibration=cal, mapping=mapping, quality=quality, gates=report, params_before=params_now,
+                          warnings=tuple(dict.fromkeys(warnings)))
