@@ -10,23 +10,24 @@ here, in the same order, with the same results to the bit.
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import AccelMapping, combine, map_accel, map_calibration
+from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_accel, map_calibration
 from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.stats import IntervalStats, interval_stats
+from mavcal.core.types import Calibration
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
-from mavcal.quality import Quality, accel_tilt_bounds, holdout_errors, quality_of
+from mavcal.quality import Quality, accel_tilt_bounds, holdout_part, holdout_rms, quality_of
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.segment import Segmentation
 from mavcal.sources.progress import report
-from mavcal.workers import ForkPool
+from mavcal.workers import ForkPool, Outcome
 
 log = logging.getLogger(__name__)
 
@@ -34,65 +35,84 @@ __all__ = ["fit_recording", "refusal_verdicts"]
 
 
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
-    """:func:`mavcal.pipeline.calibrate_prepared` (its docstring says what it does)."""
+    """:func:`mavcal.pipeline.calibrate_prepared` (its docstring says what it does).
+
+    Two rounds of independent jobs (in ``options.workers`` processes, or here one after the
+    other): first every pair's joint fit and mapping and every accelerometer's own fit,
+    then every pair's held-out refits (in up to ``workers`` slices each) and uncertainty
+    bounds; the gates and the accelerometers' verdicts, which need the primary pair's, are
+    decided here at the end.
+    """
     opts, warnings = _resolve(prep, options)
     if opts.sensors == "accel":
         return _accel_only(prep, opts, warnings, progress)
     ai = opts.accel_instance
-    pairs = _other_pairs(prep, opts)
-    n_fits = 1 + len(pairs) + (len(prep.raw.accel_instances()) if opts.sensors == "both" else 0)
-    report(progress, STAGE_FIT, 0, n_fits)
-    stats: _StatsCache = {}
+    pairs = [(ai, opts.mag_instance)] + _other_pairs(prep, opts)
     jobs = [opts] + [replace(options, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
-                     for a, m in pairs]
+                     for a, m in pairs[1:]]
+    insts = prep.raw.accel_instances() if opts.sensors == "both" else []
+    stats: _StatsCache = {}
     with ForkPool((prep, stats), opts.workers) as pool:
-        if pool.workers > 1:
-            _prefill_stats(prep, jobs, stats, opts.sensors == "both")
-        runs = pool.map(_pair_job, jobs[:1] if pool.workers == 1 else jobs,  # in turn: the primary first
-                        done=lambda k: report(progress, STAGE_FIT, k, n_fits))
-        if not runs[0][0]:
-            raise runs[0][1]
-        if pool.workers == 1:
-            runs += pool.map(_pair_job, jobs[1:], done=lambda k: report(progress, STAGE_FIT, 1 + k, n_fits))
-        primary = _attach(runs[0][1], prep)
-        warnings += list(primary.warnings)
-        others = []
-        for (a, m), (ok, r) in zip(pairs, runs[1:]):
-            if ok:
-                others.append(_attach(r, prep))
-            else:
-                warnings.append(f"accelerometer {a} / compass {m} not calibrated: {r}")
-        compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
-        gates = [g for r in compass_runs for g in r.gates.gates]
-        compasses = [r.mapping.compass[0] for r in compass_runs]
-        accels, fits, accel_gates = (_judge_accels(pool, prep, opts, [primary] + others, warnings,
-                                                   lambda k: report(progress, STAGE_FIT, 1 + len(pairs) + k, n_fits))
-                                     if opts.sensors == "both" else ([], [], []))
-    report(progress, STAGE_FIT, n_fits, n_fits)
+        K = pool.workers
+        n = len(jobs) * (2 + K) + len(insts)
+        if K > 1:
+            _prefill_stats(prep, jobs, stats, bool(insts))
+        first = [("pair", o) for o in jobs] + [("accel", (opts, a)) for a in insts]
+        out = pool.map(_first_job, first[:1] if K == 1 else first,  # in turn: the primary first
+                       done=lambda k: report(progress, STAGE_FIT, k, n))
+        if not out[0][0]:
+            raise out[0][1]
+        if K == 1:
+            out += pool.map(_first_job, first[1:], done=lambda k: report(progress, STAGE_FIT, 1 + k, n))
+        fitted = [(o, r) for o, (ok, r) in zip(jobs, out) if ok]
+        second = [("holdout", (o, f, (k, K))) for o, f in fitted if o.holdout for k in range(K)]
+        second += [("quality", (o, f)) for o, f in fitted]
+        done2 = pool.map(_second_job, second, done=lambda k: report(progress, STAGE_FIT, len(first) + k, n))
+    runs: list[CalibrationRun | MavcalError] = []
+    for o, (ok, r) in zip(jobs, out):
+        runs.append(_finish_pair(prep, o, r, K, second, done2) if ok else r)
+    if isinstance(runs[0], MavcalError):
+        raise runs[0]
+    primary = runs[0]
+    warnings += list(primary.warnings)
+    others = []
+    for (a, m), r in zip(pairs[1:], runs[1:]):
+        if isinstance(r, MavcalError):
+            warnings.append(f"accelerometer {a} / compass {m} not calibrated: {r}")
+        else:
+            others.append(r)
+    compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
+    gates = [g for r in compass_runs for g in r.gates.gates]
+    compasses = [r.mapping.compass[0] for r in compass_runs]
+    accels, fits, accel_gates = _judge_accels(prep, opts, [primary] + others, list(zip(insts, out[len(jobs):])),
+                                              warnings)
+    report(progress, STAGE_FIT, n, n)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
 
 
-def _judge_accels(pool: ForkPool, prep: Prepared, opts: Options, runs: list[CalibrationRun], warnings: list[str],
-                  done) -> tuple[list[AccelMapping], list[tuple[int, AccelFit]], list[gates_mod.Gate]]:
-    """Every accelerometer judged on its own fit, written from its joint fit with compass
-    ``opts.mag_instance`` (in ``runs``, the primary first) when that compass is accepted."""
+def _judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own: list[tuple[int, Outcome]],
+                  warnings: list[str]) -> tuple[list[AccelMapping], list[tuple[int, AccelFit]], list[gates_mod.Gate]]:
+    """Every accelerometer judged on its own fit (``own``: each one's :func:`_accel_own`
+    outcome), written from its joint fit with compass ``opts.mag_instance`` (in ``runs``, the
+    primary first) when that compass is accepted."""
     mi = opts.mag_instance
     mi_ok = all(g.ok for g in runs[0].gates.gates)
     joint = {r.mapping.accel[0].instance: r for r in runs if r.mapping.compass[0].instance == mi}
-    insts = prep.raw.accel_instances()
-    judged = pool.map(_accel_job, [(opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok else None)
-                                   for a in insts], done=done)
     accels: list[AccelMapping] = []
     fits: list[tuple[int, AccelFit]] = []
     gates: list[gates_mod.Gate] = []
-    for a, (ok, out) in zip(insts, judged):
-        if not ok:
-            warnings.append(f"accelerometer {a} not calibrated: {out}")
+    for a, (ok, res) in own:
+        try:
+            if not ok:
+                raise res
+            am, ag, fit, _, _ = _judge_accel(prep, opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok
+                                             else None, res)
+        except MavcalError as exc:
+            warnings.append(f"accelerometer {a} not calibrated: {exc}")
             continue
-        am, ag, fit, _, _ = out
         accels.append(am)
         fits.append((a, fit))
         gates += ag
@@ -130,22 +150,35 @@ def _prefill_stats(prep: Prepared, jobs: list[Options], stats: _StatsCache, acce
 _Shared = tuple[Prepared, "_StatsCache"]  # what the fit jobs share (inherited by forked workers)
 
 
-def _pair_job(shared: _Shared, opts: Options) -> CalibrationRun:
-    """One accelerometer/compass pair (:func:`_calibrate_pair`) without the readings (a worker
-    sends back only the fit: :func:`_attach` puts the recording back)."""
+def _first_job(shared: _Shared, item: tuple[str, object]):
+    """A pair's joint fit and mapping (:func:`_fit_pair`) or an accelerometer's own fit
+    (:func:`_accel_own`)."""
     prep, stats = shared
-    return replace(_calibrate_pair(prep, opts, stats), log=None, raw=None, segmentation=None)
+    kind, arg = item
+    if kind == "pair":
+        return _fit_pair(prep, arg, stats)  # type: ignore[arg-type]
+    opts, a = arg  # type: ignore[misc]
+    return _accel_own(prep, opts, a, stats)
 
 
-def _attach(run: CalibrationRun, prep: Prepared) -> CalibrationRun:
-    return replace(run, log=prep.log, raw=prep.raw, segmentation=prep.segmentation)
-
-
-def _accel_job(shared: _Shared, item: tuple[Options, int, AccelMapping | None]):
-    """One accelerometer judged on its own fit (:func:`_judge_accel`)."""
+def _second_job(shared: _Shared, item: tuple[str, tuple]):
+    """A slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`) or its
+    uncertainty bounds (:func:`mavcal.quality.quality_of`, the held-out numbers left NaN)."""
     prep, stats = shared
-    opts, a, joint = item
-    return _judge_accel(prep, opts, a, joint, stats)
+    kind, arg = item
+    if kind == "holdout":
+        o, f, part = arg
+        acc, mag = _pair_sets(prep, o, f.used)
+        qa, qm = prep.quantization.get(("accel", o.accel_instance), 0.0), prep.quantization.get(("mag", o.mag_instance),
+                                                                                                0.0)
+        floor = (qa / np.sqrt(12) if qa else None, qm / np.sqrt(12) if qm else None)
+        st = (_stats_of(prep, stats, "accel", o.accel_instance, f.used), _stats_of(prep, stats, "mag", o.mag_instance,
+                                                                                  f.used))
+        return holdout_part(acc, mag, f.cal, part=part, method=o.method, tol=o.tol, seed=o.seed, noise_floor=floor,
+                            stats=st)
+    o, f = arg
+    am, cm = f.mapping.accel[0], f.mapping.compass[0]
+    return quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")))
 
 
 def _other_pairs(prep: Prepared, opts: Options) -> list[tuple[int, int]]:
@@ -253,9 +286,8 @@ def _stats_of(prep: Prepared, cache: _StatsCache, kind: str, inst: int, used: li
     return cache[key]
 
 
-def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | None, stats: _StatsCache):
-    """Accelerometer ``a`` on its own: its fit, written values (``joint``'s when given, else
-    its own), gates, (tilt 95 %, nominal) and held-out error."""
+def _accel_own(prep: Prepared, opts: Options, a: int, stats: _StatsCache) -> tuple[list[int], AccelFit, float]:
+    """Accelerometer ``a``'s own fit: (intervals used, fit, held-out error)."""
     used, acc = _accel_sets(prep, a)
     q = prep.quantization.get(("accel", a), 0.0)
     floor = q / np.sqrt(12) if q else None
@@ -264,10 +296,18 @@ def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | No
         fit = fit_accel(st)
     except (InsufficientDataError, EstimationError) as exc:
         raise _with_blind_cal(prep, exc) from None
+    ho = holdout_accel_mps2(acc, noise_floor=floor, start=fit, stats=st) if opts.holdout else float("nan")
+    return used, fit, ho
+
+
+def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | None,
+                 own: tuple[list[int], AccelFit, float]):
+    """Accelerometer ``a`` on its own fit (``own``, :func:`_accel_own`): written values
+    (``joint``'s when given, else its own), gates, (tilt 95 %, nominal) and held-out error."""
+    used, fit, ho = own
     am = joint if joint is not None else map_accel(fit.gain, fit.bias,
                                                    fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
     tilt = accel_tilt_bounds(fit, am, opts.uncertainty_draws, opts.seed)
-    ho = holdout_accel_mps2(acc, noise_floor=floor, start=fit, stats=st) if opts.holdout else float("nan")
     dirs = np.array([prep.segmentation.intervals[k].gravity_dir for k in used])
     n_orient = _n_orientations(dirs, prep.segmentation)
     gates = gates_mod.accel_gates(am, n_intervals=len(used), n_orientations=n_orient, tilt_95_deg=tilt[0],
@@ -300,7 +340,7 @@ def _accel_only(prep: Prepared, opts: Options, warnings: list[str], progress=Non
     for k, a in enumerate(wanted):
         report(progress, STAGE_FIT, k, len(wanted))
         try:
-            am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None, {})
+            am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None, _accel_own(prep, opts, a, {}))
         except MavcalError as exc:
             errors.append(exc)
             warnings.append(f"accelerometer {a} not calibrated: {exc}")
@@ -349,18 +389,30 @@ def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
     return used
 
 
-def _calibrate_pair(prep: Prepared, options: Options, stats: _StatsCache) -> CalibrationRun:
-    """calibrate -> map -> quality -> gates for one accelerometer/compass pair (``stats``:
-    the run's interval statistics, :func:`_stats_of`)."""
-    opts = options
-    log_, seg = prep.log, prep.segmentation
+@dataclass(frozen=True, eq=False)
+class _PairFit:
+    """A pair's joint fit and mapping (what a worker sends back: no readings)."""
+
+    used: list[int]
+    cal: Calibration
+    mapping: ParamMapping
+    params_now: dict[str, float]
+    warnings: list[str]
+
+
+def _pair_sets(prep: Prepared, opts: Options, used: list[int]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    ivs = prep.segmentation.intervals
+    return ([ivs[k].accel_mps2[opts.accel_instance] for k in used], [ivs[k].mag_mgauss[opts.mag_instance]
+                                                                      for k in used])
+
+
+def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
+    """calibrate -> map for one accelerometer/compass pair (``stats``: the run's interval
+    statistics, :func:`_stats_of`)."""
+    log_ = prep.log
     warnings: list[str] = list(prep.warnings)
     ai, mi = opts.accel_instance, opts.mag_instance
     used = _intervals_of_pair(prep, ai, mi)
-    acc = [seg.intervals[k].accel_mps2[ai] for k in used]
-    mag = [seg.intervals[k].mag_mgauss[mi] for k in used]
-    qa, qm = prep.quantization.get(("accel", ai), 0.0), prep.quantization.get(("mag", mi), 0.0)
-    noise_floor = (qa / np.sqrt(12) if qa else None, qm / np.sqrt(12) if qm else None)
     try:
         sa, sm = _stats_of(prep, stats, "accel", ai, used), _stats_of(prep, stats, "mag", mi, used)
         cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
@@ -369,20 +421,33 @@ def _calibrate_pair(prep: Prepared, options: Options, stats: _StatsCache) -> Cal
     params_now = log_.params.snapshot()
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
+    mag = _pair_sets(prep, opts, used)[1]
     mapping = map_calibration(cal, params_now, np.array([m.mean(0) for m in mag]), accel_instance=ai,
                               mag_instance=mi, location=opts.location or log_.position,
                               field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,
                               allow_custom=opts.allow_custom, force_external=opts.force_external)
-    am, cm = mapping.accel[0], mapping.compass[0]
-    ho = (holdout_errors(acc, mag, cal, method=opts.method, tol=opts.tol, seed=opts.seed, noise_floor=noise_floor,
-                         stats=(sa, sm)) if opts.holdout else (float("nan"), float("nan")))
-    quality = quality_of(cal, am, cm, am.old.board_matrix, opts.uncertainty_draws, opts.seed, ho)
-    dirs = np.array([seg.intervals[k].gravity_dir for k in used])
+    return _PairFit(used, cal, mapping, params_now, warnings)
+
+
+def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, K: int, second: list, done: list[Outcome]
+                 ) -> CalibrationRun | MavcalError:
+    """The pair's run from its fit and its second-round outcomes (held-out slices, quality):
+    the held-out error, the compass gates."""
+    mine = [(kind, r) for (kind, arg), r in zip(second, done) if arg[1] is f]
+    bad = next((r[1] for _, r in mine if not r[0]), None)
+    if bad is not None:
+        return bad
+    ho = holdout_rms([r[1] for kind, r in mine if kind == "holdout"]) if opts.holdout else (float("nan"),
+                                                                                           float("nan"))
+    quality = replace(next(r[1] for kind, r in mine if kind == "quality"), holdout_accel_mps2=ho[0],
+                      holdout_mag_mgauss=ho[1])
+    cal, cm, seg = f.cal, f.mapping.compass[0], prep.segmentation
+    dirs = np.array([seg.intervals[k].gravity_dir for k in f.used])
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
-        cm, params_now, n_intervals=len(used), n_orientations=_n_orientations(dirs, seg),
+        cm, f.params_now, n_intervals=len(f.used), n_orientations=_n_orientations(dirs, seg),
         heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates,
         fit_converged=cal.converged,
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message)))
-    return CalibrationRun(source=log_.source, log=log_, raw=prep.raw, segmentation=seg, intervals_used=tuple(used),
-                          calibration=cal, mapping=mapping, quality=quality, gates=report, params_before=params_now,
-                          warnings=tuple(dict.fromkeys(warnings)))
+    return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=seg,
+                          intervals_used=tuple(f.used), calibration=cal, mapping=f.mapping, quality=quality,
+                          gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)))

@@ -35,7 +35,8 @@ from mavcal.errors import MavcalError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Quality", "quality_of", "truth_functions", "holdout_errors", "accel_tilt_bounds"]
+__all__ = ["Quality", "quality_of", "truth_functions", "holdout_errors", "holdout_part", "holdout_rms",
+           "HoldoutPart", "accel_tilt_bounds"]
 
 RawFn = Callable[[np.ndarray], np.ndarray]
 
@@ -167,7 +168,37 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
                    noise_floor: tuple[float | None, float | None] = (None, None),
                    cluster_deg: float = 30.0, stats: tuple[IntervalStats, IntervalStats] | None = None
                    ) -> tuple[float, float]:
-    """RMS held-out error: refit without some intervals, predict their means.
+    """RMS held-out error: refit without some intervals, predict their means
+    (:func:`holdout_part` of all the refits, then :func:`holdout_rms`)."""
+    return holdout_rms([holdout_part(acc, mag, cal, method=method, tol=tol, seed=seed, noise_floor=noise_floor,
+                                     cluster_deg=cluster_deg, stats=stats)])
+
+
+HoldoutPart = tuple[list[float], list[float]] | None  # the accel and compass errors of some refits
+
+
+def holdout_rms(parts: Sequence[HoldoutPart]) -> tuple[float, float]:
+    """The RMS accel (m/s^2) and compass (mGauss) held-out errors of :func:`holdout_part`'s
+    parts, given in order (all of them: then the number is :func:`holdout_errors`', to the
+    bit); NaN when the check could not run or predicted nothing."""
+    if not parts or any(p is None for p in parts):
+        return float("nan"), float("nan")
+    ea = [e for p in parts if p is not None for e in p[0]]
+    em = [e for p in parts if p is not None for e in p[1]]
+    if not ea:
+        return float("nan"), float("nan")
+    return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))
+
+
+def holdout_part(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Calibration, *,
+                 part: tuple[int, int] = (0, 1), method: str = "ncar", tol: float = 1e-4, seed: int = 0,
+                 noise_floor: tuple[float | None, float | None] = (None, None),
+                 cluster_deg: float = 30.0, stats: tuple[IntervalStats, IntervalStats] | None = None
+                 ) -> HoldoutPart:
+    """The held-out errors of the ``k``-th of ``K`` consecutive slices of the refits
+    (``part = (k, K)``; the default is all of them), so that the refits can run in separate
+    processes; None when the check cannot run (too few intervals, no interval whose pose
+    recurs). :func:`holdout_rms` of all the parts is the held-out error.
 
     The refits are :func:`mavcal.core.accel_fit.holdout_folds`': leave-one-interval-out up
     to :data:`~mavcal.core.accel_fit.LOO_MAX_INTERVALS` intervals, else
@@ -206,7 +237,7 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
 
     N = len(acc)
     if N - 1 < MODELS[cal.model].min_intervals:
-        return float("nan"), float("nan")
+        return None
     acc = [np.asarray(a, dtype=float) for a in acc]
     mag = [np.asarray(m, dtype=float) for m in mag]
     mu_a = interval_means(acc)  # each interval's mean once (the directions, the predictions' targets)
@@ -214,12 +245,13 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
     ea, em = [], []
     folds = holdout_folds(dirs, cluster_deg=cluster_deg)
     if not folds:
-        return float("nan"), float("nan")
+        return None
     try:
         sa, sm, at = _refit_stats(acc, mag, folds, noise_floor, stats)
     except MavcalError:
-        return float("nan"), float("nan")
-    for keep, pred in folds:
+        return None
+    k, K = part
+    for keep, pred in folds[k * len(folds) // K:(k + 1) * len(folds) // K]:
         try:
             cj = calibrate(stats_subset(sa, at[keep], "accel_sets"), stats_subset(sm, at[keep], "mag_sets"),
                            method=method, tol=tol, seed=seed, model=cal.model, start=cal)
@@ -232,9 +264,7 @@ def holdout_errors(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Ca
         pm = cj.mag.gain @ Rs @ cj.field + cj.mag.bias
         ea += [np.linalg.norm(d) for d in mu_a[pred] - pa]  # a vector norm each (its own rounding)
         em += [np.linalg.norm(d) for d in mu_m - pm]
-    if not ea:
-        return float("nan"), float("nan")
-    return float(np.sqrt(np.mean(np.square(ea)))), float(np.sqrt(np.mean(np.square(em))))
+    return ea, em
 
 
 def _refit_stats(acc: list[np.ndarray], mag: list[np.ndarray], folds: list[tuple[np.ndarray, np.ndarray]],
