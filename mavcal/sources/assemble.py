@@ -45,6 +45,8 @@ from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu
+from mavcal.sources.param_columns import dataflash_params, text_codes, timeline_from_codes
+from mavcal.sources.param_columns import decode_text as _text
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 
 __all__ = ["assemble_tlog", "assemble_dataflash", "imu_series", "Columns", "IMU_MESSAGES", "TLOG_MESSAGES",
@@ -77,12 +79,6 @@ Columns = dict[str, dict[str, np.ndarray]]
 
 
 # --------------------------------------------------------------------------- helpers
-def _text(v) -> str:
-    if isinstance(v, (bytes, bytearray, np.bytes_)):
-        return bytes(v).split(b"\0", 1)[0].decode("utf-8", errors="replace")
-    return str(v).split("\0", 1)[0]
-
-
 def _vec(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
     """(n, len(names)) float64 of the columns ``names`` (each cast straight into its column:
     no float copy of each column before the interleaving)."""
@@ -111,29 +107,6 @@ def _any_nonzero(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarra
 
 def _take(c: Mapping[str, np.ndarray], mask) -> dict[str, np.ndarray]:
     return {k: np.asarray(v)[mask] for k, v in c.items()}
-
-
-def _build_timeline(names: Sequence[str], times: np.ndarray, values: np.ndarray) -> ParamTimeline:
-    """ParamTimeline from parallel arrays; keeps only value changes, sorted by time."""
-    if len(names) == 0:
-        return ParamTimeline()
-    names_arr = np.asarray(names, dtype=object)
-    times = np.asarray(times, dtype=float)
-    values = np.asarray(values, dtype=float)
-    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    order = np.argsort(times, kind="stable")
-    groups: dict[str, list[int]] = {}
-    for i in order.tolist():
-        groups.setdefault(names_arr[i], []).append(i)
-    for name, idx in groups.items():
-        if not name:
-            continue
-        t = times[idx]
-        v = values[idx]
-        keep = np.ones(len(v), dtype=bool)
-        keep[1:] = ~((v[1:] == v[:-1]) | (np.isnan(v[1:]) & np.isnan(v[:-1])))
-        out[name] = (t[keep], v[keep])
-    return ParamTimeline(out)
 
 
 def _dedupe_sorted(time_s: np.ndarray, *arrays) -> tuple[np.ndarray, int]:
@@ -412,9 +385,9 @@ def _tlog_params(cols: Columns, sysid: int, tb: _TimeBase, warns: list[str]) -> 
     pv = _take(pv, m)
     if not _n(pv):
         return ParamTimeline()
-    names = [_text(x) for x in pv["param_id"]]
+    codes, labels = text_codes(pv["param_id"])
     times = tb.from_log(np.asarray(pv["_index"], np.int64), pv["_log_time_s"])
-    return _build_timeline(names, times, np.asarray(pv["param_value"], dtype=np.float32).astype(float))
+    return timeline_from_codes(codes, labels, times, np.asarray(pv["param_value"], dtype=np.float32).astype(float))
 
 
 def _tlog_events(cols: Columns, sysid: int, tb: _TimeBase) -> tuple[list[LogEvent], str | None]:
@@ -548,7 +521,6 @@ def _tlog_position(cols: Columns, sysid: int) -> tuple[float, float, float] | No
 
 
 # --------------------------------------------------------------------------- DataFlash assembly
-_PARAM_NAME_RE = re.compile(r"^[A-Za-z0-9_]{1,16}$")  # ArduPilot: up to 16 letters, digits, _
 
 
 def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -658,22 +630,6 @@ class _DfRecordTime:
         return np.where(k >= 0, t_val[np.clip(k, 0, None)], t_val[0])
 
 
-def _df_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[str]) -> ParamTimeline:
-    """PARM records -> ParamTimeline; records with an impossible value or name (a damaged
-    log: DataFlash has no checksum) are skipped and counted in ``warns``."""
-    names = [_text(x) for x in pm["Name"]]
-    values = np.asarray(pm["Value"], dtype=float)
-    ok = np.array([bool(_PARAM_NAME_RE.match(n)) and fw.param_value_plausible(n, v)
-                   for n, v in zip(names, values.tolist())], dtype=bool)
-    ok &= np.isfinite(t)
-    if not ok.all():
-        bad = [f"{n}={v:g}" for n, v, k in zip(names, values.tolist(), ok.tolist()) if not k][:3]
-        warns.append(f"skipped {int((~ok).sum())} PARM records with an impossible name or value "
-                     f"({', '.join(bad)}): corrupt records")
-    keep = np.flatnonzero(ok)
-    return _build_timeline([names[i] for i in keep.tolist()], t[keep], values[keep])
-
-
 def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
     """Build an ImuLog from DataFlash message columns (fast decoder or DFReader)."""
     warns = list(warnings)
@@ -685,7 +641,7 @@ def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ())
     params = ParamTimeline()
     pm = cols.get("PARM") or {}
     if _n(pm):
-        params = _df_params(pm, rec_time(pm), warns)
+        params = dataflash_params(pm, rec_time(pm), warns)
     events: list[LogEvent] = []
     firmware = None
     msg = cols.get("MSG") or {}
