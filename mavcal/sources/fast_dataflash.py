@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.sources.framing import ColumnBuffer, file_chunks, mark_path
+from mavcal.sources.framing import ColumnBuffer, mark_path
 from mavcal.sources.progress import ProgressFn
 
 log = logging.getLogger(__name__)
@@ -209,17 +209,46 @@ def read_formats(path: str, *, chunk_size: int = DEFAULT_CHUNK, stats: DFStats |
 
 
 def _scan_formats(path: str, table: _FormatTable, chunk_size: int) -> None:
-    size = os.path.getsize(path)
-    with open(path, "rb") as fh:
-        for _, start, end, b in file_chunks(fh, size, chunk_size, 0, FMT_LEN):
-            table.scan(b, *_candidates(b, end - start))
+    with open(path, "rb", buffering=0) as fh:
+        chunks = _Chunks(fh, os.path.getsize(path), chunk_size, FMT_LEN)
+        for start, end, b in chunks:
+            table.scan(b, *chunks.candidates(b, end - start))
 
 
-def _candidates(b: np.ndarray, hi: int) -> tuple[np.ndarray, np.ndarray]:
-    """Positions ``p < hi`` of every ``A3 95`` of chunk ``b`` that has a type byte, and those type bytes."""
-    p = np.flatnonzero(b[: min(hi, len(b) - 2)] == HEAD1)
-    p = p[b[p + 1] == HEAD2]
-    return p, b[p + 2]
+class _Chunks:
+    """A file in chunks ``[start, end)`` with ``after`` bytes more, each read into the same buffer
+    (no allocation, and no fresh pages, per chunk): a chunk's array is valid until the next is read."""
+
+    def __init__(self, fh, size: int, chunk: int, after: int) -> None:
+        self.fh, self.size, self.chunk, self.after = fh, size, chunk, after
+        self._buf = bytearray(min(chunk + after, size))
+        self._arr = np.frombuffer(self._buf, dtype=np.uint8)
+        self._eq = np.empty(min(chunk, size), dtype=bool)
+
+    def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
+        view = memoryview(self._buf)
+        start = 0
+        while start < self.size:
+            end = min(start + self.chunk, self.size)
+            want = min(end + self.after, self.size) - start
+            self.fh.seek(start)
+            got = 0
+            while got < want:
+                k = self.fh.readinto(view[got:want])
+                if not k:
+                    break
+                got += k
+            yield start, end, self._arr[:got]
+            start = end
+
+    def candidates(self, b: np.ndarray, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``p < hi`` of every ``A3 95`` of chunk ``b`` that has a type byte, and those type bytes."""
+        lim = max(min(hi, len(b) - 2), 0)
+        eq = self._eq[:lim]
+        np.equal(b[:lim], HEAD1, out=eq)
+        p = np.flatnonzero(eq)
+        p = p[b[p + 1] == HEAD2]
+        return p, b[p + 2]
 
 
 def decode_dataflash(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAULT_CHUNK,
@@ -288,9 +317,10 @@ def _record_pass(path: str, table: _FormatTable, chunk_size: int, progress: Prog
     parts: dict[int, ColumnBuffer] = {}
     seen = np.zeros(256, dtype=bool)  # types of the candidate starts framed so far
     expected = 0
-    with open(path, "rb") as fh:
-        for _, start, end, b in file_chunks(fh, size, chunk_size, 0, 256):
-            p, ty = _candidates(b, end - start)
+    with open(path, "rb", buffering=0) as fh:
+        chunks = _Chunks(fh, size, chunk_size, 256)
+        for start, end, b in chunks:
+            p, ty = chunks.candidates(b, end - start)
             if growing:
                 new = table.scan(b, p, ty)
                 if new and bool(seen[new].any()):
