@@ -531,23 +531,30 @@ def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
     raise SourceError("DataFlash message without TimeUS/TimeMS")
 
 
-def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int,
-                  warns: list[str]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
+def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int, warns: list[str],
+                  keys: Sequence[str]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
     """Yield (instance, columns) of a DataFlash message (I field, or the digit in the name).
 
     Records whose instance is not 0..``limit``-1 (a corrupt I byte: ArduPilot has no such
-    sensor slot) are skipped and counted in ``warns``."""
+    sensor slot) are skipped and counted in ``warns``. Of a log with several instances, only
+    the columns ``keys`` (those the caller reads) are taken apart."""
     if "I" in c:
-        raw = np.asarray(c["I"], dtype=float)
-        ok = np.isfinite(raw) & (raw >= 0) & (raw < limit) & (raw == np.round(raw))
+        col = np.asarray(c["I"])
+        if col.dtype.kind in "iu":  # the logged byte: a whole number, finite
+            raw = col
+            ok = (col >= 0) & (col < limit)
+        else:
+            raw = col.astype(float)
+            ok = np.isfinite(raw) & (raw >= 0) & (raw < limit) & (raw == np.round(raw))
         if not ok.all():
             bad = sorted({int(x) for x in raw[~ok & np.isfinite(raw)][:1000].tolist()})[:5]
             warns.append(f"skipped {int((~ok).sum())} {name} records with an impossible instance number "
                          f"({', '.join(map(str, bad)) or 'not a number'}; valid 0..{limit - 1}): corrupt records")
         inst = np.where(ok, raw, -1).astype(int)
-        for i in np.unique(inst[ok]).tolist():
+        for i in np.flatnonzero(np.bincount(inst[ok], minlength=limit)).tolist():
             m = inst == i
-            yield i, (c if m.all() else _take(c, m))  # one instance (the usual case): no copy
+            # one instance (the usual case): no copy
+            yield i, (c if m.all() else _take({k: c[k] for k in keys if k in c}, m))
     else:
         digit = name[-1]
         if digit.isdigit():  # IMU2 -> 1, MAG3 -> 2, ACC1 -> 0
@@ -570,23 +577,29 @@ def _df_add(out: _SeriesSet, sensor: str, inst: int, msg: str, t: np.ndarray, v:
              dup_label=f"{msg}[{inst}]")
 
 
+_DF_TIME_KEYS = ("TimeUS", "TimeMS")
+_DF_ACC = ("AccX", "AccY", "AccZ")
+_DF_GYR = ("GyrX", "GyrY", "GyrZ")
+_DF_MAG_KEYS = ("MagX", "MagY", "MagZ", "OfsX", "OfsY", "OfsZ", "MOX", "MOY", "MOZ", "Health")
+
+
 def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
     """IMU/ACC/GYR -> accel and gyro, MAG -> mag (with offsets, motor offsets and health)."""
     for name in DF_IMU_NAMES:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c, fw.MAX_IMUS, out.warns):
+        for inst, ci in _df_instances(name, c, fw.MAX_IMUS, out.warns, _DF_TIME_KEYS + _DF_ACC + _DF_GYR):
             t = _df_time(ci)
-            if all(k in ci for k in ("AccX", "AccY", "AccZ")):
-                _df_add(out, "accel", inst, name, t, _vec(ci, ("AccX", "AccY", "AccZ")))
-            if all(k in ci for k in ("GyrX", "GyrY", "GyrZ")):
-                _df_add(out, "gyro", inst, name, t, _vec(ci, ("GyrX", "GyrY", "GyrZ")))
+            if all(k in ci for k in _DF_ACC):
+                _df_add(out, "accel", inst, name, t, _vec(ci, _DF_ACC))
+            if all(k in ci for k in _DF_GYR):
+                _df_add(out, "gyro", inst, name, t, _vec(ci, _DF_GYR))
     for name in DF_MAG_NAMES:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c, fw.MAX_COMPASSES, out.warns):
+        for inst, ci in _df_instances(name, c, fw.MAX_COMPASSES, out.warns, _DF_TIME_KEYS + _DF_MAG_KEYS):
             if not all(k in ci for k in ("MagX", "MagY", "MagZ")):
                 continue
             extra = {}
