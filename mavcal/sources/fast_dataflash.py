@@ -286,12 +286,13 @@ def decode_dataflash(path: str, msg_names: Iterable[str], *, chunk_size: int = D
     one: then the file is read again, its FMT records first (two passes, the same result).
     """
     names = list(msg_names)
+    progress = _monotonic(progress)  # a second pass reports only past what the first one did
     table = _FormatTable(names, DFStats())
     columns = _record_pass(path, table, chunk_size, progress, growing=True) if one_pass else None
     if columns is None:
         table = _FormatTable(names, DFStats())
         _scan_formats(path, table, chunk_size)
-        columns = _record_pass(path, table, chunk_size, _monotonic(progress), growing=False)
+        columns = _record_pass(path, table, chunk_size, progress, growing=False)
         assert columns is not None
     return columns, table.formats, table.stats
 
