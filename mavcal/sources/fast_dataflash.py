@@ -216,6 +216,9 @@ def _scan_formats(path: str, table: _FormatTable, chunk_size: int) -> None:
             table.scan(b, *chunks.candidates(b, end - start))
 
 
+_SEARCH_BLOCK = 256 * 1024  # bytes searched for A3 at a time
+
+
 class _Chunks:
     """A file in chunks ``[start, end)`` with ``after`` bytes more, each read into the same buffer
     (no allocation, and no fresh pages, per chunk): a chunk's array is valid until the next is read."""
@@ -224,7 +227,7 @@ class _Chunks:
         self.fh, self.size, self.chunk, self.after = fh, size, chunk, after
         self._buf = bytearray(min(chunk + after, size))
         self._arr = np.frombuffer(self._buf, dtype=np.uint8)
-        self._eq = np.empty(min(chunk, size), dtype=bool)
+        self._eq = np.empty(max(min(chunk, size, _SEARCH_BLOCK), 1), dtype=bool)
 
     def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
         view = memoryview(self._buf)
@@ -245,9 +248,12 @@ class _Chunks:
     def candidates(self, b: np.ndarray, hi: int) -> tuple[np.ndarray, np.ndarray]:
         """Positions ``p < hi`` of every ``A3 95`` of chunk ``b`` that has a type byte, and those type bytes."""
         lim = max(min(hi, len(b) - 2), 0)
-        eq = self._eq[:lim]
-        np.equal(b[:lim], HEAD1, out=eq)
-        p = np.flatnonzero(eq)
+        found = [np.zeros(0, dtype=np.intp)]
+        for a in range(0, lim, len(self._eq)):  # the mask of a block at a time: a small scratch
+            eq = self._eq[:min(lim - a, len(self._eq))]
+            np.equal(b[a:a + len(eq)], HEAD1, out=eq)
+            found.append(np.flatnonzero(eq) + a)
+        p = np.concatenate(found)
         p = p[b[p + 1] == HEAD2]
         return p, b[p + 2]
 
