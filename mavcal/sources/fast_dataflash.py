@@ -338,7 +338,7 @@ def _record_pass(path: str, table: _FormatTable, chunk_size: int, progress: Prog
                 if growing:
                     seen[ty[np.searchsorted(p, loc):]] = True
                 recs = _frame(p, ty, end - start, table.lengths, loc, stats)
-                if recs is not None and len(recs[0]) == 0:
+                if recs is not None and recs.count == 0:
                     expected = end
                 elif recs is not None:
                     # trailing garbage after the last record is ignored, as DFReader does
@@ -400,13 +400,33 @@ class _TypeColumns:
         return out
 
 
-Framed = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+@dataclass(frozen=True)
+class _Path:
+    """The records of one chunk, as runs of candidates (see :func:`_frame`).
+
+    ``p``, ``ty``, ``nxt``: the candidates of a known type (positions, types, record ends);
+    ``ends``: the last candidate of each run; ``entry``: per run, the first candidate of it on
+    the path (a huge number for runs off the path: the path covers ``entry[r] .. ends[r]``);
+    ``before``: per run, the records of the path before it; ``count`` records, the last one
+    the candidate ``last``.
+    """
+
+    p: np.ndarray
+    ty: np.ndarray
+    nxt: np.ndarray
+    ends: np.ndarray
+    entry: np.ndarray
+    before: np.ndarray
+    count: int
+    last: int
+
+
+_OFF_PATH = np.iinfo(np.int64).max
 
 
 def _frame(p: np.ndarray, ty: np.ndarray, hi: int, lengths: np.ndarray, loc_exp: int, stats: DFStats
-           ) -> Framed | None:
-    """The records of one chunk: ``(path, p, ty, ln, nxt)``, ``path`` the indices into the candidates
-    ``p`` (types ``ty``, lengths ``ln``, ends ``nxt``) of its records; None if no candidate has a known type.
+           ) -> _Path | None:
+    """The records of one chunk (no record: ``count`` 0); None if no candidate has a known type.
 
     As DFReader: a record at ``p`` is followed by the first ``A3 95 <known type>`` at or after
     ``p + length``; the path starts at the first candidate at or after ``loc_exp``. Gaps are
@@ -427,7 +447,7 @@ def _frame(p: np.ndarray, ty: np.ndarray, hi: int, lengths: np.ndarray, loc_exp:
     first = int(np.searchsorted(p, loc_exp))
     if first >= n:
         empty = np.zeros(0, dtype=np.int64)
-        return empty, p, ty, ln, empty
+        return _Path(p, ty, p, empty, empty, empty, 0, -1)
     nxt = p + ln
     d = p[1:] - nxt[:-1]  # bytes from a record's end to the next candidate (< 0: that one starts inside it)
     brk = np.empty(n, dtype=bool)
@@ -442,64 +462,66 @@ def _frame(p: np.ndarray, ty: np.ndarray, hi: int, lengths: np.ndarray, loc_exp:
     entries[0] = first
     entries[1:] = s[on[:-1]]
     last = ends[on]
-    # the path: the candidates entries[k] .. last[k] of every run it enters
-    steps = np.ones(int((last - entries).sum()) + len(on), dtype=np.int64)
-    steps[0] = first
-    steps[np.cumsum(last - entries + 1)[:-1]] = entries[1:] - last[:-1]
-    path = np.cumsum(steps)
-    _count_gaps(p, d, nxt, ends, on, entries, last, loc_exp, stats)
-    return path, p, ty, ln, nxt
+    cnt = last - entries + 1
+    entry = np.full(len(ends), _OFF_PATH, dtype=np.int64)
+    entry[on] = entries
+    before = np.zeros(len(ends), dtype=np.int64)
+    before[on] = np.cumsum(cnt) - cnt
+    _count_gaps(p, d, nxt, ends, entry, entries, last, loc_exp, stats)
+    return _Path(p, ty, nxt, ends, entry, before, int(cnt.sum()), int(last[-1]))
 
 
-def _count_gaps(p: np.ndarray, d: np.ndarray, nxt: np.ndarray, ends: np.ndarray, on: np.ndarray,
+def _count_gaps(p: np.ndarray, d: np.ndarray, nxt: np.ndarray, ends: np.ndarray, entry: np.ndarray,
                 entries: np.ndarray, last: np.ndarray, loc_exp: int, stats: DFStats) -> None:
     """Skipped bytes between the records of the path (and before its first): at its start, where it
     jumps from run to run, and inside runs (a record ending before the next candidate)."""
     gaps = [np.array([p[entries[0]] - loc_exp]), p[entries[1:]] - nxt[last[:-1]]]
     soft = np.flatnonzero(d > 0)  # never a run end: d >= 0 there
     if len(soft):
-        entry_of_run = np.full(len(ends), np.iinfo(np.int64).max)
-        entry_of_run[on] = entries
-        soft = soft[soft >= entry_of_run[np.searchsorted(ends, soft)]]  # on the path
+        soft = soft[soft >= entry[np.searchsorted(ends, soft)]]  # on the path
         gaps.append(d[soft])
     g = np.concatenate(gaps)
     stats.skipped_bytes += int(g[g > 0].sum())
     stats.resyncs += int((g > 0).sum())
 
 
-def _decode_records(b: np.ndarray, recs: Framed, table: _FormatTable, parts: dict[int, _TypeColumns]) -> int:
+def _decode_records(b: np.ndarray, fr: _Path, table: _FormatTable, parts: dict[int, _TypeColumns]) -> int:
     """Append the columns of the wanted records of one chunk to ``parts`` (one buffer per type);
     the end of its last record (in the chunk)."""
-    path, p, ty, ln, nxt = recs
     stats = table.stats
-    end = int(nxt[path[-1]])
+    end = int(fr.nxt[fr.last])
     # only the last record can be cut off: every other one ends at or before the next start
     cut = end > len(b)
     stats.truncated += int(cut)
     first_recno = stats.records
-    stats.records += len(path)
-    typ = ty[path]
-    rank = np.flatnonzero(table.is_wanted[typ])
-    if cut and len(rank) and rank[-1] == len(path) - 1:
-        rank = rank[:-1]
-    if len(rank) == 0:
+    stats.records += fr.count
+    wc = np.flatnonzero(table.is_wanted[fr.ty])  # the wanted candidates, then those on the path
+    run = np.searchsorted(fr.ends, wc)
+    entry = fr.entry[run]
+    on = wc >= entry
+    if cut:
+        on &= wc != fr.last
+    if not on.all():
+        wc, run, entry = wc[on], run[on], entry[on]
+    if len(wc) == 0:
         return end
-    wt = typ[rank]
+    rank = fr.before[run] + (wc - entry)  # record number in the chunk
+    wt = fr.ty[wc]
     for t, (f, dt, mults) in table.wanted.items():
-        sel = rank[wt == t]
-        if len(sel) == 0:
+        m = wt == t
+        if not m.any():
             continue
         # gather only the record bodies (a window view indexes bytes, not an index per byte)
-        rec = np.lib.stride_tricks.sliding_window_view(b, f.length - 3)[p[path[sel]] + 3].view(dt).ravel()
+        rec = np.lib.stride_tricks.sliding_window_view(b, f.length - 3)[fr.p[wc[m]] + 3].view(dt).ravel()
         part = {}
         for name in dt.names or ():
             col = rec[name]  # a field view: copied once, into the column buffer
-            m = mults.get(name)
-            if m is not None:
+            mult = mults.get(name)
+            if mult is not None:
                 # as DFReader: dividing by 1e2/1e7 is more accurate than multiplying
-                col = col.astype(np.float64) / (1 / m)
+                col = col.astype(np.float64) / (1 / mult)
             part[name] = col
-        part["_index"] = sel + first_recno
+        part["_index"] = rank[m] + first_recno
         buf = parts.get(t)
         if buf is None:
             buf = parts[t] = _TypeColumns()
