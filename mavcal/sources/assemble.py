@@ -553,8 +553,8 @@ def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int, warns: lis
         inst = np.where(ok, raw, -1).astype(int)
         for i in np.flatnonzero(np.bincount(inst[ok], minlength=limit)).tolist():
             m = inst == i
-            # one instance (the usual case): no copy
-            yield i, (c if m.all() else _take({k: c[k] for k in keys if k in c}, m))
+            # one instance (the usual case): no copy; else gathered by index (instances often alternate)
+            yield i, (c if m.all() else _take({k: c[k] for k in keys if k in c}, np.flatnonzero(m)))
     else:
         digit = name[-1]
         if digit.isdigit():  # IMU2 -> 1, MAG3 -> 2, ACC1 -> 0
@@ -568,11 +568,11 @@ def _df_add(out: _SeriesSet, sensor: str, inst: int, msg: str, t: np.ndarray, v:
     """Keep a DataFlash series without its non-finite samples (stated in the warnings)."""
     if len(t) == 0 or out.has(sensor, inst):
         return
-    ok = np.isfinite(v).all(axis=1)
-    if (~ok).any():
+    ok: np.ndarray | slice = slice(None)  # every sample finite (the usual case): no copy
+    finite = np.isfinite(v)
+    if not finite.all():
+        ok = finite.all(axis=1)
         out.warns.append(f"dropped {int((~ok).sum())} {msg} samples with non-finite values")
-    else:  # every sample finite (the usual case): no copy
-        ok = slice(None)
     out.keep(sensor, inst, msg, t[ok], v[ok], None, {k: a[ok] for k, a in (extra or {}).items()},
              dup_label=f"{msg}[{inst}]")
 
