@@ -45,6 +45,8 @@ from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu
+from mavcal.sources.param_columns import dataflash_params, text_codes, timeline_from_codes
+from mavcal.sources.param_columns import decode_text as _text
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 
 __all__ = ["assemble_tlog", "assemble_dataflash", "imu_series", "Columns", "IMU_MESSAGES", "TLOG_MESSAGES",
@@ -77,12 +79,6 @@ Columns = dict[str, dict[str, np.ndarray]]
 
 
 # --------------------------------------------------------------------------- helpers
-def _text(v) -> str:
-    if isinstance(v, (bytes, bytearray, np.bytes_)):
-        return bytes(v).split(b"\0", 1)[0].decode("utf-8", errors="replace")
-    return str(v).split("\0", 1)[0]
-
-
 def _vec(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
     """(n, len(names)) float64 of the columns ``names`` (each cast straight into its column:
     no float copy of each column before the interleaving)."""
@@ -111,29 +107,6 @@ def _any_nonzero(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarra
 
 def _take(c: Mapping[str, np.ndarray], mask) -> dict[str, np.ndarray]:
     return {k: np.asarray(v)[mask] for k, v in c.items()}
-
-
-def _build_timeline(names: Sequence[str], times: np.ndarray, values: np.ndarray) -> ParamTimeline:
-    """ParamTimeline from parallel arrays; keeps only value changes, sorted by time."""
-    if len(names) == 0:
-        return ParamTimeline()
-    names_arr = np.asarray(names, dtype=object)
-    times = np.asarray(times, dtype=float)
-    values = np.asarray(values, dtype=float)
-    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    order = np.argsort(times, kind="stable")
-    groups: dict[str, list[int]] = {}
-    for i in order.tolist():
-        groups.setdefault(names_arr[i], []).append(i)
-    for name, idx in groups.items():
-        if not name:
-            continue
-        t = times[idx]
-        v = values[idx]
-        keep = np.ones(len(v), dtype=bool)
-        keep[1:] = ~((v[1:] == v[:-1]) | (np.isnan(v[1:]) & np.isnan(v[:-1])))
-        out[name] = (t[keep], v[keep])
-    return ParamTimeline(out)
 
 
 def _dedupe_sorted(time_s: np.ndarray, *arrays) -> tuple[np.ndarray, int]:
@@ -412,9 +385,9 @@ def _tlog_params(cols: Columns, sysid: int, tb: _TimeBase, warns: list[str]) -> 
     pv = _take(pv, m)
     if not _n(pv):
         return ParamTimeline()
-    names = [_text(x) for x in pv["param_id"]]
+    codes, labels = text_codes(pv["param_id"])
     times = tb.from_log(np.asarray(pv["_index"], np.int64), pv["_log_time_s"])
-    return _build_timeline(names, times, np.asarray(pv["param_value"], dtype=np.float32).astype(float))
+    return timeline_from_codes(codes, labels, times, np.asarray(pv["param_value"], dtype=np.float32).astype(float))
 
 
 def _tlog_events(cols: Columns, sysid: int, tb: _TimeBase) -> tuple[list[LogEvent], str | None]:
@@ -548,7 +521,6 @@ def _tlog_position(cols: Columns, sysid: int) -> tuple[float, float, float] | No
 
 
 # --------------------------------------------------------------------------- DataFlash assembly
-_PARAM_NAME_RE = re.compile(r"^[A-Za-z0-9_]{1,16}$")  # ArduPilot: up to 16 letters, digits, _
 
 
 def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -559,23 +531,30 @@ def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
     raise SourceError("DataFlash message without TimeUS/TimeMS")
 
 
-def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int,
-                  warns: list[str]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
+def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int, warns: list[str],
+                  keys: Sequence[str]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
     """Yield (instance, columns) of a DataFlash message (I field, or the digit in the name).
 
     Records whose instance is not 0..``limit``-1 (a corrupt I byte: ArduPilot has no such
-    sensor slot) are skipped and counted in ``warns``."""
+    sensor slot) are skipped and counted in ``warns``. Of a log with several instances, only
+    the columns ``keys`` (those the caller reads) are taken apart."""
     if "I" in c:
-        raw = np.asarray(c["I"], dtype=float)
-        ok = np.isfinite(raw) & (raw >= 0) & (raw < limit) & (raw == np.round(raw))
+        col = np.asarray(c["I"])
+        if col.dtype.kind in "iu":  # the logged byte: a whole number, finite
+            raw = col
+            ok = (col >= 0) & (col < limit)
+        else:
+            raw = col.astype(float)
+            ok = np.isfinite(raw) & (raw >= 0) & (raw < limit) & (raw == np.round(raw))
         if not ok.all():
             bad = sorted({int(x) for x in raw[~ok & np.isfinite(raw)][:1000].tolist()})[:5]
             warns.append(f"skipped {int((~ok).sum())} {name} records with an impossible instance number "
                          f"({', '.join(map(str, bad)) or 'not a number'}; valid 0..{limit - 1}): corrupt records")
         inst = np.where(ok, raw, -1).astype(int)
-        for i in np.unique(inst[ok]).tolist():
+        for i in np.flatnonzero(np.bincount(inst[ok], minlength=limit)).tolist():
             m = inst == i
-            yield i, (c if m.all() else _take(c, m))  # one instance (the usual case): no copy
+            # one instance (the usual case): no copy; else gathered by index (instances often alternate)
+            yield i, (c if m.all() else _take({k: c[k] for k in keys if k in c}, np.flatnonzero(m)))
     else:
         digit = name[-1]
         if digit.isdigit():  # IMU2 -> 1, MAG3 -> 2, ACC1 -> 0
@@ -589,13 +568,19 @@ def _df_add(out: _SeriesSet, sensor: str, inst: int, msg: str, t: np.ndarray, v:
     """Keep a DataFlash series without its non-finite samples (stated in the warnings)."""
     if len(t) == 0 or out.has(sensor, inst):
         return
-    ok = np.isfinite(v).all(axis=1)
-    if (~ok).any():
+    ok: np.ndarray | slice = slice(None)  # every sample finite (the usual case): no copy
+    finite = np.isfinite(v)
+    if not finite.all():
+        ok = finite.all(axis=1)
         out.warns.append(f"dropped {int((~ok).sum())} {msg} samples with non-finite values")
-    else:  # every sample finite (the usual case): no copy
-        ok = slice(None)
     out.keep(sensor, inst, msg, t[ok], v[ok], None, {k: a[ok] for k, a in (extra or {}).items()},
              dup_label=f"{msg}[{inst}]")
+
+
+_DF_TIME_KEYS = ("TimeUS", "TimeMS")
+_DF_ACC = ("AccX", "AccY", "AccZ")
+_DF_GYR = ("GyrX", "GyrY", "GyrZ")
+_DF_MAG_KEYS = ("MagX", "MagY", "MagZ", "OfsX", "OfsY", "OfsZ", "MOX", "MOY", "MOZ", "Health")
 
 
 def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
@@ -604,17 +589,17 @@ def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c, fw.MAX_IMUS, out.warns):
+        for inst, ci in _df_instances(name, c, fw.MAX_IMUS, out.warns, _DF_TIME_KEYS + _DF_ACC + _DF_GYR):
             t = _df_time(ci)
-            if all(k in ci for k in ("AccX", "AccY", "AccZ")):
-                _df_add(out, "accel", inst, name, t, _vec(ci, ("AccX", "AccY", "AccZ")))
-            if all(k in ci for k in ("GyrX", "GyrY", "GyrZ")):
-                _df_add(out, "gyro", inst, name, t, _vec(ci, ("GyrX", "GyrY", "GyrZ")))
+            if all(k in ci for k in _DF_ACC):
+                _df_add(out, "accel", inst, name, t, _vec(ci, _DF_ACC))
+            if all(k in ci for k in _DF_GYR):
+                _df_add(out, "gyro", inst, name, t, _vec(ci, _DF_GYR))
     for name in DF_MAG_NAMES:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c, fw.MAX_COMPASSES, out.warns):
+        for inst, ci in _df_instances(name, c, fw.MAX_COMPASSES, out.warns, _DF_TIME_KEYS + _DF_MAG_KEYS):
             if not all(k in ci for k in ("MagX", "MagY", "MagZ")):
                 continue
             extra = {}
@@ -658,22 +643,6 @@ class _DfRecordTime:
         return np.where(k >= 0, t_val[np.clip(k, 0, None)], t_val[0])
 
 
-def _df_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[str]) -> ParamTimeline:
-    """PARM records -> ParamTimeline; records with an impossible value or name (a damaged
-    log: DataFlash has no checksum) are skipped and counted in ``warns``."""
-    names = [_text(x) for x in pm["Name"]]
-    values = np.asarray(pm["Value"], dtype=float)
-    ok = np.array([bool(_PARAM_NAME_RE.match(n)) and fw.param_value_plausible(n, v)
-                   for n, v in zip(names, values.tolist())], dtype=bool)
-    ok &= np.isfinite(t)
-    if not ok.all():
-        bad = [f"{n}={v:g}" for n, v, k in zip(names, values.tolist(), ok.tolist()) if not k][:3]
-        warns.append(f"skipped {int((~ok).sum())} PARM records with an impossible name or value "
-                     f"({', '.join(bad)}): corrupt records")
-    keep = np.flatnonzero(ok)
-    return _build_timeline([names[i] for i in keep.tolist()], t[keep], values[keep])
-
-
 def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
     """Build an ImuLog from DataFlash message columns (fast decoder or DFReader)."""
     warns = list(warnings)
@@ -685,7 +654,7 @@ def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ())
     params = ParamTimeline()
     pm = cols.get("PARM") or {}
     if _n(pm):
-        params = _df_params(pm, rec_time(pm), warns)
+        params = dataflash_params(pm, rec_time(pm), warns)
     events: list[LogEvent] = []
     firmware = None
     msg = cols.get("MSG") or {}

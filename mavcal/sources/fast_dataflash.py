@@ -18,13 +18,14 @@ never held twice).
 from __future__ import annotations
 
 import logging
+import mmap
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.sources.framing import ColumnBuffer, file_chunks, path_from
+from mavcal.sources.framing import OwnedMap, mark_path
 from mavcal.sources.progress import ProgressFn
 
 log = logging.getLogger(__name__)
@@ -113,31 +114,10 @@ class DFStats:
         return w
 
 
-def read_formats(path: str, *, chunk_size: int = DEFAULT_CHUNK, stats: DFStats | None = None) -> dict[int, DFFormat]:
-    """All valid FMT records of a DataFlash file, by type number (first definition wins)."""
-    size = os.path.getsize(path)
-    formats: dict[int, DFFormat] = {}
-    stats = stats if stats is not None else DFStats()
-    with open(path, "rb") as fh:
-        for _, start, end, b in file_chunks(fh, size, chunk_size, 0, FMT_LEN):
-            n = end - start
-            p = np.flatnonzero(b[: n] == HEAD1)
-            p = p[p + FMT_LEN <= len(b)]
-            p = p[(b[p + 1] == HEAD2) & (b[p + 2] == FMT_TYPE)]
-            if len(p) == 0:
-                continue
-            recs = np.lib.stride_tricks.sliding_window_view(b, FMT_LEN - 3)[p + 3].view(_FMT_DTYPE).ravel()
-            for r in recs:
-                f = _parse_fmt(r)
-                if f is None:
-                    stats.bad_fmt += 1
-                    continue
-                old = formats.get(f.type)
-                if old is None:
-                    formats[f.type] = f
-                elif old != f:
-                    stats.conflicting_fmt += 1
-    return formats
+Wanted = dict[int, tuple[DFFormat, np.dtype, dict[str, float]]]
+_FMT_FORMAT = DFFormat(FMT_TYPE, "FMT", FMT_LEN, "BBnNZ", ("Type", "Length", "Name", "Format", "Columns"))
+_FMT_BODY = FMT_LEN - 3
+_PARSED_LIMIT = 4096  # distinct FMT bodies remembered (a real log has a few hundred)
 
 
 def _parse_fmt(r) -> DFFormat | None:
@@ -159,12 +139,127 @@ def _parse_fmt(r) -> DFFormat | None:
     return DFFormat(int(r["Type"]), name, length, fmt, columns)
 
 
-_FMT_FORMAT = DFFormat(FMT_TYPE, "FMT", FMT_LEN, "BBnNZ", ("Type", "Length", "Name", "Format", "Columns"))
-Wanted = dict[int, tuple[DFFormat, np.dtype, dict[str, float]]]
+class _FormatTable:
+    """The FMT records read so far: formats by type (the first definition wins), record lengths by
+    type, and the decoders of the wanted message names.
+
+    Every distinct FMT body is parsed once: each restart of the logger, and each copy of a log,
+    repeats the same FMT records byte for byte.
+    """
+
+    def __init__(self, names: Iterable[str], stats: DFStats) -> None:
+        self.formats: dict[int, DFFormat] = {}
+        self.lengths = np.zeros(256, dtype=np.int64)
+        self.lengths[FMT_TYPE] = FMT_LEN  # FMT records are known before any FMT-of-FMT
+        self.names = set(names)
+        self.stats = stats
+        self.wanted: Wanted = {}
+        self.is_wanted = np.zeros(256, dtype=bool)
+        self._parsed: dict[bytes, DFFormat | None] = {}
+        if _FMT_FORMAT.name in self.names:  # decoded from the start, like every other FMT-defined type
+            self._want(_FMT_FORMAT)
+
+    def _want(self, f: DFFormat) -> None:
+        self.wanted[f.type] = (f, f.dtype(), f.multipliers())
+        self.is_wanted[f.type] = True
+
+    def add_bodies(self, raw: bytes) -> list[int]:
+        """Apply FMT record bodies (``raw``: 86 bytes each, in file order); the types they newly define."""
+        new = []
+        formats, parsed = self.formats, self._parsed
+        for i in range(0, len(raw), _FMT_BODY):
+            key = raw[i:i + _FMT_BODY]
+            if key in parsed:
+                f = parsed[key]
+            else:
+                f = _parse_fmt(np.frombuffer(key, dtype=_FMT_DTYPE)[0])
+                if len(parsed) < _PARSED_LIMIT:
+                    parsed[key] = f
+            if f is None:
+                self.stats.bad_fmt += 1
+                continue
+            old = formats.get(f.type)
+            if old is None:
+                formats[f.type] = f
+                self.lengths[f.type] = f.length
+                new.append(f.type)
+                if f.name in self.names:
+                    self._want(f)
+            elif old is not f and old != f:
+                self.stats.conflicting_fmt += 1
+        return new
+
+    def scan(self, b: np.ndarray, p: np.ndarray, ty: np.ndarray) -> list[int]:
+        """Apply the whole FMT records among the candidates ``p`` (types ``ty``) of chunk ``b``."""
+        fc = p[(ty == FMT_TYPE) & (p + FMT_LEN <= len(b))]
+        if len(fc) == 0:
+            return []
+        return self.add_bodies(np.lib.stride_tricks.sliding_window_view(b, _FMT_BODY)[fc + 3].tobytes())
+
+    def finish(self) -> Wanted:
+        """The wanted decoders in the order of the formats (FMT itself last unless its own FMT record came)."""
+        self.formats.setdefault(FMT_TYPE, _FMT_FORMAT)
+        return {t: self.wanted[t] for t in self.formats if t in self.wanted}
+
+
+def read_formats(path: str, *, chunk_size: int = DEFAULT_CHUNK, stats: DFStats | None = None) -> dict[int, DFFormat]:
+    """All valid FMT records of a DataFlash file, by type number (first definition wins)."""
+    table = _FormatTable((), stats if stats is not None else DFStats())
+    _scan_formats(path, table, chunk_size)
+    return table.formats
+
+
+def _scan_formats(path: str, table: _FormatTable, chunk_size: int) -> None:
+    with open(path, "rb", buffering=0) as fh:
+        chunks = _Chunks(fh, os.path.getsize(path), chunk_size, FMT_LEN)
+        for start, end, b in chunks:
+            table.scan(b, *chunks.candidates(b, end - start))
+
+
+_SEARCH_BLOCK = 256 * 1024  # bytes searched for A3 at a time
+
+
+class _Chunks:
+    """A file in chunks ``[start, end)`` with ``after`` bytes more, each read into the same buffer
+    (no allocation, and no fresh pages, per chunk): a chunk's array is valid until the next is read."""
+
+    def __init__(self, fh, size: int, chunk: int, after: int) -> None:
+        self.fh, self.size, self.chunk, self.after = fh, size, chunk, after
+        self._buf = bytearray(min(chunk + after, size))
+        self._arr = np.frombuffer(self._buf, dtype=np.uint8)
+        self._eq = np.empty(max(min(chunk, size, _SEARCH_BLOCK), 1), dtype=bool)
+
+    def __iter__(self) -> Iterator[tuple[int, int, np.ndarray]]:
+        view = memoryview(self._buf)
+        start = 0
+        while start < self.size:
+            end = min(start + self.chunk, self.size)
+            want = min(end + self.after, self.size) - start
+            self.fh.seek(start)
+            got = 0
+            while got < want:
+                k = self.fh.readinto(view[got:want])
+                if not k:
+                    break
+                got += k
+            yield start, end, self._arr[:got]
+            start = end
+
+    def candidates(self, b: np.ndarray, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``p < hi`` of every ``A3 95`` of chunk ``b`` that has a type byte, and those type bytes."""
+        lim = max(min(hi, len(b) - 2), 0)
+        found = [np.zeros(0, dtype=np.intp)]
+        for a in range(0, lim, len(self._eq)):  # the mask of a block at a time: a small scratch
+            eq = self._eq[:min(lim - a, len(self._eq))]
+            np.equal(b[a:a + len(eq)], HEAD1, out=eq)
+            found.append(np.flatnonzero(eq) + a)
+        p = np.concatenate(found)
+        p = p[b[p + 1] == HEAD2]
+        return p, b[p + 2]
 
 
 def decode_dataflash(path: str, msg_names: Iterable[str], *, chunk_size: int = DEFAULT_CHUNK,
-                     progress: ProgressFn | None = None
+                     progress: ProgressFn | None = None, one_pass: bool = True
                      ) -> tuple[dict[str, dict[str, np.ndarray]], dict[int, DFFormat], DFStats]:
     """Decode the records of the given message names of a DataFlash .bin file.
 
@@ -175,7 +270,10 @@ def decode_dataflash(path: str, msg_names: Iterable[str], *, chunk_size: int = D
     chunk_size : int
         Bytes per read.
     progress : callable(done_bytes, total_bytes), optional
-        Called during the record pass (the FMT pass is a plain byte search).
+        Called during the record pass.
+    one_pass : bool
+        False: read the FMT records of the whole file before the records (the two-pass
+        reference order; the result is the same, see Notes).
 
     Returns
     -------
@@ -185,92 +283,257 @@ def decode_dataflash(path: str, msg_names: Iterable[str], *, chunk_size: int = D
         names present in the log appear.
     formats : dict type -> DFFormat
     stats : DFStats
+
+    Notes
+    -----
+    One pass reads the FMT records as they come and frames each chunk with the types defined
+    so far. That equals framing with the FMT records of the whole file (DFReader's rule)
+    unless a type first defined in a later chunk had a candidate record start in an earlier
+    one: then the file is read again, its FMT records first (two passes, the same result).
     """
+    names = list(msg_names)
+    progress = _monotonic(progress)  # a second pass reports only past what the first one did
+    table = _FormatTable(names, DFStats())
+    columns = _record_pass(path, table, chunk_size, progress, growing=True) if one_pass else None
+    if columns is None:
+        table = _FormatTable(names, DFStats())
+        _scan_formats(path, table, chunk_size)
+        columns = _record_pass(path, table, chunk_size, progress, growing=False)
+        assert columns is not None
+    return columns, table.formats, table.stats
+
+
+def _monotonic(progress: ProgressFn | None) -> ProgressFn | None:
+    """``progress`` called only when the done count passes its highest so far (a second pass)."""
+    if progress is None:
+        return None
+    high = [0]
+
+    def report(done: int, total: int) -> None:
+        if done > high[0]:
+            high[0] = done
+            progress(done, total)
+    return report
+
+
+def _record_pass(path: str, table: _FormatTable, chunk_size: int, progress: ProgressFn | None,
+                 growing: bool) -> dict[str, dict[str, np.ndarray]] | None:
+    """Frame and decode every chunk; ``growing``: apply each chunk's FMT records first (None when a
+    type defined late had a candidate record start in an earlier chunk: see :func:`decode_dataflash`)."""
     size = os.path.getsize(path)
-    stats = DFStats()
-    formats = read_formats(path, chunk_size=chunk_size, stats=stats)
-    formats.setdefault(FMT_TYPE, _FMT_FORMAT)
-    lengths = np.zeros(256, dtype=np.int64)
-    for t, f in formats.items():
-        lengths[t] = f.length
-    names = set(msg_names)
-    wanted: Wanted = {t: (f, f.dtype(), f.multipliers()) for t, f in formats.items() if f.name in names}
-    parts: dict[int, ColumnBuffer] = {t: ColumnBuffer() for t in wanted}
+    stats = table.stats
+    parts: dict[int, _TypeColumns] = {}
+    seen = np.zeros(256, dtype=bool)  # types of the candidate starts framed so far
     expected = 0
-    with open(path, "rb") as fh:
-        for _, start, end, b in file_chunks(fh, size, chunk_size, 0, 256):
+    with open(path, "rb", buffering=0) as fh:
+        chunks = _Chunks(fh, size, chunk_size, 256)
+        for start, end, b in chunks:
+            p, ty = chunks.candidates(b, end - start)
+            if growing:
+                new = table.scan(b, p, ty)
+                if new and bool(seen[new].any()):
+                    return None
             if expected < end:
-                recs = _records_in(b, end - start, lengths, expected - start, stats)
-                if recs is not None and len(recs[0]) == 0:
+                loc = expected - start
+                if growing:
+                    seen[ty[np.searchsorted(p, loc):]] = True
+                recs = _frame(p, ty, end - start, table.lengths, loc, stats)
+                if recs is not None and recs.count == 0:
                     expected = end
                 elif recs is not None:
-                    pos, typ, ln = recs
                     # trailing garbage after the last record is ignored, as DFReader does
-                    expected = start + int(pos[-1] + ln[-1])
-                    _decode_records(b, recs, wanted, parts, stats)
-            del b
+                    expected = start + _decode_records(b, recs, table, parts)
+            del b, p, ty
             if progress:
                 progress(end, size)
-    return _join(wanted, parts), formats, stats
+    return _join(table.finish(), parts)
 
 
-def _records_in(b: np.ndarray, hi: int, lengths: np.ndarray, loc_exp: int, stats: DFStats):
-    """Records of one chunk starting in ``[0, hi)``: (pos, type, length) arrays, or None if no candidate.
+class _TypeColumns:
+    """The decoded columns of one record type, grown in place chunk by chunk.
+
+    Each column lives in its own anonymous map (:class:`~mavcal.sources.framing.OwnedMap`), grown
+    geometrically with ``mremap`` (never copied, unused capacity never resident) and trimmed at
+    the end, as :class:`~mavcal.sources.framing.ColumnBuffer` does; the view of each column's
+    capacity is kept from chunk to chunk and made again only when the maps grow.
+    """
+
+    def __init__(self) -> None:
+        self._maps: dict[str, tuple[OwnedMap, np.dtype, tuple[int, ...]]] = {}
+        self._views: dict[str, np.ndarray] = {}
+        self._cap = 0
+        self.n = 0
+
+    def _view(self, key: str, rows: int) -> np.ndarray:
+        mm, dtype, shape = self._maps[key]
+        return np.frombuffer(mm, dtype=dtype, count=rows * int(np.prod(shape, dtype=np.int64))).reshape((rows,) + shape)
+
+    def _resize(self, rows: int) -> None:
+        self._views = {}  # a map with a view of it cannot be resized
+        for mm, dtype, shape in self._maps.values():
+            mm.resize(max(rows, 1) * dtype.itemsize * int(np.prod(shape, dtype=np.int64)))
+        self._cap = rows
+
+    def append(self, part: dict[str, np.ndarray]) -> None:
+        """Append one piece: column -> array, all of one length and the same keys each time."""
+        m = len(next(iter(part.values())))
+        need = self.n + m
+        if need > self._cap:
+            self._resize(max(need, 2 * self._cap, 4096))
+        views = self._views
+        for key, v in part.items():
+            dest = views.get(key)
+            if dest is None:
+                if key not in self._maps:
+                    size = self._cap * v.dtype.itemsize * int(np.prod(v.shape[1:], dtype=np.int64))
+                    self._maps[key] = (OwnedMap(-1, max(size, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS),
+                                       v.dtype, tuple(v.shape[1:]))
+                dest = views[key] = self._view(key, self._cap)
+            dest[self.n:need] = v
+        self.n = need
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The columns, trimmed to the appended length; the buffer is empty afterwards."""
+        self._resize(self.n)
+        out = {key: self._view(key, self.n) for key in self._maps}
+        self._maps, self._cap, self.n = {}, 0, 0
+        return out
+
+
+@dataclass(frozen=True)
+class _Path:
+    """The records of one chunk, as runs of candidates (see :func:`_frame`).
+
+    ``p``, ``ty``, ``nxt``: the candidates of a known type (positions, types, record ends);
+    ``ends``: the last candidate of each run; ``entry``: per run, the first candidate of it on
+    the path (a huge number for runs off the path: the path covers ``entry[r] .. ends[r]``);
+    ``before``: per run, the records of the path before it; ``count`` records, the last one
+    the candidate ``last``.
+    """
+
+    p: np.ndarray
+    ty: np.ndarray
+    nxt: np.ndarray
+    ends: np.ndarray
+    entry: np.ndarray
+    before: np.ndarray
+    count: int
+    last: int
+
+
+_OFF_PATH = np.iinfo(np.int64).max
+
+
+def _frame(p: np.ndarray, ty: np.ndarray, hi: int, lengths: np.ndarray, loc_exp: int, stats: DFStats
+           ) -> _Path | None:
+    """The records of one chunk (no record: ``count`` 0); None if no candidate has a known type.
 
     As DFReader: a record at ``p`` is followed by the first ``A3 95 <known type>`` at or after
     ``p + length``; the path starts at the first candidate at or after ``loc_exp``. Gaps are
     counted in ``stats`` (at the very start a log may begin with garbage: counted the same).
+
+    The candidates fall into runs where each record ends at or before the next candidate (whose
+    successor is therefore the next candidate); the path enters a run, follows it to its end
+    and jumps to the first candidate at or after that end: only the runs are followed by pointer
+    doubling, and the successor search is made for run ends only.
     """
-    nb = len(b)
-    p = np.flatnonzero(b[: min(hi, nb - 2)] == HEAD1)
-    p = p[(b[p + 1] == HEAD2) & (lengths[b[p + 2]] > 0)]
-    if len(p) == 0:
+    ln = lengths[ty]
+    known = ln > 0
+    if not known.all():
+        p, ty, ln = p[known], ty[known], ln[known]
+    n = len(p)
+    if n == 0:
         return None
-    ln = lengths[b[p + 2]]
+    first = int(np.searchsorted(p, loc_exp))
+    if first >= n:
+        empty = np.zeros(0, dtype=np.int64)
+        return _Path(p, ty, p, empty, empty, empty, 0, -1)
     nxt = p + ln
-    succ = np.where(nxt >= hi, len(p), np.searchsorted(p, nxt))  # first candidate at or after p + length
-    idx = np.flatnonzero(path_from(succ, int(np.searchsorted(p, loc_exp))))
-    pos, ln = p[idx], ln[idx]
-    if len(pos):
-        gaps = np.empty(len(pos), dtype=np.int64)
-        gaps[0] = pos[0] - loc_exp
-        gaps[1:] = pos[1:] - (pos[:-1] + ln[:-1])
-        stats.skipped_bytes += int(gaps[gaps > 0].sum())
-        stats.resyncs += int((gaps > 0).sum())
-    return pos, b[pos + 2], ln
+    d = p[1:] - nxt[:-1]  # bytes from a record's end to the next candidate (< 0: that one starts inside it)
+    brk = np.empty(n, dtype=bool)
+    np.less(d, 0, out=brk[:-1])
+    brk[-1] = True
+    ends = np.flatnonzero(brk)  # run r: the candidates ends[r - 1] + 1 .. ends[r]
+    ne = nxt[ends]
+    s = np.searchsorted(p, ne)  # successor of each run end (n: none in this chunk)
+    s[ne >= hi] = n
+    on = np.flatnonzero(mark_path(np.searchsorted(ends, s), int(np.searchsorted(ends, first))))
+    entries = np.empty(len(on), dtype=np.int64)
+    entries[0] = first
+    entries[1:] = s[on[:-1]]
+    last = ends[on]
+    cnt = last - entries + 1
+    entry = np.full(len(ends), _OFF_PATH, dtype=np.int64)
+    entry[on] = entries
+    before = np.zeros(len(ends), dtype=np.int64)
+    before[on] = np.cumsum(cnt) - cnt
+    _count_gaps(p, d, nxt, ends, entry, entries, last, loc_exp, stats)
+    return _Path(p, ty, nxt, ends, entry, before, int(cnt.sum()), int(last[-1]))
 
 
-def _decode_records(b: np.ndarray, recs, wanted: Wanted, parts: dict[int, ColumnBuffer],
-                    stats: DFStats) -> None:
-    """Append the columns of the wanted records of one chunk to ``parts`` (one dict per type)."""
-    pos, typ, ln = recs
-    inside = pos + ln <= len(b)
-    stats.truncated += int((~inside).sum())
-    recno = np.arange(len(pos), dtype=np.int64) + stats.records
-    stats.records += len(pos)
-    for t, (f, dt, mults) in wanted.items():
-        sel = np.flatnonzero((typ == t) & inside)
-        if len(sel) == 0:
+def _count_gaps(p: np.ndarray, d: np.ndarray, nxt: np.ndarray, ends: np.ndarray, entry: np.ndarray,
+                entries: np.ndarray, last: np.ndarray, loc_exp: int, stats: DFStats) -> None:
+    """Skipped bytes between the records of the path (and before its first): at its start, where it
+    jumps from run to run, and inside runs (a record ending before the next candidate)."""
+    gaps = [np.array([p[entries[0]] - loc_exp]), p[entries[1:]] - nxt[last[:-1]]]
+    soft = np.flatnonzero(d > 0)  # never a run end: d >= 0 there
+    if len(soft):
+        soft = soft[soft >= entry[np.searchsorted(ends, soft)]]  # on the path
+        gaps.append(d[soft])
+    g = np.concatenate(gaps)
+    stats.skipped_bytes += int(g[g > 0].sum())
+    stats.resyncs += int((g > 0).sum())
+
+
+def _decode_records(b: np.ndarray, fr: _Path, table: _FormatTable, parts: dict[int, _TypeColumns]) -> int:
+    """Append the columns of the wanted records of one chunk to ``parts`` (one buffer per type);
+    the end of its last record (in the chunk)."""
+    stats = table.stats
+    end = int(fr.nxt[fr.last])
+    # only the last record can be cut off: every other one ends at or before the next start
+    cut = end > len(b)
+    stats.truncated += int(cut)
+    first_recno = stats.records
+    stats.records += fr.count
+    wc = np.flatnonzero(table.is_wanted[fr.ty])  # the wanted candidates, then those on the path
+    run = np.searchsorted(fr.ends, wc)
+    entry = fr.entry[run]
+    on = wc >= entry
+    if cut:
+        on &= wc != fr.last
+    if not on.all():
+        wc, run, entry = wc[on], run[on], entry[on]
+    if len(wc) == 0:
+        return end
+    rank = fr.before[run] + (wc - entry)  # record number in the chunk
+    wt = fr.ty[wc]
+    for t, (f, dt, mults) in table.wanted.items():
+        m = wt == t
+        if not m.any():
             continue
         # gather only the record bodies (a window view indexes bytes, not an index per byte)
-        rec = np.lib.stride_tricks.sliding_window_view(b, f.length - 3)[pos[sel] + 3].view(dt).ravel()
+        rec = np.lib.stride_tricks.sliding_window_view(b, f.length - 3)[fr.p[wc[m]] + 3].view(dt).ravel()
         part = {}
         for name in dt.names or ():
             col = rec[name]  # a field view: copied once, into the column buffer
-            m = mults.get(name)
-            if m is not None:
+            mult = mults.get(name)
+            if mult is not None:
                 # as DFReader: dividing by 1e2/1e7 is more accurate than multiplying
-                col = col.astype(np.float64) / (1 / m)
+                col = col.astype(np.float64) / (1 / mult)
             part[name] = col
-        part["_index"] = recno[sel]
-        parts[t].append(part)
+        part["_index"] = rank[m] + first_recno
+        buf = parts.get(t)
+        if buf is None:
+            buf = parts[t] = _TypeColumns()
+        buf.append(part)
+    return end
 
 
-def _join(wanted: Wanted, parts: dict[int, ColumnBuffer]) -> dict[str, dict[str, np.ndarray]]:
+def _join(wanted: Wanted, parts: dict[int, _TypeColumns]) -> dict[str, dict[str, np.ndarray]]:
     """One column dict per message name (a name defined under two type numbers is merged by record order)."""
     columns: dict[str, dict[str, np.ndarray]] = {}
     for t, (f, _, _) in wanted.items():
-        if not parts[t].n:
+        if t not in parts or not parts[t].n:
             continue
         cols = parts[t].columns()
         if f.name in columns:  # same name defined under two type numbers
