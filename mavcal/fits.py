@@ -13,6 +13,7 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
+import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
