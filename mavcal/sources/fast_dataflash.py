@@ -18,14 +18,13 @@ never held twice).
 from __future__ import annotations
 
 import logging
-import mmap
 import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.sources.framing import OwnedMap, mark_path
+from mavcal.sources.framing import ColumnBuffer, mark_path
 from mavcal.sources.progress import ProgressFn
 
 log = logging.getLogger(__name__)
@@ -322,7 +321,7 @@ def _record_pass(path: str, table: _FormatTable, chunk_size: int, progress: Prog
     type defined late had a candidate record start in an earlier chunk: see :func:`decode_dataflash`)."""
     size = os.path.getsize(path)
     stats = table.stats
-    parts: dict[int, _TypeColumns] = {}
+    parts: dict[int, ColumnBuffer] = {}
     seen = np.zeros(256, dtype=bool)  # types of the candidate starts framed so far
     expected = 0
     with open(path, "rb", buffering=0) as fh:
@@ -347,57 +346,6 @@ def _record_pass(path: str, table: _FormatTable, chunk_size: int, progress: Prog
             if progress:
                 progress(end, size)
     return _join(table.finish(), parts)
-
-
-class _TypeColumns:
-    """The decoded columns of one record type, grown in place chunk by chunk.
-
-    Each column lives in its own anonymous map (:class:`~mavcal.sources.framing.OwnedMap`), grown
-    geometrically with ``mremap`` (never copied, unused capacity never resident) and trimmed at
-    the end, as :class:`~mavcal.sources.framing.ColumnBuffer` does; the view of each column's
-    capacity is kept from chunk to chunk and made again only when the maps grow.
-    """
-
-    def __init__(self) -> None:
-        self._maps: dict[str, tuple[OwnedMap, np.dtype, tuple[int, ...]]] = {}
-        self._views: dict[str, np.ndarray] = {}
-        self._cap = 0
-        self.n = 0
-
-    def _view(self, key: str, rows: int) -> np.ndarray:
-        mm, dtype, shape = self._maps[key]
-        return np.frombuffer(mm, dtype=dtype, count=rows * int(np.prod(shape, dtype=np.int64))).reshape((rows,) + shape)
-
-    def _resize(self, rows: int) -> None:
-        self._views = {}  # a map with a view of it cannot be resized
-        for mm, dtype, shape in self._maps.values():
-            mm.resize(max(rows, 1) * dtype.itemsize * int(np.prod(shape, dtype=np.int64)))
-        self._cap = rows
-
-    def append(self, part: dict[str, np.ndarray]) -> None:
-        """Append one piece: column -> array, all of one length and the same keys each time."""
-        m = len(next(iter(part.values())))
-        need = self.n + m
-        if need > self._cap:
-            self._resize(max(need, 2 * self._cap, 4096))
-        views = self._views
-        for key, v in part.items():
-            dest = views.get(key)
-            if dest is None:
-                if key not in self._maps:
-                    size = self._cap * v.dtype.itemsize * int(np.prod(v.shape[1:], dtype=np.int64))
-                    self._maps[key] = (OwnedMap(-1, max(size, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS),
-                                       v.dtype, tuple(v.shape[1:]))
-                dest = views[key] = self._view(key, self._cap)
-            dest[self.n:need] = v
-        self.n = need
-
-    def columns(self) -> dict[str, np.ndarray]:
-        """The columns, trimmed to the appended length; the buffer is empty afterwards."""
-        self._resize(self.n)
-        out = {key: self._view(key, self.n) for key in self._maps}
-        self._maps, self._cap, self.n = {}, 0, 0
-        return out
 
 
 @dataclass(frozen=True)
@@ -485,7 +433,7 @@ def _count_gaps(p: np.ndarray, d: np.ndarray, nxt: np.ndarray, ends: np.ndarray,
     stats.resyncs += int((g > 0).sum())
 
 
-def _decode_records(b: np.ndarray, fr: _Path, table: _FormatTable, parts: dict[int, _TypeColumns]) -> int:
+def _decode_records(b: np.ndarray, fr: _Path, table: _FormatTable, parts: dict[int, ColumnBuffer]) -> int:
     """Append the columns of the wanted records of one chunk to ``parts`` (one buffer per type);
     the end of its last record (in the chunk)."""
     stats = table.stats
@@ -524,12 +472,12 @@ def _decode_records(b: np.ndarray, fr: _Path, table: _FormatTable, parts: dict[i
         part["_index"] = rank[m] + first_recno
         buf = parts.get(t)
         if buf is None:
-            buf = parts[t] = _TypeColumns()
+            buf = parts[t] = ColumnBuffer()
         buf.append(part)
     return end
 
 
-def _join(wanted: Wanted, parts: dict[int, _TypeColumns]) -> dict[str, dict[str, np.ndarray]]:
+def _join(wanted: Wanted, parts: dict[int, ColumnBuffer]) -> dict[str, dict[str, np.ndarray]]:
     """One column dict per message name (a name defined under two type numbers is merged by record order)."""
     columns: dict[str, dict[str, np.ndarray]] = {}
     for t, (f, _, _) in wanted.items():

@@ -164,6 +164,7 @@ class ColumnBuffer:
 
     def __init__(self) -> None:
         self._maps: dict[str, tuple[mmap.mmap, np.dtype, tuple[int, ...]]] = {}
+        self._views: dict[str, np.ndarray] = {}  # each column's capacity, kept until the maps grow
         self._cap = 0
         self.n = 0
 
@@ -172,6 +173,7 @@ class ColumnBuffer:
         return np.frombuffer(mm, dtype=dtype, count=rows * int(np.prod(shape, dtype=np.int64))).reshape((rows,) + shape)
 
     def _grow(self, rows: int) -> None:
+        self._views = {}  # a map with a view of it cannot be resized
         for mm, dtype, shape in self._maps.values():
             mm.resize(max(rows, 1) * dtype.itemsize * int(np.prod(shape, dtype=np.int64)))
         self._cap = rows
@@ -182,12 +184,15 @@ class ColumnBuffer:
         need = self.n + m
         if need > self._cap:
             self._grow(max(need, 2 * self._cap, 4096))
+        views = self._views
         for key, v in part.items():
-            if key not in self._maps:
-                size = self._cap * v.dtype.itemsize * int(np.prod(v.shape[1:], dtype=np.int64))
-                mm = _new_map(size)
-                self._maps[key] = (mm, v.dtype, tuple(v.shape[1:]))
-            self._view(key, need)[self.n:need] = v
+            dest = views.get(key)
+            if dest is None:
+                if key not in self._maps:
+                    size = self._cap * v.dtype.itemsize * int(np.prod(v.shape[1:], dtype=np.int64))
+                    self._maps[key] = (_new_map(size), v.dtype, tuple(v.shape[1:]))
+                dest = views[key] = self._view(key, self._cap)
+            dest[self.n:need] = v
         self.n = need
 
     def columns(self) -> dict[str, np.ndarray]:
