@@ -21,7 +21,7 @@ from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_ac
 from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
-from mavcal.core.stats import IntervalStats, interval_stats
+from mavcal.core.stats import IntervalStats, interval_means, interval_stats
 from mavcal.core.types import Calibration
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
 from mavcal.quality import Quality, accel_tilt_bounds, holdout_part, holdout_rms, quality_of
@@ -169,14 +169,12 @@ def _second_job(shared: _Shared, item: tuple[str, tuple]):
     kind, arg = item
     if kind == "holdout":
         o, f, part = arg
-        acc, mag = _pair_sets(prep, o, f.used)
-        qa, qm = prep.quantization.get(("accel", o.accel_instance), 0.0), prep.quantization.get(("mag", o.mag_instance),
-                                                                                                0.0)
-        floor = (qa / np.sqrt(12) if qa else None, qm / np.sqrt(12) if qm else None)
-        st = (_stats_of(prep, stats, "accel", o.accel_instance, f.used), _stats_of(prep, stats, "mag", o.mag_instance,
-                                                                                  f.used))
-        return holdout_part(acc, mag, f.cal, part=part, method=o.method, tol=o.tol, seed=o.seed, noise_floor=floor,
-                            stats=st)
+        ai, mi = o.accel_instance, o.mag_instance
+        return holdout_part(_sets(prep, "accel", ai, f.used), _sets(prep, "mag", mi, f.used), f.cal, part=part,
+                            method=o.method, tol=o.tol, seed=o.seed,
+                            noise_floor=(_noise_floor(prep, "accel", ai), _noise_floor(prep, "mag", mi)),
+                            stats=(_stats_of(prep, stats, "accel", ai, f.used),
+                                   _stats_of(prep, stats, "mag", mi, f.used)))
     o, f = arg
     am, cm = f.mapping.accel[0], f.mapping.compass[0]
     return quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")))
@@ -266,7 +264,19 @@ def _accel_sets(prep: Prepared, a: int) -> tuple[list[int], list[np.ndarray]]:
     if not used:
         raise InsufficientDataError(f"{prep.log.source}: no still interval with accelerometer {a} data; "
                                     + "; ".join(list(prep.segmentation.coverage.messages) + _blind_cal(prep)))
-    return used, [prep.segmentation.intervals[k].accel_mps2[a] for k in used]
+    return used, _sets(prep, "accel", a, used)
+
+
+def _sets(prep: Prepared, kind: str, inst: int, used: list[int]) -> list[np.ndarray]:
+    """The readings of sensor ``kind`` ``inst`` in each still interval ``used``."""
+    ivs = prep.segmentation.intervals
+    return [ivs[k].accel_mps2[inst] if kind == "accel" else ivs[k].mag_mgauss[inst] for k in used]
+
+
+def _noise_floor(prep: Prepared, kind: str, inst: int) -> float | None:
+    """The noise of the sensor's telemetry quantisation, step / sqrt(12) (None when not quantised)."""
+    q = prep.quantization.get((kind, inst), 0.0)
+    return q / np.sqrt(12) if q else None
 
 
 _StatsCache = dict[tuple[str, int, tuple[int, ...]], IntervalStats]
@@ -279,25 +289,21 @@ def _stats_of(prep: Prepared, cache: _StatsCache, kind: str, inst: int, used: li
     numbers, to the bit, as each computing them from the readings)."""
     key = (kind, inst, tuple(used))
     if key not in cache:
-        q = prep.quantization.get((kind, inst), 0.0)
-        ivs = prep.segmentation.intervals
-        sets = [ivs[k].accel_mps2[inst] if kind == "accel" else ivs[k].mag_mgauss[inst] for k in used]
-        cache[key] = interval_stats(sets, f"{kind}_sets", noise_floor=q / np.sqrt(12) if q else None,
-                                    per_interval=True)
+        cache[key] = interval_stats(_sets(prep, kind, inst, used), f"{kind}_sets",
+                                    noise_floor=_noise_floor(prep, kind, inst), per_interval=True)
     return cache[key]
 
 
 def _accel_own(prep: Prepared, opts: Options, a: int, stats: _StatsCache) -> tuple[list[int], AccelFit, float]:
     """Accelerometer ``a``'s own fit: (intervals used, fit, held-out error)."""
     used, acc = _accel_sets(prep, a)
-    q = prep.quantization.get(("accel", a), 0.0)
-    floor = q / np.sqrt(12) if q else None
     try:
         st = _stats_of(prep, stats, "accel", a, used)
         fit = fit_accel(st)
     except (InsufficientDataError, EstimationError) as exc:
         raise _with_blind_cal(prep, exc) from None
-    ho = holdout_accel_mps2(acc, noise_floor=floor, start=fit, stats=st) if opts.holdout else float("nan")
+    ho = (holdout_accel_mps2(acc, noise_floor=_noise_floor(prep, "accel", a), start=fit, stats=st) if opts.holdout
+          else float("nan"))
     return used, fit, ho
 
 
@@ -401,12 +407,6 @@ class _PairFit:
     warnings: list[str]
 
 
-def _pair_sets(prep: Prepared, opts: Options, used: list[int]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    ivs = prep.segmentation.intervals
-    return ([ivs[k].accel_mps2[opts.accel_instance] for k in used], [ivs[k].mag_mgauss[opts.mag_instance]
-                                                                      for k in used])
-
-
 def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
     """calibrate -> map for one accelerometer/compass pair (``stats``: the run's interval
     statistics, :func:`_stats_of`)."""
@@ -422,8 +422,7 @@ def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
     params_now = log_.params.snapshot()
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
-    mag = _pair_sets(prep, opts, used)[1]
-    mapping = map_calibration(cal, params_now, np.array([m.mean(0) for m in mag]), accel_instance=ai,
+    mapping = map_calibration(cal, params_now, interval_means(_sets(prep, "mag", mi, used)), accel_instance=ai,
                               mag_instance=mi, location=opts.location or log_.position,
                               field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,
                               allow_custom=opts.allow_custom, force_external=opts.force_external)
