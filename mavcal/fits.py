@@ -55,10 +55,10 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     stats: _StatsCache = {}
     with ForkPool((prep, stats), opts.workers) as pool:
         K = pool.workers
-        n = len(jobs) * (2 + K) + len(insts)
         if K > 1:
             _prefill_stats(prep, jobs, stats, bool(insts))
         first = [("pair", o) for o in jobs] + [("accel", (opts, a)) for a in insts]
+        n = len(first) + len(jobs) * (K + 1)  # at most: the second round's slices and bounds per pair
         out = pool.map(_first_job, first[:1] if K == 1 else first,  # in turn: the primary first
                        done=lambda k: report(progress, STAGE_FIT, k, n))
         if not out[0][0]:
@@ -71,7 +71,7 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
         done2 = pool.map(_second_job, second, done=lambda k: report(progress, STAGE_FIT, len(first) + k, n))
     runs: list[CalibrationRun | MavcalError] = []
     for o, (ok, r) in zip(jobs, out):
-        runs.append(_finish_pair(prep, o, r, K, second, done2) if ok else r)
+        runs.append(_finish_pair(prep, o, r, second, done2) if ok else r)
     if isinstance(runs[0], MavcalError):
         raise runs[0]
     primary = runs[0]
@@ -429,7 +429,7 @@ def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
     return _PairFit(used, cal, mapping, params_now, warnings)
 
 
-def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, K: int, second: list, done: list[Outcome]
+def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, second: list, done: list[Outcome]
                  ) -> CalibrationRun | MavcalError:
     """The pair's run from its fit and its second-round outcomes (held-out slices, quality):
     the held-out error, the compass gates."""
