@@ -119,6 +119,7 @@ class GrowArray:
         self._row = self.dtype.itemsize * int(np.prod(self.shape, dtype=np.int64))
         self._map: OwnedMap | None = _new_map(4096 * self._row)
         self._cap = 4096
+        self._full: np.ndarray | None = None  # a view of the whole capacity, kept until the map grows
         self.n = 0
 
     def _view(self, rows: int) -> np.ndarray:
@@ -132,8 +133,11 @@ class GrowArray:
         if need > self._cap:
             self._cap = max(need, 2 * self._cap)
             assert self._map is not None
+            self._full = None  # a map with a view of it cannot be resized
             self._map.resize(self._cap * self._row)
-        out = self._view(need)[self.n:]
+        if self._full is None:
+            self._full = self._view(self._cap)
+        out = self._full[self.n:need]
         self.n = need
         return out
 
@@ -144,6 +148,7 @@ class GrowArray:
     def array(self) -> np.ndarray:
         """The column (its map trimmed to the rows); the buffer is empty afterwards."""
         assert self._map is not None
+        self._full = None
         self._map.resize(max(self.n, 1) * self._row)
         out = self._view(self.n)
         self._map, self._cap, self.n = None, 0, 0
@@ -163,43 +168,23 @@ class ColumnBuffer:
     """
 
     def __init__(self) -> None:
-        self._maps: dict[str, tuple[mmap.mmap, np.dtype, tuple[int, ...]]] = {}
-        self._views: dict[str, np.ndarray] = {}  # each column's capacity, kept until the maps grow
-        self._cap = 0
+        self._cols: dict[str, GrowArray] = {}
         self.n = 0
-
-    def _view(self, key: str, rows: int) -> np.ndarray:
-        mm, dtype, shape = self._maps[key]
-        return np.frombuffer(mm, dtype=dtype, count=rows * int(np.prod(shape, dtype=np.int64))).reshape((rows,) + shape)
-
-    def _grow(self, rows: int) -> None:
-        self._views = {}  # a map with a view of it cannot be resized
-        for mm, dtype, shape in self._maps.values():
-            mm.resize(max(rows, 1) * dtype.itemsize * int(np.prod(shape, dtype=np.int64)))
-        self._cap = rows
 
     def append(self, part: Mapping[str, np.ndarray]) -> None:
         """Append one piece: a dict column -> array, all of the same length and the same keys each time."""
         m = len(next(iter(part.values())))
-        need = self.n + m
-        if need > self._cap:
-            self._grow(max(need, 2 * self._cap, 4096))
-        views = self._views
         for key, v in part.items():
-            dest = views.get(key)
-            if dest is None:
-                if key not in self._maps:
-                    size = self._cap * v.dtype.itemsize * int(np.prod(v.shape[1:], dtype=np.int64))
-                    self._maps[key] = (_new_map(size), v.dtype, tuple(v.shape[1:]))
-                dest = views[key] = self._view(key, self._cap)
-            dest[self.n:need] = v
-        self.n = need
+            col = self._cols.get(key)
+            if col is None:
+                col = self._cols[key] = GrowArray(v.dtype, v.shape[1:])
+            col.extend(m)[:] = v
+        self.n += m
 
     def columns(self) -> dict[str, np.ndarray]:
         """The columns, trimmed to the appended length; the buffer is empty afterwards."""
-        self._grow(self.n)
-        out = {key: self._view(key, self.n) for key in self._maps}
-        self._maps, self._cap, self.n = {}, 0, 0
+        out = {key: col.array() for key, col in self._cols.items()}
+        self._cols, self.n = {}, 0
         return out
 
 
