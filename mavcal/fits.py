@@ -38,11 +38,11 @@ __all__ = ["fit_recording", "refusal_verdicts"]
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
     """:func:`mavcal.pipeline.calibrate_prepared` (its docstring says what it does).
 
-    Two rounds of independent jobs (in ``options.workers`` processes, or here one after the
-    other): first every pair's joint fit and mapping and every accelerometer's own fit,
-    then every pair's held-out refits (in up to ``workers`` slices each) and uncertainty
-    bounds; the gates and the accelerometers' verdicts, which need the primary pair's, are
-    decided here at the end.
+    Independent jobs, in ``options.workers`` processes (or here, one after the other): every
+    pair's joint fit and mapping and every accelerometer's own fit, and, as soon as a pair's
+    fit is done, its held-out refits (in ``workers`` slices) and its uncertainty bounds (a
+    worker never waits for the slowest fit of a round). The gates and the accelerometers'
+    verdicts, which need the primary pair's, are decided here at the end.
     """
     opts, warnings = _resolve(prep, options)
     if opts.sensors == "accel":
@@ -53,25 +53,37 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
                      for a, m in pairs[1:]]
     insts = prep.raw.accel_instances() if opts.sensors == "both" else []
     stats: _StatsCache = {}
+    first = [("pair", j, o) for j, o in enumerate(jobs)] + [("accel", j, (opts, a)) for j, a in enumerate(insts)]
+    got: dict[tuple[str, int], Outcome] = {}  # ("pair" | "accel" | "quality", j) -> outcome
+    slices: dict[int, list[tuple[int, Outcome]]] = {j: [] for j in range(len(jobs))}  # pair j's held-out slices
     with ForkPool((prep, stats), opts.workers) as pool:
         K = pool.workers
         if K > 1:
             _prefill_stats(prep, jobs, stats, bool(insts))
-        first = [("pair", o) for o in jobs] + [("accel", (opts, a)) for a in insts]
-        n = len(first) + len(jobs) * (K + 1)  # at most: the second round's slices and bounds per pair
-        out = pool.map(_first_job, first[:1] if K == 1 else first,  # in turn: the primary first
-                       done=lambda k: report(progress, STAGE_FIT, k, n))
-        if not out[0][0]:
-            raise out[0][1]
-        if K == 1:
-            out += pool.map(_first_job, first[1:], done=lambda k: report(progress, STAGE_FIT, 1 + k, n))
-        fitted = [(o, r) for o, (ok, r) in zip(jobs, out) if ok]
-        second = [("holdout", (o, f, (k, K))) for o, f in fitted if o.holdout for k in range(K)]
-        second += [("quality", (o, f)) for o, f in fitted]
-        done2 = pool.map(_second_job, second, done=lambda k: report(progress, STAGE_FIT, len(first) + k, n))
+
+        def then(item: tuple[str, int, tuple], outcome: Outcome) -> list[tuple[str, int, tuple]]:
+            kind, j, arg = item
+            if kind == "holdout":
+                slices[j].append((arg[2][0], outcome))
+                return []
+            got[kind, j] = outcome
+            if kind != "pair":
+                return []
+            ok, f = outcome
+            if not ok and j == 0:  # the primary pair cannot be fitted: nothing to report
+                raise f
+            o = jobs[j]
+            S = 2 * K if K > 1 else 1  # slices: small enough to even out the workers' loads
+            return ([("quality", j, (o, f))] + [("holdout", j, (o, f, (k, S))) for k in range(S) if o.holdout]
+                    if ok else [])
+
+        n = len(first) + len(jobs) * (K + 1)  # at most: every pair's held-out slices and bounds
+        pool.run(_job, first, then, done=lambda k: report(progress, STAGE_FIT, k, n))
     runs: list[CalibrationRun | MavcalError] = []
-    for o, (ok, r) in zip(jobs, out):
-        runs.append(_finish_pair(prep, o, r, second, done2) if ok else r)
+    for j, o in enumerate(jobs):
+        ok, r = got["pair", j]
+        runs.append(_finish_pair(prep, o, r, [h for _, h in sorted(slices[j], key=lambda kh: kh[0])],
+                                 got["quality", j]) if ok else r)
     if isinstance(runs[0], MavcalError):
         raise runs[0]
     primary = runs[0]
@@ -85,8 +97,8 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
     gates = [g for r in compass_runs for g in r.gates.gates]
     compasses = [r.mapping.compass[0] for r in compass_runs]
-    accels, fits, accel_gates = _judge_accels(prep, opts, [primary] + others, list(zip(insts, out[len(jobs):])),
-                                              warnings)
+    accels, fits, accel_gates = _judge_accels(prep, opts, [primary] + others,
+                                              [(a, got["accel", j]) for j, a in enumerate(insts)], warnings)
     report(progress, STAGE_FIT, n, n)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
@@ -151,22 +163,18 @@ def _prefill_stats(prep: Prepared, jobs: list[Options], stats: _StatsCache, acce
 _Shared = tuple[Prepared, "_StatsCache"]  # what the fit jobs share (inherited by forked workers)
 
 
-def _first_job(shared: _Shared, item: tuple[str, object]):
-    """A pair's joint fit and mapping (:func:`_fit_pair`) or an accelerometer's own fit
-    (:func:`_accel_own`)."""
+def _job(shared: _Shared, item: tuple[str, int, tuple]):
+    """One fit job of :func:`fit_recording` (``item``: kind, pair or accelerometer index, arguments):
+    a pair's joint fit and mapping (:func:`_fit_pair`), an accelerometer's own fit
+    (:func:`_accel_own`), a slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`)
+    or a pair's uncertainty bounds (:func:`mavcal.quality.quality_of`, the held-out numbers left NaN)."""
     prep, stats = shared
-    kind, arg = item
+    kind, _, arg = item
     if kind == "pair":
         return _fit_pair(prep, arg, stats)  # type: ignore[arg-type]
-    opts, a = arg  # type: ignore[misc]
-    return _accel_own(prep, opts, a, stats)
-
-
-def _second_job(shared: _Shared, item: tuple[str, tuple]):
-    """A slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`) or its
-    uncertainty bounds (:func:`mavcal.quality.quality_of`, the held-out numbers left NaN)."""
-    prep, stats = shared
-    kind, arg = item
+    if kind == "accel":
+        opts, a = arg
+        return _accel_own(prep, opts, a, stats)
     if kind == "holdout":
         o, f, part = arg
         ai, mi = o.accel_instance, o.mag_instance
@@ -429,18 +437,15 @@ def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
     return _PairFit(used, cal, mapping, params_now, warnings)
 
 
-def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, second: list, done: list[Outcome]
+def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outcome], quality_out: Outcome
                  ) -> CalibrationRun | MavcalError:
-    """The pair's run from its fit and its second-round outcomes (held-out slices, quality):
-    the held-out error, the compass gates."""
-    mine = [(kind, r) for (kind, arg), r in zip(second, done) if arg[1] is f]
-    bad = next((r[1] for _, r in mine if not r[0]), None)
+    """The pair's run from its fit and its later jobs' outcomes (the held-out slices in order,
+    the bounds): the held-out error, the compass gates."""
+    bad = next((r for ok, r in holdout + [quality_out] if not ok), None)
     if bad is not None:
         return bad
-    ho = holdout_rms([r[1] for kind, r in mine if kind == "holdout"]) if opts.holdout else (float("nan"),
-                                                                                           float("nan"))
-    quality = replace(next(r[1] for kind, r in mine if kind == "quality"), holdout_accel_mps2=ho[0],
-                      holdout_mag_mgauss=ho[1])
+    ho = holdout_rms([r for _, r in holdout]) if opts.holdout else (float("nan"), float("nan"))
+    quality = replace(quality_out[1], holdout_accel_mps2=ho[0], holdout_mag_mgauss=ho[1])
     cal, cm, seg = f.cal, f.mapping.compass[0], prep.segmentation
     dirs = np.array([seg.intervals[k].gravity_dir for k in f.used])
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(

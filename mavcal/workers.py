@@ -22,11 +22,13 @@ counts the shared pages in each process, is the parent's peak plus about that.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import multiprocessing
 import os
+from collections import deque
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Generic, TypeVar
 
@@ -68,6 +70,12 @@ def _in_worker(fn: Callable[[Any, Any], Any], item: Any) -> Outcome:
     return _run(fn, _SHARED, item)
 
 
+def _indexed(shared: Any, item: tuple[int, tuple[Callable[[Any, Any], Any], Any]]) -> Any:
+    """:meth:`ForkPool.map`'s job: ``item`` is (index, (fn, its item))."""
+    fn, arg = item[1]
+    return fn(shared, arg)
+
+
 class ForkPool(Generic[S]):
     """Run ``fn(shared, item)`` jobs in ``workers`` forked processes (or here).
 
@@ -99,25 +107,72 @@ class ForkPool(Generic[S]):
             done: Callable[[int], None] | None = None) -> list[Outcome]:
         """The outcome of ``fn(shared, item)`` for every item, in the order of ``items``;
         ``done(k)`` is called as the k-th job finishes (in this process)."""
-        if self.workers == 1 or len(items) <= 1:
-            out = []
-            for k, item in enumerate(items):
-                out.append(_run(fn, self.shared, item))
-                if done is not None:
-                    done(k + 1)
-            return out
+        out: dict[int, Outcome] = {}
+
+        def keep(item: tuple[int, Any], outcome: Outcome) -> list:
+            out[item[0]] = outcome
+            return []
+
+        self.run(_indexed, [(k, (fn, item)) for k, item in enumerate(items)], keep, done)
+        return [out[k] for k in range(len(items))]
+
+    def run(self, fn: Callable[[S, Any], Any], items: Sequence[Any],
+            then: Callable[[Any, Outcome], Sequence[Any]], done: Callable[[int], None] | None = None) -> None:
+        """Run ``fn(shared, item)`` for every item and for every item ``then`` asks for.
+
+        As each job finishes, ``then(item, outcome)`` is called in this process and the items
+        it returns are run too, as soon as a worker is free: a job that needs another one's
+        result starts when that one is done, not when a whole round is. ``done(k)`` is called
+        as the k-th job finishes. With one worker the jobs run here, first in, first out.
+        An exception raised by ``then`` stops the run (the jobs not yet started are dropped).
+        """
+        if self.workers == 1:
+            self._run_here(fn, deque(items), then, done, 0)
+            return
+        if len(items) == 1 and self._pool is None:  # one job: here, without forking for it
+            outcome = _run(fn, self.shared, items[0])
+            if done is not None:
+                done(1)
+            follow = then(items[0], outcome)
+            if follow:
+                self.run(fn, follow, then, None if done is None else lambda k: done(k + 1))
+            return
         pool = self._executor()
-        futures: list[Future] = [pool.submit(_in_worker, fn, item) for item in items]
+        order = itertools.count()
+        running: dict[Future, tuple[int, Any]] = {}
+
+        def submit(batch: Sequence[Any]) -> None:
+            for item in batch:
+                running[pool.submit(_in_worker, fn, item)] = (next(order), item)
+
+        submit(items)
+        finished = 0
         try:
-            for k, _ in enumerate(as_completed(futures)):
-                if done is not None:
-                    done(k + 1)
-            return [f.result() for f in futures]
+            while running:
+                ready, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in sorted(ready, key=lambda f: running[f][0]):  # as submitted: follow-ups in a fixed order
+                    outcome = f.result()
+                    _, item = running.pop(f)
+                    finished += 1
+                    if done is not None:
+                        done(finished)
+                    submit(then(item, outcome))
         except BrokenProcessPool:  # a worker was killed (out of memory?): nothing is lost but time
             log.warning("a fit worker process died (out of memory?); the fits run in this process instead")
+            left = deque(item for _, item in sorted(running.values(), key=lambda v: v[0]))
             self._close()
             self.workers = 1
-            return self.map(fn, items, done)
+            self._run_here(fn, left, then, done, finished)
+
+    def _run_here(self, fn: Callable[[S, Any], Any], queue: deque, then: Callable[[Any, Outcome], Sequence[Any]],
+                  done: Callable[[int], None] | None, finished: int) -> None:
+        while queue:
+            item = queue.popleft()
+            outcome = _run(fn, self.shared, item)
+            finished += 1
+            if done is not None:
+                done(finished)
+            queue.extend(then(item, outcome))
 
     def _executor(self) -> ProcessPoolExecutor:
         global _SHARED

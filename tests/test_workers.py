@@ -65,6 +65,58 @@ def test_a_killed_worker_costs_time_not_results(caplog):
     assert "worker process died" in caplog.text
 
 
+def _tens(shared, item):
+    return item * 10, os.getpid()
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_run_starts_each_follow_up_job_when_the_job_it_needs_is_done(workers):
+    """ForkPool.run: the items ``then`` returns for a finished job run too (2 follows 1, 3
+    follows 2, 12 follows 11...), each after its parent; with one worker, first in, first out."""
+    seen, done = [], []
+
+    def then(item, outcome):
+        assert outcome[0] and outcome[1][0] == item * 10
+        seen.append(item)
+        return [item + 1] if item % 10 < 3 else []
+
+    with W.ForkPool(None, workers) as pool:
+        pool.run(_tens, [1, 11], then, done=done.append)
+    assert sorted(seen) == [1, 2, 3, 11, 12, 13] and done == [1, 2, 3, 4, 5, 6]
+    assert all(seen.index(k) < seen.index(k + 1) for k in (1, 2, 11, 12))
+    if workers == 1:
+        assert seen == [1, 11, 2, 12, 3, 13]
+
+
+def test_an_exception_in_then_stops_the_run():
+    seen = []
+
+    def then(item, outcome):
+        seen.append(item)
+        if item == 2:
+            raise ValueError("the primary fit failed")
+        return [item + 1]
+
+    for workers in (1, 2):
+        seen.clear()
+        with W.ForkPool(None, workers) as pool, pytest.raises(ValueError, match="primary"):
+            pool.run(_tens, [1], then)
+        assert seen == [1, 2]  # 3 never ran
+
+
+def test_follow_up_jobs_run_here_after_a_worker_dies(caplog):
+    got = {}
+
+    def then(item, outcome):
+        got[item] = outcome
+        return [item + 2] if item < 3 else []
+
+    with W.ForkPool(10, 2) as pool:
+        pool.run(_dies_in_worker, [1, 2], then)
+        assert pool.workers == 1
+    assert got == {k: (True, 10 * k) for k in (1, 2, 3, 4)} and "worker process died" in caplog.text
+
+
 def test_other_exceptions_propagate():
     with W.ForkPool({"x": None}, 2) as pool, pytest.raises(AttributeError):
         pool.map(_job, [1, 2])  # None.sum(): a bug, not bad input, is raised here
@@ -98,7 +150,7 @@ def test_held_out_refits_in_slices_combine_to_the_whole_check_to_the_bit():
         sim = simulate(n, seed=3, samples=(60, 80))
         cal = calibrate(sim.accel_sets, sim.mag_sets, seed=0)
         whole = holdout_errors(sim.accel_sets, sim.mag_sets, cal)
-        for K in (1, 2, 3):
+        for K in (1, 2, 3, 4):  # fit_recording cuts a check into 2 slices per worker
             parts = [holdout_part(sim.accel_sets, sim.mag_sets, cal, part=(k, K)) for k in range(K)]
             assert holdout_rms(parts) == whole and np.all(np.isfinite(whole))
     tiny = simulate(5, seed=3, samples=(60, 80))
