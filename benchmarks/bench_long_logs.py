@@ -10,8 +10,9 @@ runs, each as its own subprocess with this tree first on ``PYTHONPATH``:
   SCALED_IMU2; .bin ``DFReader`` (via ``mavlink_connection``) ``recv_match`` over IMU and MAG,
   collecting the values.
 
-Each run's wall time is measured here, its peak resident memory by ``/usr/bin/time -f %M``
-(interpreter start included for all three). Prints a table with the ratios to
+Each run's wall time is measured here (the median of ``--repeat`` runs), its peak resident
+memory by ``/usr/bin/time -f %M`` (interpreter start included for all three); ``mavcal
+calibrate`` runs once more with its process tree's PSS sampled (its fit workers), untimed. Prints a table with the ratios to
 pymavlink, peak memory / file size and the 10 MB -> 100 MB (-> 1 GB) time scaling.
 
 The interval-count case (``--intervals 2000 20000``, kind ``sim``): simulated sessions of that
@@ -21,7 +22,7 @@ reader on each; ``time x`` is then the cost against the interval count.
 Results go to ``benchmarks/out/long_logs.md`` / ``.json``, to ``benchmarks/results/`` with
 ``--save`` (tracked), or ``--out DIR`` (benchmarks/README.md).
 
-    python benchmarks/bench_long_logs.py [--save] [--full] [--sizes-mb 10 100] [--intervals 2000 20000]
+    python benchmarks/bench_long_logs.py [--save] [--full] [--repeat 3] [--sizes-mb 10 100] [--intervals 2000 20000]
 """
 from __future__ import annotations
 
@@ -124,30 +125,35 @@ class TreeMemory(threading.Thread):
         return round(self.peak_mb, 1)
 
 
-def run(cmd: list, timeout_s: float, stdout=subprocess.DEVNULL) -> dict:
+def run(cmd: list, timeout_s: float, stdout=subprocess.DEVNULL, tree_memory: bool = True) -> dict:
     """Run ``cmd`` under ``/usr/bin/time``: wall time, the child's peak RSS and exit code.
 
     The peak RSS comes from ``/usr/bin/time -f %M`` (its child's ``wait4`` rusage, the
     largest process of the tree): asking ``os.wait4`` for a child forked from this process
     would report at least this process's own resident size, which a fork copies into the
-    child's high-water mark. ``peak_pss_mb`` is the tree's summed PSS (:class:`TreeMemory`).
+    child's high-water mark. ``peak_pss_mb`` is the tree's summed PSS (:class:`TreeMemory`),
+    sampled only with ``tree_memory`` (None otherwise): the sampler reads /proc every 25 ms
+    and takes CPU from the run it measures (about 0.06 s on a 1 s run with two busy workers
+    on 2 cores), so the timed runs go without it.
     """
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
     with tempfile.NamedTemporaryFile("r", prefix="mavcal-time-", dir="/tmp") as tf:
         t0 = time.perf_counter()
         proc = subprocess.Popen(["/usr/bin/time", "-f", "%M", "-o", tf.name] + cmd, stdout=stdout,
                                 stderr=subprocess.PIPE, env=env, cwd="/tmp")
-        mem = TreeMemory(proc.pid)
-        mem.start()
+        mem = TreeMemory(proc.pid) if tree_memory else None
+        if mem is not None:
+            mem.start()
         try:
             _, err = proc.communicate(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.communicate()
-            mem.stop()
+            if mem is not None:
+                mem.stop()
             return dict(wall_s=None, peak_rss_mb=None, rc="timeout")
         wall = time.perf_counter() - t0
-        pss = mem.stop()
+        pss = mem.stop() if mem is not None else None
         lines = tf.read().split()
     out: dict = dict(wall_s=round(wall, 2), peak_rss_mb=round(int(lines[-1]) * 1024 / 1e6, 1) if lines else None,
                      peak_pss_mb=pss, rc=proc.returncode)
@@ -163,7 +169,22 @@ def _n_intervals(cal_json: Path) -> int | None:
         return None
 
 
-def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, tools) -> list:
+def measure(cmd: list, timeout_s: float, repeat: int, tree: bool) -> dict:
+    """``repeat`` timed runs of ``cmd`` (the median wall time; peak RSS the largest) and, for a
+    command that forks workers (``tree``), one more run with the tree's PSS sampled."""
+    runs = [run(cmd, timeout_s, tree_memory=False) for _ in range(max(1, repeat))]
+    walls = sorted(r["wall_s"] for r in runs if r["wall_s"] is not None)
+    out = dict(runs[-1], wall_s=walls[(len(walls) - 1) // 2] if len(walls) == len(runs) else None,
+               walls_s=[r["wall_s"] for r in runs],
+               peak_rss_mb=max((r["peak_rss_mb"] or 0.0) for r in runs) or None, peak_pss_mb=None)
+    if tree and out["wall_s"] is not None:
+        mem = run(cmd, timeout_s, tree_memory=True)
+        out["peak_rss_mb"] = max(out["peak_rss_mb"] or 0.0, mem["peak_rss_mb"] or 0.0) or None
+        out["peak_pss_mb"] = mem["peak_pss_mb"]
+    return out
+
+
+def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, tools, repeat: int = 1) -> list:
     py = sys.executable
     size_mb = path.stat().st_size / 1e6
     cmds = {
@@ -176,9 +197,10 @@ def bench_log(kind: str, path: Path, copies: int, tmp: Path, timeout_s: float, t
         if tool not in tools:
             continue
         (tmp / "cal.json").unlink(missing_ok=True)
-        r = run(cmd, timeout_s)
+        r = measure(cmd, timeout_s, repeat, tree=tool == "mavcal calibrate")
         r.update(kind=kind, size_mb=round(size_mb, 1), copies=copies, tool=tool,
-                 rss_per_file=round(max(r["peak_rss_mb"], r["peak_pss_mb"]) / size_mb, 2) if r["peak_rss_mb"] else None,
+                 rss_per_file=round(max(r["peak_rss_mb"], r["peak_pss_mb"] or 0.0) / size_mb, 2)
+                 if r["peak_rss_mb"] else None,
                  intervals=_n_intervals(tmp / "cal.json") if tool == "mavcal calibrate" else None)
         rows.append(r)
         print(r, file=sys.stderr, flush=True)
@@ -229,10 +251,12 @@ def write_results(rows: list, env: str, command: str = "") -> str:
             "\n\nLogs: time-shifted copies of sitl_logs/sitl02.tlog and 00000124.BIN (benchmarks/biglogs.py). "
             "Each row is one subprocess: `mavcal calibrate LOG --json OUT`, `mavcal segments LOG --json`, or "
             "pymavlink reading the IMU messages (tlog: recv_match over RAW_IMU, SCALED_IMU2; .bin: DFReader over "
-            "IMU, MAG) and collecting the values. Peak RSS = `/usr/bin/time -f %M` of the run, interpreter "
+            "IMU, MAG) and collecting the values. wall s = the median of `--repeat` timed runs (one on 1 GB), "
+            "each with nothing else sampling it. Peak RSS = `/usr/bin/time -f %M` of the runs, interpreter "
             "included (MB = 1e6 bytes): the largest process of the run; peak PSS (tree) = the largest sum of "
-            "the proportional set sizes of the run's processes (mavcal calibrate forks fit workers), sampled "
-            "every 25 ms; peak / file = the larger of the two over the file size. size x / time x: ratio to "
+            "the proportional set sizes of the processes of one more mavcal calibrate run (it forks fit "
+            "workers), sampled every 25 ms (the sampler costs the run CPU, so this run is not timed); "
+            "peak / file = the larger of the two over the file size. size x / time x: ratio to "
             "the smallest size of the same log kind and tool (linear = equal); for kind sim, the ratio of "
             "the pose counts (simulated sessions, biglogs.build_intervals_tlog) and its time, i.e. the cost "
             "against the interval count. intervals: still intervals of the calibrate run. rc 4 = calibration "
@@ -255,6 +279,8 @@ def main(argv=None) -> int:
                     help="pose counts of the simulated sessions (kind sim)")
     ap.add_argument("--timeout", type=float, default=3600.0, help="seconds per run")
     ap.add_argument("--tools", nargs="+", default=list(TOOLS), choices=list(TOOLS))
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="timed runs of every command on logs up to 100 MB (the median is reported)")
     args = ap.parse_args(argv)
     sizes = list(args.sizes_mb) + ([1000.0] if args.full else [])
     import numpy as np
@@ -273,7 +299,8 @@ def main(argv=None) -> int:
                 else:
                     build = biglogs.build_tlog if kind == "tlog" else biglogs.build_bin
                     copies, tools = build(path, size * 1e6), args.tools
-                rows += bench_log(kind, path, copies, tmp, args.timeout, tools)
+                rows += bench_log(kind, path, copies, tmp, args.timeout, tools,
+                                  args.repeat if kind == "sim" or size <= 100.0 else 1)
                 path.unlink()
                 add_scaling(rows)
                 write_results(rows, env, command)  # after every log: a long run interrupted keeps what it measured
