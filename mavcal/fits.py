@@ -18,7 +18,7 @@ import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, no
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
 from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_accel, map_calibration
-from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
+from mavcal.core.accel_fit import HOLDOUT_FOLDS, AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.stats import IntervalStats, interval_means, interval_stats
@@ -73,11 +73,11 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
             if not ok and j == 0:  # the primary pair cannot be fitted: nothing to report
                 raise f
             o = jobs[j]
-            S = 2 * K if K > 1 else 1  # slices: small enough to even out the workers' loads
+            S = _holdout_slices(K)
             return ([("quality", j, (o, f))] + [("holdout", j, (o, f, (k, S))) for k in range(S) if o.holdout]
                     if ok else [])
 
-        n = len(first) + len(jobs) * (K + 1)  # at most: every pair's held-out slices and bounds
+        n = len(first) + len(jobs) * (_holdout_slices(K) + 1)  # at most: every pair's held-out slices and bounds
         pool.run(_job, first, then, done=lambda k: report(progress, STAGE_FIT, k, n))
     runs: list[CalibrationRun | MavcalError] = []
     for j, o in enumerate(jobs):
@@ -104,6 +104,16 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+
+
+def _holdout_slices(workers: int) -> int:
+    """Slices a pair's held-out refits are cut into: with workers, at least two per worker (small
+    jobs even out the workers' loads; a slice costs ~2 ms more than its refits) and, where it
+    can, a divisor of :data:`~mavcal.core.accel_fit.HOLDOUT_FOLDS`, so that the K-fold check's
+    slices hold the same number of refits (5 for 2 workers: 2 folds each)."""
+    if workers == 1:
+        return 1
+    return next((s for s in range(2 * workers, HOLDOUT_FOLDS + 1) if HOLDOUT_FOLDS % s == 0), 2 * workers)
 
 
 def _judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own: list[tuple[int, Outcome]],

@@ -139,6 +139,17 @@ def test_fits_in_two_workers_equal_the_fits_in_this_process(sitl_dir):
     assert stages[-1][1] == stages[-1][2] and len(stages) >= 1 + len(two.others) + 1
 
 
+def test_a_held_out_check_is_cut_into_even_slices_of_at_least_two_per_worker():
+    from mavcal.core.accel_fit import HOLDOUT_FOLDS
+    from mavcal.fits import _holdout_slices
+
+    assert _holdout_slices(1) == 1
+    for workers in (2, 3, 4, 5, 8):
+        s = _holdout_slices(workers)
+        assert s >= 2 * workers and (HOLDOUT_FOLDS % s == 0 or s == 2 * workers)
+    assert _holdout_slices(2) == 5 and HOLDOUT_FOLDS == 10
+
+
 def test_held_out_refits_in_slices_combine_to_the_whole_check_to_the_bit():
     """The held-out check split into K slices of its refits (one per worker) gives, put back in
     order, exactly the number of the whole check; a check that cannot run stays NaN."""
@@ -150,7 +161,7 @@ def test_held_out_refits_in_slices_combine_to_the_whole_check_to_the_bit():
         sim = simulate(n, seed=3, samples=(60, 80))
         cal = calibrate(sim.accel_sets, sim.mag_sets, seed=0)
         whole = holdout_errors(sim.accel_sets, sim.mag_sets, cal)
-        for K in (1, 2, 3, 4):  # fit_recording cuts a check into 2 slices per worker
+        for K in (1, 2, 3, 5):  # fit_recording cuts a 10-fold check into 5 slices for 2 workers
             parts = [holdout_part(sim.accel_sets, sim.mag_sets, cal, part=(k, K)) for k in range(K)]
             assert holdout_rms(parts) == whole and np.all(np.isfinite(whole))
     tiny = simulate(5, seed=3, samples=(60, 80))
