@@ -435,7 +435,7 @@ def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
     return i1 - i0, c1[i1] - c1[i0], c2[i1] - c2[i0]
 
 
-def _gyro_still(tg: np.ndarray, vg: np.ndarray, t0: np.ndarray, t1: np.ndarray, limit: float,
+def _gyro_still(tg: np.ndarray, vg: np.ndarray | SensorSeries, t0: np.ndarray, t1: np.ndarray, limit: float,
                 w: int | None = None) -> np.ndarray:
     """Per window [t0, t1]: RMS gyro rate of the samples in it below ``limit`` (no sample: still).
 
@@ -443,11 +443,13 @@ def _gyro_still(tg: np.ndarray, vg: np.ndarray, t0: np.ndarray, t1: np.ndarray, 
     are evaluated a chunk at a time (same expressions, bit-identical results). ``w``: the gyro
     samples are the reference's own times, strictly increasing, and the windows its ``w``-sample
     windows (a gyro in the accelerometer's message): window k holds samples k..k+w-1, which
-    the sorted searches would find."""
+    the sorted searches would find. ``vg``: the rates, or their series (whose values are then
+    read a chunk at a time: a packed series computes only those)."""
+    rows = vg.values_at if isinstance(vg, SensorSeries) else vg.__getitem__
     c1 = np.empty(len(vg) + 1)
     c1[0] = 0.0
     for i in range(0, len(vg), _CHUNK):
-        g = vg[i:i + _CHUNK]
+        g = rows(slice(i, i + _CHUNK))
         sq = np.sum(g * g, axis=1)
         if i:
             sq[0] += c1[i]
@@ -488,7 +490,7 @@ def _norms(a: np.ndarray) -> np.ndarray:
     return out
 
 
-def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.ndarray] | None,
+def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.ndarray | SensorSeries] | None,
                    mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig) -> np.ndarray:
     """Per window start i (window = samples i..i+w-1 of accel 0): is the window still."""
     n = len(t)
@@ -737,7 +739,7 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     accel, mag, gyro = _collect(data)
     accel = [s for s in accel if len(s)]
     mag = [s for s in mag if len(s)]
-    gyro = [s for s in gyro if len(s) and (np.count_nonzero(s.values[:64]) or np.count_nonzero(s.values))]
+    gyro = [s for s in gyro if len(s) and s.any_nonzero()]
     if not accel:
         raise SegmentationError("no accelerometer data: still intervals cannot be detected")
     if board_rotation is None:
@@ -745,7 +747,7 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     R_b = np.eye(3) if board_rotation is None else np.asarray(board_rotation, dtype=float)
     ref = _reference(accel, cfg)
     g_ser = min(gyro, key=lambda s: s.instance) if (gyro and cfg.use_gyro) else None
-    gy = (g_ser.time_s, g_ser.values) if g_ser is not None else None
+    gy = (g_ser.time_s, g_ser) if g_ser is not None else None  # (its rates read a chunk at a time)
     mags = {s.instance: _sorted_finite(s) for s in mag}
     mag0 = min(mags) if mags else None
     mg = mags[mag0] if (cfg.use_mag and gy is None and mag0 is not None) else None

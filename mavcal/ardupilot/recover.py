@@ -210,7 +210,7 @@ def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: fl
     (``srt``: the accelerometer's times are sorted)."""
     s_edge, e_edge = start, end
     if acc is not None and len(acc) > 2:
-        t, v = acc.time_s, acc.values
+        t = acc.time_s
         if np.isfinite(end):
             e_edge = end
         else:
@@ -221,8 +221,9 @@ def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: fl
         if len(sel) > 1:
             p = log_.params
             cal_b = _accel_cal_at(p, 0, t[sel[0]])
-            u_corr = fw.undo_accel(cal_b, v[sel])
-            u_raw = fw.undo_accel(cal_b, v[sel], calibrating=True)
+            v = acc.values_at(sel)  # the rows near the edge only
+            u_corr = fw.undo_accel(cal_b, v)
+            u_raw = fw.undo_accel(cal_b, v, calibrating=True)
             if np.all(np.isfinite(u_corr)):
                 k = _best_split(u_corr, u_raw, min_step)
                 if k is not None:
@@ -231,8 +232,9 @@ def _refine_period(log_: ImuLog, acc: SensorSeries | None, start: float, end: fl
             sel = _index_in(t, end - margin_s, end + margin_s, srt)
             if len(sel) > 1:
                 cal_a = _accel_cal_at(log_.params, 0, t[sel[-1]])
-                u_raw = fw.undo_accel(cal_a, v[sel], calibrating=True)
-                u_corr = fw.undo_accel(cal_a, v[sel])
+                v = acc.values_at(sel)
+                u_raw = fw.undo_accel(cal_a, v, calibrating=True)
+                u_corr = fw.undo_accel(cal_a, v)
                 if np.all(np.isfinite(u_corr)):
                     k = _best_split(u_raw, u_corr, min_step)
                     if k is not None:
@@ -372,30 +374,37 @@ def _record(used: dict[str, list[tuple[float, float]]], params: ParamTimeline, n
 _CHUNK_ROWS = 1 << 16
 
 
-def _undo_accel_into(out: np.ndarray, cal: fw.AccelCal, v: np.ndarray, calibrating: np.ndarray | None) -> None:
-    """``out[i] = undo_accel(cal, v[i], calibrating=calibrating[i])`` (``None``: calibrating everywhere),
-    a chunk of rows at a time; each chunk computes only the interpretation its rows need (the
-    same row-wise arithmetic, so the values are those of one call on all rows)."""
-    scratch = np.empty((min(_CHUNK_ROWS, len(v)), 3))
-    for i in range(0, len(v), _CHUNK_ROWS):
-        j = i + _CHUNK_ROWS
+def _undo_accel_into(out: np.ndarray, cal: fw.AccelCal, s: SensorSeries, i0: int,
+                     calibrating: np.ndarray | None) -> None:
+    """``out[i] = undo_accel(cal, v[i], calibrating=calibrating[i])`` (``None``: calibrating everywhere)
+    for the readings ``v`` of ``s`` from row ``i0`` on, a chunk of rows at a time (the readings of
+    a packed series are computed a chunk at a time too); each chunk computes only the
+    interpretation its rows need (the same row-wise arithmetic, so the values are those of
+    one call on all rows)."""
+    scratch = np.empty((min(_CHUNK_ROWS, len(out)), 3))
+    for i in range(0, len(out), _CHUNK_ROWS):
+        j = min(i + _CHUNK_ROWS, len(out))
+        v = s.values_at(slice(i0 + i, i0 + j))
         c = None if calibrating is None else calibrating[i:j]
         if c is None or c.all():
-            out[i:j] = fw.undo_accel(cal, v[i:j], calibrating=True, out=scratch[:len(v[i:j])])
+            out[i:j] = fw.undo_accel(cal, v, calibrating=True, out=scratch[:len(v)])
         elif not c.any():
-            out[i:j] = fw.undo_accel(cal, v[i:j], out=scratch[:len(v[i:j])])
+            out[i:j] = fw.undo_accel(cal, v, out=scratch[:len(v)])
         else:
-            out[i:j] = np.where(c[:, None], fw.undo_accel(cal, v[i:j], calibrating=True), fw.undo_accel(cal, v[i:j]))
+            out[i:j] = np.where(c[:, None], fw.undo_accel(cal, v, calibrating=True), fw.undo_accel(cal, v))
 
 
-def _undo_compass_into(out: np.ndarray, cal: fw.CompassCal, v: np.ndarray, motor: np.ndarray | None) -> None:
-    """``out = undo_compass(cal, v, motor)``, a chunk of rows at a time (row-wise arithmetic), each
-    worked out in one reused (cached) buffer and copied once into ``out``, whose fresh pages are
-    slow to touch more than once."""
-    scratch = np.empty((min(_CHUNK_ROWS, len(v)), 3))
-    for i in range(0, len(v), _CHUNK_ROWS):
-        j = i + _CHUNK_ROWS
-        out[i:j] = fw.undo_compass(cal, v[i:j], None if motor is None else motor[i:j], out=scratch[:len(v[i:j])])
+def _undo_compass_into(out: np.ndarray, cal: fw.CompassCal, s: SensorSeries, i0: int,
+                       motor: np.ndarray | None) -> None:
+    """``out = undo_compass(cal, v, motor)`` for the readings ``v`` of ``s`` from row ``i0`` on, a
+    chunk of rows at a time (row-wise arithmetic; a packed series' readings computed a chunk at
+    a time), each worked out in one reused (cached) buffer and copied once into ``out``, whose
+    fresh pages are slow to touch more than once."""
+    scratch = np.empty((min(_CHUNK_ROWS, len(out)), 3))
+    for i in range(0, len(out), _CHUNK_ROWS):
+        j = min(i + _CHUNK_ROWS, len(out))
+        v = s.values_at(slice(i0 + i, i0 + j))
+        out[i:j] = fw.undo_compass(cal, v, None if motor is None else motor[i:j], out=scratch[:len(v)])
 
 
 def _in_periods(t: np.ndarray, periods: Sequence[tuple[float, float]]) -> np.ndarray:
@@ -484,7 +493,7 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
             continue
         mag_out.append(_recover_mag(log_.params, s, events, used, warnings))
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
-                 and not (drop_zero_series and not _any_nonzero(g.values)))
+                 and not (drop_zero_series and not g.any_nonzero()))
     for w in warnings:
         log.warning("%s", w)
     return RawImu(
@@ -501,17 +510,11 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
     )
 
 
-def _any_nonzero(x: np.ndarray) -> bool:
-    """``np.any(x != 0.0)`` (NaN counts as non-zero), looking at the first rows first: a real
-    series shows a non-zero value at once, and only an all-zero one is read to its end."""
-    return bool(np.count_nonzero(x[:64])) or bool(np.count_nonzero(x))
-
-
 def _usable(s: SensorSeries | None, sensor: str, drop_zero: bool, warnings: list[str]) -> SensorSeries | None:
     """The series, or None when it is empty or (``drop_zero``) all zero (with a warning)."""
     if s is None or len(s) == 0:
         return None
-    if drop_zero and not _any_nonzero(s.values):
+    if drop_zero and not s.any_nonzero():
         what = "no such IMU" if sensor == "accel" else "no such compass"
         warnings.append(f"{sensor} {s.instance} ({s.message}) is all zero ({what}); dropped")
         return None
@@ -538,7 +541,7 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
     have = [n for n in list(an["ofs"]) + list(an["scale"]) if n in params]
     names = _names_accel(inst) if have else board
     known = ph.known_table(params, names, events)
-    out = np.empty_like(s.values)
+    out = np.empty((len(s), 3))
     calib = _in_periods(t, periods)
     left_out = np.zeros(len(t), dtype=bool)
     missing: list[str] = []
@@ -555,7 +558,7 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
             unusable.append(f"{t[p.i0]:.1f} s: {exc}")
             continue
         if not have or set(p.unknown) & set(board):
-            _undo_accel_into(out[sl], cal, s.values[sl], None)
+            _undo_accel_into(out[sl], cal, s, p.i0, None)
             left_out[sl] = bool(p.unknown)
             continue
         if any(v == 0.0 for v in cal.scale) and not p.unknown:
@@ -564,7 +567,7 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
         c = calib[sl]
         # offsets/scale do not matter where the firmware skipped them (accel calibration)
         left_out[sl] = bool(p.unknown) & ~c
-        _undo_accel_into(out[sl], cal, s.values[sl], c)
+        _undo_accel_into(out[sl], cal, s, p.i0, c)
     if not have:
         no_board = "" if bn["orientation"] in params else " (and no AHRS_ORIENTATION: board frame = body frame)"
         warnings.append(f"accel {inst}: the log has no {an['ofs'][0][:-2]}/{an['scale'][0][:-2]} "
@@ -589,13 +592,13 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
     inst, t = s.instance, s.time_s
     cn: Mapping[str, Any] = fw.compass_param_names(inst)
     motor = s.extra.get("motor_ofs_mgauss")
-    if motor is not None and np.asarray(motor).shape != s.values.shape:
+    if motor is not None and np.asarray(motor).shape != (len(s), 3):
         motor = None
     if not [n for n in list(cn["ofs"]) + list(cn["dia"]) + [cn["scale"]] if n in params]:
         return _mag_without_params(s, cn, motor, warnings)
     names = _names_compass(inst)
     known = ph.known_table(params, names, events)
-    out = np.empty_like(s.values)
+    out = np.empty((len(s), 3))
     left_out = np.zeros(len(t), dtype=bool)
     missing: list[str] = []
     pieces = _pieces(params, known, names, list(cn["mot"]), t)
@@ -604,8 +607,7 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
     for p in pieces:
         try:
             cal = fw.compass_cal_from_params(p.values, inst, None if p.unknown else missing)
-            _undo_compass_into(out[p.i0:p.i1], cal, s.values[p.i0:p.i1],
-                               None if motor is None else motor[p.i0:p.i1])
+            _undo_compass_into(out[p.i0:p.i1], cal, s, p.i0, None if motor is None else motor[p.i0:p.i1])
             left_out[p.i0:p.i1] = bool(p.unknown)
         except (ValueError, np.linalg.LinAlgError) as exc:  # e.g. a singular DIA/ODI matrix, unknown rotation
             out[p.i0:p.i1], left_out[p.i0:p.i1], bad[p.i0:p.i1] = np.nan, True, True
@@ -634,7 +636,7 @@ def _mag_without_params(s: SensorSeries, cn: Mapping[str, Any], motor: np.ndarra
                         warnings: list[str]) -> SensorSeries:
     """A compass the log has no COMPASS parameters for: logged offsets if any, else as is."""
     ofs_logged = s.extra.get("ofs_mgauss")
-    if ofs_logged is not None and np.asarray(ofs_logged).shape == s.values.shape:
+    if ofs_logged is not None and np.asarray(ofs_logged).shape == (len(s), 3):
         warnings.append(f"mag {s.instance}: the log has no COMPASS parameters for this compass; "
                         f"used the logged MAG offsets (int16) and no matrix/scale")
         out = s.values - np.asarray(ofs_logged)
@@ -643,7 +645,7 @@ def _mag_without_params(s: SensorSeries, cn: Mapping[str, Any], motor: np.ndarra
     else:
         warnings.append(f"mag {s.instance}: the log has no {cn['ofs'][0][:-2]}/DIA/ODI/SCALE parameters; "
                         f"readings treated as raw")
-        out = np.array(s.values)
+        out = s.values if s.packed is not None else np.array(s.values)  # (computed: a new array already)
     return SensorSeries("mag", s.instance, s.message, s.time_s, out, s.log_time_s, dict(s.extra))
 
 

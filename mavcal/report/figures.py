@@ -24,9 +24,11 @@ _BEFORE = "#c62828"
 _AFTER = "#1565c0"
 _MAX_POINTS = 20000  # per plotted series in the timeline (plain decimation beyond)
 
-def _decimate(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _decimate(series) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``step``-th time and value of a series (only those values computed when packed)."""
+    t = series.time_s
     step = max(1, int(np.ceil(t.shape[0] / _MAX_POINTS)))
-    return t[::step], v[::step]
+    return t[::step], np.asarray(series.values_at(slice(None, None, step)), float)
 
 
 def fig_timeline(Figure, run) -> tuple[object, int]:
@@ -60,12 +62,12 @@ def fig_timeline(Figure, run) -> tuple[object, int]:
         if s is None or len(s) == 0:
             ax.text(0.5, 0.5, f"no {name} {inst} data", transform=ax.transAxes, ha="center")
             continue
-        t, v = _decimate(s.time_s, np.asarray(s.values, float))
+        t, v = _decimate(s)
         for j, (lab, col) in enumerate(zip("xyz", ("#ef9a9a", "#a5d6a7", "#90caf9"))):
             ax.plot(t, v[:, j], lw=0.6, color=col, label=f"{lab} as logged")
         ax.plot(t, np.linalg.norm(v, axis=1), lw=1.0, color=_BEFORE, label="|v| as logged")
         if r is not None and len(r):
-            tr, vr = _decimate(r.time_s, np.asarray(r.values, float))
+            tr, vr = _decimate(r)
             after = np.linalg.norm(corrected_after(run, sensor, vr), axis=1)
             ax.plot(tr, after, lw=1.0, color=_AFTER, ls="--", label="|v| new calibration")
         ax.axhline(target, color="k", lw=0.5, ls=":")

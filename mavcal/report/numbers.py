@@ -104,7 +104,7 @@ def _window(series, t0: float, t1: float, pad: float) -> np.ndarray:
         return np.empty((0, 3))
     t = series.time_s
     i0, i1 = np.searchsorted(t, t0 - pad, "left"), np.searchsorted(t, t1 + pad, "right")
-    return np.asarray(series.values[i0:i1], float)
+    return np.asarray(series.values_at(slice(i0, i1)), float)  # (only those rows computed when packed)
 
 
 def _norm_stats(v: np.ndarray) -> tuple[float, float]:

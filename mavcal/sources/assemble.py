@@ -9,7 +9,9 @@ into sensor series, a parameter timeline, events and vehicle facts.
 Units and conventions (what goes into :class:`SensorSeries`)
 ------------------------------------------------------------
 * RAW_IMU / SCALED_IMU / SCALED_IMU2 / SCALED_IMU3: accel milli-g x 9.80665/1000 -> m/s^2,
-  gyro mrad/s / 1000 -> rad/s, mag mGauss. Instance 0/0/1/2. RAW_IMU is preferred over
+  gyro mrad/s / 1000 -> rad/s, mag mGauss. Instance 0/0/1/2. The series keep the int16
+  readings (:class:`~mavcal.sources.types.PackedValues`, a quarter of the float64 memory) and
+  compute those float64 values on access, bit for bit the same. RAW_IMU is preferred over
   SCALED_IMU for instance 0 (ArduPilot sends the same data in both). Samples whose accel
   and gyro are all exactly zero are dropped from accel/gyro (no IMU for that instance, e.g.
   SCALED_IMU2 on a single-IMU board); samples whose mag is all zero from mag (no compass).
@@ -47,7 +49,7 @@ from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu
 from mavcal.sources.param_columns import dataflash_params, text_codes, timeline_from_codes
 from mavcal.sources.param_columns import decode_text as _text
-from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
+from mavcal.sources.types import ImuLog, LogEvent, PackedValues, ParamTimeline, SensorSeries
 
 __all__ = ["assemble_tlog", "assemble_dataflash", "imu_series", "Columns", "IMU_MESSAGES", "TLOG_MESSAGES",
            "DATAFLASH_MESSAGES", "SCALED_INSTANCE", "CALIBRATION_COMMANDS", "MG_TO_MS2", "REBOOT_BACKSTEP_S"]
@@ -76,6 +78,18 @@ HIGHRES_BUG_THRESHOLD = 100.0  # median |mag| in "gauss" above which the mGauss*
 _SENSOR_ORDER = ("accel", "gyro", "mag")
 
 Columns = dict[str, dict[str, np.ndarray]]
+
+#: the float arithmetic of each integer IMU reading (value = count * mul / div): milli-g x
+#: 9.80665/1000 -> m/s^2, mrad/s / 1000 -> rad/s, mGauss as sent
+_INT_UNITS = {"accel": (MG_TO_MS2, 1.0), "gyro": (1.0, 1000.0), "mag": (1.0, 1.0)}
+_INT16 = np.iinfo(np.int16)
+
+
+def _packed(sensor: str, counts: np.ndarray) -> PackedValues:
+    """Integer readings of ``sensor`` as the values of a series (computed on access, bit for bit
+    what ``counts`` cast to float64, times ``MG_TO_MS2`` (accel) or divided by 1000 (gyro) gives)."""
+    mul, div = _INT_UNITS[sensor]
+    return PackedValues(counts, mul, div)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -218,15 +232,16 @@ class _SeriesSet:
     def has(self, sensor: str, inst: int) -> bool:
         return (sensor, inst) in self.taken
 
-    def add(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray, lt: np.ndarray | None,
-            extra: Mapping[str, np.ndarray] | None = None, dup_label: str | None = None) -> None:
+    def add(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray | PackedValues,
+            lt: np.ndarray | None, extra: Mapping[str, np.ndarray] | None = None, dup_label: str | None = None) -> None:
         """Keep a series for (sensor, instance) unless there is one already or ``t`` is empty."""
         if len(t) == 0 or self.has(sensor, inst):
             return
         self.keep(sensor, inst, msg, t, v, lt, extra, dup_label)
 
-    def keep(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray, lt: np.ndarray | None,
-             extra: Mapping[str, np.ndarray] | None = None, dup_label: str | None = None) -> None:
+    def keep(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray | PackedValues,
+             lt: np.ndarray | None, extra: Mapping[str, np.ndarray] | None = None,
+             dup_label: str | None = None) -> None:
         """Sort by time, drop repeated timestamps (stated in the warnings) and keep the series."""
         if len(t) < 2 or bool(np.all(t[1:] > t[:-1])):  # already sorted, no repeat: keep the arrays as they are
             self.series.append(SensorSeries(sensor, inst, msg, t, v, lt, dict(extra or {})))
@@ -235,7 +250,8 @@ class _SeriesSet:
         order, ndup = _dedupe_sorted(t)
         if ndup:
             self.warns.append(f"dropped {ndup} duplicated {dup_label or msg} samples (same timestamp)")
-        self.series.append(SensorSeries(sensor, inst, msg, t[order], v[order], None if lt is None else lt[order],
+        v = v.take(order) if isinstance(v, PackedValues) else v[order]
+        self.series.append(SensorSeries(sensor, inst, msg, t[order], v, None if lt is None else lt[order],
                                         {k: a[order] for k, a in (extra or {}).items()}))
         self.taken.add((sensor, inst))
 
@@ -287,7 +303,7 @@ def _integer_imu_series(imu: Mapping[str, DecodedImu | Mapping[str, np.ndarray]]
         c = imu.get(name)
         if c is None:
             continue
-        unused = c.accel_mps2 is None if isinstance(c, DecodedImu) else "xacc" not in c
+        unused = c.accel_mg is None if isinstance(c, DecodedImu) else "xacc" not in c
         if unused:  # SCALED_IMU beside RAW_IMU: its time columns alone (_tlog_vehicle_imu)
             out.warns.append("SCALED_IMU not used: RAW_IMU carries the same instance 0")
             consumed(name)
@@ -306,18 +322,31 @@ def _integer_imu_series(imu: Mapping[str, DecodedImu | Mapping[str, np.ndarray]]
         _zero_imu_warning(out, name, inst, nz, len(t))
         if nz < len(t):
             keep = slice(None) if not nz else has_imu
-            acc = _vec(c, ("xacc", "yacc", "zacc"))[keep]
-            acc *= MG_TO_MS2
-            out.add("accel", inst, name, t[keep], acc, lt[keep])
-            del acc
-            gyr = _vec(c, ("xgyro", "ygyro", "zgyro"))[keep]
-            gyr /= 1000.0
-            out.add("gyro", inst, name, t[keep], gyr, lt[keep])
-            del gyr
+            out.add("accel", inst, name, t[keep], _int_values(c, "accel", ("xacc", "yacc", "zacc"), keep), lt[keep])
+            out.add("gyro", inst, name, t[keep], _int_values(c, "gyro", ("xgyro", "ygyro", "zgyro"), keep), lt[keep])
         keep = slice(None) if has_mag.all() else has_mag
-        out.add("mag", inst, name, t[keep], _vec(c, ("xmag", "ymag", "zmag"))[keep], lt[keep])
+        out.add("mag", inst, name, t[keep], _int_values(c, "mag", ("xmag", "ymag", "zmag"), keep), lt[keep])
         del c
         consumed(name)
+
+
+def _int_values(c: Mapping[str, np.ndarray], sensor: str, names: Sequence[str], keep) -> np.ndarray | PackedValues:
+    """The rows ``keep`` of an integer IMU reading's columns: packed when they hold int16 integers
+    (what MAVLink sends), else (a reader that gave other numbers) float64 with the same arithmetic."""
+    cols = [np.asarray(c[n]) for n in names]
+    if all(a.dtype.kind in "iu" for a in cols) and all(
+            not len(a) or (int(a.min()) >= _INT16.min and int(a.max()) <= _INT16.max) for a in cols):
+        counts = np.empty((len(cols[0]), 3), dtype=np.int16)
+        for j, a in enumerate(cols):
+            counts[:, j] = a
+        return _packed(sensor, counts[keep])
+    v = _vec(c, names)[keep]
+    mul, div = _INT_UNITS[sensor]
+    if mul != 1.0:
+        v *= mul
+    if div != 1.0:
+        v /= div
+    return v
 
 
 def _zero_imu_warning(out: _SeriesSet, name: str, inst: int, nz: int, n: int) -> None:
@@ -337,15 +366,15 @@ def _rows_nonzero(*arrays: np.ndarray) -> np.ndarray:
 def _decoded_imu_series(name: str, inst: int, c: DecodedImu, out: _SeriesSet) -> None:
     """The series of a message decoded into its final arrays (same rules as from columns)."""
     t, lt, n = c.time_s, c.log_time_s, len(c.time_s)
-    assert c.accel_mps2 is not None and c.gyro_rads is not None and c.mag_mgauss is not None
+    assert c.accel_mg is not None and c.gyro_mrads is not None and c.mag_mgauss is not None
     nz = c.imu_zero_rows
     _zero_imu_warning(out, name, inst, nz, n)
     if nz < n:
-        keep = slice(None) if not nz else _rows_nonzero(c.accel_mps2, c.gyro_rads)
-        out.add("accel", inst, name, t[keep], c.accel_mps2[keep], lt[keep])
-        out.add("gyro", inst, name, t[keep], c.gyro_rads[keep], lt[keep])
+        keep = slice(None) if not nz else _rows_nonzero(c.accel_mg, c.gyro_mrads)
+        out.add("accel", inst, name, t[keep], _packed("accel", c.accel_mg[keep]), lt[keep])
+        out.add("gyro", inst, name, t[keep], _packed("gyro", c.gyro_mrads[keep]), lt[keep])
     keep_m = slice(None) if not c.mag_zero_rows else _rows_nonzero(c.mag_mgauss)
-    out.add("mag", inst, name, t[keep_m], c.mag_mgauss[keep_m], lt[keep_m])
+    out.add("mag", inst, name, t[keep_m], _packed("mag", c.mag_mgauss[keep_m]), lt[keep_m])
 
 
 def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _SeriesSet) -> None:

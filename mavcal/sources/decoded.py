@@ -21,16 +21,16 @@ class DecodedImu:
     """One integer IMU message (RAW_IMU, SCALED_IMU, SCALED_IMU2 or SCALED_IMU3) of the vehicle.
 
     ``time_s`` is on the log's time base (boot time plus the shift of its boot segment),
-    ``log_time_s`` the tlog receive time; ``accel_mps2`` / ``gyro_rads`` / ``mag_mgauss``
-    (n, 3) are the converted readings of every row, or None for a SCALED_IMU beside RAW_IMU
-    (not used: RAW_IMU carries instance 0). ``imu_zero_rows`` / ``mag_zero_rows`` count the
-    rows whose accel and gyro (mag) are all zero (those rows hold zeros).
+    ``log_time_s`` the tlog receive time; ``accel_mg`` (milli-g) / ``gyro_mrads`` (mrad/s) /
+    ``mag_mgauss`` (n, 3) int16 are the readings of every row as sent, or None for a SCALED_IMU
+    beside RAW_IMU (not used: RAW_IMU carries instance 0). ``imu_zero_rows`` / ``mag_zero_rows``
+    count the rows whose accel and gyro (mag) are all zero (those rows hold zeros).
     """
 
     time_s: np.ndarray
     log_time_s: np.ndarray
-    accel_mps2: np.ndarray | None
-    gyro_rads: np.ndarray | None
+    accel_mg: np.ndarray | None
+    gyro_mrads: np.ndarray | None
     mag_mgauss: np.ndarray | None
     imu_zero_rows: int
     mag_zero_rows: int

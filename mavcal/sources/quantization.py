@@ -36,10 +36,16 @@ _CHUNK_ROWS = 1 << 16
 
 
 def untruncate(series: SensorSeries) -> SensorSeries:
-    """The series with half a unit added away from zero to every non-zero integer reading."""
+    """The series with half a unit added away from zero to every non-zero integer reading.
+
+    A packed series (:class:`~mavcal.sources.types.PackedValues`) keeps its integers: only its
+    half step is set (the values it computes are the same, bit for bit)."""
     q = quantization_step(series)
     if q == 0.0:
         return series
+    p = series.packed
+    if p is not None and not p.untruncated:
+        return replace(series, values=p.with_half_step(0.5 * q))
     v = np.asarray(series.values)
     return replace(series, values=v + 0.5 * q * np.sign(v))
 
@@ -86,14 +92,24 @@ def untruncate_log(log: ImuLog, *, in_place: bool = False) -> tuple[ImuLog, int]
     With ``in_place=True`` (for a log nobody else holds, e.g. one :func:`mavcal.pipeline.prepare`
     has just read) the values are changed in their own arrays, without a second copy of the
     series, and ``log`` itself is returned; a series whose values are a view of memory it does
-    not own, or that another series shares, is copied as usual. The values are bit-identical
-    either way.
+    not own, or that another series shares, is copied as usual. A packed series (what the
+    tlog reader gives) only has its half step set: in place, on the series itself. The
+    values are bit-identical either way.
     """
-    arrays = [[s.values, *s.extra.values()] for s in log.series]
+    arrays = [[*([] if s.packed is not None else [s.values]), *s.extra.values()] for s in log.series]
     out, n = [], 0
     for k, s in enumerate(log.series):
         q = quantization_step(s)
-        root = _owner(s.values) if (in_place and q != 0.0) else None
+        p = s.packed
+        if p is not None and q != 0.0 and not p.untruncated:  # no value is rewritten
+            if in_place:
+                s.mark_untruncated(0.5 * q)
+                out.append(s)
+            else:
+                out.append(untruncate(s))
+            n += 1
+            continue
+        root = _owner(s.values) if (in_place and q != 0.0 and p is None) else None
         if root is not None and not any(np.may_share_memory(root, a) for j, arrs in enumerate(arrays)
                                         if j != k for a in arrs):
             _untruncate_in_place(root, q)

@@ -3,8 +3,9 @@
 :func:`decode_tlog_lean` frames and checks a tlog exactly as :func:`mavcal.sources.fast_tlog.decode_tlog`
 does (same :func:`~mavcal.sources.fast_tlog.scan_tlog`), but RAW_IMU / SCALED_IMU / SCALED_IMU2
 / SCALED_IMU3 do not become message columns: each chunk's records are converted into the
-arrays the sensor series keep (boot time and receive time in s, accel m/s^2, gyro rad/s, mag
-mGauss, all float64 with the arithmetic of :mod:`mavcal.sources.assemble`), grown in place
+arrays the sensor series keep (boot time and receive time in s, float64 with the arithmetic of
+:mod:`mavcal.sources.assemble`; the accel, gyro and mag readings as the int16 integers sent, from
+which the series compute their float values on access), grown in place
 (:class:`~mavcal.sources.framing.GrowArray`). The time base (reboots, shifts, receive delays)
 is built while reading, in frame order, so no frame number is kept per sample; the median
 receive delay of each boot segment is selected afterwards from the stored times without a
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mavcal.sources.assemble import IMU_MESSAGES, MG_TO_MS2, REBOOT_BACKSTEP_S, TLOG_MESSAGES
+from mavcal.sources.assemble import IMU_MESSAGES, REBOOT_BACKSTEP_S, TLOG_MESSAGES
 from mavcal.sources.decoded import DecodedImu, PreparedImu
 from mavcal.sources.fast_tlog import DEFAULT_CHUNK, ColumnSink, TlogStats, scan_tlog, wanted_messages
 from mavcal.sources.framing import GrowArray
@@ -49,7 +50,7 @@ class _LeanMessage:
         self.scale = 1e-3 if time_field == "time_boot_ms" else 1e-6
         self.t = GrowArray(np.float64)
         self.lt = GrowArray(np.float64)
-        self.vals: dict[str, GrowArray] | None = {k: GrowArray(np.float64, (3,)) for k in ("acc", "gyr", "mag")}
+        self.vals: dict[str, GrowArray] | None = {k: GrowArray(np.int16, (3,)) for k in ("acc", "gyr", "mag")}
         self.imu_zero = 0
         self.mag_zero = 0
 
@@ -70,22 +71,18 @@ class _LeanMessage:
         self.imu_zero += m - n_imu
         self.mag_zero += m - n_mag
         if self.vals is not None:
-            self._put("acc", rec, _ACC, m, n_imu, MG_TO_MS2, None)
-            self._put("gyr", rec, _GYR, m, n_imu, None, 1000.0)
-            self._put("mag", rec, _MAG, m, n_mag, None, None)
+            self._put("acc", rec, _ACC, m, n_imu)
+            self._put("gyr", rec, _GYR, m, n_imu)
+            self._put("mag", rec, _MAG, m, n_mag)
         return times
 
-    def _put(self, key: str, rec: np.ndarray, names: tuple[str, ...], m: int, nonzero: int,
-             mul: float | None, div: float | None) -> None:
+    def _put(self, key: str, rec: np.ndarray, names: tuple[str, ...], m: int, nonzero: int) -> None:
+        """The int16 readings as sent (the series compute their units on access)."""
         assert self.vals is not None
         out = self.vals[key].extend(m)
         if nonzero:  # else the rows stay zero without being written (nor resident)
             for j, n in enumerate(names):
                 out[:, j] = rec[n]
-            if mul is not None:
-                out *= mul
-            if div is not None:
-                out /= div
 
     def drop_values(self) -> None:
         self.vals = None
