@@ -77,3 +77,20 @@ def test_stats_subset_equals_the_statistics_of_the_subset():
     assert sub.scale == pytest.approx(ref.scale, rel=1e-13)
     with pytest.raises(ValueError):
         stats_subset(plain, keep)
+
+
+def test_pooled_scatter_is_the_deviations_product_to_the_bit():
+    """interval_stats' pooled scatter (XT XT^T of the (3, n) deviations, no (n, 3) copy) is the
+    D^T D of the straightforward form, bit for bit, for intervals of any length."""
+    from mavcal.core.stats import interval_stats
+
+    rng = np.random.default_rng(5)
+    for sizes in ([2, 3], [50] * 7, [1000, 20000, 3, 777]):
+        sets = [rng.normal(loc=rng.uniform(-500, 500, 3), scale=rng.uniform(0.01, 30), size=(n, 3)) for n in sizes]
+        st = interval_stats(sets, "sets")
+        X = np.concatenate(sets)
+        center = np.add.accumulate(X, axis=0)[-1] / len(X)  # the sequential sum, as mean(axis=0)
+        mu = np.array([np.add.reduceat((X - center).T, np.cumsum([0] + sizes[:-1]), axis=1).T[k] / n
+                       for k, n in enumerate(sizes)])
+        D = np.concatenate([s - center - m for s, m in zip(sets, mu)])
+        assert np.array_equal(st.scatter, D.T @ D)

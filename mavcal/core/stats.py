@@ -123,8 +123,9 @@ def _moments(arrays: list[np.ndarray], per_interval: bool
     mu = np.add.reduceat(XT, starts, axis=1).T / n[:, None]
     for k in range(3):
         XT[k] -= np.repeat(mu[:, k], ns)  # the deviations v[i,j] - mu_hat[i]
-    D = XT.T.copy()
-    scatter = D.T @ D  # sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T
+    # sum_i sum_j (v[i,j] - mu_hat[i]) (v[i,j] - mu_hat[i])^T: D^T D of the deviations D, i.e.
+    # XT XT^T (the same BLAS product, bit for bit, without an (n, 3) copy of D)
+    scatter = XT @ XT.T
     each = None
     if per_interval:  # each interval's scatter, the 6 distinct products summed interval by interval
         each = np.empty((len(ns), 3, 3))
