@@ -24,6 +24,7 @@ from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.stats import IntervalStats, interval_means, interval_stats
 from mavcal.core.types import Calibration
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
+from mavcal.memory import release_free_memory
 from mavcal.quality import Quality, accel_tilt_bounds, holdout_part, holdout_rms, quality_of
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.segment import Segmentation
@@ -58,8 +59,10 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     slices: dict[int, list[tuple[int, Outcome]]] = {j: [] for j in range(len(jobs))}  # pair j's held-out slices
     with ForkPool((prep, stats), opts.workers) as pool:
         K = pool.workers
+        release_free_memory()  # what reading and preparing freed: before the statistics' temporaries
         if K > 1:
             _prefill_stats(prep, jobs, stats, bool(insts))
+            release_free_memory()  # theirs, before the workers fork (they would copy the free pages they reuse)
 
         def then(item: tuple[str, int, tuple], outcome: Outcome) -> list[tuple[str, int, tuple]]:
             kind, j, arg = item
