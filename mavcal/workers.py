@@ -22,6 +22,7 @@ counts the shared pages in each process, is the parent's peak plus about that.
 """
 from __future__ import annotations
 
+import gc
 import itertools
 import logging
 import multiprocessing
@@ -33,6 +34,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Generic, TypeVar
 
 from mavcal.errors import MavcalError
+from mavcal.memory import return_large_blocks
 
 __all__ = ["ForkPool", "can_fork", "default_workers", "Outcome"]
 
@@ -70,6 +72,12 @@ def _in_worker(fn: Callable[[Any, Any], Any], item: Any) -> Outcome:
     return _run(fn, _SHARED, item)
 
 
+def _worker_start() -> None:
+    """A fit worker's large arrays are given back when freed, not kept by its allocator: its
+    own memory is what its fit needs, not its high-water mark (see :mod:`mavcal.memory`)."""
+    return_large_blocks()
+
+
 def _indexed(shared: Any, item: tuple[int, tuple[Callable[[Any, Any], Any], Any]]) -> Any:
     """:meth:`ForkPool.map`'s job: ``item`` is (index, (fn, its item))."""
     fn, arg = item[1]
@@ -102,6 +110,7 @@ class ForkPool(Generic[S]):
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
             _SHARED = None
+            gc.unfreeze()
 
     def map(self, fn: Callable[[S, Any], Any], items: Sequence[Any],
             done: Callable[[int], None] | None = None) -> list[Outcome]:
@@ -180,5 +189,7 @@ class ForkPool(Generic[S]):
             if _SHARED is not None:
                 raise RuntimeError("one ForkPool with workers at a time")
             _SHARED = self.shared
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("fork"))
+            gc.freeze()  # the objects so far stay out of the workers' collections: their pages are not copied
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("fork"),
+                                             initializer=_worker_start)
         return self._pool
