@@ -82,6 +82,7 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
 
         n = len(first) + len(jobs) * (_holdout_slices(K) + 1)  # at most: every pair's held-out slices and bounds
         pool.run(_job, first, then, done=lambda k: report(progress, STAGE_FIT, k, n))
+    release_free_memory()  # the fits' working memory (run here with one worker), before the report's
     runs: list[CalibrationRun | MavcalError] = []
     for j, o in enumerate(jobs):
         ok, r = got["pair", j]

@@ -14,6 +14,7 @@ import logging
 
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.fits import fit_recording, refusal_verdicts
+from mavcal.memory import release_free_memory
 from mavcal.quality import Quality
 from mavcal.run import STAGE_FIT, STAGE_RECOVER, STAGE_SEGMENT, CalibrationRun, Options, Prepared
 from mavcal.segment import find_still_intervals
@@ -114,6 +115,7 @@ def prepare(source, options: Options = Options(), *, progress=None, owned: bool 
     report(progress, STAGE_RECOVER, 0, 1)
     if opts.untruncate:
         log_, _ = untruncate_log(log_, in_place=own)
+    release_free_memory()  # what reading freed (decoding buffers): before the raw readings are made
     raw = recover_raw(log_)
     report(progress, STAGE_RECOVER, 1, 1)
     warnings += list(raw.warnings)
@@ -121,6 +123,7 @@ def prepare(source, options: Options = Options(), *, progress=None, owned: bool 
     seg = find_still_intervals(raw, opts.still)
     report(progress, STAGE_SEGMENT, 1, 1)
     warnings += list(seg.warnings)
+    release_free_memory()
     return Prepared(log_, raw, seg, steps, tuple(warnings))
 
 
