@@ -24,11 +24,20 @@ def _malloc_trim():
     global _TRIM
     if _TRIM is None:
         try:
-            _TRIM = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+            _TRIM = _libc().malloc_trim
             _TRIM.argtypes, _TRIM.restype = [ctypes.c_size_t], ctypes.c_int
         except (OSError, AttributeError):  # not glibc (macOS, Windows, musl without it)
             _TRIM = False
     return _TRIM
+
+
+def _libc() -> ctypes.CDLL:
+    """The C library: glibc's by its soname (``find_library`` would run ``ldconfig`` in a
+    subprocess, forking this process with all its readings), else whatever ``find_library`` finds."""
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return ctypes.CDLL(ctypes.util.find_library("c"))
 
 
 def release_free_memory() -> bool:
@@ -46,7 +55,6 @@ def return_large_blocks(threshold_bytes: int = 256 * 1024) -> bool:
     threshold as big blocks are freed, after which their memory stays with the process).
     For a fit worker, whose large arrays come and go; True when it could."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)))
+        return bool(_libc().mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)))
     except (OSError, AttributeError):
         return False
