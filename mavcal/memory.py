@@ -10,9 +10,6 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import logging
-
-log = logging.getLogger(__name__)
 
 __all__ = ["release_free_memory", "return_large_blocks"]
 
@@ -26,7 +23,7 @@ def _malloc_trim():
         try:
             _TRIM = _libc().malloc_trim
             _TRIM.argtypes, _TRIM.restype = [ctypes.c_size_t], ctypes.c_int
-        except (OSError, AttributeError):  # not glibc (macOS, Windows, musl without it)
+        except (OSError, AttributeError, TypeError):  # not glibc (macOS, Windows, musl without it)
             _TRIM = False
     return _TRIM
 
@@ -56,5 +53,5 @@ def return_large_blocks(threshold_bytes: int = 256 * 1024) -> bool:
     For a fit worker, whose large arrays come and go; True when it could."""
     try:
         return bool(_libc().mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)))
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):  # not glibc
         return False
