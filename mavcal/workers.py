@@ -78,16 +78,10 @@ def _worker_start() -> None:
     return_large_blocks()
 
 
-def _indexed(shared: Any, item: tuple[int, tuple[Callable[[Any, Any], Any], Any]]) -> Any:
-    """:meth:`ForkPool.map`'s job: ``item`` is (index, (fn, its item))."""
-    fn, arg = item[1]
-    return fn(shared, arg)
-
-
 class ForkPool(Generic[S]):
     """Run ``fn(shared, item)`` jobs in ``workers`` forked processes (or here).
 
-    Use as a context manager; :meth:`map` may be called several times (the workers are
+    Use as a context manager; :meth:`run` may be called several times (the workers are
     forked once, at the first job that goes to them). ``shared`` is handed to every job:
     inherited by the workers, never pickled; ``fn`` and the items must pickle (module-level
     functions, dataclasses, arrays).
@@ -111,19 +105,6 @@ class ForkPool(Generic[S]):
             self._pool = None
             _SHARED = None
             gc.unfreeze()
-
-    def map(self, fn: Callable[[S, Any], Any], items: Sequence[Any],
-            done: Callable[[int], None] | None = None) -> list[Outcome]:
-        """The outcome of ``fn(shared, item)`` for every item, in the order of ``items``;
-        ``done(k)`` is called as the k-th job finishes (in this process)."""
-        out: dict[int, Outcome] = {}
-
-        def keep(item: tuple[int, Any], outcome: Outcome) -> list:
-            out[item[0]] = outcome
-            return []
-
-        self.run(_indexed, [(k, (fn, item)) for k, item in enumerate(items)], keep, done)
-        return [out[k] for k in range(len(items))]
 
     def run(self, fn: Callable[[S, Any], Any], items: Sequence[Any],
             then: Callable[[Any, Outcome], Sequence[Any]], done: Callable[[int], None] | None = None) -> None:

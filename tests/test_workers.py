@@ -17,6 +17,18 @@ from mavcal.sources.reader import read_log
 pytestmark = pytest.mark.skipif(not W.can_fork(), reason="needs fork")
 
 
+def _outcomes(pool, fn, items, done=None):
+    """The outcome of every item, in the order of ``items`` (ForkPool.run with no follow-ups)."""
+    out = {}
+
+    def keep(item, outcome):
+        out[item] = outcome
+        return []
+
+    pool.run(fn, items, keep, done)
+    return [out[k] for k in items]
+
+
 def _job(shared, item):
     """Sum of the inherited array times ``item``, and the process it ran in."""
     if item < 0:
@@ -28,8 +40,8 @@ def test_fork_pool_runs_jobs_in_workers_that_inherit_the_shared_data():
     shared = {"x": np.arange(1_000_000, dtype=float)}  # inherited, never pickled
     done = []
     with W.ForkPool(shared, 2) as pool:
-        out = pool.map(_job, [1, 2, -1, 3], done=done.append)
-        again = pool.map(_job, [4, 5])  # the same workers, still holding the shared data
+        out = _outcomes(pool, _job, [1, 2, -1, 3], done=done.append)
+        again = _outcomes(pool, _job, [4, 5])  # the same workers, still holding the shared data
     assert [ok for ok, _ in out] == [True, True, False, True]
     assert [v[0] for ok, v in out if ok] == [shared["x"].sum() * k for k in (1, 2, 3)]
     assert isinstance(out[2][1], InsufficientDataError) and "item -1 refused" in str(out[2][1])
@@ -40,11 +52,11 @@ def test_fork_pool_runs_jobs_in_workers_that_inherit_the_shared_data():
 
 def test_fork_pool_with_one_worker_or_no_fork_runs_here(monkeypatch):
     with W.ForkPool({"x": np.ones(3)}, 1) as pool:
-        out = pool.map(_job, [1, -2])
+        out = _outcomes(pool, _job, [1, -2])
     assert out[0] == (True, (3.0, os.getpid())) and not out[1][0]
     monkeypatch.setattr(W, "can_fork", lambda: False)
     with W.ForkPool({"x": np.ones(3)}, 4) as pool:
-        assert pool.workers == 1 and pool.map(_job, [2])[0] == (True, (6.0, os.getpid()))
+        assert pool.workers == 1 and _outcomes(pool, _job, [2])[0] == (True, (6.0, os.getpid()))
     assert 1 <= W.default_workers() <= 4 and W.default_workers(most=1) == 1
 
 
@@ -59,7 +71,7 @@ def _dies_in_worker(shared, item):
 
 def test_a_killed_worker_costs_time_not_results(caplog):
     with W.ForkPool(10, 2) as pool:
-        out = pool.map(_dies_in_worker, [1, 2, 3])
+        out = _outcomes(pool, _dies_in_worker, [1, 2, 3])
         assert pool.workers == 1 and W._SHARED is None
     assert out == [(True, 10), (True, 20), (True, 30)]
     assert "worker process died" in caplog.text
@@ -119,7 +131,7 @@ def test_follow_up_jobs_run_here_after_a_worker_dies(caplog):
 
 def test_other_exceptions_propagate():
     with W.ForkPool({"x": None}, 2) as pool, pytest.raises(AttributeError):
-        pool.map(_job, [1, 2])  # None.sum(): a bug, not bad input, is raised here
+        _outcomes(pool, _job, [1, 2])  # None.sum(): a bug, not bad input, is raised here
 
 
 def test_fits_in_two_workers_equal_the_fits_in_this_process(sitl_dir):
