@@ -36,6 +36,7 @@ from mavcal.core.models import FORMS, GainForm
 from mavcal.core.rotations import exp_so3, skew
 
 _BLAS = ContextVar("mavcal_refine_blas", default=False)
+_EYE3 = np.eye(3)
 
 
 @contextmanager
@@ -96,6 +97,11 @@ class JointProblem:
         self.has_mag = any(t.kind == "mag" for t in self.terms)
         self.L = [t.whiten for t in self.terms]
         self.sn = [np.sqrt(t.n) for t in self.terms]
+        # parts of the Jacobian that do not change with the parameters (computed once, the same
+        # expressions): rows (k, i) of L E_k, the bias block L sqrt(n), [g]x of the accelerometer's field
+        self._LB = [(L @ t.form.basis).reshape(3 * t.form.size, 3) for t, L in zip(self.terms, self.L)]
+        self._Lsn = [L[None] * sn[:, None, None] for L, sn in zip(self.L, self.sn)]
+        self._skew_g = skew(G_UNIT)
         self.sizes = [t.form.size + 3 for t in self.terms]
         self.P = sum(self.sizes) + (1 if self.has_mag else 0)
         names: list[str] = []
@@ -166,15 +172,15 @@ class JointProblem:
             v = (R2 @ f).reshape(N, 3)
             r[:, rows] = ((v @ K.T + b - t.mu) @ L.T) * sn[:, None]
             k = t.form.size
-            LB = (L @ t.form.basis).reshape(3 * k, 3)  # rows (k, i): (L E_k)[i, :]
+            LB = self._LB[s]  # rows (k, i): (L E_k)[i, :]
             Jg[:, rows, col:col + k] = ((v @ LB.T).reshape(N, k, 3) * sn[:, None, None]).transpose(0, 2, 1)
             col += k
-            Jg[:, rows, col:col + 3] = L[None] * sn[:, None, None]
+            Jg[:, rows, col:col + 3] = self._Lsn[s]
             col += 3
             LK = L @ K
             if t.kind == "mag":
                 Jg[:, rows, P - 1] = (p.R[:, :, 2] @ LK.T) * sn[:, None]
-            RF = (R2 @ skew(f)).reshape(N, 3, 3)  # R_n [f]x
+            RF = (R2 @ (self._skew_g if t.kind == "accel" else skew(f))).reshape(N, 3, 3)  # R_n [f]x
             Jr[:, rows, :] = -(RF.transpose(0, 2, 1).reshape(3 * N, 3) @ LK.T).reshape(N, 3, 3).transpose(0, 2, 1) \
                 * sn[:, None, None]
         return r, Jg, Jr
@@ -221,7 +227,7 @@ class JointProblem:
             improved = False
             for trial in range(12):
                 Dg = np.diag(Hgg) * lam + 1e-300
-                Drr = Hrr + lam * np.einsum("nii->ni", Hrr)[:, :, None] * np.eye(3)
+                Drr = Hrr + lam * np.einsum("nii->ni", Hrr)[:, :, None] * _EYE3
                 try:
                     Hrr_inv = inv3(Drr) if self.blas else np.linalg.inv(Drr)
                 except np.linalg.LinAlgError:
