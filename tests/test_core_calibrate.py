@@ -290,3 +290,17 @@ def test_result_is_frozen():
         cal.cost = 1.0
     with pytest.raises(ValueError):
         cal.accel.gain[0, 0] = 2.0
+
+
+def test_exp_so3_takes_the_same_values_with_or_without_a_tiny_rotation_in_the_batch():
+    """A batch with no tiny rotation skips the series branch (the LM's usual case); each
+    rotation is the same, bit for bit, as in a batch that needs the series branch."""
+    from mavcal.core.rotations import exp_so3
+
+    rng = np.random.default_rng(4)
+    w = rng.normal(size=(50, 3)) * rng.uniform(1e-5, 3.0, size=(50, 1))
+    mixed = exp_so3(np.vstack([w, [[1e-9, 0.0, 0.0]]]))  # one tiny: the np.where path for all
+    assert exp_so3(w).tobytes() == mixed[:50].tobytes()
+    assert np.allclose(mixed[50], np.eye(3) + np.array([[0, 0, 0], [0, 0, -1e-9], [0, 1e-9, 0]]), atol=1e-15)
+    for R in exp_so3(w):
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)

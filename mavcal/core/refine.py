@@ -225,15 +225,17 @@ class JointProblem:
             Hgg, Hgr, Hrr = gauss_newton_blocks(Jg, Jr, blas=self.blas)
             gg, gr = gradient_blocks(Jg, Jr, r, blas=self.blas)
             improved = False
+            # what every trial's damped system takes from this iteration's blocks
+            dgg, drr, wide_gr = np.diag(Hgg), np.einsum("nii->ni", Hrr)[:, :, None], _wide(Hgr) if self.blas else None
             for trial in range(12):
-                Dg = np.diag(Hgg) * lam + 1e-300
-                Drr = Hrr + lam * np.einsum("nii->ni", Hrr)[:, :, None] * _EYE3
+                Dg = dgg * lam + 1e-300
+                Drr = Hrr + lam * drr * _EYE3
                 try:
                     Hrr_inv = inv3(Drr) if self.blas else np.linalg.inv(Drr)
                 except np.linalg.LinAlgError:
                     lam *= 10.0
                     continue
-                S, rhs = _reduced_system(Hgg + np.diag(Dg), Hgr, Hrr_inv, gg, gr, self.blas)
+                S, rhs = _reduced_system(Hgg + np.diag(Dg), Hgr, Hrr_inv, gg, gr, self.blas, wide_gr)
                 try:
                     dth = -np.linalg.solve(S, rhs)
                 except np.linalg.LinAlgError:
@@ -311,12 +313,13 @@ def schur_complement(Hgg: np.ndarray, Hgr: np.ndarray, Hrr_inv: np.ndarray, *, b
     return Hgg - np.einsum("npr,nrs,nqs->pq", Hgr, Hrr_inv, Hgr)
 
 
-def _reduced_system(Hgg, Hgr, Hrr_inv, gg, gr, blas: bool) -> tuple[np.ndarray, np.ndarray]:
+def _reduced_system(Hgg, Hgr, Hrr_inv, gg, gr, blas: bool, wide_gr: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """The Schur complement S of the (damped) ``Hgg`` and the right-hand side
-    gg - sum_n Hgr_n Hrr_n^-1 gr_n of one LM step."""
+    gg - sum_n Hgr_n Hrr_n^-1 gr_n of one LM step (``wide_gr``: ``_wide(Hgr)`` when already made)."""
     if blas:
         W = _wide(Hgr @ Hrr_inv)
-        return Hgg - W @ _wide(Hgr).T, gg - W @ gr.reshape(-1)
+        return Hgg - W @ (_wide(Hgr) if wide_gr is None else wide_gr).T, gg - W @ gr.reshape(-1)
     HgrHi = np.einsum("npr,nrs->nps", Hgr, Hrr_inv)
     return Hgg - np.einsum("nps,nqs->pq", HgrHi, Hgr), gg - np.einsum("nps,ns->p", HgrHi, gr)
 
