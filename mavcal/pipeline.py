@@ -123,7 +123,6 @@ def prepare(source, options: Options = Options(), *, progress=None, owned: bool 
     seg = find_still_intervals(raw, opts.still)
     report(progress, STAGE_SEGMENT, 1, 1)
     warnings += list(seg.warnings)
-    release_free_memory()
     return Prepared(log_, raw, seg, steps, tuple(warnings))
 
 
