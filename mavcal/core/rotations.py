@@ -23,13 +23,13 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     th2 = np.einsum("...i,...i->...", w, w)
     small = th2 < 1e-12
     th = np.sqrt(th2)
-    if small.any():
-        safe = np.where(small, 1.0, th)
-        a = np.where(small, 1.0 - th2 / 6.0, np.sin(safe) / safe)
-        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
-    else:  # the usual case: the same values without the series branch
-        a = np.sin(th) / th
-        b = (1.0 - np.cos(th)) / (th * th)
+    any_small = bool(small.any())  # rarely: the series branch is only worked out when needed
+    safe = np.where(small, 1.0, th) if any_small else th
+    a = np.sin(safe) / safe
+    b = (1.0 - np.cos(safe)) / (safe * safe)
+    if any_small:
+        a = np.where(small, 1.0 - th2 / 6.0, a)
+        b = np.where(small, 0.5 - th2 / 24.0, b)
     K = skew(w)
     out = K * a[..., None, None] + (K @ K) * b[..., None, None]
     out[..., 0, 0] += 1.0
