@@ -89,14 +89,20 @@ def test_prepare_of_a_path_equals_prepare_of_its_log_and_leaves_a_given_log_alon
 
 
 def test_prepare_of_an_owned_log_untruncates_in_its_own_arrays_with_the_same_result():
-    """``owned=True`` (what ``mavcal calibrate`` and ``segments`` pass): no copy of the series,
-    the log handed over is the prepared log, and every value equals the copying path's."""
+    """``owned=True`` (what ``mavcal calibrate`` and ``segments`` pass): no copy of the series'
+    readings, the receive times dropped, and every value equals the copying path's."""
     path = SITL / "sitl02.tlog"
     handed = read_log(path)
     arrays = [s.packed.counts for s in handed.series]  # a tlog's readings are stored packed
+    times = [s.time_s for s in handed.series]
+    assert all(s.log_time_s is not None for s in handed.series)
     mine = prepare(handed, owned=True)
-    assert mine.log is handed
+    assert [(s.sensor, s.instance) for s in mine.log.series] == [(s.sensor, s.instance) for s in handed.series]
     assert all(s.packed.counts is a for s, a in zip(mine.log.series, arrays))
+    assert all(s.time_s is t for s, t in zip(mine.log.series, times))
+    raw = mine.raw.accel + mine.raw.mag + mine.raw.gyro
+    assert all(s.log_time_s is None for s in mine.log.series + raw)
+    assert all(s.log_time_s is not None for s in prepare(read_log(path)).log.series)  # kept when not owned
     as_read = read_log(path)
     assert any(not _same(s.values, r.values) for s, r in zip(mine.log.series, as_read.series))  # changed in place
     _assert_same_prepared(mine, prepare(as_read))

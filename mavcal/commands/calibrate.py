@@ -177,6 +177,7 @@ def _single(args, source: str) -> int:
         else:
             log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))
         prep = prepare(log_, opts, progress=progress, owned=True)
+        del log_  # handed over: what prepare dropped from it is freed now, not after the fits
         run = calibrate_prepared(prep, opts, progress=progress)
     except MavcalError as exc:  # no fit at all: the JSON still says why, per sensor
         if isinstance(exc, UsageError):
