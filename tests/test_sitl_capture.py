@@ -19,7 +19,7 @@ import time
 import pytest
 
 from mavcal.testing.sitl import InjectedErrors, SitlVehicle
-from mavcal.testing.sitl_hand import AdviceHand, StatusLines
+from mavcal.testing.sitl_hand import AdviceHand, ScheduleHand, StatusLines
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(420)]
 
@@ -64,6 +64,34 @@ def test_capture_write_follows_the_advice_and_writes_the_truth(start_sitl, tmp_p
     assert rc == 0 and not rejected, f"rc {rc}, rejected {rejected}\n{status.text()[-3000:]}\n{stdout[-3000:]}"
     assert "written and verified" in stdout
     assert hand.returns >= 1
+    written = {n for n, _ in sitl.writes_since(mark)}
+    assert {"COMPASS_OFS_X", "COMPASS_OFS2_X", "COMPASS_OFS3_X", "INS_ACCOFFS_X", "INS_ACC2OFFS_X",
+            "COMPASS_ORIENT"} <= written, written
+    check_score(sitl)
+
+
+def test_calibrate_device_write_from_a_recording(start_sitl, tmp_path):
+    """``mavcal calibrate DEVICE --write``: record while a hand holds a fixed schedule of poses
+    (no advice), calibrate, write every accepted sensor."""
+    sitl = start_sitl(InjectedErrors.random(12, mag_orient=6))
+    hand = ScheduleHand(sitl)
+    duration = hand.duration_s() + 3.0
+    mark = len(sitl.param_values)
+    hand.start()
+    try:
+        r = sitl.run([sys.executable, "-m", "mavcal", "calibrate", sitl.tool_device, "--duration", f"{duration:.0f}",
+                      "--write", "--yes", "--json", str(tmp_path / "run.json"),
+                      "--backup", str(tmp_path / "backup.param")], timeout=duration + 120)
+    finally:
+        hand.stop()
+    assert hand.error is None, hand.error
+    assert hand.finished.is_set(), f"the schedule did not finish within the recording ({duration:.0f} s)"
+    report = json.loads((tmp_path / "run.json").read_text())
+    verdicts = {s["sensor"]: s for s in report["sensors"]}
+    assert set(verdicts) == SENSORS
+    rejected = {n: s["reasons"] for n, s in verdicts.items() if not s["accepted"]}
+    assert r.returncode == 0 and not rejected, f"rc {r.returncode}, rejected {rejected}\n{r.stderr}\n{r.stdout[-3000:]}"
+    assert "written and verified" in r.stdout
     written = {n for n, _ in sitl.writes_since(mark)}
     assert {"COMPASS_OFS_X", "COMPASS_OFS2_X", "COMPASS_OFS3_X", "INS_ACCOFFS_X", "INS_ACC2OFFS_X",
             "COMPASS_ORIENT"} <= written, written

@@ -11,6 +11,9 @@ relative to magnetic north, the simulator's attitude to true north). With ``retu
 first comes back to the pose just counted, after a quick turn away (a person who moved too
 soon), on a seeded coin per counted interval; when the advice does not change for
 ``patience_s`` it turns away and comes back to the advised pose.
+
+:class:`ScheduleHand` holds a fixed list of poses instead (:data:`SPREAD_POSES`: every side
+down, at different headings), for a recording without advice (``mavcal calibrate DEVICE``).
 """
 from __future__ import annotations
 
@@ -22,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["AdviceHand", "StatusLines", "parse_status_line", "advice_of_status", "Advice"]
+__all__ = ["AdviceHand", "ScheduleHand", "SPREAD_POSES", "StatusLines", "parse_status_line", "advice_of_status",
+           "Advice"]
 
 Pose = tuple[float, float, float]
 Advice = tuple[int, "Pose | None", bool]
@@ -152,6 +156,49 @@ class AdviceHand(threading.Thread):
                 self.sitl.set_pose(*target)
             self.poses.append(target)
             held, held_n, moved = target, n, time.monotonic()
+
+    def stop(self) -> None:
+        self.halt.set()
+        if self.is_alive():
+            self.join(timeout=30)
+
+
+#: (roll, pitch, yaw true) in degrees: every side of the vehicle down at least once, headings
+#: spread, so that both the accelerometer and the compass are identified
+SPREAD_POSES: tuple[Pose, ...] = (
+    (0, 0, 0), (0, 0, 180), (180, 0, 90), (90, 0, 0), (-90, 0, 180), (0, 85, 45), (0, -85, 225),
+    (45, 45, 135), (-45, 30, 300), (135, -30, 30), (-135, 45, 200), (30, -60, 100), (150, 60, 260),
+    (-60, -45, 330),
+)
+
+
+class ScheduleHand(threading.Thread):
+    """Holds each of ``poses`` for ``hold_s`` once settled (the first for ``first_hold_s``, while
+    the tool starts), then stays at the last one; ``finished`` is set after the last hold."""
+
+    def __init__(self, sitl: Any, poses: Iterable[Pose] = SPREAD_POSES, *, hold_s: float = 2.0,
+                 first_hold_s: float = 5.0) -> None:
+        super().__init__(name="sitl-schedule-hand", daemon=True)
+        self.sitl, self.schedule = sitl, list(poses)
+        self.hold_s, self.first_hold_s = hold_s, first_hold_s
+        self.halt, self.finished = threading.Event(), threading.Event()
+        self.poses: list[Pose] = []
+        self.error: BaseException | None = None
+
+    def duration_s(self, settle_s: float = 2.0) -> float:
+        """About how long the schedule takes."""
+        return self.first_hold_s + (len(self.schedule) - 1) * (settle_s + self.hold_s) + settle_s
+
+    def run(self) -> None:
+        try:
+            for i, pose in enumerate(self.schedule):
+                self.sitl.set_pose(*pose)
+                self.poses.append(pose)
+                if self.halt.wait(self.first_hold_s if i == 0 else self.hold_s):
+                    return
+            self.finished.set()
+        except BaseException as exc:
+            self.error = exc
 
     def stop(self) -> None:
         self.halt.set()
