@@ -676,6 +676,11 @@ class SitlVehicle:
                     else:
                         self._params.pop(n, None)
 
+    def send_param_set(self, name: str, value: float) -> None:
+        """One PARAM_SET on the control link, without waiting for anything."""
+        self._send("param_set_send", self.target_system, self.target_component, name.encode(), float(value),
+                   mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+
     def _check_injected(self) -> None:
         want = {**self.errors.sim_params(), **self.calibration_at_boot, **self.extra_params}
         got = self.get_params(want)
@@ -737,10 +742,9 @@ class SitlVehicle:
             raise SitlError(f"the vehicle did not settle within {timeout_s:g} s (SIMSTATE {self._simstate})")
         return self.simstate
 
-    def _measure_field(self, n: int = 40) -> np.ndarray:
-        """SITL's Earth field (NED, mGauss) from RAW_IMU of compass 1 at the current pose: the
-        calibration in force and the injected errors undone, rotated by SIMSTATE's attitude."""
-        s = self.wait_settled(timeout_s=20.0)
+    def read_imu(self, n: int = 40) -> tuple[np.ndarray, np.ndarray]:
+        """The mean of ``n`` RAW_IMU messages on the control link (IMU 1 and compass 1, as sent:
+        corrected with the calibration in force): accelerometer (m/s^2), compass (mGauss)."""
         with self._cond:
             self._raw_imu, self._collect_raw = [], True
         try:
@@ -751,13 +755,20 @@ class SitlVehicle:
             with self._cond:
                 self._collect_raw = False
             self.set_message_interval(MSG_RAW_IMU, 0)
-        reading = np.mean([[m.xmag, m.ymag, m.zmag] for m in self._raw_imu[:n]], axis=0)
-        in_force = {**self.get_params(CALIBRATION_NAMES)}
-        cal = fw.compass_cal_from_params(in_force, 0)
+        msgs = self._raw_imu[:n]
+        acc = np.mean([[m.xacc, m.yacc, m.zacc] for m in msgs], axis=0) * fw.GRAVITY_MSS / 1000.0
+        mag = np.mean([[m.xmag, m.ymag, m.zmag] for m in msgs], axis=0)
+        return acc, mag
+
+    def _measure_field(self) -> np.ndarray:
+        """SITL's Earth field (NED, mGauss) from compass 1 at the current pose: the calibration
+        in force and the injected errors undone, rotated by SIMSTATE's attitude."""
+        s = self.wait_settled(timeout_s=20.0)
+        _, reading = self.read_imu()
+        cal = fw.compass_cal_from_params(self.get_params(CALIBRATION_NAMES), 0)
         raw = fw.undo_compass(cal, reading[None, :], sensor_frame=True)[0]
         B_body = self.errors.body_field(raw)
-        C = euler_to_matrix(*np.radians([s.roll_deg, s.pitch_deg, s.yaw_deg]))
-        return C @ B_body
+        return euler_to_matrix(*np.radians([s.roll_deg, s.pitch_deg, s.yaw_deg])) @ B_body
 
 
 def binary_is_default(path: Path) -> bool:
