@@ -85,7 +85,7 @@ def passes(r: dict) -> bool:
 
 def table(rows: list[dict]) -> str:
     head = ("| seed | exit | sensors accepted | poses held (quick returns) | intervals | time (s) | max heading (deg) "
-            "| max tilt (deg) | compass offsets (mGauss) | ORIENT | COMPASS_SCALE | |B| calibrated / SITL (mGauss) "
+            "| max tilt (deg) | compass offsets (mGauss) | ORIENT | COMPASS_SCALE | field calibrated / SITL (mGauss) "
             "| field source | bars |\n|" + "---|" * 14)
     lines = [head]
     for r in rows:

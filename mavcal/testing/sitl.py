@@ -442,15 +442,18 @@ class SitlVehicle:
         self._children.append(p)
         return p
 
-    def run(self, argv: Sequence[str], *, timeout: float = 300.0, **kw: Any) -> subprocess.CompletedProcess:
-        """Run ``argv`` in the namespace to its end (``capture_output=True, text=True`` by default);
-        killed after ``timeout`` s."""
-        kw.setdefault("capture_output", True)
+    def run(self, argv: Sequence[str], *, timeout: float = 300.0, input: str | None = None,
+            **kw: Any) -> subprocess.CompletedProcess:
+        """Run ``argv`` in the namespace to its end (stdout and stderr captured as text unless
+        given); killed (and TimeoutExpired raised) after ``timeout`` s."""
+        kw.setdefault("stdout", subprocess.PIPE)
+        kw.setdefault("stderr", subprocess.PIPE)
         kw.setdefault("text", True)
-        p = self.popen(argv, stdout=subprocess.PIPE if kw.pop("capture_output") else kw.pop("stdout", None),
-                       stderr=subprocess.PIPE if "stderr" not in kw else kw.pop("stderr"), **kw)
+        if input is not None:
+            kw.setdefault("stdin", subprocess.PIPE)
+        p = self.popen(argv, **kw)
         try:
-            out, err = p.communicate(timeout=timeout)
+            out, err = p.communicate(input=input, timeout=timeout)
         except subprocess.TimeoutExpired:
             _stop_pid(p, 1.0)
             raise
