@@ -29,7 +29,7 @@ SITL = pytest.mark.sitl
 @pytest.fixture(scope="module")
 def sitl():
     require_sitl()
-    with SitlVehicle(InjectedErrors.random(5, mag_orient=6)) as v:
+    with SitlVehicle(InjectedErrors.random(5, mag_orient=6), relay=True) as v:
         yield v
 
 
@@ -60,6 +60,25 @@ def test_namespace_is_private_with_loopback_only(sitl):
     assert os.readlink(mine) != os.readlink(sitl.netns_path)
     r = sitl.run(["cat", "/proc/self/net/dev"])
     assert r.returncode == 0 and [line.split(":")[0].strip() for line in r.stdout.splitlines()[2:]] == ["lo"]
+
+
+@SITL
+def test_in_process_links_on_the_tool_and_relay_ports(sitl):
+    """A socket opened in ``with sitl.netns():`` stays in the vehicle's namespace: in-process
+    code talks to SITL on SERIAL1 and SERIAL2 from this thread after the block."""
+    from mavcal.link.connection import open_link
+
+    with sitl.netns():
+        tool = open_link(sitl.tool_device, timeout_s=15)
+        relay = open_link(sitl.relay_device, timeout_s=15)
+    try:
+        for link in (tool, relay):
+            assert (link.target_system, link.target_component) == (1, 1)
+            t = link.last_rx_s
+            assert link.wait(lambda lk=link, t0=t: lk.last_rx_s > t0, 5.0)  # heartbeats keep coming
+    finally:
+        tool.close()
+        relay.close()
 
 
 @SITL
