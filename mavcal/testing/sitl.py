@@ -20,7 +20,9 @@ only ever started inside a **private network namespace** whose only interface is
   ``--speedup 1`` (real time) and ``-I N``, N unique per process (the pytest-xdist worker
   number and a counter);
 * :meth:`~SitlVehicle.stop` stops the processes by PID (SIGTERM, then SIGKILL) and removes the
-  working directory; it runs at ``__exit__``, from a finaliser, and ``atexit``.
+  working directory; it runs at ``__exit__`` (and the teardown of ``tests/conftest.py``'s
+  ``start_sitl``) and ``atexit`` for any vehicle still running; a process killed outright
+  takes its vehicle with it through the parent-death signal.
 
 Serial ports (all UDP *clients* to loopback in the namespace; nothing listens):
 
@@ -54,9 +56,31 @@ Typical use (pytest; :func:`require_sitl` skips, or fails under ``CI=true``, wit
             link = open_link(sitl.tool_device)
         sitl.get_params(["COMPASS_OFS_X"])          # over the control link
 
-Differences from the loopback vehicle (:mod:`mavcal.testing.vehicle`) seen on this build
-(ArduCopter 4.7.0-dev, 90700977): no ``PARAM_ERROR`` (a PARAM_SET of an unknown name gets no
-answer at all); the IMU streams are off on every channel until a GCS asks for them.
+The API in short: :attr:`~SitlVehicle.tool_device` / :attr:`~SitlVehicle.relay_device` /
+:attr:`~SitlVehicle.control_device`; :meth:`~SitlVehicle.netns`, :meth:`~SitlVehicle.popen`,
+:meth:`~SitlVehicle.run`, :meth:`~SitlVehicle.launch_argv`, :attr:`~SitlVehicle.netns_path`;
+:meth:`~SitlVehicle.set_pose` (returns the settled :class:`SimState`),
+:attr:`~SitlVehicle.simstate`, :meth:`~SitlVehicle.set_servo`; :meth:`~SitlVehicle.get_params`,
+:meth:`~SitlVehicle.set_params` (waits for the echo), :meth:`~SitlVehicle.send_param_set` (does
+not), :meth:`~SitlVehicle.writes_since` (what some GCS wrote, seen on the control channel),
+:meth:`~SitlVehicle.read_imu`, :attr:`~SitlVehicle.statustexts`; :attr:`~SitlVehicle.truth`,
+:attr:`~SitlVehicle.errors`, :attr:`~SitlVehicle.field_ned_mgauss`,
+:attr:`~SitlVehicle.declination_deg`, :attr:`~SitlVehicle.home`, :meth:`~SitlVehicle.score`.
+A scripted hand that follows a capture's advice: :mod:`mavcal.testing.sitl_hand`.
+
+What this build (ArduCopter 4.7.0-dev, 90700977) does that a test may not expect, and where the
+loopback vehicle (:mod:`mavcal.testing.vehicle`) differs:
+
+* no ``PARAM_ERROR``: a PARAM_SET of an unknown name, or of NaN, gets no answer at all (as the
+  loopback vehicle without ``param_errors=True``);
+* no range check: ``INS_ACCSCAL_X`` 1.5 or ``COMPASS_ORIENT`` 77 are stored and echoed (the
+  latter with a STATUSTEXT "Internal Errors 0x400000"); only mavcal's own limits refuse them;
+* device ids (``COMPASS_DEV_ID``, ``INS_ACC_ID``) are **writable** over MAVLink here (the
+  loopback vehicle denies them with "Param write denied", as boards with internal-use-only
+  parameters do);
+* an accepted PARAM_SET is echoed on every channel (so the fixture sees what a tool wrote), and
+  the vehicle announces its own changes (``STAT_RUNTIME``, ``MIS_TOTAL``) the same way;
+* the IMU streams are off on every channel until a GCS asks for them; heartbeats at 1 Hz.
 
 Call :class:`SitlVehicle` (and :meth:`~SitlVehicle.popen`) from a thread that lives as long as
 the processes should: the parent-death signal fires when the *thread* that started a process
@@ -77,7 +101,6 @@ import sys
 import tempfile
 import threading
 import time
-import weakref
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -254,7 +277,7 @@ def _next_instance() -> int:
         return (w * 100 + next(_instances) % 100) % 250
 
 
-_live: weakref.WeakSet[SitlVehicle] = weakref.WeakSet()
+_live: set[SitlVehicle] = set()  # started and not stopped: atexit stops them
 
 
 @atexit.register
@@ -470,7 +493,7 @@ class SitlVehicle:
         self.stop()
 
     def start(self) -> SitlVehicle:
-        reason = unavailable_reason() if binary_is_default(self.binary) else None
+        reason = unavailable_reason() if self.binary == sitl_binary() else None
         if reason is not None:
             raise SitlError(reason)
         _live.add(self)
@@ -772,7 +795,3 @@ class SitlVehicle:
         raw = fw.undo_compass(cal, reading[None, :], sensor_frame=True)[0]
         B_body = self.errors.body_field(raw)
         return euler_to_matrix(*np.radians([s.roll_deg, s.pitch_deg, s.yaw_deg])) @ B_body
-
-
-def binary_is_default(path: Path) -> bool:
-    return Path(path) == sitl_binary()
