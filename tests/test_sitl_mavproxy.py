@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 import threading
 import time
 
 import pytest
-from test_mavproxy_module import MAVProxy, _changed_rows
+from test_mavproxy_module import MAVProxy
 
 from mavcal.testing.sitl import InjectedErrors, SitlVehicle
 from mavcal.testing.sitl_hand import AdviceHand
@@ -23,6 +24,16 @@ from mavcal.testing.sitl_hand import AdviceHand
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(420),
               pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,
                                  reason="MAVProxy is not installed (pip install mavcal[test])")]
+
+
+def changed_rows(lines: list[str], start: int) -> dict[str, float]:
+    """(name, new value) of the safe writer's table rows marked ok after output line ``start``."""
+    rows = {}
+    for line in lines[start:]:
+        m = re.search(r"(\w+)\s+\S+\s+->\s+(\S+)\s+ok$", line)
+        if m:
+            rows[m.group(1)] = float(m.group(2))
+    return rows
 
 
 class SitlMAVProxy(MAVProxy):
@@ -66,7 +77,7 @@ def test_mavproxy_module_load_capture_write_unload(start_sitl, tmp_path):
         mark = mp.send("mavcal write yes")
         mp.expect(r"mavcal: \d+ parameters written and verified", timeout=60, after=mark)
         mp.expect(r"calibration marked saved \(compass, accel\)", after=mark)
-        rows = _changed_rows(mp.lines, mark)
+        rows = changed_rows(mp.lines, mark)
         assert rows and {"COMPASS_OFS_X", "COMPASS_ORIENT", "INS_ACCOFFS_X"} <= set(rows)
         got = sitl.get_params(rows)
         assert all(got[n] == pytest.approx(x, rel=1e-5, abs=1e-5) for n, x in rows.items())
