@@ -133,7 +133,7 @@ _STARTER = """
 import sys, time
 from mavcal.testing.sitl import SitlVehicle
 v = SitlVehicle(measure_field=False).start()
-print(v.pid, v._keeper.pid, v.popen(["sleep", "300"]).pid, flush=True)
+print(v.pid, v._keeper.pid, v.popen(["sleep", "300"]).pid, v.workdir, flush=True)
 time.sleep(300)
 """
 
@@ -143,12 +143,17 @@ def test_a_killed_test_process_takes_its_sitl_with_it():
     require_sitl()
     p = subprocess.Popen([sys.executable, "-c", _STARTER], stdout=subprocess.PIPE, text=True)
     try:
-        pids = [int(x) for x in p.stdout.readline().split()]
+        *pids_text, workdir = p.stdout.readline().split()
+        pids = [int(x) for x in pids_text]
         assert len(pids) == 3 and all(not gone(x, 0.1) for x in pids)
     finally:
         p.send_signal(signal.SIGKILL)  # no finaliser, no atexit: only the parent-death signal
         p.wait()
     assert all(gone(x) for x in pids)
+    # its working directory is left behind; the next vehicle started sweeps it away
+    assert os.path.isdir(workdir)
+    SitlVehicle(measure_field=False).start().stop()
+    assert not os.path.exists(workdir)
 
 
 @SITL

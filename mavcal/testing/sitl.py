@@ -277,6 +277,18 @@ def _next_instance() -> int:
         return (w * 100 + next(_instances) % 100) % 250
 
 
+def _sweep_workdirs() -> None:
+    """Remove the working directories of test processes that were killed outright (SIGKILL:
+    their SITL died with them, nothing removed the directory); named mavcal-sitl-PID-*."""
+    for d in Path(tempfile.gettempdir()).glob("mavcal-sitl-*-*-*"):
+        try:
+            os.kill(int(d.name.split("-")[2]), 0)
+        except ProcessLookupError:
+            shutil.rmtree(d, ignore_errors=True)
+        except (ValueError, PermissionError, IndexError):
+            continue
+
+
 _live: set[SitlVehicle] = set()  # started and not stopped: atexit stops them
 
 
@@ -515,7 +527,8 @@ class SitlVehicle:
         return path
 
     def _start(self) -> None:
-        self.workdir = Path(tempfile.mkdtemp(prefix=f"mavcal-sitl{self.instance}-"))
+        _sweep_workdirs()
+        self.workdir = Path(tempfile.mkdtemp(prefix=f"mavcal-sitl-{os.getpid()}-{self.instance}-"))
         self._keeper = _start_keeper()
         with self.netns():
             self._conn = mavutil.mavlink_connection(self.control_device, source_system=FIXTURE_SYSTEM,
