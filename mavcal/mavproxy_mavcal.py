@@ -54,7 +54,10 @@ _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
 def _settings_table() -> list[Any]:
     d = WorkerSettings()
     S = mp_settings.MPSetting
-    return [S("target_deg", float, d.target_deg, "heading error target (deg, 95 %)", range=(0.01, 20.0)),
+    return [S("target_deg", float, d.target_deg, "heading error target of every compass (deg, 95 %)",
+              range=(0.01, 20.0)),
+            S("target_tilt_deg", float, d.target_tilt_deg, "tilt error target of every accelerometer (deg, 95 %)",
+              range=(0.01, 5.0)),
             S("accel", int, d.accel, "IMU instance", range=(0, 2)),
             S("compass", int, d.compass, "compass instance", range=(0, 2)),
             S("rate_hz", float, d.rate_hz, "IMU stream rate (Hz)", range=(25.0, 200.0)),

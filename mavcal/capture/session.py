@@ -15,10 +15,14 @@ A :class:`CaptureSession` is fed the readings a vehicle streams (``add``), and o
    minimises the *largest* predicted heading-error variance wins, which is what the stop
    rule measures (``criterion="d-optimal"`` maximises log det of the information
    instead). Until six intervals exist a fixed plan (the six faces) is used;
-4. stops when the predicted heading error bound reaches the target (default 0.5 deg,
-   95 %), or aborts with the reason when the field is impossible (magnets, steel: field far
-   outside ArduPilot's 185-875 mGauss, or calibrated field magnitudes that disagree between
-   intervals).
+4. stops when every sensor that will be written meets its target (:mod:`mavcal.capture.progress`):
+   every compass's 95 % heading bound (default 0.5 deg) and every accelerometer's own tilt
+   bound (default 0.3 deg); the advice goes to the sensor furthest from its target; a sensor
+   that cannot get there is named with the reason (``CaptureStatus.sensors``,
+   ``offer_finish_without``) and :meth:`CaptureSession.finish_without` drops it from the rule;
+   it aborts with the reason when the field is impossible (magnets, steel: field far outside
+   ArduPilot's 185-875 mGauss, or calibrated field magnitudes of the primary compass that
+   disagree between intervals).
 
 It neither reads from nor writes to a vehicle; the ``capture`` command and the MAVProxy
 module do that.
@@ -32,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reason, tilt_pose_scores
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
@@ -49,7 +54,8 @@ G0 = GRAVITY_MPS2
 class CaptureConfig:
     """What the guided capture aims for and when it gives up."""
 
-    target_heading_deg: float = 0.5  # stop when the 95 % heading error bound is below this
+    target_heading_deg: float = 0.5  # stop when every compass's 95 % heading error bound is below this
+    target_tilt_deg: float = 0.3  # ... and every accelerometer's own 95 % tilt bound (its gate: 0.5)
     min_intervals: int = 8  # never stop with fewer still intervals
     max_intervals: int = 40
     abort_field_mgauss: tuple[float, float] = (60.0, 2500.0)  # "far outside" ArduPilot's 185-875
@@ -64,6 +70,9 @@ class CaptureConfig:
     # advices in a row without a new interval: then the advised pose is given up (the next best
     # one is advised) and the status says what is wrong
     stall_advices: int = 30
+    # a sensor whose bound has not improved by 10 % over this many new intervals is said to be
+    # unable to reach its target (the person may finish without it)
+    stuck_poses: int = 6
 
 
 @dataclass(frozen=True)
@@ -99,6 +108,9 @@ class CaptureStatus:
     field_mgauss: float | None = None  # raw (as read, before any calibration) |field| of the last interval
     messages: tuple[str, ...] = ()
     field_calibrated_mgauss: float | None = None  # the same with the current fit applied (None before a fit)
+    sensors: tuple[SensorProgress, ...] = ()  # every sensor's bound against its target (the stop rule)
+    advice_for: str | None = None  # the sensor the next pose is advised for (the furthest from its target)
+    offer_finish_without: tuple[str, ...] = ()  # sensors that cannot reach their target: finish without them?
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
@@ -316,6 +328,9 @@ class CaptureSession:
         self._since_new = 0  # advices since the interval count last grew
         self._given_up: list[tuple[float, float, float]] = []  # poses advised through a stall
         self.stalls = 0
+        self._history: dict[str, list[tuple[int, float | None]]] = {}  # sensor -> [(intervals, bound)]
+        self._dropped: dict[str, str] = {}  # sensor -> why the capture finishes without it
+        self._progress: tuple[SensorProgress, ...] = ()
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -338,6 +353,19 @@ class CaptureSession:
 
     def stop(self, reason: str = "stopped by the user") -> None:
         self._stopped = reason
+
+    def finish_without(self, sensors: Sequence[str] | None = None) -> tuple[str, ...]:
+        """Drop ``sensors`` (default: those that cannot reach their target, ``offer_finish_without``
+        of the last status) from the stop rule: the capture then stops when the others meet
+        their targets (at the next :meth:`update` if they already do). They are still fitted
+        and judged at the end: a rejected one keeps its current values. Returns those dropped."""
+        by_name = {p.sensor: p for p in self._progress}
+        names = list(sensors) if sensors is not None else [p.sensor for p in self._progress
+                                                           if p.blocked and not p.dropped]
+        for name in names:
+            p = by_name.get(name)
+            self._dropped[name] = p.blocked if p is not None else ""
+        return tuple(names)
 
     @property
     def run(self) -> CalibrationRun | None:
@@ -401,19 +429,29 @@ class CaptureSession:
                 aborted = True
                 reason = (f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses: magnetic "
                           "disturbance (steel, magnets, currents nearby); move to a clean place and start again")
+        progress = self._progress = self._measure(run if not aborted else None, prep, n)
+        remaining = [p for p in progress if not p.dropped]
+        offer = tuple(p.sensor for p in remaining if p.blocked and not p.met)
         done = False
         if aborted:
             done = True
         elif self._stopped:
-            done, reason = True, self._stopped
-        elif run is not None and heading is not None and heading <= cfg.target_heading_deg and n >= cfg.min_intervals:
-            done, reason = True, f"heading error bound {heading:.2f} deg <= target {cfg.target_heading_deg} deg"
+            done, reason = True, self._stopped + ("" if not offer else f" (without {', '.join(offer)}: cannot reach "
+                                                                     "the target)")
+        elif run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining):
+            done, reason = True, stop_reason(progress)
         elif n >= cfg.max_intervals:
             done, reason = True, f"{n} intervals: the maximum"
-        advice = None
+        advice, target = None, None
         if not done:
             messages += self._stall_check(n, still_now)
-            advice = self.next_pose()
+            target = self._advice_target() if self._run is not None and n >= PLAN_FIRST else None
+            advice = self.next_pose(target)
+            messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
+                         "values if it is rejected) or keep holding poses" for p in remaining if p.sensor in offer]
+            if offer and all(p.met or p.sensor in offer for p in remaining):
+                reason = (f"every other sensor has reached its target; {', '.join(offer)} cannot: finish without "
+                          f"{'it' if len(offer) == 1 else 'them'} or keep holding poses")
         if advice is not None:
             self.poses_advised.append(advice)
         st = CaptureStatus(time_s=t_last, still_now=still_now, n_intervals=n,
@@ -424,9 +462,27 @@ class CaptureSession:
                            aborted=aborted, field_mgauss=fields[-1] if fields else None,
                            field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if run is not None and ivs
                            else None,
-                           messages=tuple(messages))
+                           messages=tuple(messages), sensors=progress, advice_for=target,
+                           offer_finish_without=() if done else offer)
         self._status = st
         return st
+
+    def _measure(self, run: CalibrationRun | None, prep: Prepared, n: int) -> tuple[SensorProgress, ...]:
+        """Every sensor's bound against its target (:func:`mavcal.capture.progress.measure`)."""
+        cfg = self.config
+        progress = measure(run, prep, self.options, targets={"tilt": cfg.target_tilt_deg,
+                                                             "heading": cfg.target_heading_deg},
+                           history=self._history, n=n, min_intervals=cfg.min_intervals,
+                           stuck_poses=cfg.stuck_poses, spread_max=cfg.max_field_spread, dropped=list(self._dropped))
+        from dataclasses import replace
+        return tuple(replace(p, blocked=p.blocked or self._dropped[p.sensor]) if p.dropped else p for p in progress)
+
+    def _advice_target(self) -> str | None:
+        """The sensor furthest from its target (bound / target) among those not met, not dropped
+        and able to get there; else among those that cannot (they may yet); None when all are met."""
+        todo = [p for p in self._progress if not p.met and not p.dropped]
+        can = [p for p in todo if not p.blocked] or todo
+        return max(can, key=lambda p: p.distance).sensor if can else None
 
     def _stall_check(self, n: int, still_now: bool) -> list[str]:
         """Count advices since the interval count last grew; after ``stall_advices`` of them give
@@ -449,11 +505,15 @@ class CaptureSession:
         return [f"no new still interval for {self.config.stall_advices} advices ({why}); advising another pose "
                 f"instead of {last.words}"]
 
-    def next_pose(self) -> PoseAdvice:
-        """The most informative next pose (or the next of the initial plan before a fit).
+    def next_pose(self, target: str | None = None) -> PoseAdvice:
+        """The most informative next pose for sensor ``target`` (default: the primary compass's
+        heading), or the next of the initial plan before a fit.
 
-        Never a pose already recorded (see ``CaptureConfig.repeat_deg``) nor one given up
-        after a stall.
+        A compass's pose most reduces its heading bound (:func:`pose_scores` on its fit with the
+        primary accelerometer), an accelerometer's its own tilt bound
+        (:func:`mavcal.capture.progress.tilt_pose_scores`; among the poses equally good for it,
+        the one best for the primary compass). Never a pose already recorded (see
+        ``CaptureConfig.repeat_deg``) nor one given up after a stall.
         """
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
@@ -467,8 +527,23 @@ class CaptureSession:
         poses = candidate_poses()
         n_typ = float(np.median([len(self._run.segmentation.intervals[k].accel_mps2[self.options.accel_instance])
                                  for k in self._run.intervals_used]))
-        scores = pose_scores(self._run, poses, n_typ, self.config.criterion)
         out = self._excluded(poses)
+        scores = None
+        if target is not None and target.startswith("accel"):
+            scores = tilt_pose_scores(self._run, int(target[5:]), poses, n_typ)
+            if scores is not None:
+                scores = np.where(out, -np.inf, scores) if not out.all() else scores
+                best = np.flatnonzero(scores >= scores.max() - 1e-3 * abs(scores.max()))  # equally good for it
+                if len(best) > 1:
+                    tie = pose_scores(self._run, [poses[i] for i in best], n_typ, self.config.criterion)
+                    k = int(best[int(np.argmax(tie))])
+                else:
+                    k = int(best[0])
+                return _advice(poses[k], scores[k])
+        run = self._run
+        if target is not None and target.startswith("compass"):
+            run = pair_run(self._run, int(target[7:])) or self._run
+        scores = pose_scores(run, poses, n_typ, self.config.criterion)
         if not out.all():
             scores = np.where(out, -np.inf, scores)
         k = int(np.argmax(scores))

@@ -63,7 +63,8 @@ _REASK_GUARD_S = 2.0
 class WorkerSettings:
     """The settings a job runs with (a snapshot handed over with each job)."""
 
-    target_deg: float = 0.5
+    target_deg: float = 0.5  # every compass's heading bound
+    target_tilt_deg: float = 0.3  # every accelerometer's own tilt bound
     accel: int = 0
     compass: int = 0
     rate_hz: float = 25.0
@@ -264,7 +265,8 @@ class CaptureWorker:
             table = fetch_all_params(link, timeout_s=30.0, retry_s=max(0.2, cfg.param_timeout / 2))
         values = {k: v for k, (v, _) in table.items()}
         still = StillConfig(min_duration_s=cfg.hold_s)
-        config = CaptureConfig(target_heading_deg=cfg.target_deg, max_intervals=cfg.max_poses,
+        config = CaptureConfig(target_heading_deg=cfg.target_deg, target_tilt_deg=cfg.target_tilt_deg,
+                               max_intervals=cfg.max_poses,
                                min_intervals=min(cfg.min_poses, cfg.max_poses), still=still)
         self.session = CaptureSession(values, config, Options(still=still, accel_instance=cfg.accel,
                                                               mag_instance=cfg.compass), source="mavproxy")
