@@ -430,28 +430,14 @@ class CaptureSession:
                 reason = (f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses: magnetic "
                           "disturbance (steel, magnets, currents nearby); move to a clean place and start again")
         progress = self._progress = self._measure(run if not aborted else None, prep, n)
-        remaining = [p for p in progress if not p.dropped]
-        offer = tuple(p.sensor for p in remaining if p.blocked and not p.met)
-        done = False
-        if aborted:
-            done = True
-        elif self._stopped:
-            done, reason = True, self._stopped + ("" if not offer else f" (without {', '.join(offer)}: cannot reach "
-                                                                     "the target)")
-        elif run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining):
-            done, reason = True, stop_reason(progress)
-        elif n >= cfg.max_intervals:
-            done, reason = True, f"{n} intervals: the maximum"
+        done, reason, offer = self._stop_rule(run, n, aborted, reason)
         advice, target = None, None
         if not done:
             messages += self._stall_check(n, still_now)
             target = self._advice_target() if self._run is not None and n >= PLAN_FIRST else None
             advice = self.next_pose(target)
             messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
-                         "values if it is rejected) or keep holding poses" for p in remaining if p.sensor in offer]
-            if offer and all(p.met or p.sensor in offer for p in remaining):
-                reason = (f"every other sensor has reached its target; {', '.join(offer)} cannot: finish without "
-                          f"{'it' if len(offer) == 1 else 'them'} or keep holding poses")
+                         "values if it is rejected) or keep holding poses" for p in progress if p.sensor in offer]
         if advice is not None:
             self.poses_advised.append(advice)
         st = CaptureStatus(time_s=t_last, still_now=still_now, n_intervals=n,
@@ -466,6 +452,28 @@ class CaptureSession:
                            offer_finish_without=() if done else offer)
         self._status = st
         return st
+
+    def _stop_rule(self, run: CalibrationRun | None, n: int, aborted: bool, reason: str
+                   ) -> tuple[bool, str, tuple[str, ...]]:
+        """(done, reason, the sensors that cannot reach their target) from ``self._progress``:
+        done when aborted, stopped, every sensor not dropped meets its target (at
+        ``min_intervals`` at least) or at ``max_intervals``."""
+        cfg = self.config
+        remaining = [p for p in self._progress if not p.dropped]
+        offer = tuple(p.sensor for p in remaining if p.blocked and not p.met)
+        if aborted:
+            return True, reason, offer
+        if self._stopped:
+            return True, self._stopped + (f" (without {', '.join(offer)}: cannot reach the target)" if offer
+                                          else ""), offer
+        if run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining):
+            return True, stop_reason(self._progress), offer
+        if n >= cfg.max_intervals:
+            return True, f"{n} intervals: the maximum", offer
+        if offer and all(p.met or p.sensor in offer for p in remaining):
+            reason = (f"every other sensor has reached its target; {', '.join(offer)} cannot: finish without "
+                      f"{'it' if len(offer) == 1 else 'them'} or keep holding poses")
+        return False, reason, offer
 
     def _measure(self, run: CalibrationRun | None, prep: Prepared, n: int) -> tuple[SensorProgress, ...]:
         """Every sensor's bound against its target (:func:`mavcal.capture.progress.measure`)."""
