@@ -90,11 +90,12 @@ def _bounds(run) -> dict[str, float]:
     return {g.sensor: g.value for g in run.gates.gates if g.name in ("tilt uncertainty", "heading uncertainty")}
 
 
-def run(seed: int, guided: bool, max_poses: int = 40, instances: tuple[int, ...] = (0, 1, 2)) -> dict:
+def run(seed: int, guided: bool, max_poses: int = 40, instances: tuple[int, ...] = (0, 1, 2),
+        rate_hz: float = 10.0, hold_s: float = 2.0) -> dict:
     """One capture with the product's default settings, then its final fit: poses, time, verdicts."""
     rng = np.random.default_rng(10_000 + seed)
     v = TestVehicle(truth=VehicleTruth.random(seed), seed=seed)
-    hand = Hand(v, instances=instances)
+    hand = Hand(v, rate_hz=rate_hz, hold_s=hold_s, instances=instances)
     t0 = time.perf_counter()
     sess = CaptureSession(v.params, CaptureConfig(max_intervals=max_poses))
     B = np.array(v.truth.earth_field_ned_mgauss)
@@ -144,23 +145,28 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", metavar="JSON", help="a previous run's capture_guidance.json (e.g. of the code "
                                                        "before a change) to compare with, seed by seed")
     ap.add_argument("--label", default="", help="what code this run measures (written into the result)")
+    ap.add_argument("--rate-hz", type=float, default=10.0, help="telemetry rate (default 10)")
+    ap.add_argument("--hold-s", type=float, default=2.0, help="how long the hand holds each pose (default 2)")
     args = ap.parse_args(argv)
     rows = []
     t0 = time.perf_counter()
     for seed in range(args.seeds):
         row: dict = {"seed": seed}
         for mode in args.modes:
-            row[mode] = run(seed, mode == "guided")
+            row[mode] = run(seed, mode == "guided", rate_hz=args.rate_hz, hold_s=args.hold_s)
             x = row[mode]
             print(f"seed {seed}: {mode} {x['poses']} poses, {x['total_s']:.1f} s, every sensor accepted: "
                   f"{x['all_accepted']} {x['rejected'] or ''} ({x['reason']})", file=sys.stderr, flush=True)
         rows.append(row)
     cmd = " ".join(["python benchmarks/capture_guidance.py", f"--seeds {args.seeds}"]
                    + (["--modes", *args.modes] if args.modes != ["guided", "random"] else [])
+                   + ([f"--rate-hz {args.rate_hz:g}"] if args.rate_hz != 10.0 else [])
+                   + ([f"--hold-s {args.hold_s:g}"] if args.hold_s != 2.0 else [])
                    + ([f"--baseline {args.baseline}"] if args.baseline else []))
     L = ["# Guided capture vs random poses: every sensor to its target\n",
          f"Produced by `{cmd}` ({time.perf_counter() - t0:.0f} s){' on ' + args.label if args.label else ''}. "
-         "Simulated hand, 3 IMUs and 3 compasses, 10 Hz telemetry, 2 s holds, int16 truncation; the capture "
+         f"Simulated hand, 3 IMUs and 3 compasses, {args.rate_hz:g} Hz telemetry, {args.hold_s:g} s holds, int16 "
+         "truncation; the capture "
          "stops by its own rule with the product's default settings, then the final fit judges every sensor.\n",
          "| | median poses | mean | range | every sensor accepted | median time (capture + final fit) |",
          "|---|---|---|---|---|---|"]
