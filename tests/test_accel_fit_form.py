@@ -113,3 +113,49 @@ def test_a_candidate_pose_adds_information_where_the_tilt_is_least_known():
     before = tilt_variances(fit, ENVELOPE)[0]
     after = tilt_variances(fit, ENVELOPE, candidate_information(fit, cands, 25))
     assert after[0] < after[1] < before
+
+
+def test_an_accelerometer_is_written_from_its_own_fit_when_its_joint_fit_disagrees_with_its_data(monkeypatch):
+    """Seen in a loopback capture stopped at 8 intervals: the (accel2, compass0) joint fit of the full
+    model with 2 spare equations reached scales 0.79-0.90 (its own fit: 0.99-1.03) and accel2 was
+    rejected on its tilt bound. A joint fit whose values are off the accelerometer's own data beyond
+    its 95 % tilt bound is not written: the own fit is, with a warning, and the sensor is accepted."""
+    import dataclasses
+    import sys
+    from pathlib import Path
+
+    import mavcal.fits as fits_mod
+    from mavcal.capture import CaptureSession
+    from mavcal.pipeline import Options, calibrate_prepared, prepare
+    from mavcal.testing.vehicle import TestVehicle, VehicleTruth
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from capture_guidance import Hand
+
+    v = TestVehicle(truth=VehicleTruth.random(2), seed=2)
+    hand = Hand(v, instances=(0, 1, 2))
+    sess = CaptureSession(v.params)
+    poses = INITIAL_PLAN + [(0, 0, 90), (90, 0, 0), (0, 90, 180), (180, 0, 270), (45, -45, 135), (-45, 45, 315)]
+    for p in poses:
+        sess.add(hand.go(euler_matrix(*p)))
+    prep = prepare(sess.snapshot(), Options())
+    real = fits_mod._fit_pair
+
+    def bent(prep_, opts, stats):  # the joint fit of accelerometer 2 reaches a wrong point
+        f = real(prep_, opts, stats)
+        if opts.accel_instance != 2:
+            return f
+        am = f.mapping.accel[0]
+        bend = [0.95, 1.0, 1.05]  # a uniform scale error would tilt nothing
+        wrong = dataclasses.replace(am, new=dataclasses.replace(am.new, scale=tuple(np.array(am.new.scale) * bend)))
+        return dataclasses.replace(f, mapping=dataclasses.replace(f.mapping, accel=(wrong,) + f.mapping.accel[1:]))
+
+    monkeypatch.setattr(fits_mod, "_fit_pair", bent)
+    run = calibrate_prepared(prep, Options(workers=1))
+    verdicts = {x.sensor: x.accepted for x in run.gates.verdicts()}
+    assert verdicts["accel2"], run.gates.verdicts()
+    said = "accelerometer 2 written from its own fit: its joint fit's values are"
+    assert any(w.startswith(said) for w in run.warnings)
+    truth = np.array(v.truth.accels[2].scale)
+    assert np.max(np.abs(np.array(run.mapping.new["INS_ACC3SCAL_X"]) - truth[0])) < 0.01
+    assert not any(w.startswith("accelerometer 0 written from its own fit") for w in run.warnings)  # the primary agrees
