@@ -3,7 +3,9 @@
 goes to the sensor furthest from its target; a sensor that cannot get there is named with the
 reason and the capture can finish without it. Offline, with the benchmark's simulated hand
 holding the test vehicle's 3 IMUs and 3 compasses."""
+import queue
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -11,6 +13,7 @@ import numpy as np
 
 from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix, status_line, status_screen
 from mavcal.capture.progress import SensorProgress, stop_reason
+from mavcal.capture.worker import CaptureWorker
 from mavcal.sources.types import SensorSeries
 from mavcal.testing.vehicle import TestVehicle, VehicleTruth
 
@@ -94,14 +97,49 @@ def test_a_disturbed_compass_is_named_with_the_reason_and_the_capture_can_finish
     assert "disturbance" in c1.blocked or "not improved" in c1.blocked, c1
     assert any(m.startswith("compass1 cannot reach its target") for m in st.messages)
     assert "compass1 cannot reach the target: stop to finish without" in status_line(st)
-    assert sess.finish_without() == ("compass1",)
-    st = sess.update()
-    others = [p for p in st.sensors if p.sensor != "compass1"]
-    if all(p.met for p in others):  # the others were there already: done at once, without compass1
-        assert st.done and "finished without compass1" in st.reason, st.reason
-    else:  # else the capture goes on for them
-        assert not st.done and st.advice_for != "compass1"
-    assert next(p for p in st.sensors if p.sensor == "compass1").dropped
+    # 'mavcal finish' in MAVProxy: the worker's finish job drops it from the stop rule
+    w = CaptureWorker(lambda: None)
+    try:
+        w.session, w.status, w.capturing = sess, st, True
+        before = st
+        w.submit("finish")
+        said = _said(w, "going on without")
+        assert said.startswith("mavcal: going on without compass1: the capture ends when the other sensors")
+        deadline = time.monotonic() + 60
+        while sess.status is before and time.monotonic() < deadline:  # the update that follows
+            time.sleep(0.05)
+        st = sess.status
+        others = [p for p in st.sensors if p.sensor != "compass1"]
+        if all(p.met for p in others):  # the others were there already: done at once, without compass1
+            assert st.done and "finished without compass1" in st.reason, st.reason
+            _said(w, "capture finished")
+        else:  # else the capture goes on for them
+            assert not st.done and st.advice_for != "compass1"
+        assert next(p for p in st.sensors if p.sensor == "compass1").dropped
+    finally:
+        assert w.shutdown(timeout_s=60)
+
+
+def _said(w, text, timeout=60.0):
+    deadline = time.monotonic() + timeout
+    seen = []
+    while time.monotonic() < deadline:
+        try:
+            seen.append(w.out.get(timeout=0.1))
+        except queue.Empty:
+            continue
+        if text in seen[-1]:
+            return seen[-1]
+    raise AssertionError(f"the worker did not say {text!r}: {seen}")
+
+
+def test_finish_outside_a_capture_and_with_nothing_to_drop():
+    w = CaptureWorker(lambda: None)
+    try:
+        w.submit("finish")
+        assert _said(w, "not capturing") == "mavcal: not capturing"
+    finally:
+        assert w.shutdown()
 
 
 def test_the_advice_goes_to_an_accelerometer_when_it_is_the_furthest_from_its_target():

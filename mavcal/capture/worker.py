@@ -13,12 +13,16 @@ The host talks to the worker only through thread-safe hand-offs:
   the worker wants its own IMU rates, so the host stops asking for its own stream rates (which
   would lower them) before the worker's request goes out.
 
-Jobs (:meth:`CaptureWorker.submit` of ``start``, ``stop``, ``fit``, ``write``, ``restore``):
+Jobs (:meth:`CaptureWorker.submit` of ``start``, ``stop``, ``finish``, ``fit``, ``write``, ``restore``):
 
 * ``start``: the vehicle's parameters (the calibration in force on the readings), a
   :class:`~mavcal.capture.CaptureSession`, and SET_MESSAGE_INTERVAL for the IMU messages the
   vehicle has (:func:`~mavcal.link.streams.needed_stream_ids`); about twice a second the
-  session is updated and its status line said when it changes; at the end it is fitted;
+  session is updated and its status line said when it changes; it ends when every sensor meets its
+  target (:mod:`mavcal.capture.progress`), and at the end it is fitted;
+* ``finish``: go on without the sensors that cannot reach their target
+  (:meth:`~mavcal.capture.CaptureSession.finish_without`): the capture ends as soon as the others
+  meet theirs;
 * ``fit``: the per-sensor verdicts and the next step first (:func:`mavcal.report.text.summary_text`);
 * ``write``: the accepted sensors' parameters (every sensor's with ``force``), refused only
   when no sensor was accepted, through the write flow of ``mavcal calibrate --write``:
@@ -131,10 +135,10 @@ class CaptureWorker:
                 self._imu.append(m)
 
     def submit(self, job: str, *args: Any) -> None:
-        """Queue a job: ``start(settings)``, ``stop()``, ``fit()``, ``write(settings, confirmed)``,
+        """Queue a job: ``start(settings)``, ``stop()``, ``finish()``, ``fit()``, ``write(settings, confirmed)``,
         ``restore(settings, path, confirmed)``."""
-        jobs: dict[str, Callable[..., None]] = {"start": self._start, "stop": self._stop, "fit": self._fit,
-                                                "write": self._write, "restore": self._restore}
+        jobs: dict[str, Callable[..., None]] = {"start": self._start, "stop": self._stop, "finish": self._finish,
+                                                "fit": self._fit, "write": self._write, "restore": self._restore}
         fn = jobs[job]
         self.jobs.put((fn, args))
 
@@ -314,6 +318,19 @@ class CaptureWorker:
             self._say("not capturing")
             return
         self.session.stop("stopped by the user")
+        self._update()
+
+    def _finish(self) -> None:
+        if not self.capturing:
+            self._say("not capturing")
+            return
+        dropped = self.session.finish_without()
+        if not dropped:
+            self._say("every sensor can still reach its target: nothing to finish without ('mavcal stop' ends the "
+                      "capture now)")
+            return
+        self._say(f"going on without {', '.join(dropped)}: the capture ends when the other sensors meet their "
+                  "targets")
         self._update()
 
     def _fit(self) -> None:
