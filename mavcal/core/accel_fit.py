@@ -8,8 +8,8 @@ written from it.
 Model: the accelerometer half of the paper's reading model (Eq. ``sensor_reading_model``),
 ``u_i = K_a R_i g + b_a`` with ``g = [0, 0, -1]``. Without a compass only the gravity
 direction ``v_i = R_i g`` of each interval is observed (two degrees of freedom), so the
-unknowns are K_a (upper triangular: the same gauge as the joint fit; diagonal with fewer
-than :data:`MIN_INTERVALS_UPPER` intervals), b_a and the v_i. Maximum likelihood on the
+unknowns are K_a (upper triangular, the same gauge as the joint fit, or diagonal: see below),
+b_a and the v_i. Maximum likelihood on the
 interval means weighted by ``n_i Sigma_a^-1`` (the paper's reduced cost J' restricted to
 the accelerometer), solved by Levenberg-Marquardt from the core's ellipsoid start with the
 v_i eliminated in closed form at each step (Schur complement: O(N) per iteration, where a dense solver over the
