@@ -147,6 +147,7 @@ def main(argv=None) -> int:
     ap.add_argument("--label", default="", help="what code this run measures (written into the result)")
     ap.add_argument("--rate-hz", type=float, default=10.0, help="telemetry rate (default 10)")
     ap.add_argument("--hold-s", type=float, default=2.0, help="how long the hand holds each pose (default 2)")
+    ap.add_argument("--name", default="capture_guidance", help="result file stem (default capture_guidance)")
     args = ap.parse_args(argv)
     rows = []
     t0 = time.perf_counter()
@@ -162,6 +163,7 @@ def main(argv=None) -> int:
                    + (["--modes", *args.modes] if args.modes != ["guided", "random"] else [])
                    + ([f"--rate-hz {args.rate_hz:g}"] if args.rate_hz != 10.0 else [])
                    + ([f"--hold-s {args.hold_s:g}"] if args.hold_s != 2.0 else [])
+                   + ([f"--name {args.name}"] if args.name != "capture_guidance" else [])
                    + ([f"--baseline {args.baseline}"] if args.baseline else []))
     L = ["# Guided capture vs random poses: every sensor to its target\n",
          f"Produced by `{cmd}` ({time.perf_counter() - t0:.0f} s){' on ' + args.label if args.label else ''}. "
@@ -196,9 +198,8 @@ def main(argv=None) -> int:
                 cells += ([str(b["poses"]), "yes" if b["all_accepted"] else f"no ({brej})"] if b else ["-", "-"])
             L.append("| " + " | ".join(cells) + " |")
     OUT.mkdir(exist_ok=True)
-    (OUT / "capture_guidance.md").write_text("\n".join(L) + "\n")
-    (OUT / "capture_guidance.json").write_text(json.dumps({"label": args.label, "rows": rows}, default=float,
-                                                          indent=1))
+    (OUT / f"{args.name}.md").write_text("\n".join(L) + "\n")
+    (OUT / f"{args.name}.json").write_text(json.dumps({"label": args.label, "rows": rows}, default=float, indent=1))
     print("\n".join(L))
     return 0
 

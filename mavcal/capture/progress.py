@@ -36,7 +36,8 @@ from mavcal.ardupilot.rotations import euler_to_matrix
 from mavcal.core.accel_fit import candidate_information, tilt_variances
 from mavcal.run import CalibrationRun, Options, Prepared
 
-__all__ = ["SensorProgress", "expected_sensors", "measure", "pair_run", "tilt_pose_scores", "stop_reason",
+__all__ = ["SensorProgress", "expected_sensors", "measure", "pair_run", "tilt_pose_scores", "tilt_pose_variances",
+           "stop_reason",
            "HARD_GATES", "IMPROVEMENT", "KNOWN_FACTOR"]
 
 #: gates that more poses cannot pass: the sensor's values against ArduPilot's limits
@@ -199,9 +200,18 @@ def tilt_pose_scores(run: CalibrationRun, accel: int, poses: Sequence[tuple[floa
     """Score of adding a still interval at each pose for accelerometer ``accel``'s own tilt
     bound (higher is better): minus the largest, over the flight envelope (roll and pitch within
     45 deg), predicted tilt-error variance with that interval's information added
-    (:func:`mavcal.core.accel_fit.tilt_variances`, :func:`~mavcal.core.accel_fit.candidate_information`:
-    the Fisher information of its own fit, its orientation marginalised). None when the
-    accelerometer has no own fit."""
+    (:func:`tilt_pose_variances`). None when the accelerometer has no own fit."""
+    got = tilt_pose_variances(run, accel, poses, n_samples)
+    return None if got is None else -got[1]
+
+
+def tilt_pose_variances(run: CalibrationRun, accel: int, poses: Sequence[tuple[float, float, float]],
+                        n_samples: float) -> tuple[float, np.ndarray] | None:
+    """The largest, over the flight envelope (roll and pitch within 45 deg), predicted
+    tilt-error variance of accelerometer ``accel``'s own fit now, and (K,) with one more
+    interval at each pose (:func:`mavcal.core.accel_fit.tilt_variances`,
+    :func:`~mavcal.core.accel_fit.candidate_information`: the Fisher information of its own fit,
+    its orientation marginalised). None when the accelerometer has no own fit."""
     fit = dict(run.accel_fits).get(accel)
     am = next((m for m in run.mapping.accel if m.instance == accel), None)
     if fit is None or am is None or fit.information is None or fit.noise_cov is None:
@@ -210,5 +220,5 @@ def tilt_pose_scores(run: CalibrationRun, accel: int, poses: Sequence[tuple[floa
     down = np.array([0.0, 0.0, -1.0])  # the specific force at rest points up: -gravity in NED
     cand = np.array([to_E @ euler_to_matrix(*np.radians(q)).T @ down for q in poses])
     C = attitude_grid(step_deg=15.0)
-    env = to_E @ (np.swapaxes(C[::24], 1, 2) @ down).T  # yaw 0 of every roll/pitch: tilt does not see heading
-    return -tilt_variances(fit, env.T, candidate_information(fit, cand, n_samples))
+    env = (to_E @ (np.swapaxes(C[::24], 1, 2) @ down).T).T  # yaw 0 of every roll/pitch: tilt does not see heading
+    return float(tilt_variances(fit, env)[0]), tilt_variances(fit, env, candidate_information(fit, cand, n_samples))

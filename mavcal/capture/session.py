@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.ardupilot.rotations import euler_to_matrix
-from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reason, tilt_pose_scores
+from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reason, tilt_pose_variances
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
@@ -279,20 +279,29 @@ def pose_scores(run: CalibrationRun, poses: Sequence[tuple[float, float, float]]
     ``benchmarks/capture_guidance.py``); ``"d-optimal"``: log det of the information (S + dS)
     of the global parameters.
     """
-    S_cur, dS, prob, p = _information(run, poses, n_samples)
-    scale = np.sqrt(np.maximum(np.diag(S_cur), 1e-300))
-    D = 1.0 / scale
-    M = (S_cur[None] + dS) * D[None, :, None] * D[None, None, :]
     if criterion == "d-optimal":
-        sign, logdet = np.linalg.slogdet(M)
+        S_cur, dS, _, _ = _information(run, poses, n_samples)
+        D = 1.0 / np.sqrt(np.maximum(np.diag(S_cur), 1e-300))
+        sign, logdet = np.linalg.slogdet((S_cur[None] + dS) * D[None, :, None] * D[None, None, :])
         return np.where(sign > 0, logdet, -np.inf)
+    return -heading_variances(run, poses, n_samples)[1]
+
+
+def heading_variances(run: CalibrationRun, poses: Sequence[tuple[float, float, float]], n_samples: float
+                      ) -> tuple[float, np.ndarray]:
+    """The largest, over the flight envelope, predicted heading-error variance
+    g_k^T S^-1 g_k of ``run``'s compass now, and (K,) with one more interval at each pose
+    (S + dS): the heading criterion of :func:`pose_scores`."""
+    S_cur, dS, prob, p = _information(run, poses, n_samples)
+    D = 1.0 / np.sqrt(np.maximum(np.diag(S_cur), 1e-300))
+    M = np.concatenate([S_cur[None], S_cur[None] + dS]) * D[None, :, None] * D[None, None, :]
     G = heading_gradients(run, prob, p) * D[None, :]  # in the scaled coordinates
     try:
         Minv = np.linalg.inv(M)
     except np.linalg.LinAlgError:
         Minv = np.linalg.pinv(M)
-    var = np.einsum("kp,npq,kq->nk", G, Minv, G)
-    return -var.max(axis=1)
+    var = np.einsum("kp,npq,kq->nk", G, Minv, G).max(axis=1)
+    return float(var[0]), var[1:]
 
 
 class CaptureSession:
@@ -435,7 +444,7 @@ class CaptureSession:
         if not done:
             messages += self._stall_check(n, still_now)
             target = self._advice_target() if self._run is not None and n >= PLAN_FIRST else None
-            advice = self.next_pose(target)
+            advice = self.next_pose()
             messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
                          "values if it is rejected) or keep holding poses" for p in progress if p.sensor in offer]
         if advice is not None:
@@ -514,13 +523,16 @@ class CaptureSession:
                 f"instead of {last.words}"]
 
     def next_pose(self, target: str | None = None) -> PoseAdvice:
-        """The most informative next pose for sensor ``target`` (default: the primary compass's
-        heading), or the next of the initial plan before a fit.
+        """The most informative next pose, or the next of the initial plan before a fit.
 
-        A compass's pose most reduces its heading bound (:func:`pose_scores` on its fit with the
-        primary accelerometer), an accelerometer's its own tilt bound
-        (:func:`mavcal.capture.progress.tilt_pose_scores`; among the poses equally good for it,
-        the one best for the primary compass). Never a pose already recorded (see
+        The pose that most lowers the largest predicted bound / target ratio among the sensors
+        (those that can reach their target, not dropped; or ``target`` alone): the sensor
+        furthest from its target leads, and of the poses about as good for it the one that helps
+        the others most (the smallest mean ratio) wins. A compass's predicted bound is its bound
+        now times sqrt(predicted / current worst heading variance) (:func:`heading_variances` on
+        its fit with the primary accelerometer), an accelerometer's the same with its own tilt
+        variance (:func:`mavcal.capture.progress.tilt_pose_variances`). ``criterion="d-optimal"``:
+        the primary pair's :func:`pose_scores`. Never a pose already recorded (see
         ``CaptureConfig.repeat_deg``) nor one given up after a stall.
         """
         seg = self._prep.segmentation if self._prep else None
@@ -536,26 +548,42 @@ class CaptureSession:
         n_typ = float(np.median([len(self._run.segmentation.intervals[k].accel_mps2[self.options.accel_instance])
                                  for k in self._run.intervals_used]))
         out = self._excluded(poses)
-        scores = None
-        if target is not None and target.startswith("accel"):
-            scores = tilt_pose_scores(self._run, int(target[5:]), poses, n_typ)
-            if scores is not None:
-                scores = np.where(out, -np.inf, scores) if not out.all() else scores
-                best = np.flatnonzero(scores >= scores.max() - 1e-3 * abs(scores.max()))  # equally good for it
-                if len(best) > 1:
-                    tie = pose_scores(self._run, [poses[i] for i in best], n_typ, self.config.criterion)
-                    k = int(best[int(np.argmax(tie))])
-                else:
-                    k = int(best[0])
-                return _advice(poses[k], scores[k])
-        run = self._run
-        if target is not None and target.startswith("compass"):
-            run = pair_run(self._run, int(target[7:])) or self._run
-        scores = pose_scores(run, poses, n_typ, self.config.criterion)
+        ratios = self._predicted_ratios(poses, n_typ, target) if self.config.criterion == "heading" else []
+        if ratios:
+            R = np.array(ratios)  # (sensors, K)
+            worst, mean = R.max(axis=0), R.mean(axis=0)
+            if not out.all():
+                worst = np.where(out, np.inf, worst)
+            near = np.flatnonzero(worst <= worst.min() * (1.0 + 1e-3))
+            k = int(near[int(np.argmin(mean[near]))])
+            return _advice(poses[k], -float(worst[k]))
+        scores = pose_scores(self._run, poses, n_typ, self.config.criterion)
         if not out.all():
             scores = np.where(out, -np.inf, scores)
         k = int(np.argmax(scores))
         return _advice(poses[k], scores[k])
+
+    def _predicted_ratios(self, poses: Sequence[tuple[float, float, float]], n: float,
+                          target: str | None) -> list[np.ndarray]:
+        """(K,) predicted bound / target after one more interval at each pose, for every sensor
+        the advice serves (``target`` alone when given; else those not dropped, with a bound, and
+        able to reach their target unless none of those still misses it)."""
+        assert self._run is not None
+        have = [p for p in self._progress if not p.dropped and p.bound_deg is not None]
+        if target is not None:
+            have = [p for p in have if p.sensor == target]
+        elif any(not p.met and not p.blocked for p in have):
+            have = [p for p in have if not p.blocked]
+        out = []
+        for p in have:
+            if p.kind == "tilt":
+                got = tilt_pose_variances(self._run, int(p.sensor[5:]), poses, n)
+            else:
+                r = pair_run(self._run, int(p.sensor[7:]))
+                got = heading_variances(r, poses, n) if r is not None else None
+            if got is not None and got[0] > 0 and p.bound_deg is not None:
+                out.append(p.bound_deg / p.target_deg * np.sqrt(np.maximum(got[1], 0.0) / got[0]))
+        return out
 
     def _excluded(self, poses: Sequence[tuple[float, float, float]]) -> np.ndarray:
         """(K,) bool: the candidate repeats a recorded interval (predicted accel and compass
