@@ -24,6 +24,7 @@ import numpy as np
 
 from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix
 from mavcal.core.rotations import exp_so3, random_rotations
+from mavcal.errors import MavcalError
 from mavcal.sources.types import SensorSeries
 from mavcal.testing.vehicle import TestVehicle, VehicleTruth
 
@@ -115,7 +116,12 @@ def run(seed: int, guided: bool, max_poses: int = 40, instances: tuple[int, ...]
             poses = k + 1
             break
     t_capture = time.perf_counter() - t0
-    res = sess.result()
+    try:
+        res = sess.result()
+    except MavcalError as exc:  # nothing to fit (e.g. holds too short for a still interval)
+        return {"poses": poses, "intervals": st.n_intervals, "reason": f"{st.reason}; {exc}",
+                "heading": st.heading_95_deg, "capture_s": t_capture, "total_s": time.perf_counter() - t0,
+                "verdicts": {}, "bounds": {}, "all_accepted": False, "rejected": {"all": [str(exc)]}}
     verdicts = {x.sensor: x.accepted for x in res.gates.verdicts()}
     return {"poses": poses, "intervals": st.n_intervals, "reason": st.reason, "heading": st.heading_95_deg,
             "capture_s": t_capture, "total_s": time.perf_counter() - t0, "verdicts": verdicts,
