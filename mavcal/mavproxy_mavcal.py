@@ -7,6 +7,7 @@ Load it in MAVProxy with ``module load mavcal.mavproxy_mavcal`` (MAVProxy tries
     mavcal status           intervals kept, coverage map, heading error bound, next pose
     mavcal next             the next pose to hold, in words
     mavcal stop             end the capture (what was captured is kept)
+    mavcal finish           go on without the sensors that cannot reach their target (the status names them)
     mavcal fit              fit what was captured: the per-sensor verdicts, the next step, the summary
     mavcal write [yes]      show the parameter diff of the accepted sensors; with "yes" (or confirm=0) write it
     mavcal restore FILE [yes]   put back a backup .param (same safe writer)
@@ -45,7 +46,7 @@ from mavcal.capture.worker import FED_TYPES, IMU_TYPES, THREAD_PREFIX, CaptureWo
 
 log = logging.getLogger(__name__)
 
-SUBCOMMANDS = ("start", "stop", "status", "next", "fit", "write", "restore", "set", "threads")
+SUBCOMMANDS = ("start", "stop", "finish", "status", "next", "fit", "write", "restore", "set", "threads")
 _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
 _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
@@ -54,7 +55,10 @@ _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
 def _settings_table() -> list[Any]:
     d = WorkerSettings()
     S = mp_settings.MPSetting
-    return [S("target_deg", float, d.target_deg, "heading error target (deg, 95 %)", range=(0.01, 20.0)),
+    return [S("target_deg", float, d.target_deg, "heading error target of every compass (deg, 95 %)",
+              range=(0.01, 20.0)),
+            S("target_tilt_deg", float, d.target_tilt_deg, "tilt error target of every accelerometer (deg, 95 %)",
+              range=(0.01, 5.0)),
             S("accel", int, d.accel, "IMU instance", range=(0, 2)),
             S("compass", int, d.compass, "compass instance", range=(0, 2)),
             S("rate_hz", float, d.rate_hz, "IMU stream rate (Hz)", range=(25.0, 200.0)),
@@ -83,13 +87,14 @@ class MavcalModule(mp_module.MPModule):
         self.worker = CaptureWorker(self._vehicle_ids,
                                     host_restores_rates=lambda: self._saved_streamrate is not None)
         self.add_command("mavcal", self.cmd_mavcal, "guided IMU/compass calibration",
-                         ["<start|stop|status|next|fit|write|threads>", "restore (FILENAME)",
+                         ["<start|stop|finish|status|next|fit|write|threads>", "restore (FILENAME)",
                           "set (MAVCALSETTING)"])
         self.add_completion_function("(MAVCALSETTING)", self.mavcal_settings.completion)
 
     # ---------------------------------------------------------------- helpers
     def usage(self) -> str:
-        return "usage: mavcal <start|stop|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]|threads>"
+        return ("usage: mavcal <start|stop|finish|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]"
+                "|threads>")
 
     def _vehicle_ids(self) -> tuple[int, int] | None:
         """(sysid, compid) of the primary vehicle: from its heartbeats, else what MAVProxy's master saw."""
@@ -129,7 +134,7 @@ class MavcalModule(mp_module.MPModule):
             w.submit("start", self._snapshot())
         elif sub == "write":
             w.submit("write", self._snapshot(), rest[:1] == ["yes"])
-        elif sub in ("stop", "fit"):
+        elif sub in ("stop", "finish", "fit"):
             w.submit(sub)
         elif sub == "restore":
             if not rest:

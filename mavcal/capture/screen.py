@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from mavcal.capture.session import CaptureStatus, coverage_map
 
-__all__ = ["status_line", "status_screen"]
+__all__ = ["status_line", "status_screen", "sensors_line"]
 
 
 def _fmt(x: float | None, nd: int = 2) -> str:
@@ -25,8 +25,23 @@ def status_line(st: CaptureStatus) -> str:
     if st.next_pose is None:
         return f"{head}: {st.reason}"
     a = st.next_pose
-    return (f"{head}; next: {a.words} (roll {a.roll_deg:.0f} pitch {a.pitch_deg:.0f} yaw {a.yaw_deg:.0f} "
+    line = (f"{head}; next: {a.words} (roll {a.roll_deg:.0f} pitch {a.pitch_deg:.0f} yaw {a.yaw_deg:.0f} "
             f"deg magnetic)")
+    if st.advice_for:
+        line += f" for {st.advice_for}"
+    if st.offer_finish_without:
+        line += f"; {', '.join(st.offer_finish_without)} cannot reach the target: stop to finish without"
+    return line
+
+
+def sensors_line(st: CaptureStatus) -> str:
+    """Every sensor's 95 % bound against its target, e.g. ``accel0 tilt 0.06/0.3 ok, compass1
+    heading 0.81/0.5`` (``cannot`` when it cannot get there, ``dropped`` when finished without)."""
+    def one(p) -> str:
+        b = "-" if p.bound_deg is None else f"{p.bound_deg:.2f}"
+        tag = " dropped" if p.dropped else " ok" if p.met else " cannot" if p.blocked else ""
+        return f"{p.sensor} {p.kind} {b}/{p.target_deg:g}{tag}"
+    return ", ".join(one(p) for p in st.sensors)
 
 
 def status_screen(st: CaptureStatus, target_deg: float | None = None) -> str:
@@ -36,6 +51,8 @@ def status_screen(st: CaptureStatus, target_deg: float | None = None) -> str:
     tgt = f" (target {target_deg:g})" if target_deg is not None else ""
     lines.append(f"heading error bound 95 %: {_fmt(st.heading_95_deg)} deg{tgt}    tilt: {_fmt(st.tilt_95_deg, 3)} deg"
                  f"    model: {st.model or '-'}")
+    if st.sensors:
+        lines.append(f"every sensor's bound/target (deg): {sensors_line(st)}")
     if st.field_calibrated_mgauss is not None:
         raw = f" (raw reading {st.field_mgauss:.0f} mGauss)" if st.field_mgauss is not None else ""
         lines.append(f"field: {st.field_calibrated_mgauss:.0f} mGauss calibrated{raw}")
@@ -47,7 +64,7 @@ def status_screen(st: CaptureStatus, target_deg: float | None = None) -> str:
         lines.append(("ABORTED: " if st.aborted else "DONE: ") + st.reason)
     elif st.next_pose is not None:
         a = st.next_pose
-        lines.append(f"NEXT POSE: {a.words}")
+        lines.append(f"NEXT POSE: {a.words}" + (f"   (for {st.advice_for})" if st.advice_for else ""))
         lines.append(f"           (roll {a.roll_deg:.0f}, pitch {a.pitch_deg:.0f}, yaw {a.yaw_deg:.0f} deg "
                      f"from magnetic north)")
         lines.append(st.reason)

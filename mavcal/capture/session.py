@@ -15,10 +15,14 @@ A :class:`CaptureSession` is fed the readings a vehicle streams (``add``), and o
    minimises the *largest* predicted heading-error variance wins, which is what the stop
    rule measures (``criterion="d-optimal"`` maximises log det of the information
    instead). Until six intervals exist a fixed plan (the six faces) is used;
-4. stops when the predicted heading error bound reaches the target (default 0.5 deg,
-   95 %), or aborts with the reason when the field is impossible (magnets, steel: field far
-   outside ArduPilot's 185-875 mGauss, or calibrated field magnitudes that disagree between
-   intervals).
+4. stops when every sensor that will be written meets its target (:mod:`mavcal.capture.progress`):
+   every compass's 95 % heading bound (default 0.5 deg) and every accelerometer's own tilt
+   bound (default 0.3 deg); the advice goes to the sensor furthest from its target; a sensor
+   that cannot get there is named with the reason (``CaptureStatus.sensors``,
+   ``offer_finish_without``) and :meth:`CaptureSession.finish_without` drops it from the rule;
+   it aborts with the reason when the field is impossible (magnets, steel: field far outside
+   ArduPilot's 185-875 mGauss, or calibrated field magnitudes of the primary compass that
+   disagree between intervals).
 
 It neither reads from nor writes to a vehicle; the ``capture`` command and the MAVProxy
 module do that.
@@ -32,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reason, tilt_pose_variances
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
@@ -49,7 +54,8 @@ G0 = GRAVITY_MPS2
 class CaptureConfig:
     """What the guided capture aims for and when it gives up."""
 
-    target_heading_deg: float = 0.5  # stop when the 95 % heading error bound is below this
+    target_heading_deg: float = 0.5  # stop when every compass's 95 % heading error bound is below this
+    target_tilt_deg: float = 0.3  # ... and every accelerometer's own 95 % tilt bound (its gate: 0.5)
     min_intervals: int = 8  # never stop with fewer still intervals
     max_intervals: int = 40
     abort_field_mgauss: tuple[float, float] = (60.0, 2500.0)  # "far outside" ArduPilot's 185-875
@@ -64,6 +70,9 @@ class CaptureConfig:
     # advices in a row without a new interval: then the advised pose is given up (the next best
     # one is advised) and the status says what is wrong
     stall_advices: int = 30
+    # a sensor whose bound has not improved by 10 % over this many new intervals is said to be
+    # unable to reach its target (the person may finish without it)
+    stuck_poses: int = 6
 
 
 @dataclass(frozen=True)
@@ -99,6 +108,9 @@ class CaptureStatus:
     field_mgauss: float | None = None  # raw (as read, before any calibration) |field| of the last interval
     messages: tuple[str, ...] = ()
     field_calibrated_mgauss: float | None = None  # the same with the current fit applied (None before a fit)
+    sensors: tuple[SensorProgress, ...] = ()  # every sensor's bound against its target (the stop rule)
+    advice_for: str | None = None  # the sensor the next pose is advised for (the furthest from its target)
+    offer_finish_without: tuple[str, ...] = ()  # sensors that cannot reach their target: finish without them?
 
 
 def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
@@ -267,20 +279,29 @@ def pose_scores(run: CalibrationRun, poses: Sequence[tuple[float, float, float]]
     ``benchmarks/capture_guidance.py``); ``"d-optimal"``: log det of the information (S + dS)
     of the global parameters.
     """
-    S_cur, dS, prob, p = _information(run, poses, n_samples)
-    scale = np.sqrt(np.maximum(np.diag(S_cur), 1e-300))
-    D = 1.0 / scale
-    M = (S_cur[None] + dS) * D[None, :, None] * D[None, None, :]
     if criterion == "d-optimal":
-        sign, logdet = np.linalg.slogdet(M)
+        S_cur, dS, _, _ = _information(run, poses, n_samples)
+        D = 1.0 / np.sqrt(np.maximum(np.diag(S_cur), 1e-300))
+        sign, logdet = np.linalg.slogdet((S_cur[None] + dS) * D[None, :, None] * D[None, None, :])
         return np.where(sign > 0, logdet, -np.inf)
+    return -heading_variances(run, poses, n_samples)[1]
+
+
+def heading_variances(run: CalibrationRun, poses: Sequence[tuple[float, float, float]], n_samples: float
+                      ) -> tuple[float, np.ndarray]:
+    """The largest, over the flight envelope, predicted heading-error variance
+    g_k^T S^-1 g_k of ``run``'s compass now, and (K,) with one more interval at each pose
+    (S + dS): the heading criterion of :func:`pose_scores`."""
+    S_cur, dS, prob, p = _information(run, poses, n_samples)
+    D = 1.0 / np.sqrt(np.maximum(np.diag(S_cur), 1e-300))
+    M = np.concatenate([S_cur[None], S_cur[None] + dS]) * D[None, :, None] * D[None, None, :]
     G = heading_gradients(run, prob, p) * D[None, :]  # in the scaled coordinates
     try:
         Minv = np.linalg.inv(M)
     except np.linalg.LinAlgError:
         Minv = np.linalg.pinv(M)
-    var = np.einsum("kp,npq,kq->nk", G, Minv, G)
-    return -var.max(axis=1)
+    var = np.einsum("kp,npq,kq->nk", G, Minv, G).max(axis=1)
+    return float(var[0]), var[1:]
 
 
 class CaptureSession:
@@ -316,6 +337,9 @@ class CaptureSession:
         self._since_new = 0  # advices since the interval count last grew
         self._given_up: list[tuple[float, float, float]] = []  # poses advised through a stall
         self.stalls = 0
+        self._history: dict[str, list[tuple[int, float | None]]] = {}  # sensor -> [(intervals, bound)]
+        self._dropped: dict[str, str] = {}  # sensor -> why the capture finishes without it
+        self._progress: tuple[SensorProgress, ...] = ()
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -338,6 +362,19 @@ class CaptureSession:
 
     def stop(self, reason: str = "stopped by the user") -> None:
         self._stopped = reason
+
+    def finish_without(self, sensors: Sequence[str] | None = None) -> tuple[str, ...]:
+        """Drop ``sensors`` (default: those that cannot reach their target, ``offer_finish_without``
+        of the last status) from the stop rule: the capture then stops when the others meet
+        their targets (at the next :meth:`update` if they already do). They are still fitted
+        and judged at the end: a rejected one keeps its current values. Returns those dropped."""
+        by_name = {p.sensor: p for p in self._progress}
+        names = list(sensors) if sensors is not None else [p.sensor for p in self._progress
+                                                           if p.blocked and not p.dropped]
+        for name in names:
+            p = by_name.get(name)
+            self._dropped[name] = p.blocked if p is not None else ""
+        return tuple(names)
 
     @property
     def run(self) -> CalibrationRun | None:
@@ -401,19 +438,15 @@ class CaptureSession:
                 aborted = True
                 reason = (f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses: magnetic "
                           "disturbance (steel, magnets, currents nearby); move to a clean place and start again")
-        done = False
-        if aborted:
-            done = True
-        elif self._stopped:
-            done, reason = True, self._stopped
-        elif run is not None and heading is not None and heading <= cfg.target_heading_deg and n >= cfg.min_intervals:
-            done, reason = True, f"heading error bound {heading:.2f} deg <= target {cfg.target_heading_deg} deg"
-        elif n >= cfg.max_intervals:
-            done, reason = True, f"{n} intervals: the maximum"
-        advice = None
+        progress = self._progress = self._measure(run if not aborted else None, prep, n)
+        done, reason, offer = self._stop_rule(run, n, aborted, reason)
+        advice, target = None, None
         if not done:
             messages += self._stall_check(n, still_now)
+            target = self._advice_target() if self._run is not None and n >= PLAN_FIRST else None
             advice = self.next_pose()
+            messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
+                         "values if it is rejected) or keep holding poses" for p in progress if p.sensor in offer]
         if advice is not None:
             self.poses_advised.append(advice)
         st = CaptureStatus(time_s=t_last, still_now=still_now, n_intervals=n,
@@ -424,9 +457,49 @@ class CaptureSession:
                            aborted=aborted, field_mgauss=fields[-1] if fields else None,
                            field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if run is not None and ivs
                            else None,
-                           messages=tuple(messages))
+                           messages=tuple(messages), sensors=progress, advice_for=target,
+                           offer_finish_without=() if done else offer)
         self._status = st
         return st
+
+    def _stop_rule(self, run: CalibrationRun | None, n: int, aborted: bool, reason: str
+                   ) -> tuple[bool, str, tuple[str, ...]]:
+        """(done, reason, the sensors that cannot reach their target) from ``self._progress``:
+        done when aborted, stopped, every sensor not dropped meets its target (at
+        ``min_intervals`` at least) or at ``max_intervals``."""
+        cfg = self.config
+        remaining = [p for p in self._progress if not p.dropped]
+        offer = tuple(p.sensor for p in remaining if p.blocked and not p.met)
+        if aborted:
+            return True, reason, offer
+        if self._stopped:
+            return True, self._stopped + (f" (without {', '.join(offer)}: cannot reach the target)" if offer
+                                          else ""), offer
+        if run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining):
+            return True, stop_reason(self._progress), offer
+        if n >= cfg.max_intervals:
+            return True, f"{n} intervals: the maximum", offer
+        if offer and all(p.met or p.sensor in offer for p in remaining):
+            reason = (f"every other sensor has reached its target; {', '.join(offer)} cannot: finish without "
+                      f"{'it' if len(offer) == 1 else 'them'} or keep holding poses")
+        return False, reason, offer
+
+    def _measure(self, run: CalibrationRun | None, prep: Prepared, n: int) -> tuple[SensorProgress, ...]:
+        """Every sensor's bound against its target (:func:`mavcal.capture.progress.measure`)."""
+        cfg = self.config
+        progress = measure(run, prep, self.options, targets={"tilt": cfg.target_tilt_deg,
+                                                             "heading": cfg.target_heading_deg},
+                           history=self._history, n=n, min_intervals=cfg.min_intervals,
+                           stuck_poses=cfg.stuck_poses, spread_max=cfg.max_field_spread, dropped=list(self._dropped))
+        from dataclasses import replace
+        return tuple(replace(p, blocked=p.blocked or self._dropped[p.sensor]) if p.dropped else p for p in progress)
+
+    def _advice_target(self) -> str | None:
+        """The sensor furthest from its target (bound / target) among those not met, not dropped
+        and able to get there; else among those that cannot (they may yet); None when all are met."""
+        todo = [p for p in self._progress if not p.met and not p.dropped]
+        can = [p for p in todo if not p.blocked] or todo
+        return max(can, key=lambda p: p.distance).sensor if can else None
 
     def _stall_check(self, n: int, still_now: bool) -> list[str]:
         """Count advices since the interval count last grew; after ``stall_advices`` of them give
@@ -449,11 +522,18 @@ class CaptureSession:
         return [f"no new still interval for {self.config.stall_advices} advices ({why}); advising another pose "
                 f"instead of {last.words}"]
 
-    def next_pose(self) -> PoseAdvice:
-        """The most informative next pose (or the next of the initial plan before a fit).
+    def next_pose(self, target: str | None = None) -> PoseAdvice:
+        """The most informative next pose, or the next of the initial plan before a fit.
 
-        Never a pose already recorded (see ``CaptureConfig.repeat_deg``) nor one given up
-        after a stall.
+        The pose that most lowers the largest predicted bound / target ratio among the sensors
+        (those that can reach their target, not dropped; or ``target`` alone): the sensor
+        furthest from its target leads, and of the poses about as good for it the one that helps
+        the others most (the smallest mean ratio) wins. A compass's predicted bound is its bound
+        now times sqrt(predicted / current worst heading variance) (:func:`heading_variances` on
+        its fit with the primary accelerometer), an accelerometer's the same with its own tilt
+        variance (:func:`mavcal.capture.progress.tilt_pose_variances`). ``criterion="d-optimal"``:
+        the primary pair's :func:`pose_scores`. Never a pose already recorded (see
+        ``CaptureConfig.repeat_deg``) nor one given up after a stall.
         """
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
@@ -467,12 +547,43 @@ class CaptureSession:
         poses = candidate_poses()
         n_typ = float(np.median([len(self._run.segmentation.intervals[k].accel_mps2[self.options.accel_instance])
                                  for k in self._run.intervals_used]))
-        scores = pose_scores(self._run, poses, n_typ, self.config.criterion)
         out = self._excluded(poses)
+        ratios = self._predicted_ratios(poses, n_typ, target) if self.config.criterion == "heading" else []
+        if ratios:
+            R = np.array(ratios)  # (sensors, K)
+            worst, mean = R.max(axis=0), R.mean(axis=0)
+            if not out.all():
+                worst = np.where(out, np.inf, worst)
+            near = np.flatnonzero(worst <= worst.min() * (1.0 + 1e-3))
+            k = int(near[int(np.argmin(mean[near]))])
+            return _advice(poses[k], -float(worst[k]))
+        scores = pose_scores(self._run, poses, n_typ, self.config.criterion)
         if not out.all():
             scores = np.where(out, -np.inf, scores)
         k = int(np.argmax(scores))
         return _advice(poses[k], scores[k])
+
+    def _predicted_ratios(self, poses: Sequence[tuple[float, float, float]], n: float,
+                          target: str | None) -> list[np.ndarray]:
+        """(K,) predicted bound / target after one more interval at each pose, for every sensor
+        the advice serves (``target`` alone when given; else those not dropped, with a bound, and
+        able to reach their target unless none of those still misses it)."""
+        assert self._run is not None
+        have = [p for p in self._progress if not p.dropped and p.bound_deg is not None]
+        if target is not None:
+            have = [p for p in have if p.sensor == target]
+        elif any(not p.met and not p.blocked for p in have):
+            have = [p for p in have if not p.blocked]
+        out = []
+        for p in have:
+            if p.kind == "tilt":
+                got = tilt_pose_variances(self._run, int(p.sensor[5:]), poses, n)
+            else:
+                r = pair_run(self._run, int(p.sensor[7:]))
+                got = heading_variances(r, poses, n) if r is not None else None
+            if got is not None and got[0] > 0 and p.bound_deg is not None:
+                out.append(p.bound_deg / p.target_deg * np.sqrt(np.maximum(got[1], 0.0) / got[0]))
+        return out
 
     def _excluded(self, poses: Sequence[tuple[float, float, float]]) -> np.ndarray:
         """(K,) bool: the candidate repeats a recorded interval (predicted accel and compass

@@ -13,12 +13,16 @@ The host talks to the worker only through thread-safe hand-offs:
   the worker wants its own IMU rates, so the host stops asking for its own stream rates (which
   would lower them) before the worker's request goes out.
 
-Jobs (:meth:`CaptureWorker.submit` of ``start``, ``stop``, ``fit``, ``write``, ``restore``):
+Jobs (:meth:`CaptureWorker.submit` of ``start``, ``stop``, ``finish``, ``fit``, ``write``, ``restore``):
 
 * ``start``: the vehicle's parameters (the calibration in force on the readings), a
   :class:`~mavcal.capture.CaptureSession`, and SET_MESSAGE_INTERVAL for the IMU messages the
   vehicle has (:func:`~mavcal.link.streams.needed_stream_ids`); about twice a second the
-  session is updated and its status line said when it changes; at the end it is fitted;
+  session is updated and its status line said when it changes; it ends when every sensor meets its
+  target (:mod:`mavcal.capture.progress`), and at the end it is fitted;
+* ``finish``: go on without the sensors that cannot reach their target
+  (:meth:`~mavcal.capture.CaptureSession.finish_without`): the capture ends as soon as the others
+  meet theirs;
 * ``fit``: the per-sensor verdicts and the next step first (:func:`mavcal.report.text.summary_text`);
 * ``write``: the accepted sensors' parameters (every sensor's with ``force``), refused only
   when no sensor was accepted, through the write flow of ``mavcal calibrate --write``:
@@ -63,7 +67,8 @@ _REASK_GUARD_S = 2.0
 class WorkerSettings:
     """The settings a job runs with (a snapshot handed over with each job)."""
 
-    target_deg: float = 0.5
+    target_deg: float = 0.5  # every compass's heading bound
+    target_tilt_deg: float = 0.3  # every accelerometer's own tilt bound
     accel: int = 0
     compass: int = 0
     rate_hz: float = 25.0
@@ -130,10 +135,10 @@ class CaptureWorker:
                 self._imu.append(m)
 
     def submit(self, job: str, *args: Any) -> None:
-        """Queue a job: ``start(settings)``, ``stop()``, ``fit()``, ``write(settings, confirmed)``,
+        """Queue a job: ``start(settings)``, ``stop()``, ``finish()``, ``fit()``, ``write(settings, confirmed)``,
         ``restore(settings, path, confirmed)``."""
-        jobs: dict[str, Callable[..., None]] = {"start": self._start, "stop": self._stop, "fit": self._fit,
-                                                "write": self._write, "restore": self._restore}
+        jobs: dict[str, Callable[..., None]] = {"start": self._start, "stop": self._stop, "finish": self._finish,
+                                                "fit": self._fit, "write": self._write, "restore": self._restore}
         fn = jobs[job]
         self.jobs.put((fn, args))
 
@@ -264,7 +269,8 @@ class CaptureWorker:
             table = fetch_all_params(link, timeout_s=30.0, retry_s=max(0.2, cfg.param_timeout / 2))
         values = {k: v for k, (v, _) in table.items()}
         still = StillConfig(min_duration_s=cfg.hold_s)
-        config = CaptureConfig(target_heading_deg=cfg.target_deg, max_intervals=cfg.max_poses,
+        config = CaptureConfig(target_heading_deg=cfg.target_deg, target_tilt_deg=cfg.target_tilt_deg,
+                               max_intervals=cfg.max_poses,
                                min_intervals=min(cfg.min_poses, cfg.max_poses), still=still)
         self.session = CaptureSession(values, config, Options(still=still, accel_instance=cfg.accel,
                                                               mag_instance=cfg.compass), source="mavproxy")
@@ -312,6 +318,19 @@ class CaptureWorker:
             self._say("not capturing")
             return
         self.session.stop("stopped by the user")
+        self._update()
+
+    def _finish(self) -> None:
+        if not self.capturing:
+            self._say("not capturing")
+            return
+        dropped = self.session.finish_without()
+        if not dropped:
+            self._say("every sensor can still reach its target: nothing to finish without ('mavcal stop' ends the "
+                      "capture now)")
+            return
+        self._say(f"going on without {', '.join(dropped)}: the capture ends when the other sensors meet their "
+                  "targets")
         self._update()
 
     def _fit(self) -> None:

@@ -2,8 +2,10 @@
 
 The vehicle streams its IMU; after every new still pose the calibration is refitted and
 the next pose to hold is shown in words ("nose down, rolled 45 deg left, nose towards
-magnetic east") until the 95 % heading error bound reaches the target (or the capture is
-aborted, stopped with Ctrl-C, or runs out of poses or time). Then the calibration summary is
+magnetic east") until every sensor meets its target: every compass's 95 % heading error bound
+and every accelerometer's own tilt bound (or the capture is aborted, stopped with Ctrl-C,
+which also finishes without a sensor that cannot reach its target, or runs out of poses or
+time). Then the calibration summary is
 printed, the outputs are written, and the parameters are written to the vehicle only after
 confirmation (interactive y/N, or ``--write``/``--write --yes``) through the same safe
 writer as ``calibrate --write``.
@@ -36,7 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_link_arguments(p)  # --connect, --baud, --timeout, --param-timeout, --retries, --dry-run, --yes
     cap = p.add_argument_group("capture")
     cap.add_argument("--target-deg", type=float, default=0.5, metavar="DEG",
-                     help="stop when the 95 %% heading error bound is below this (default 0.5)")
+                     help="stop when every compass's 95 %% heading error bound is below this (default 0.5) ...")
+    cap.add_argument("--target-tilt-deg", type=float, default=0.3, metavar="DEG",
+                     help="... and every accelerometer's own 95 %% tilt error bound is below this (default 0.3)")
     cap.add_argument("--max-poses", type=int, default=40, metavar="N", help="stop after N still poses (default 40)")
     cap.add_argument("--min-poses", type=int, default=8, metavar="N", help="never stop before N poses (default 8)")
     cap.add_argument("--duration", type=float, default=600.0, metavar="S",
@@ -86,8 +90,8 @@ class StatusPrinter:
 
 
 def _check(args: argparse.Namespace) -> None:
-    if not args.target_deg > 0:
-        raise UsageError("--target-deg must be > 0")
+    if not args.target_deg > 0 or not args.target_tilt_deg > 0:
+        raise UsageError("--target-deg and --target-tilt-deg must be > 0")
     if args.max_poses < 1 or args.min_poses < 1:
         raise UsageError("--max-poses and --min-poses must be at least 1")
     if not args.duration > 0 or not args.hold > 0 or not args.rate > 0:
@@ -107,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
         still = StillConfig(min_duration_s=args.hold)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    config = CaptureConfig(target_heading_deg=args.target_deg, max_intervals=args.max_poses,
+    config = CaptureConfig(target_heading_deg=args.target_deg, target_tilt_deg=args.target_tilt_deg,
+                           max_intervals=args.max_poses,
                            min_intervals=min(args.min_poses, args.max_poses), still=still)
     options = Options(still=still, accel_instance=args.accel, mag_instance=args.compass,
                       field_mgauss=args.field_mgauss, location=args.location)

@@ -8,32 +8,60 @@ written from it.
 Model: the accelerometer half of the paper's reading model (Eq. ``sensor_reading_model``),
 ``u_i = K_a R_i g + b_a`` with ``g = [0, 0, -1]``. Without a compass only the gravity
 direction ``v_i = R_i g`` of each interval is observed (two degrees of freedom), so the
-unknowns are K_a (upper triangular: the same gauge as the joint fit; diagonal with fewer
-than :data:`MIN_INTERVALS_UPPER` intervals), b_a and the v_i. Maximum likelihood on the
+unknowns are K_a (upper triangular, the same gauge as the joint fit, or diagonal: see below),
+b_a and the v_i. Maximum likelihood on the
 interval means weighted by ``n_i Sigma_a^-1`` (the paper's reduced cost J' restricted to
 the accelerometer), solved by Levenberg-Marquardt from the core's ellipsoid start with the
 v_i eliminated in closed form at each step (Schur complement: O(N) per iteration, where a dense solver over the
 9 + 2N unknowns costs O(N^3)); the covariance of ``[K_a, b_a]`` is the inverse of that
 reduced normal matrix (the marginal of the full one).
+
+**Which form, and how uncertain** (issue 22: a capture of 8-14 poses must never reject a clean
+accelerometer). The number of intervals does not say whether the data identify the
+upper-triangular gain: poses that differ only in heading add intervals but no gravity
+direction, and the ellipsoid's 9 parameters need 9 distinct directions in general position.
+At 12 intervals the former rule (upper from 12 on) could meet 8-10 directions, a nearly
+singular reduced normal matrix and a tilt bound of 59-88 deg. So the form is chosen as the
+joint fit chooses its model (:func:`mavcal.core.calibrate`, Wald tests down the model chain):
+the diagonal form is fitted, the upper-triangular one too from :data:`MIN_INTERVALS_UPPER`
+intervals, and the upper one is used only when the likelihood-ratio test rejects the
+diagonal one, ``chi2_sf(J'_diag - J'_upper, 3) <= FORM_ALPHA`` (the three cross-axis terms,
+Wilks' theorem; the statistic needs no curvature at the upper fit, which is exactly what is
+unreliable when its geometry is poor). The result says which form and why (``form_reason``).
+
+The covariance is the inverse Fisher information of the reduced cost J' (Cramer-Rao) with the
+noise covariance measured from the scatter within the intervals (paper Eq.
+``covariance_initial_estimation``, sum(n_i) - N degrees of freedom, floored at the
+telemetry's quantisation noise step / sqrt(12), :func:`mavcal.core.stats.interval_stats`):
+that is the covariance of a correct model. J'/dof measures a misfit between the intervals
+(a vehicle not quite still, vibration), but with the few spare equations of a short capture
+it is itself very uncertain (J' ~ chi2_dof: with 2 dof J'/dof exceeds 3.0 one time in 20 on
+perfect data), so the covariance is inflated by J'/dof only when the chi2 goodness-of-fit
+test rejects the model, ``chi2_sf(J', dof) <= MISFIT_ALPHA`` (a stated 1 % false-alarm
+rate; a larger misfit always shows as the held-out error too). ``misfit_scale`` is the
+factor used.
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mavcal.core.initial import fit_ellipsoid, fit_sphere
-from mavcal.core.stats import IntervalStats, interval_means, interval_stats, stats_subset
+from mavcal.core.stats import IntervalStats, chi2_sf, interval_means, interval_stats, stats_subset
 from mavcal.errors import EstimationError, InsufficientDataError
 
 __all__ = ["AccelFit", "fit_accel", "holdout_accel_mps2", "holdout_folds", "pool_index", "MIN_INTERVALS_DIAG",
-           "MIN_INTERVALS_UPPER",
+           "MIN_INTERVALS_UPPER", "FORM_ALPHA", "MISFIT_ALPHA", "candidate_information", "tilt_variances",
+           "tilt_jacobians",
            "LOO_MAX_INTERVALS", "HOLDOUT_FOLDS", "HOLDOUT_POOL_MAX"]
 
 G_UNIT = np.array([0.0, 0.0, -1.0])
 MIN_INTERVALS_DIAG = 6  # 6 + 2N unknowns, 3N equations
-MIN_INTERVALS_UPPER = 12  # 9 + 2N unknowns; 3 spare equations at least
+MIN_INTERVALS_UPPER = 10  # 9 + 2N unknowns: from here the upper-triangular form is tried (1 spare equation)
+FORM_ALPHA = 0.01  # the upper-triangular form only when the likelihood-ratio test rejects the diagonal one
+MISFIT_ALPHA = 0.01  # the covariance inflated by J'/dof only when the chi2 test rejects the fit
 
 
 @dataclass(frozen=True, eq=False)
@@ -50,6 +78,10 @@ class AccelFit:
     cost: float
     dof: int
     n_intervals: int
+    information: np.ndarray | None = None  # the reduced normal matrix S (unscaled Fisher information of [K, b])
+    noise_cov: np.ndarray | None = None  # Sigma_a the weights used
+    misfit_scale: float = 1.0  # the factor the covariance was inflated by (1: the chi2 test did not reject)
+    form_reason: str = ""
 
 
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -158,6 +190,11 @@ def fit_accel(accel_sets: Sequence[np.ndarray] | IntervalStats, *, noise_floor: 
               form: str = "auto", start: AccelFit | None = None) -> AccelFit:
     """Fit one accelerometer from its still intervals alone (see the module docstring).
 
+    ``form``: ``"upper"``, ``"diag"`` or ``"auto"``: the diagonal form unless, from
+    :data:`MIN_INTERVALS_UPPER` intervals, the likelihood-ratio test rejects it for the
+    upper-triangular one at :data:`FORM_ALPHA` (the module docstring); with ``start``,
+    ``"auto"`` keeps the start's form (the refits of the held-out check keep the form chosen
+    on all the intervals).
     ``start``: begin from this fit's K_a, b_a instead of the ellipsoid fit (the warm-started
     refits of :func:`holdout_accel_mps2`; the optimum is still that of these intervals).
     ``accel_sets`` may also be their :class:`~mavcal.core.stats.IntervalStats` (``noise_floor`` unused).
@@ -170,8 +207,31 @@ def fit_accel(accel_sets: Sequence[np.ndarray] | IntervalStats, *, noise_floor: 
     if N < MIN_INTERVALS_DIAG:
         raise InsufficientDataError(f"{N} still interval(s): an accelerometer alone needs at least "
                                     f"{MIN_INTERVALS_DIAG} in different orientations")
-    if form == "auto":
-        form = "upper" if N >= MIN_INTERVALS_UPPER else "diag"
+    if form == "auto" and start is not None:
+        form = start.form
+    if form != "auto":
+        return _fit_form(st, form, start)
+    diag = _fit_form(st, "diag", None)
+    if N < MIN_INTERVALS_UPPER:
+        return replace(diag, form_reason=f"diagonal gain: {N} intervals (the upper-triangular form is tried from "
+                                         f"{MIN_INTERVALS_UPPER})")
+    try:
+        upper = _fit_form(st, "upper", None)
+    except (EstimationError, np.linalg.LinAlgError):
+        return replace(diag, form_reason="diagonal gain: the intervals do not identify the upper-triangular form")
+    lr = max(diag.cost - upper.cost, 0.0)
+    p = chi2_sf(lr, 3)
+    test = f"likelihood ratio chi2={lr:.3g} on 3 dof, p={p:.3g}"
+    if p <= FORM_ALPHA:
+        return replace(upper, form_reason=f"upper-triangular gain: the cross-axis terms are real ({test})")
+    return replace(diag, form_reason=f"diagonal gain: the cross-axis terms are not distinguishable from zero ({test})")
+
+
+def _fit_form(st: IntervalStats, form: str, start: AccelFit | None) -> AccelFit:
+    """:func:`fit_accel` in one form (``"upper"`` or ``"diag"``)."""
+    N = st.mu.shape[0]
+    if form not in ("upper", "diag"):
+        raise ValueError(f"form must be upper, diag or auto; got {form!r}")
     idx = _UPPER if form == "upper" else _DIAG
     if start is not None:
         K0, b0 = _gain(np.array([start.gain[i, j] for i, j in idx]), idx), np.asarray(start.bias, float)
@@ -198,11 +258,76 @@ def fit_accel(accel_sets: Sequence[np.ndarray] | IntervalStats, *, noise_floor: 
     if np.any(np.diag(K) <= 0):
         raise EstimationError("the accelerometer fit reached a mirrored gain: the orientations do not span")
     dof = 3 * N - (theta0.size + 2 * N)
-    scale = max(1.0, cost / dof) if dof > 0 else 1.0
+    scale = cost / dof if dof > 0 and cost > dof and chi2_sf(cost, dof) <= MISFIT_ALPHA else 1.0
     cov = np.linalg.pinv(S) * scale  # the marginal covariance of [K, b]: the Schur complement's inverse
     names = tuple(f"K_a[{i + 1}{j + 1}]" for i, j in idx) + ("b_a[x]", "b_a[y]", "b_a[z]")
     return AccelFit(gain=K, bias=b, form=form, param_names=names, param_cov=cov, directions=v, cost=cost,
-                    dof=int(dof), n_intervals=N)
+                    dof=int(dof), n_intervals=N, information=S, noise_cov=np.array(st.sigma_hat, float),
+                    misfit_scale=float(scale), form_reason=f"{'upper-triangular' if form == 'upper' else 'diagonal'} "
+                                                          "gain (asked for)")
+
+
+def _theta_jacobian(v: np.ndarray, idx) -> np.ndarray:
+    """(M, 3, P): d(K v + b)/d[K entries, b] at each unit direction v (M, 3)."""
+    J = np.zeros((len(v), 3, len(idx) + 3))
+    for m, (i, j) in enumerate(idx):
+        J[:, i, m] = v[:, j]
+    J[:, :, len(idx):] = np.eye(3)
+    return J
+
+
+def candidate_information(fit: AccelFit, dirs: np.ndarray, n_samples: float) -> np.ndarray:
+    """(K, P, P): the Fisher information about ``[K_a, b_a]`` one more still interval of
+    ``n_samples`` readings would add at each unit gravity direction ``dirs`` (K, 3), in the
+    fit's frame, its own direction marginalised (the Schur complement of :func:`_schur_step`
+    for that interval alone), predicted at the current estimate with the fit's noise
+    covariance. Added to ``fit.information`` it is the information after that interval
+    (the design criterion of the guided capture, :func:`tilt_variances`)."""
+    if fit.noise_cov is None:
+        raise ValueError("the fit carries no noise covariance")
+    idx = _UPPER if fit.form == "upper" else _DIAG
+    v = np.asarray(dirs, float)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    L_inv = np.linalg.inv(np.linalg.cholesky(fit.noise_cov))
+    w = np.full((len(v), 1), np.sqrt(float(n_samples)))
+    Jg, Jl = _jacobians(fit.gain, v, _basis(v), idx, L_inv, w)
+    JgT = np.swapaxes(Jg, 1, 2)
+    B = JgT @ Jl  # (K, P, 2)
+    C = np.swapaxes(Jl, 1, 2) @ Jl  # (K, 2, 2)
+    return JgT @ Jg - B @ np.linalg.solve(C, np.swapaxes(B, 1, 2))
+
+
+def tilt_jacobians(fit: AccelFit, dirs: np.ndarray) -> np.ndarray:
+    """(M, 3, P): the tilt error (radians, as a vector perpendicular to the specific force) a
+    change of the true ``[K_a, b_a]`` causes at each unit direction ``dirs`` (M, 3) of the
+    specific force in the fit's frame, the written correction held at the estimate: the
+    corrected reading moves by K_a^-1 (dK v + db) (to first order, in units of |v| = 1), and
+    its part perpendicular to v is the tilt error."""
+    idx = _UPPER if fit.form == "upper" else _DIAG
+    v = np.asarray(dirs, float)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    perp = np.eye(3)[None] - v[:, :, None] * v[:, None, :]
+    return perp @ np.linalg.inv(fit.gain)[None] @ _theta_jacobian(v, idx)
+
+
+def tilt_variances(fit: AccelFit, envelope_dirs: np.ndarray, added: np.ndarray | None = None) -> np.ndarray:
+    """The largest, over the specific-force directions ``envelope_dirs`` (M, 3; the flight
+    envelope), predicted variance of the tilt error (rad^2, the trace of its 2 x 2 covariance)
+    with the information ``fit.information`` plus each of ``added`` (K, P, P; e.g.
+    :func:`candidate_information`): (K,), or (1,) without ``added``. The covariance is the
+    inverse information times the fit's ``misfit_scale``, as its ``param_cov``."""
+    if fit.information is None:
+        raise ValueError("the fit carries no information matrix")
+    S = np.asarray(fit.information)[None] + (np.zeros((1,) + fit.information.shape) if added is None else added)
+    d = np.sqrt(np.maximum(np.diag(fit.information), 1e-300))  # scaled for the inversion
+    M = S / d[None, :, None] / d[None, None, :]
+    G = tilt_jacobians(fit, envelope_dirs) / d[None, None, :]  # (E, 3, P)
+    try:
+        Minv = np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        Minv = np.linalg.pinv(M)
+    var = np.einsum("eip,kpq,eiq->ke", G, Minv, G) * fit.misfit_scale
+    return var.max(axis=1)
 
 
 def sample_accel(fit: AccelFit, n: int, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -312,13 +437,22 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     the start's own): each fold's statistics are taken from them (:func:`stats_subset`),
     the same numbers as the pool's own where the pool is all N, equal up to rounding on
     longer logs (as in :func:`mavcal.quality.holdout_errors`).
+    ``form="auto"``: the form :func:`fit_accel` chooses on all the intervals (``start``'s when
+    given); refits of fewer than :data:`MIN_INTERVALS_UPPER` intervals take the diagonal one.
     """
     sets = list(accel_sets)
     N = len(sets)
     if N - 1 < MIN_INTERVALS_DIAG:
         return float("nan")
-    if form == "auto":
-        form = "upper" if N - 1 >= MIN_INTERVALS_UPPER else "diag"
+    if form == "auto":  # the form chosen on all the intervals (the refits keep it where they can hold it)
+        if start is None:
+            try:
+                start = fit_accel(stats if stats is not None else
+                                  interval_stats([np.asarray(s, float) for s in sets], "accel_sets",
+                                                 noise_floor=noise_floor))
+            except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
+                return float("nan")
+        form = start.form if N - 1 >= MIN_INTERVALS_UPPER else "diag"
     mu = interval_means([np.asarray(s, float) for s in sets])
     dirs = mu / np.linalg.norm(mu, axis=1, keepdims=True)
     errs = []
