@@ -20,6 +20,7 @@ import sys
 from typing import TextIO
 
 from mavcal.commands.common import (
+    BACKUP_HELP,
     add_link_arguments,
     check_new_backup,
     check_optional_dependencies,
@@ -58,7 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--write", action="store_true", help="write the parameters (asks first unless --yes)")
     w.add_argument("--force", action="store_true",
                    help="write the rejected sensors' parameters too (and values outside ArduPilot's limits)")
-    w.add_argument("--backup", metavar="F", help="backup .param of the old values (default mavcal-backup-DATE.param)")
+    w.add_argument("--backup", metavar="F", help=BACKUP_HELP)
 
 
 class StatusPrinter:

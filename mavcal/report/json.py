@@ -170,7 +170,7 @@ def to_json(run) -> dict[str, Any]:
         "reboot_required": run.mapping.reboot_required,
         "quality": {k: _f(v) for k, v in run.quality.__dict__.items()},
         "gates": [{"sensor": g.sensor, "name": g.name, "ok": g.ok, "value": _f(g.value), "limit": g.limit,
-                   "reason": g.reason, "ran": g.ran} for g in run.gates.gates],
+                   "reason": g.reason, "ran": g.ran, "cause": g.cause} for g in run.gates.gates],
         "dropped": _dropped(run),
         "compass": _compass(run.mapping.compass[0]) if run.mapping.compass else None,
         "calibration": None if run.calibration is None else _calibration(run.calibration),
@@ -299,7 +299,8 @@ def from_json(doc: Mapping[str, Any]) -> SavedCalibration:
         q = doc["quality"]
         quality = Quality(**{f.name: _num(q[f.name]) for f in fields(Quality)})
         gates = GateReport(tuple(Gate(g["sensor"], g["name"], bool(g["ok"]), _num(g["value"]), g["limit"],
-                                      g.get("reason", ""), bool(g.get("ran", True))) for g in doc["gates"]))
+                                      g.get("reason", ""), bool(g.get("ran", True)), g.get("cause", ""))
+                                 for g in doc["gates"]))
         intervals = tuple(_interval_from(d) for d in doc["intervals"])
         cal = None if doc["calibration"] is None else _calibration_from(doc["calibration"])
     except (KeyError, TypeError, ValueError) as exc:
