@@ -185,12 +185,12 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
     from mavcal.report.text import gate_refusal_text, summary_text
 
     say = sys.stderr if args.json == "-" else sys.stdout
-    print(summary_text(run, param_table=param_table), file=say)
+    print(summary_text(run, param_table=param_table, force=bool(args.force)), file=say)
     if args.json:
         json_output(args.json, to_json(run), say)
     if args.report:
         from mavcal.report import write_html
-        write_html(run, args.report)
+        write_html(run, args.report, force=bool(args.force))
         print(f"report written to {args.report}", file=say)
     code = run.exit_code
     if code == 4 and not args.force:
