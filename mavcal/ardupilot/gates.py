@@ -28,6 +28,11 @@ import numpy as np
 from mavcal.ardupilot import limits as L
 from mavcal.coverage import UNIDENTIFIED_HEADING_DEG, UNIDENTIFIED_TILT_DEG
 
+#: Earth's field strength anywhere (World Magnetic Model: about 220 mGauss in the South Atlantic
+#: anomaly to 670 near the magnetic poles), the plausibility check of a compass whose field
+#: strength is not known (no position, no --field-mgauss)
+EARTH_FIELD_MGAUSS = (220.0, 680.0)
+
 
 @dataclass(frozen=True)
 class GateConfig:
@@ -215,11 +220,16 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_or
     odi = float(np.abs(np.asarray(cm.new.odi)).max())
     add(s, "off-diagonal", odi < c.odi_max, odi, f"< {c.odi_max}",
         "soft-iron off-diagonal too large: steel or currents near the compass distort the field")
+    f = cm.field_mgauss
     if cm.field_checked:
-        f = cm.field_mgauss
         lo, hi = c.field_range_mgauss
         add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
             f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range: check --location")
+    else:  # not scaled to a known field: the compass's own scale must still measure an Earth-like field
+        lo, hi = EARTH_FIELD_MGAUSS
+        add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss (Earth's field anywhere)",
+            f"the compass measures a field of {f:.0f} mGauss, which is nowhere on Earth: readings not in mGauss, "
+            "a strong disturbance or a poor fit; give --location or --field-mgauss to check it")
     add(s, "converged", fit_converged, 1.0 if fit_converged else 0.0, "certified as the global optimum",
         f"the fit is not certified as the global optimum: {fit_message or 'no reason given'}; "
         "record more, better spread poses")

@@ -160,7 +160,7 @@ def _refused(args, source: str, exc: MavcalError, prep, opts) -> None:
     from mavcal.report.json import refusal_json
 
     verdicts = refusal_verdicts(prep, exc, opts) if prep is not None else ()
-    json_output(args.json, refusal_json(source, exc, verdicts, prep), sys.stderr)
+    json_output(args.json, refusal_json(source, exc, verdicts, prep))
 
 
 def _single(args, source: str) -> int:

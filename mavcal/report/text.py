@@ -143,6 +143,16 @@ def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str
     return f"next: nothing is written; fix the causes named above and record again ({force_hint} writes anyway)"
 
 
+def _field_flag(cm) -> str:
+    """" -- IMPLAUSIBLE: ..." when a compass not scaled to a known field measures one Earth never has."""
+    from mavcal.ardupilot.gates import EARTH_FIELD_MGAUSS
+
+    lo, hi = EARTH_FIELD_MGAUSS
+    if cm.field_checked or lo <= cm.field_mgauss <= hi:
+        return ""
+    return f" -- IMPLAUSIBLE: Earth's field is {lo:.0f}-{hi:.0f} mGauss everywhere"
+
+
 def holdout_text(run) -> str:
     """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
     q = run.quality
@@ -210,7 +220,7 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
           for am in run.mapping.accel[:1]]
     L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
-          for cm in run.mapping.compass[:1]]
+          + _field_flag(cm) for cm in run.mapping.compass[:1]]
     rows = written_rows(run, force) if param_table else []
     if rows:
         L += _table_lines(rows)
