@@ -144,7 +144,7 @@ def _judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own
         accels.append(am)
         fits.append((a, fit))
         gates += ag
-        if a in joint and not mi_ok:
+        if a in joint and not mi_ok and all(g.ok for g in ag):  # (a rejected one is not written at all)
             warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
                             "was rejected")
     return accels, fits, gates
