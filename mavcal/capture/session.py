@@ -406,7 +406,8 @@ class CaptureSession:
             done = True
         elif self._stopped:
             done, reason = True, self._stopped
-        elif run is not None and heading is not None and heading <= cfg.target_heading_deg and n >= cfg.min_intervals:
+        elif (run is not None and heading is not None and heading <= cfg.target_heading_deg and n >= cfg.min_intervals
+              and not any(g.cause == "data" for g in run.gates.failures())):  # calibrate's coverage rule too
             done, reason = True, f"heading error bound {heading:.2f} deg <= target {cfg.target_heading_deg} deg"
         elif n >= cfg.max_intervals:
             done, reason = True, f"{n} intervals: the maximum"
