@@ -27,6 +27,10 @@ def no_reading(monkeypatch):
     (["--map-compass", "1:2"], "--map-compass only applies"),
     (["--connect", "udpin:127.0.0.1:1"], "--connect only applies"),
     (["--dry-run", "--connect", "udpin:127.0.0.1:1", "--map-compass", "compassX:1"], "--map-compass"),
+    (["--field-mgauss", "0"], "--field-mgauss must be a positive number"),  # was a ZeroDivisionError (exit 70)
+    (["--accel", "-1"], "count from 0"),
+    (["--timeout", "-1"], "--timeout must be"),
+    (["--orient-tol", "-1"], "--orient-tol"),
 ])
 def test_impossible_combinations_are_refused_before_reading(extra, words, sitl_dir, capsys, no_reading):
     code = main(["calibrate", str(sitl_dir / SITL02), *extra])

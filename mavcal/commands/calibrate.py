@@ -203,6 +203,29 @@ def _single(args, source: str) -> int:
     return code
 
 
+def _check_numbers(args) -> None:
+    """Numbers no run could use (a zero field strength, a negative timeout, sensor -1): refused."""
+    import math
+
+    def positive(v) -> bool:
+        return v is not None and math.isfinite(v) and v > 0
+
+    bad = [f"--{n.replace('_', '-')} must be a positive number (got {v})"
+           for n, v in (("field_mgauss", args.field_mgauss), ("timeout", args.timeout),
+                        ("param_timeout", args.param_timeout), ("write_budget", args.write_budget),
+                        ("duration", args.duration), ("baud", args.baud))
+           if v is not None and not positive(v)]
+    if not (math.isfinite(args.orient_tol) and args.orient_tol >= 0):
+        bad.append(f"--orient-tol must be 0 or more degrees (got {args.orient_tol})")
+    if args.retries < 1:
+        bad.append(f"--retries must be at least 1 (got {args.retries})")
+    insts = [args.accel, args.compass] + list(args.accel_only or []) + list(args.compass_only or [])
+    if any(i < 0 for i in insts):
+        bad.append("sensor instances count from 0 (accel0, compass1 as the verdicts name them)")
+    if bad:
+        raise UsageError("; ".join(bad))
+
+
 def check_flags(args) -> None:
     """Refuse (UsageError, exit 2) every combination of options that cannot work, before the
     source is read: nothing is done and the message names the options the user gave."""
@@ -228,6 +251,7 @@ def check_flags(args) -> None:
     if unused and not writes:
         raise UsageError(f"{', '.join(unused)} only appl{'ies' if len(unused) == 1 else 'y'} with --write or "
                          "--dry-run; nothing was done")
+    _check_numbers(args)
     if args.write:
         check_new_backup(args.backup)
     slot_maps(args)  # --map-compass / --map-imu spelled right
