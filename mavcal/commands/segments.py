@@ -165,7 +165,7 @@ def _print_text(rep: dict[str, Any], out: TextIO) -> None:
                   f"({g[0]:+.2f} {g[1]:+.2f} {g[2]:+.2f}) {d['label']}")
     c = rep["coverage"]
     ev = c["scatter_eigenvalues"]
-    print(f"coverage: {c['status']}: {c['n_orientations']} distinct orientation"
+    print(f"gravity coverage: {c['status']}: {c['n_orientations']} distinct orientation"
           f"{'s' if c['n_orientations'] != 1 else ''}, smallest scatter eigenvalue {ev[0]:.3f} "
           f"(ideal 0.333), largest empty cap {c['largest_empty_cap_deg']:.0f} deg")
     for w in rep["warnings"]:
