@@ -84,9 +84,11 @@ class SensorCoverage:
 
 
 def field_directions(mag_means: np.ndarray) -> np.ndarray:
-    """(N, 3) unit field directions of (N, 3) raw compass means, from the centre of the
-    sphere through them (least squares |m|^2 = 2 c.m + k; their mean when degenerate)."""
+    """Unit field directions (M, 3) of (N, 3) raw compass means, from the centre of the sphere
+    through them (least squares |m|^2 = 2 c.m + k; their mean when degenerate); means that are
+    not finite or sit at the centre are left out."""
     M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
+    M = M[np.isfinite(M).all(axis=1)]  # a mean of readings left out (NaN) is no direction
     if M.shape[0] == 0:
         return M
     centre = M.mean(axis=0)
@@ -96,8 +98,14 @@ def field_directions(mag_means: np.ndarray) -> np.ndarray:
         if sv[-1] > 1e-6 * sv[0]:
             centre = np.linalg.lstsq(A, (M ** 2).sum(axis=1), rcond=None)[0][:3]
     d = M - centre
-    n = np.linalg.norm(d, axis=1, keepdims=True)
-    return d / np.where(n > 0, n, 1.0)
+    n = np.linalg.norm(d, axis=1)
+    keep = n > 1e-9 * max(float(np.abs(M).max()), 1.0)  # a mean at the centre has no direction
+    return d[keep] / n[keep, None]
+
+
+def _finite(dirs: np.ndarray) -> np.ndarray:
+    d = np.asarray(dirs, dtype=float).reshape(-1, 3)
+    return d[np.isfinite(d).all(axis=1)]
 
 
 def _missing_sides(gravity_dirs: np.ndarray) -> list[str]:
@@ -128,7 +136,7 @@ def _gravity_missing(n: int, n_or: int, gravity_dirs: np.ndarray, r: CoverageRul
 
 def accel_coverage(sensor: str, gravity_dirs: np.ndarray, rule: CoverageRule = CoverageRule()) -> SensorCoverage:
     """The rule for an accelerometer: its intervals' unit gravity directions (N, 3)."""
-    g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
+    g = _finite(gravity_dirs)
     n, n_or = g.shape[0], count_clusters(g, rule.cluster_deg) if g.shape[0] else 0
     missing, add = _gravity_missing(n, n_or, g, rule)
     return SensorCoverage(sensor, not missing, n, n_or, None, rule, tuple(missing), add if missing else "")
@@ -138,9 +146,10 @@ def compass_coverage(sensor: str, gravity_dirs: np.ndarray, mag_means: np.ndarra
                      rule: CoverageRule = CoverageRule()) -> SensorCoverage:
     """The rule for a compass: its intervals' unit gravity directions (of the accelerometer it
     is paired with) and its raw mean readings, both (N, 3)."""
-    g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
+    g = _finite(gravity_dirs)
     n, n_or = g.shape[0], count_clusters(g, rule.cluster_deg) if g.shape[0] else 0
-    n_f = count_clusters(field_directions(mag_means), rule.cluster_deg) if n else 0
+    f = field_directions(mag_means)
+    n_f = count_clusters(f, rule.cluster_deg) if f.shape[0] else min(n, 1)  # all alike: one direction
     missing, add = _gravity_missing(n, n_or, g, rule)
     if n_f < rule.min_field_directions and not missing:  # the gravity directions first: the data's first cause
         k = rule.min_field_directions - n_f
