@@ -54,11 +54,20 @@ def _load(name: str):
         raise
 
 
+def _global_options(parser: argparse.ArgumentParser, default) -> None:
+    """``-v`` / ``-q``: on the top-level parser (``default`` 0 / False) and again on every
+    subcommand (``default`` SUPPRESS, so that ``mavcal -q calibrate LOG`` and ``mavcal
+    calibrate LOG -q`` mean the same and a subcommand without them keeps the top level's)."""
+    parser.add_argument("-v", "--verbose", action="count", default=0 if default is None else default,
+                        help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", default=False if default is None else default,
+                        help="only errors")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot.")
     parser.add_argument("--version", action="version", version=f"mavcal {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    parser.add_argument("-q", "--quiet", action="store_true", help="only errors")
+    _global_options(parser, None)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
         mod = _load(name)
@@ -66,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
+        _global_options(p, argparse.SUPPRESS)
         p.set_defaults(_run=mod.run)
     return parser
 

@@ -23,6 +23,7 @@ from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.stats import IntervalStats, interval_means, interval_stats
 from mavcal.core.types import Calibration
+from mavcal.coverage import CoverageRule, sensor_coverages
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
 from mavcal.memory import release_free_memory
 from mavcal.quality import Quality, accel_tilt_bounds, holdout_part, holdout_rms, quality_of
@@ -33,7 +34,7 @@ from mavcal.workers import ForkPool, Outcome
 
 log = logging.getLogger(__name__)
 
-__all__ = ["fit_recording", "refusal_verdicts"]
+__all__ = ["fit_recording", "refusal_verdicts", "coverage_rule"]
 
 
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
@@ -143,7 +144,7 @@ def _judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own
         accels.append(am)
         fits.append((a, fit))
         gates += ag
-        if a in joint and not mi_ok:  # (a joint fit that disagrees with its own data: _judge_accel says so)
+        if a in joint and not mi_ok and all(g.ok for g in ag):  # (a rejected one is not written at all)
             warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
                             "was rejected")
     return accels, fits, gates
@@ -354,11 +355,18 @@ def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | No
                             f"{tilt[1]:.3g} deg of tilt off its own data, beyond their 95 % bound of "
                             f"{own_tilt[0]:.3g} deg")
             am, tilt = mine, own_tilt
-    dirs = np.array([prep.segmentation.intervals[k].gravity_dir for k in used])
-    n_orient = _n_orientations(dirs, prep.segmentation)
-    gates = gates_mod.accel_gates(am, n_intervals=len(used), n_orientations=n_orient, tilt_95_deg=tilt[0],
-                                  holdout_mps2=ho, config=opts.gates)
+    cov = sensor_coverages(prep.segmentation, opts.accel_instance, coverage_rule(opts, prep.segmentation),
+                           accels=[a], compasses=[])[0]
+    gates = gates_mod.accel_gates(am, tilt_95_deg=tilt[0], holdout_mps2=ho, config=opts.gates, coverage=cov)
     return am, gates, fit, tilt, ho
+
+
+def coverage_rule(opts: Options, seg: Segmentation) -> CoverageRule:
+    """The coverage rule (:mod:`mavcal.coverage`) of ``opts``' gates, with the segmentation's
+    orientation clusters: what ``calibrate`` applies and ``segments`` reports."""
+    c = opts.gates
+    return CoverageRule(min_intervals=c.min_intervals, min_orientations=min(c.min_intervals, 6),
+                        min_field_directions=c.min_field_directions, cluster_deg=seg.config.cluster_deg)
 
 
 def _n_orientations(dirs: np.ndarray, seg: Segmentation) -> int:
@@ -478,9 +486,10 @@ def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outco
     ho = holdout_rms([r for _, r in holdout]) if opts.holdout else (float("nan"), float("nan"))
     quality = replace(quality_out[1], holdout_accel_mps2=ho[0], holdout_mag_mgauss=ho[1])
     cal, cm, seg = f.cal, f.mapping.compass[0], prep.segmentation
-    dirs = np.array([seg.intervals[k].gravity_dir for k in f.used])
+    cov = sensor_coverages(seg, opts.accel_instance, coverage_rule(opts, seg), accels=[],
+                           compasses=[opts.mag_instance])[0]
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
-        cm, f.params_now, n_intervals=len(f.used), n_orientations=_n_orientations(dirs, seg),
+        cm, f.params_now, coverage=cov,
         heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates,
         fit_converged=cal.converged,
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message)))

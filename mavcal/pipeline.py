@@ -14,7 +14,7 @@ import logging
 from dataclasses import replace
 
 from mavcal.ardupilot.recover import RawImu, recover_raw
-from mavcal.fits import fit_recording, refusal_verdicts
+from mavcal.fits import coverage_rule, fit_recording, refusal_verdicts
 from mavcal.memory import release_free_memory
 from mavcal.quality import Quality
 from mavcal.run import STAGE_FIT, STAGE_RECOVER, STAGE_SEGMENT, CalibrationRun, Options, Prepared
@@ -25,7 +25,7 @@ from mavcal.sources.types import ImuLog, SensorSeries
 log = logging.getLogger(__name__)
 
 __all__ = ["Options", "Prepared", "CalibrationRun", "Quality", "open_source", "prepare", "calibrate_source",
-           "calibrate_prepared", "STAGE_RECOVER", "STAGE_SEGMENT", "STAGE_FIT", "refusal_verdicts"]
+           "calibrate_prepared", "STAGE_RECOVER", "STAGE_SEGMENT", "STAGE_FIT", "refusal_verdicts", "coverage_rule"]
 
 
 # --------------------------------------------------------------------------- read

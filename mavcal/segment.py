@@ -39,7 +39,7 @@ from mavcal.sources.types import SensorSeries
 log = logging.getLogger(__name__)
 
 __all__ = ["StillConfig", "StillInterval", "Coverage", "Segmentation", "find_still_intervals",
-           "diagnose_coverage", "FULL_MODEL_MIN_INTERVALS", "axis_label"]
+           "diagnose_coverage", "FULL_MODEL_MIN_INTERVALS", "axis_label", "count_clusters"]
 
 #: Intervals the full joint model needs (the paper's initial estimate and Wald tests).
 FULL_MODEL_MIN_INTERVALS = 8
@@ -326,7 +326,7 @@ _SPHERE = _fibonacci_sphere()
 
 # --------------------------------------------------------------------------- coverage
 
-def _count_clusters(g: np.ndarray, cluster_deg: float) -> int:
+def count_clusters(g: np.ndarray, cluster_deg: float) -> int:
     """Leader clustering of unit vectors in their order: a vector starts a new cluster when
     no earlier cluster leader is within ``cluster_deg``. The first unassigned vector is
     always a leader, and it claims every later vector within reach, so each pass is one
@@ -379,7 +379,7 @@ def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Co
                         ("no still intervals were found: the vehicle never stayed still long enough "
                          "(or the thresholds are too strict)",))
     g = g / np.linalg.norm(g, axis=1, keepdims=True)
-    n_or = _count_clusters(g, cluster_deg)
+    n_or = count_clusters(g, cluster_deg)
     ev = np.sort(np.linalg.eigvalsh(g.T @ g / n))
     cap = _largest_empty_cap_deg(g)
     if n < FULL_MODEL_MIN_INTERVALS:

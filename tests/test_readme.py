@@ -101,3 +101,31 @@ def test_layout_names_every_package_and_module():
     names += [p.name for p in pkg.glob("*.py") if p.name not in ("__init__.py", "__main__.py")]
     missing = [n for n in sorted(names) if f"mavcal/{n}" not in layout]
     assert not missing, f"README Layout does not mention {missing}"
+
+
+def test_readme_samples_are_the_golden_outputs():
+    """Issue 24: each sample output in the README (a ``text`` block after a ``<!-- golden: F -->``
+    marker) is lines of the golden file F, in order ("..." for the lines left out), numbers
+    compared at the golden tests' tolerance; the golden files are compared with the program's
+    output by tests/test_cli_golden.py and tests/test_golden_real.py."""
+    from test_golden_real import same_at_tolerance
+
+    samples = re.findall(r"^<!-- golden: (\S+) -->\n```text\n(.*?)^```$", README, flags=re.S | re.M)
+    assert len(samples) >= 2
+    for path, text in samples:
+        golden = (REPO / path).read_text().splitlines()
+        k = 0
+        for line in text.splitlines():
+            if line == "...":
+                continue
+            while k < len(golden) and same_at_tolerance(line, golden[k]):
+                k += 1
+            assert k < len(golden), f"README sample line not in {path} (in order): {line}"
+            k += 1
+
+
+def test_readme_timings_are_measured_ones():
+    """The suite's time is stated as measured, with how and when (issue 24)."""
+    dev = README[README.index("## Development"):]
+    m = re.search(r"the suite \(([^)]*)\)", dev)
+    assert m and "measured" in m.group(1) and "time " in m.group(1), m and m.group(1)

@@ -27,12 +27,16 @@ def test_missing_parameters_are_reported_and_readings_kept():
     t = np.arange(10) * 0.1
     acc = SensorSeries("accel", 0, "IMU", t, np.tile([0.1, 0.2, -9.8], (10, 1)))
     mag = SensorSeries("mag", 0, "MAG", t, np.tile([100.0, 0.0, 300.0], (10, 1)))
-    raw = recover_raw(ImuLog("x", "csv", (acc, mag)))
+    raw = recover_raw(ImuLog("x", "dataflash", (acc, mag)))
     np.testing.assert_array_equal(raw.get("accel", 0).values, acc.values)
     np.testing.assert_array_equal(raw.get("mag", 0).values, mag.values)
     assert any("treated as raw" in w and "accel 0" in w for w in raw.warnings)
     assert any("treated as raw" in w and "mag 0" in w for w in raw.warnings)
     assert raw.frames == {"accel": ACCEL_FRAME, "mag": MAG_FRAME}
+    # a CSV never carries parameters: the same readings, and no warning about it (issue 24)
+    raw = recover_raw(ImuLog("x", "csv", (acc, mag)))
+    np.testing.assert_array_equal(raw.get("accel", 0).values, acc.values)
+    assert not any("treated as raw" in w for w in raw.warnings)
 
 
 def test_parameter_change_counts_from_its_time():

@@ -6,6 +6,13 @@ AccelCalibrator): compass offset length <= COMPASS_OFFS_MAX (default 1800 mGauss
 axis, scales 0.8-1.2. Ours: enough intervals and orientations, held-out reconstruction
 error, parameter uncertainty (95 % heading and tilt error bounds).
 
+The data come first: when the still intervals cannot identify a sensor (too few gravity
+directions, too few field directions, i.e. headings, for a compass: the rule of
+:mod:`mavcal.coverage`, which ``mavcal segments`` reports too; or a 95 % bound so wide that
+nothing was identified), its verdict gives that cause alone. Gates that would name a
+disturbance (steel, magnets, currents) say so only when the data would have sufficed; they
+are still in the report (:attr:`GateReport.gates`).
+
 Every accelerometer and compass gets its own gates and its own verdict
 (:meth:`GateReport.verdicts`): an accelerometer is judged on its own fit (tilt bound,
 held-out error), a compass on its fit with the accelerometer it is paired with (heading
@@ -19,6 +26,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.ardupilot import limits as L
+from mavcal.coverage import UNIDENTIFIED_HEADING_DEG, UNIDENTIFIED_TILT_DEG
+
+#: Earth's field strength anywhere (World Magnetic Model: about 220 mGauss in the South Atlantic
+#: anomaly to 670 near the magnetic poles), the plausibility check of a compass whose field
+#: strength is not known (no position, no --field-mgauss)
+EARTH_FIELD_MGAUSS = (220.0, 680.0)
 
 
 @dataclass(frozen=True)
@@ -33,6 +46,7 @@ class GateConfig:
     odi_max: float = L.ODI_MAX
     field_range_mgauss: tuple[float, float] = L.FIELD_RANGE_MGAUSS
     min_intervals: int = 6
+    min_field_directions: int = 8  # a compass's distinct field directions (mavcal.coverage)
     heading_95_max_deg: float = 2.0
     tilt_95_max_deg: float = 0.5
     holdout_accel_max_mps2: float = 0.15
@@ -51,6 +65,7 @@ class Gate:
     limit: str
     reason: str = ""
     ran: bool = True
+    cause: str = ""  # "data" when it failed because the intervals cannot identify the sensor
 
 
 @dataclass(frozen=True)
@@ -92,9 +107,15 @@ class GateReport:
         return out
 
     def verdicts(self) -> tuple[SensorVerdict, ...]:
-        """One verdict per sensor, in the order of the gates (accelerometers first)."""
-        return tuple(SensorVerdict(s, all(g.ok for g in gs), tuple(reason_text(g) for g in gs if not g.ok))
-                     for s, gs in self.by_sensor().items())
+        """One verdict per sensor, in the order of the gates (accelerometers first). A sensor
+        the data cannot identify gets only the data's reasons (a fit of too few directions
+        fails the other gates too, and naming steel there would send the user the wrong way)."""
+        out = []
+        for s, gs in self.by_sensor().items():
+            failed = [g for g in gs if not g.ok]
+            shown = [g for g in failed if g.cause == "data"] or failed
+            out.append(SensorVerdict(s, not failed, tuple(reason_text(g) for g in shown)))
+        return tuple(out)
 
     def accepted_sensors(self) -> list[str]:
         return [v.sensor for v in self.verdicts() if v.accepted]
@@ -104,26 +125,44 @@ class GateReport:
 
 
 def _adder(gates: list[Gate]):
-    def add(sensor: str, name: str, ok, value, limit: str, reason: str) -> None:
+    def add(sensor: str, name: str, ok, value, limit: str, reason: str, cause: str = "") -> None:
         """Record a gate; NaN means it did not run (never rejects); the reason is kept only when it failed."""
         v = float(value)
         ran = bool(np.isfinite(v))
         ok = bool(ok) or not ran
-        gates.append(Gate(sensor, name, ok, v, limit, "" if ok else reason, ran))
+        gates.append(Gate(sensor, name, ok, v, limit, "" if ok else reason, ran, "" if ok else cause))
     return add
 
 
-def _data_gates(add, s: str, n_intervals: int, n_orientations: int, c: GateConfig) -> None:
-    add(s, "intervals", n_intervals >= c.min_intervals, n_intervals, f">= {c.min_intervals}",
-        f"only {n_intervals} still intervals: hold the vehicle still in more orientations")
-    add(s, "orientations", n_orientations >= min(c.min_intervals, 6), n_orientations, ">= 6 distinct",
-        f"only {n_orientations} distinct orientations: add poses on every side")
+def _data_gates(add, s: str, n_intervals: int, n_orientations: int, c: GateConfig, coverage=None) -> bool:
+    """The gates of the data (:mod:`mavcal.coverage`'s rule when ``coverage``, a
+    :class:`~mavcal.coverage.SensorCoverage`, is given); True when the data identify the sensor."""
+    if coverage is None:
+        add(s, "intervals", n_intervals >= c.min_intervals, n_intervals, f">= {c.min_intervals}",
+            f"only {n_intervals} still intervals: hold the vehicle still in more orientations", "data")
+        add(s, "orientations", n_orientations >= min(c.min_intervals, 6), n_orientations, ">= 6 distinct",
+            f"only {n_orientations} distinct orientations: add poses on every side", "data")
+        return n_intervals >= c.min_intervals and n_orientations >= min(c.min_intervals, 6)
+    r, add_text = coverage.rule, f": {coverage.add}" if coverage.add else ""
+    add(s, "orientations", coverage.n_orientations >= r.min_orientations, coverage.n_orientations,
+        f">= {r.min_orientations} distinct gravity directions",
+        f"only {coverage.n_orientations} distinct gravity directions: too few orientations to identify {s}"
+        f"{add_text}", "data")
+    add(s, "intervals", coverage.n_intervals >= r.min_intervals, coverage.n_intervals, f">= {r.min_intervals}",
+        f"only {coverage.n_intervals} still intervals{add_text}", "data")
+    if coverage.n_field_directions is not None:
+        add(s, "field directions", coverage.n_field_directions >= r.min_field_directions,
+            coverage.n_field_directions, f">= {r.min_field_directions} distinct",
+            f"only {coverage.n_field_directions} distinct field directions: too few headings to identify {s}"
+            f"{add_text}", "data")
+    return bool(coverage.identifiable)
 
 
-def accel_gates(am, *, n_intervals: int, n_orientations: int, tilt_95_deg: float, holdout_mps2: float,
-                config: GateConfig = GateConfig()) -> list[Gate]:
+def accel_gates(am, *, n_intervals: int = 0, n_orientations: int = 0, tilt_95_deg: float, holdout_mps2: float,
+                config: GateConfig = GateConfig(), coverage=None) -> list[Gate]:
     """The gates of one accelerometer (:class:`~mavcal.ardupilot.mapping.AccelMapping`): its own
-    values, its own still intervals, and the tilt bound and held-out error of its own fit."""
+    values, its own still intervals (``coverage``, a :class:`~mavcal.coverage.SensorCoverage`,
+    or the counts), and the tilt bound and held-out error of its own fit."""
     gates: list[Gate] = []
     add, c = _adder(gates), config
     s = f"accel{am.instance}"
@@ -137,9 +176,15 @@ def accel_gates(am, *, n_intervals: int, n_orientations: int, tilt_95_deg: float
     add(s, "scales", np.all((sc >= lo) & (sc <= hi)), worst, f"{lo}-{hi}",
         f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside ArduPilot's {lo}-{hi}: check the IMU "
         "and that the vehicle was still")
-    _data_gates(add, s, n_intervals, n_orientations, c)
-    add(s, "tilt uncertainty", tilt_95_deg <= c.tilt_95_max_deg, tilt_95_deg, f"<= {c.tilt_95_max_deg} deg (95 %)",
-        f"the tilt error could reach {tilt_95_deg:.2f} deg (95 %): add still poses, each held longer")
+    enough = _data_gates(add, s, n_intervals, n_orientations, c, coverage)
+    if enough and tilt_95_deg >= UNIDENTIFIED_TILT_DEG:
+        add(s, "tilt uncertainty", False, tilt_95_deg, f"<= {c.tilt_95_max_deg} deg (95 %)",
+            f"the poses do not identify {s}: the tilt error could reach {tilt_95_deg:.1f} deg (95 %); add poses "
+            "on every side, each held still for 3-5 s", "data")
+    else:
+        add(s, "tilt uncertainty", tilt_95_deg <= c.tilt_95_max_deg, tilt_95_deg,
+            f"<= {c.tilt_95_max_deg} deg (95 %)",
+            f"the tilt error could reach {tilt_95_deg:.2f} deg (95 %): add still poses, each held longer")
     add(s, "held-out error", holdout_mps2 <= c.holdout_accel_max_mps2, holdout_mps2,
         f"<= {c.holdout_accel_max_mps2} m/s^2",
         f"a pose left out of the accelerometer's own fit is predicted {holdout_mps2:.3f} m/s^2 off: the vehicle "
@@ -147,9 +192,9 @@ def accel_gates(am, *, n_intervals: int, n_orientations: int, tilt_95_deg: float
     return gates
 
 
-def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int, n_orientations: int,
+def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_orientations: int = 0,
                   heading_95_deg: float, holdout_mgauss: float, config: GateConfig = GateConfig(),
-                  fit_converged: bool = True, fit_message: str = "") -> list[Gate]:
+                  fit_converged: bool = True, fit_message: str = "", coverage=None) -> list[Gate]:
     """The gates of one compass (:class:`~mavcal.ardupilot.mapping.CompassMapping`): its own
     values, and the heading bound and held-out error of its fit with the accelerometer it is
     paired with. The field gate runs only when the field strength is known (WMM or given).
@@ -175,11 +220,16 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int, n_orient
     odi = float(np.abs(np.asarray(cm.new.odi)).max())
     add(s, "off-diagonal", odi < c.odi_max, odi, f"< {c.odi_max}",
         "soft-iron off-diagonal too large: steel or currents near the compass distort the field")
+    f = cm.field_mgauss
     if cm.field_checked:
-        f = cm.field_mgauss
         lo, hi = c.field_range_mgauss
         add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
             f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range: check --location")
+    else:  # not scaled to a known field: the compass's own scale must still measure an Earth-like field
+        lo, hi = EARTH_FIELD_MGAUSS
+        add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss (Earth's field anywhere)",
+            f"the compass measures a field of {f:.0f} mGauss, which is nowhere on Earth: readings not in mGauss, "
+            "a strong disturbance or a poor fit; give --location or --field-mgauss to check it")
     add(s, "converged", fit_converged, 1.0 if fit_converged else 0.0, "certified as the global optimum",
         f"the fit is not certified as the global optimum: {fit_message or 'no reason given'}; "
         "record more, better spread poses")
@@ -189,11 +239,17 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int, n_orient
         add(s, "device id", False, dev, f"= COMPASS_PRIO{cm.instance + 1}_ID",
             f"compass slot {cm.instance + 1} holds device {int(dev)} but priority {cm.instance + 1} is device "
             f"{int(prio)}: the slots swapped after a priority change; reboot the vehicle and recalibrate")
-    _data_gates(add, s, n_intervals, n_orientations, c)
-    add(s, "heading uncertainty", heading_95_deg <= c.heading_95_max_deg, heading_95_deg,
-        f"<= {c.heading_95_max_deg} deg (95 %)",
-        f"the heading error could reach {heading_95_deg:.2f} deg (95 %): more or better spread poses needed, "
-        "away from steel and magnets")
+    enough = _data_gates(add, s, n_intervals, n_orientations, c, coverage)
+    if enough and heading_95_deg >= UNIDENTIFIED_HEADING_DEG:
+        add(s, "heading uncertainty", False, heading_95_deg, f"<= {c.heading_95_max_deg} deg (95 %)",
+            f"the poses do not identify {s}: the heading error could reach {heading_95_deg:.1f} deg (95 %); add "
+            "poses at new headings (the same sides again, the vehicle turned about 90 deg about the vertical)",
+            "data")
+    else:
+        add(s, "heading uncertainty", heading_95_deg <= c.heading_95_max_deg, heading_95_deg,
+            f"<= {c.heading_95_max_deg} deg (95 %)",
+            f"the heading error could reach {heading_95_deg:.2f} deg (95 %): more poses at different headings "
+            "needed, or steel and magnets nearby disturbed the field")
     add(s, "held-out error", holdout_mgauss <= c.holdout_mag_max_mgauss, holdout_mgauss,
         f"<= {c.holdout_mag_max_mgauss} mGauss",
         f"a pose left out of the fit is predicted {holdout_mgauss:.1f} mGauss off: magnetic disturbance (steel, "

@@ -273,7 +273,7 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
         R_x = np.eye(3)
         orient = old.orient
         note = (f"internal compass: follows AHRS_ORIENTATION, its {rot_deg:.2f} deg misalignment to the "
-                "accelerometer cannot be set alone (use force_external to write it as COMPASS_ORIENT)")
+                "accelerometer cannot be set alone (calibrate --force-external writes it as COMPASS_ORIENT)")
     X = T @ R_x.T  # = M k, symmetric if R_x = U
     Mk = 0.5 * (X + X.T)
     residual = rotation_angle_deg(R_x, U)

@@ -494,6 +494,10 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
         mag_out.append(_recover_mag(log_.params, s, events, used, warnings))
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
                  and not (drop_zero_series and not g.any_nonzero()))
+    if log_.kind == "csv":  # a CSV never carries parameters: its readings are raw by design, not a warning
+        for w in [w for w in warnings if "readings treated as raw" in w]:
+            warnings.remove(w)
+            log.info("%s", w)
     for w in warnings:
         log.warning("%s", w)
     return RawImu(

@@ -475,7 +475,11 @@ class CaptureSession:
         if self._stopped:
             return True, self._stopped + (f" (without {', '.join(offer)}: cannot reach the target)" if offer
                                           else ""), offer
-        if run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining):
+        kept = {p.sensor for p in remaining}
+        data_gate = run is not None and any(g.cause == "data" and g.sensor in kept  # calibrate's coverage rule
+                                            for g in run.gates.failures())
+        if run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining) \
+                and not data_gate:
             return True, stop_reason(self._progress), offer
         if n >= cfg.max_intervals:
             return True, f"{n} intervals: the maximum", offer

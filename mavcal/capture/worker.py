@@ -347,7 +347,7 @@ class CaptureWorker:
         # the console shows each stage of the final fit (held-out refits can take seconds)
         progress = CallbackProgress(lambda stage, frac: self._say(f"{stage} {frac:.0%}"), min_interval_s=2.0)
         self.run = self.session.result(progress=progress)
-        self.say(summary_text(self.run, hints=MAVPROXY_HINTS))
+        self.say(summary_text(self.run, hints=MAVPROXY_HINTS, force=self._cfg.force))
         self._say("fit done; 'mavcal write' shows the parameter changes")
 
     def _write(self, cfg: WorkerSettings, confirmed: bool) -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 
 from mavcal.ardupilot.paramfile import read_param_file
-from mavcal.commands.common import add_link_arguments, check_new_backup, write_with_report
+from mavcal.commands.common import BACKUP_HELP, add_link_arguments, check_new_backup, write_with_report
 from mavcal.errors import UsageError
 
 HELP = "write a .param file to the vehicle (backup first, verify every value, undo on failure)"
@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE", help=".param file (NAME VALUE or NAME,VALUE lines)")
     add_link_arguments(parser)
     parser.add_argument("--backup", metavar="F", default=None,
-                        help="where to save the current values first (default mavcal-backup-DATE-TIME.param)")
+                        help=BACKUP_HELP)
     parser.add_argument("--force", action="store_true",
                         help="write values outside ArduPilot's limits anyway (loudly; those sensors are not "
                              "marked calibrated)")

@@ -9,22 +9,24 @@ failed and the restore failed (the parameters in doubt are listed).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
 
 from mavcal.commands.common import (
+    BACKUP_HELP,
     add_device_map_arguments,
+    add_json_argument,
     add_still_arguments,
     add_write_budget_argument,
     check_new_backup,
     check_optional_dependencies,
+    json_output,
     parse_location,
+    slot_maps,
     still_config,
     write_outputs,
-    write_text_output,
     write_with_report,
 )
 from mavcal.commands.segments import add_csv_rate_argument, csv_rate, csv_rate_hint
@@ -59,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     out = p.add_argument_group("outputs")
     out.add_argument("--param-out", metavar="F",
                      help="write the new parameters as a .param file (MAVProxy/Mission Planner)")
-    out.add_argument("--json", metavar="F", help="write the full JSON report ('-' for stdout)")
+    add_json_argument(out, "the full JSON report")
     out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
     out.add_argument("--jobs", type=int, default=None, metavar="N",
                      help="parallel processes: with several logs, logs at once (default 1); with one log, its "
@@ -99,12 +101,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--connect", metavar="DEVICE", help="vehicle to write to (default: SOURCE when it is a device)")
     w.add_argument("--force", action="store_true", help="write even if a quality gate failed")
     w.add_argument("--dry-run", action="store_true", help="show the parameter diff; write nothing")
-    w.add_argument("--backup", metavar="F", help="backup .param of the old values (default mavcal-backup-DATE.param)")
-    w.add_argument("--baud", type=int, default=115200)
+    w.add_argument("--backup", metavar="F", help=BACKUP_HELP)
+    w.add_argument("--baud", type=int, default=115200,
+                   help="serial baud rate of a live SOURCE or --connect device (default 115200)")
     w.add_argument("--timeout", type=float, default=5.0, metavar="S",
                    help="seconds to wait for the vehicle's heartbeat (live SOURCE and --write; default 5)")
-    w.add_argument("--param-timeout", type=float, default=1.0, metavar="S", help="wait for each parameter echo")
-    w.add_argument("--retries", type=int, default=3)
+    w.add_argument("--param-timeout", type=float, default=1.0, metavar="S",
+                   help="seconds to wait for each parameter echo (default 1)")
+    w.add_argument("--retries", type=int, default=3,
+                   help="PARAM_SET attempts per parameter at least (default 3; see --write-budget)")
     w.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation before writing")
     add_write_budget_argument(w)
     add_device_map_arguments(w)
@@ -155,7 +160,7 @@ def _refused(args, source: str, exc: MavcalError, prep, opts) -> None:
     from mavcal.report.json import refusal_json
 
     verdicts = refusal_verdicts(prep, exc, opts) if prep is not None else ()
-    write_text_output(args.json, json.dumps(refusal_json(source, exc, verdicts, prep), indent=1))
+    json_output(args.json, refusal_json(source, exc, verdicts, prep))
 
 
 def _single(args, source: str) -> int:
@@ -192,24 +197,73 @@ def _single(args, source: str) -> int:
             progress.close()  # an error message then starts on a line of its own
     code = write_outputs(run, args, f"mavcal calibration of {run.source}")
     if args.write or args.dry_run:
-        target = args.connect or (source if device else None)
-        if target is None:
-            raise UsageError("--write needs --connect DEVICE when SOURCE is a log")
-        args.connect = target
-        check_new_backup(args.backup)
+        args.connect = args.connect or source  # checked before any work (check_flags)
         return write_with_report(args, run.params_to_write(args.force), args.backup, "calibration write",
                                  log_params=dict(run.params_before)) or code
     return code
 
 
-def run(args) -> int:
+def _check_numbers(args) -> None:
+    """Numbers no run could use (a zero field strength, a negative timeout, sensor -1): refused."""
+    import math
+
+    def positive(v) -> bool:
+        return v is not None and math.isfinite(v) and v > 0
+
+    bad = [f"--{n.replace('_', '-')} must be a positive number (got {v})"
+           for n, v in (("field_mgauss", args.field_mgauss), ("timeout", args.timeout),
+                        ("param_timeout", args.param_timeout), ("write_budget", args.write_budget),
+                        ("duration", args.duration), ("baud", args.baud))
+           if v is not None and not positive(v)]
+    if not (math.isfinite(args.orient_tol) and args.orient_tol >= 0):
+        bad.append(f"--orient-tol must be 0 or more degrees (got {args.orient_tol})")
+    if args.retries < 1:
+        bad.append(f"--retries must be at least 1 (got {args.retries})")
+    insts = [args.accel, args.compass] + list(args.accel_only or []) + list(args.compass_only or [])
+    if any(i < 0 for i in insts):
+        bad.append("sensor instances count from 0 (accel0, compass1 as the verdicts name them)")
+    if bad:
+        raise UsageError("; ".join(bad))
+
+
+def check_flags(args) -> None:
+    """Refuse (UsageError, exit 2) every combination of options that cannot work, before the
+    source is read: nothing is done and the message names the options the user gave."""
+    from mavcal.sources.reader import is_device
+
     if args.jobs is not None and args.jobs < 1:
         raise UsageError("--jobs must be at least 1")
+    several = len(args.sources) > 1
+    if several and (args.write or args.dry_run or args.param_out or args.report):
+        raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE")
+    writes = args.write or args.dry_run
+    if several and any(is_device(s) for s in args.sources):
+        raise UsageError("a live device is calibrated alone: give it as the only SOURCE")
+    if writes and not (args.connect or is_device(args.sources[0])):
+        given = "--write" if args.write else "--dry-run"
+        raise UsageError(f"{given} needs --connect DEVICE when SOURCE is a log (the vehicle to write to); "
+                         "nothing was done")
+    if args.write and args.dry_run:
+        raise UsageError("--dry-run shows what --write would change without writing: give one of them")
+    unused = [o for o, v in (("--connect", args.connect), ("--backup", args.backup),
+                             ("--map-compass", args.map_compass), ("--map-imu", args.map_imu),
+                             ("--write-budget", args.write_budget)) if v]
+    if unused and not writes:
+        raise UsageError(f"{', '.join(unused)} only appl{'ies' if len(unused) == 1 else 'y'} with --write or "
+                         "--dry-run; nothing was done")
+    _check_numbers(args)
+    if args.write:
+        check_new_backup(args.backup)
+    slot_maps(args)  # --map-compass / --map-imu spelled right
+    still_config(args)  # the thresholds (UsageError when invalid)
+    csv_rate(args)
+
+
+def run(args) -> int:
+    check_flags(args)
     check_optional_dependencies(args)
     if len(args.sources) == 1:
         return _single(args, args.sources[0])
-    if args.write or args.dry_run or args.param_out or args.report:
-        raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE")
     from dataclasses import asdict
 
     from mavcal.batch import calibrate_many, format_fleet_table
@@ -217,5 +271,5 @@ def run(args) -> int:
     rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1)
     print(format_fleet_table(rows))
     if args.json:
-        write_text_output(args.json, json.dumps([asdict(r) for r in rows], indent=1, default=str))
+        json_output(args.json, [asdict(r) for r in rows])
     return max((r.exit_code for r in rows), default=0)

@@ -22,6 +22,8 @@ import sys
 from typing import TextIO
 
 from mavcal.commands.common import (
+    BACKUP_HELP,
+    add_json_argument,
     add_link_arguments,
     check_new_backup,
     check_optional_dependencies,
@@ -56,13 +58,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="position for the World Magnetic Model")
     out = p.add_argument_group("outputs")
     out.add_argument("--param-out", metavar="F", help="write the new parameters as a .param file")
-    out.add_argument("--json", metavar="F", help="write the full JSON report ('-' for stdout)")
+    add_json_argument(out, "the full JSON report")
     out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
     w = p.add_argument_group("writing to the vehicle")
     w.add_argument("--write", action="store_true", help="write the parameters (asks first unless --yes)")
     w.add_argument("--force", action="store_true",
                    help="write the rejected sensors' parameters too (and values outside ArduPilot's limits)")
-    w.add_argument("--backup", metavar="F", help="backup .param of the old values (default mavcal-backup-DATE.param)")
+    w.add_argument("--backup", metavar="F", help=BACKUP_HELP)
 
 
 class StatusPrinter:

@@ -14,12 +14,33 @@ from typing import Any, TextIO
 
 from mavcal.errors import GateError, UsageError
 
-__all__ = ["parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
-           "write_outputs", "confirm", "write_with_report", "check_new_backup", "add_device_map_arguments",
+__all__ = ["add_json_argument", "json_output", "BACKUP_HELP",
+           "parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
+           "write_outputs", "confirm", "write_with_report", "check_new_backup", "add_device_map_arguments", "slot_maps",
            "add_write_budget_argument"]
 
 
 # --------------------------------------------------------------------------- arguments
+
+#: how every command that writes parameters names its default backup file
+#: (:func:`mavcal.link.writer.default_backup_path`)
+BACKUP_HELP = ("backup .param of the old values, never overwritten (default mavcal-backup-YYYYmmdd-HHMMSS.param "
+               "in the current directory)")
+
+
+def add_json_argument(parser: Any, what: str = "the JSON report") -> None:
+    """``--json [F]``, the same in every subcommand: write ``what`` to the file F, or to stdout
+    with ``-`` or with no F (the people's text then goes to stderr)."""
+    parser.add_argument("--json", nargs="?", const="-", default=None, metavar="F",
+                        help=f"write {what} to F ('-' or no F: stdout, the text then goes to stderr)")
+
+
+def json_output(dest: str, doc: Any, say: TextIO | None = None) -> None:
+    """Write ``doc`` as JSON to ``dest`` (``-``: stdout); a file is named on ``say`` (stdout by default)
+    as the .param and the HTML report are."""
+    write_text_output(dest, json.dumps(doc, indent=1, default=str))
+    if dest != "-":
+        print(f"JSON report written to {dest}", file=say or sys.stdout)
 
 def parse_location(text: str) -> tuple:
     """argparse type of ``--location``: ``LAT,LON[,ALT]`` in degrees (and metres) -> (lat, lon, alt)."""
@@ -58,11 +79,12 @@ def add_write_budget_argument(parser: Any) -> None:
 def add_device_map_arguments(parser: Any) -> None:
     """``--map-compass`` / ``--map-imu LOGSLOT:VEHICLESLOT``: write a log's sensor to another vehicle slot."""
     parser.add_argument("--map-compass", action="append", default=[], metavar="LOG:VEHICLE",
-                        help="write the log's compass LOG (1-based priority slot) to the vehicle's slot VEHICLE, "
-                             "even if their device ids differ (repeatable)")
+                        help="write the log's compass LOG to the vehicle's compass VEHICLE, even if their device "
+                             "ids differ (repeatable); named as the verdicts name them, 0-based like --compass: "
+                             "compass0:compass1 (plain numbers are the 1-based priority slots: 1:2 is the same)")
     parser.add_argument("--map-imu", action="append", default=[], metavar="LOG:VEHICLE",
-                        help="write the log's IMU LOG (1-based) to the vehicle's IMU VEHICLE, even if their "
-                             "INS_ACC*_ID differ (repeatable)")
+                        help="write the log's accelerometer LOG to the vehicle's VEHICLE, even if their INS_ACC*_ID "
+                             "differ (repeatable); accel0:accel1 (0-based like --accel), or 1-based numbers 1:2")
 
 
 class _DeprecatedAlias(argparse.Action):
@@ -163,12 +185,12 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
     from mavcal.report.text import gate_refusal_text, summary_text
 
     say = sys.stderr if args.json == "-" else sys.stdout
-    print(summary_text(run, param_table=param_table), file=say)
+    print(summary_text(run, param_table=param_table, force=bool(args.force)), file=say)
     if args.json:
-        write_text_output(args.json, json.dumps(to_json(run), indent=1))
+        json_output(args.json, to_json(run), say)
     if args.report:
         from mavcal.report import write_html
-        write_html(run, args.report)
+        write_html(run, args.report, force=bool(args.force))
         print(f"report written to {args.report}", file=say)
     code = run.exit_code
     if code == 4 and not args.force:
@@ -231,7 +253,7 @@ def confirm(prompt: str, assume_yes: bool) -> None:
         raise UsageError("cancelled; nothing was written")
 
 
-def _slot_maps(args: argparse.Namespace) -> tuple[dict[int, int], dict[int, int]]:
+def slot_maps(args: argparse.Namespace) -> tuple[dict[int, int], dict[int, int]]:
     from mavcal.ardupilot.devices import parse_slot_map
 
     maps: tuple[dict[int, int], dict[int, int]] = ({}, {})
@@ -239,11 +261,28 @@ def _slot_maps(args: argparse.Namespace) -> tuple[dict[int, int], dict[int, int]
                            (maps[1], "imu", getattr(args, "map_imu", None) or [])):
         for t in texts:
             try:
-                a, b = parse_slot_map(t, kind)
+                a, b = parse_slot_map(_one_based(t, kind), kind)
             except ValueError as exc:
                 raise UsageError(f"--map-{kind}: {exc}") from None
             m[a] = b
     return maps
+
+
+def _one_based(text: str, kind: str) -> str:
+    """``compass0:compass1`` / ``accel0:accel1`` (the sensor names the verdicts print, 0-based)
+    -> the 1-based ``1:2`` of :func:`mavcal.ardupilot.devices.parse_slot_map`; plain numbers pass."""
+    prefixes = ("compass",) if kind == "compass" else ("accel", "imu")
+    parts = text.split(":")
+    if len(parts) != 2 or not any(p.startswith(prefixes) for p in parts):
+        return text
+    out = []
+    for p in parts:
+        name = next((x for x in prefixes if p.startswith(x)), None)
+        if name is None or not p[len(name):].isdigit():
+            raise ValueError(f"expected {prefixes[0]}N:{prefixes[0]}M (0-based, as the verdicts name them), "
+                             f"got {text!r}")
+        out.append(str(int(p[len(name):]) + 1))
+    return ":".join(out)
 
 
 def _matched_changes(args: argparse.Namespace, changes: dict, log_params: dict | None, table: dict) -> dict:
@@ -253,7 +292,7 @@ def _matched_changes(args: argparse.Namespace, changes: dict, log_params: dict |
 
     if log_params is None:
         return changes
-    cmap, imap = _slot_maps(args)
+    cmap, imap = slot_maps(args)
     values = {n: v for n, (v, _) in table.items()}
     problems = device_id_problems(changes, log_params, values, compass_map=cmap, imu_map=imap)
     if problems:

@@ -21,7 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("backup_file", metavar="BACKUP", help="backup .param file to restore")
     add_link_arguments(parser)
     parser.add_argument("--backup", metavar="F", default=None,
-                        help="where to save the current values first (default BACKUP-before-restore-DATE-TIME.param)")
+                        help="backup .param of the values before the restore, never overwritten (default "
+                             "BACKUP-before-restore-YYYYmmdd-HHMMSS.param beside BACKUP)")
     parser.add_argument("--force", action="store_true",
                         help="restore values outside ArduPilot's limits anyway (loudly; those sensors are not "
                              "marked calibrated)")

@@ -6,30 +6,38 @@ applied undone), finds the intervals in which the vehicle was held still with th
 thresholds and options as ``calibrate`` and prints them with the coverage diagnosis: text
 for people, ``--json`` for scripts.
 
+Per sensor it says whether the coverage can identify it (gravity directions for an
+accelerometer, field directions, i.e. poses at different headings, for a compass) and which
+poses to add: the rule of :mod:`mavcal.coverage`, the same function whose verdict
+``calibrate``'s data gates apply.
+
 Exit codes (one rule: 4 whenever ``calibrate`` could not use the intervals):
-0 the coverage is "ok" or "reduced" (a calibration can run, with a reduced model when
-"reduced"); 4 the coverage is "insufficient": no still interval at all, or too few /
-too few orientations for any model; 3 unreadable source; 2 bad options. The report
-(text or ``--json``) is printed first either way.
+0 the coverage is "ok" or "reduced" and at least one sensor can be identified (a
+calibration can run, with a reduced model when "reduced"); 4 the coverage is
+"insufficient" (no still interval at all, or too few / too few orientations for any model)
+or it identifies no sensor; 3 unreadable source; 2 bad options. The report (text or
+``--json``) is printed first either way.
 """
 from __future__ import annotations
 
 import argparse
-import json
+import builtins
 import math
+import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
-from mavcal.commands.common import add_still_arguments, still_config
+from mavcal.commands.common import add_json_argument, add_still_arguments, json_output, still_config
 from mavcal.errors import SegmentationError, UsageError
 
 HELP = "find the still intervals of a log and diagnose whether they can calibrate"
 EPILOG = """\
 exit codes:
-  0  coverage ok or reduced: a calibration can run (reduced model when "reduced")
-  4  coverage insufficient: no still interval, or too few intervals/orientations for any model
+  0  coverage ok or reduced and at least one sensor identifiable: a calibration can run
+  4  coverage insufficient (no still interval, or too few intervals/orientations for any
+     model) or no sensor identifiable
   3  unreadable source      2  bad options      70  internal error (a bug: report it with -vv)
 """
 
@@ -37,8 +45,8 @@ exit codes:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG  # exit codes in --help
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("source", metavar="SOURCE", help="log file (.tlog, .bin, .csv) or MAVLink device")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+    parser.add_argument("source", metavar="SOURCE", nargs="?", help="log file (.tlog, .bin, .csv) or MAVLink device")
+    add_json_argument(parser, "the intervals and coverage as JSON")
     parser.add_argument("--no-recover", action="store_true",
                         help="segment the readings as logged (skip undoing the vehicle's calibration)")
     parser.add_argument("--samples", action="store_true", help="with --json: include every interval's samples")
@@ -83,7 +91,7 @@ def _num(x: float) -> Any:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _report(src: str, raw, seg, samples: bool) -> dict[str, Any]:
+def _report(src: str, raw, seg, samples: bool, sensors) -> dict[str, Any]:
     from mavcal.segment import axis_label
 
     cov = seg.coverage
@@ -103,6 +111,9 @@ def _report(src: str, raw, seg, samples: bool) -> dict[str, Any]:
             "largest_empty_cap_deg": _num(cov.largest_empty_cap_deg),
             "messages": list(cov.messages),
         },
+        "sensors": [{"sensor": c.sensor, "identifiable": c.identifiable, "n_intervals": c.n_intervals,
+                     "n_orientations": c.n_orientations, "n_field_directions": c.n_field_directions,
+                     "missing": list(c.missing), "add": c.add, "text": c.text()} for c in sensors],
         "warnings": list(seg.warnings),
     }
     if raw is not None:
@@ -129,7 +140,10 @@ def _report(src: str, raw, seg, samples: bool) -> dict[str, Any]:
     return out
 
 
-def _print_text(rep: dict[str, Any]) -> None:
+def _print_text(rep: dict[str, Any], out: TextIO) -> None:
+    def print(*a) -> None:  # noqa: A001 (every line of the text goes to ``out``)
+        builtins.print(*a, file=out)
+
     print(f"{rep['source']}: accel 0 at {rep['sample_rate_hz'] or 0:.1f} Hz, window {rep['window_samples']} "
           f"samples, stillness from accel{' + gyro' if rep['used_gyro'] else ''}"
           f"{' + mag' if rep['used_mag'] else ''}")
@@ -151,11 +165,15 @@ def _print_text(rep: dict[str, Any]) -> None:
                   f"({g[0]:+.2f} {g[1]:+.2f} {g[2]:+.2f}) {d['label']}")
     c = rep["coverage"]
     ev = c["scatter_eigenvalues"]
-    print(f"coverage: {c['status']}: {c['n_orientations']} distinct orientation"
+    print(f"gravity coverage: {c['status']}: {c['n_orientations']} distinct orientation"
           f"{'s' if c['n_orientations'] != 1 else ''}, smallest scatter eigenvalue {ev[0]:.3f} "
           f"(ideal 0.333), largest empty cap {c['largest_empty_cap_deg']:.0f} deg")
     for w in rep["warnings"]:
         print(f"  - {w}")
+    if rep["sensors"]:
+        print("per sensor (the data gates of calibrate apply the same rule):")
+        for d in rep["sensors"]:
+            print(f"  {d['text']}")
 
 
 def _segment(args, cfg):
@@ -177,14 +195,35 @@ def _segment(args, cfg):
     return prep.log, prep.raw, prep.segmentation
 
 
+def sensor_coverages(seg):
+    """Every sensor's coverage by :mod:`mavcal.coverage`'s rule with ``calibrate``'s default gates
+    (compasses paired with accelerometer 0, as ``calibrate`` pairs them by default)."""
+    from mavcal.coverage import sensor_coverages as coverages
+    from mavcal.pipeline import Options, coverage_rule
+
+    return coverages(seg, 0, coverage_rule(Options(), seg))
+
+
+def _source(args) -> str:
+    """SOURCE; ``segments --json LOG`` (the old switch before the log) still reads LOG."""
+    if args.source is None:
+        if args.json not in (None, "-"):
+            args.source, args.json = args.json, "-"
+        else:
+            raise UsageError("segments needs a SOURCE (a log file or a MAVLink device)")
+    return str(args.source)
+
+
 def run(args) -> int:
+    _source(args)
     cfg = still_config(args)
+    csv_rate(args)
     log_, raw, seg = _segment(args, cfg)
-    rep = _report(str(args.source), raw, seg, bool(args.samples))
+    sensors = sensor_coverages(seg) if seg.intervals else []
+    rep = _report(str(args.source), raw, seg, bool(args.samples), sensors)
+    _print_text(rep, sys.stderr if args.json == "-" else sys.stdout)
     if args.json:
-        print(json.dumps(rep, indent=1))
-    else:
-        _print_text(rep)
+        json_output(args.json, rep)
     if not seg.intervals:
         why = [w for w in seg.warnings if not w.startswith("no still intervals")]
         raise SegmentationError(f"no still intervals in {args.source}"
@@ -193,4 +232,7 @@ def run(args) -> int:
     if seg.coverage.status == "insufficient":
         raise SegmentationError(f"{args.source}: the still intervals cannot calibrate: "
                                 + "; ".join(seg.coverage.messages) + csv_rate_hint(log_))
+    if sensors and not any(c.identifiable for c in sensors):
+        raise SegmentationError(f"{args.source}: the still intervals identify no sensor: "
+                                + "; ".join(f"{c.sensor}: {c.missing[0]}" for c in sensors) + csv_rate_hint(log_))
     return 0

@@ -1,10 +1,13 @@
 """``mavcal simulate``: calibrate a data set simulated as in the paper's Table I and compare with the truth."""
 from __future__ import annotations
 
-import json
+import builtins
+import sys
 import time
 
 import numpy as np
+
+from mavcal.commands.common import add_json_argument, json_output
 
 HELP = "calibrate a simulated data set (the paper's Monte Carlo set-up) and compare with the truth"
 
@@ -14,16 +17,19 @@ def add_arguments(p) -> None:
     p.add_argument("--intervals", type=int, default=15, help="number of still intervals N (default 15)")
     p.add_argument("--method", default="ncar", choices=["ncar", "ncdr", "fcar", "dcar"], help="paper variant")
     p.add_argument("--tol", type=float, default=1e-4, help="stop condition gamma (default 1e-4)")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
+    add_json_argument(p, "the result as JSON")
 
 
 def run(args) -> int:
     import mavcal
     from mavcal import sim
+    from mavcal.core.models import MODEL_CHAIN, MODELS
+    from mavcal.errors import UsageError
 
-    if args.intervals < 1:
-        from mavcal.errors import UsageError
-        raise UsageError("--intervals must be a positive number")
+    least = MODELS[MODEL_CHAIN[-1]].min_intervals
+    if args.intervals < least:  # said in the simulation's terms (no vehicle to hold still here)
+        raise UsageError(f"--intervals {args.intervals}: a simulated data set needs at least {least} still intervals "
+                         f"for the simplest model ({MODELS['full'].min_intervals} for the full joint model)")
     data = sim.simulate(args.intervals, seed=args.seed)
     t0 = time.perf_counter()
     cal = mavcal.calibrate(data.accel_sets, data.mag_sets, method=args.method, tol=args.tol, seed=args.seed)
@@ -40,10 +46,19 @@ def run(args) -> int:
                            "mag": float(np.abs(cal.mag.bias - b_m).max())},
         "h_z": {"estimate": cal.h_z, "truth": h_z},
     }
-    if args.json:
-        print(json.dumps(out, indent=2))
-        return 0
+    say = sys.stderr if args.json == "-" else sys.stdout
     np.set_printoptions(precision=5, suppress=True)
+    _print_text(args, cal, out, dt, h_z, say)
+    if args.json:
+        json_output(args.json, out)
+    return 0
+
+
+def _print_text(args, cal, out: dict, dt: float, h_z: float, say) -> None:
+    def print(*a) -> None:  # noqa: A001 (every line goes to ``say``)
+        builtins.print(*a, file=say)
+
+    delta_a, delta_m = out["delta_accel"], out["delta_mag"]
     print(f"simulated {args.intervals} still intervals (seed {args.seed}), the paper's Table I set-up")
     print(f"calibrated with {args.method.upper()} in {dt * 1e3:.1f} ms: {cal.message}")
     print(f"model: {cal.model_reason}")
@@ -53,4 +68,3 @@ def run(args) -> int:
     print(f"h_z: {cal.h_z:.6f} (truth {h_z:.6f})")
     print("K_a =\n" + str(cal.accel.gain))
     print("K_m =\n" + str(cal.mag.gain))
-    return 0

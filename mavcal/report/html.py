@@ -31,7 +31,7 @@ from mavcal.report.figures import (
     png_bytes,
 )
 from mavcal.report.numbers import IntervalNumbers, interval_numbers
-from mavcal.report.text import format_value, gate_failures_by_sensor, holdout_text, param_rows
+from mavcal.report.text import format_value, gate_failures_by_sensor, holdout_text, written_rows
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ margin-top:1.6em}
 table{border-collapse:collapse;font-size:.88em;margin:.5em 0}
 th,td{border:1px solid #ddd;padding:.25em .6em;text-align:right}th{background:#f5f5f5}
 td.l,th.l{text-align:left}
-tr.changed td{background:#fff8e1}tr.changed td.name{font-weight:bold}
+tr.changed td{background:#fff8e1}tr.changed td.name{font-weight:bold}tr.rejected td{color:#777}
 tr.fail td{background:#ffebee}
 .kv td:first-child{text-align:left;color:#616161}
 figure{margin:1em 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
@@ -157,14 +157,26 @@ def _quality(run) -> list[str]:
             + "</table>"]
 
 
-def _parameters(run) -> list[str]:
+def _parameters(run, force: bool = False) -> list[str]:
+    """Exactly what will be written (:func:`mavcal.report.text.written_rows`); a rejected
+    sensor's parameters say "not written (rejected: ...)" without its values (they are in the JSON)."""
     rows, cls = [], []
-    for n, o, v, ch in param_rows(run):
+    written = written_rows(run, force)
+    for n, o, v, ch, note in written:
+        if v is None:
+            rows.append([_e(n), _e(format_value(o)), _e(note), ""])
+            cls.append("rejected")
+            continue
         d = "-" if o is None else _num(v - float(o), "+.4g")
-        rows.append([_e(n), _e(format_value(o)), _e(format_value(v)), d if ch else ""])
+        rows.append([_e(n), _e(format_value(o)), _e(format_value(v) + (f" ({note})" if note else "")),
+                     d if ch else ""])
         cls.append("changed" if ch else "")
-    n_ch = sum(1 for c in cls if c)
-    return [f"<h2>Parameters: old &rarr; new</h2><p>{n_ch} of {len(rows)} parameters change (highlighted)."
+    n_w = sum(1 for r in written if r[2] is not None)
+    n_ch = sum(1 for c in cls if c == "changed")
+    left = len(written) - n_w
+    return [f"<h2>Parameters: old &rarr; new</h2><p id='param-count'>{n_w} parameter{'s' if n_w != 1 else ''} "
+            f"will be written, {n_ch} of them change (highlighted)"
+            + (f"; {left} of rejected sensors not written: they keep their current values" if left else "") + "."
             + (" <b>A reboot is needed after writing.</b>" if run.mapping.reboot_required else "") + "</p>",
             _table(["parameter", "old", "new", "change"], rows, cls)]
 
@@ -251,11 +263,12 @@ def _notes(run) -> list[str]:
     return P
 
 
-def html_page(run, st: IntervalNumbers | None, images: dict[str, bytes], n_spans: int) -> str:
-    """The whole HTML page: verdict, quality, parameters, dropped terms, figures, gates,
-    intervals, coverage/notes/warnings."""
+def html_page(run, st: IntervalNumbers | None, images: dict[str, bytes], n_spans: int,
+              force: bool = False) -> str:
+    """The whole HTML page: verdict, quality, parameters (what will be written; ``force``: the
+    rejected sensors' too), dropped terms, figures, gates, intervals, coverage/notes/warnings."""
     full = st is not None
-    P = (_top(run) + _quality(run) + _parameters(run) + _dropped(run) + _figures(images, n_spans) + _gates(run)
+    P = (_top(run) + _quality(run) + _parameters(run, force) + _dropped(run) + _figures(images, n_spans) + _gates(run)
          + (_intervals(run, st) if full else []) + _notes(run))
     P.append("</body></html>\n")
     return "\n".join(P)
@@ -269,7 +282,7 @@ def missing_dependencies() -> list[str]:
     return [] if importlib.util.find_spec("matplotlib") is not None else ["matplotlib"]
 
 
-def write_html(run, path, *, png_dir=None) -> Path:
+def write_html(run, path, *, png_dir=None, force: bool = False) -> Path:
     """Write the self-contained HTML report of a calibration run.
 
     Parameters
@@ -280,6 +293,9 @@ def write_html(run, path, *, png_dir=None) -> Path:
     png_dir : str or path-like, optional
         Also write every figure there as ``NAME.png`` (see :data:`FIGURE_NAMES`); the
         directory is created if needed.
+    force : bool
+        The rejected sensors' parameters are written too (``--force``); else the table shows
+        them as not written.
 
     Returns
     -------
@@ -312,7 +328,7 @@ def write_html(run, path, *, png_dir=None) -> Path:
     if not (run.mapping.accel and run.mapping.compass and run.calibration is not None):
         # one kind of sensor only (--accel-only / --compass-only): verdicts, quality, parameters, gates
         try:
-            path.write_text(html_page(run, None, {}, 0))
+            path.write_text(html_page(run, None, {}, 0, force))
         except OSError as exc:
             raise UsageError(f"cannot write {path}: {exc.strerror or exc}") from None
         return path
@@ -328,7 +344,7 @@ def write_html(run, path, *, png_dir=None) -> Path:
             for name, data in images.items():
                 (d / f"{name}.png").write_bytes(data)
             log.info("figures written to %s", d)
-        path.write_text(html_page(run, st, images, n_spans), encoding="utf-8")
+        path.write_text(html_page(run, st, images, n_spans, force), encoding="utf-8")
     except OSError as exc:
         raise UsageError(f"cannot write the report: {exc.filename or path}: {exc.strerror or exc}") from None
     log.info("HTML report written to %s", path)

@@ -150,13 +150,25 @@ def _dropped(run) -> dict[str, Any]:
     return out
 
 
+def _parameters(run) -> dict[str, Any]:
+    """Every parameter of the calibration, old and new; ``"written"`` whether it goes into the
+    .param / write plan (without --force), ``"rejected"`` its sensor's rejection (the new value
+    of a rejected sensor is kept here, marked, and nowhere else)."""
+    from mavcal.report.text import rejection_notes
+
+    old, write, notes = run.mapping.old, run.params_to_write(), rejection_notes(run)
+    sensor_of = {n: s for s, p in run.mapping.by_sensor().items() for n in p}
+    return {n: {"old": _f(old.get(n)), "new": _f(v), "changed": _changed(old.get(n), v), "written": n in write,
+                "rejected": f"{sensor_of[n]}: {notes[sensor_of[n]]}" if sensor_of.get(n) in notes else None}
+            for n, v in sorted(run.mapping.new.items())}
+
+
 def to_json(run) -> dict[str, Any]:
     """The JSON report of a :class:`mavcal.pipeline.CalibrationRun` (a dict for :func:`json.dump`).
 
     ``"sensors"`` holds the per-sensor verdicts and ``"exit_code"`` the CLI's (0, 7 or 4);
     ``"calibration"`` and ``"compass"`` are null when the accelerometers were calibrated alone."""
     seg = run.segmentation
-    old = run.mapping.old
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -165,12 +177,11 @@ def to_json(run) -> dict[str, Any]:
         "accepted": run.accepted,
         "sensors": sensors_json(run.gates),
         "exit_code": run.exit_code,
-        "parameters": {n: {"old": _f(old.get(n)), "new": _f(v), "changed": _changed(old.get(n), v)}
-                       for n, v in sorted(run.mapping.new.items())},
+        "parameters": _parameters(run),
         "reboot_required": run.mapping.reboot_required,
         "quality": {k: _f(v) for k, v in run.quality.__dict__.items()},
         "gates": [{"sensor": g.sensor, "name": g.name, "ok": g.ok, "value": _f(g.value), "limit": g.limit,
-                   "reason": g.reason, "ran": g.ran} for g in run.gates.gates],
+                   "reason": g.reason, "ran": g.ran, "cause": g.cause} for g in run.gates.gates],
         "dropped": _dropped(run),
         "compass": _compass(run.mapping.compass[0]) if run.mapping.compass else None,
         "calibration": None if run.calibration is None else _calibration(run.calibration),
@@ -299,7 +310,8 @@ def from_json(doc: Mapping[str, Any]) -> SavedCalibration:
         q = doc["quality"]
         quality = Quality(**{f.name: _num(q[f.name]) for f in fields(Quality)})
         gates = GateReport(tuple(Gate(g["sensor"], g["name"], bool(g["ok"]), _num(g["value"]), g["limit"],
-                                      g.get("reason", ""), bool(g.get("ran", True))) for g in doc["gates"]))
+                                      g.get("reason", ""), bool(g.get("ran", True)), g.get("cause", ""))
+                                 for g in doc["gates"]))
         intervals = tuple(_interval_from(d) for d in doc["intervals"])
         cal = None if doc["calibration"] is None else _calibration_from(doc["calibration"])
     except (KeyError, TypeError, ValueError) as exc:

@@ -13,7 +13,8 @@ import numpy as np
 from mavcal.ardupilot.paramfile import format_param_value
 
 __all__ = ["summary_text", "holdout_text", "verdict_lines", "next_step", "param_rows", "format_value",
-           "gate_failures_by_sensor", "param_table", "plan_text", "gate_refusal_text", "write_done_text",
+           "gate_failures_by_sensor", "param_table", "written_rows",
+           "rejection_notes", "plan_text", "gate_refusal_text", "write_done_text",
            "write_failed_text", "in_doubt_text", "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS"]
 
 #: how the ``mavcal`` command names the next steps (:func:`next_step`)
@@ -42,19 +43,73 @@ def param_rows(run) -> list[tuple[str, float | None, float, bool]]:
             for n, v in sorted(run.mapping.new.items())]
 
 
+def rejection_notes(run) -> dict[str, str]:
+    """Sensor -> why it is rejected, by the gates its verdict names (the data's, when the data
+    cannot identify it), e.g. ``{"compass0": "field directions"}``; accepted sensors are absent."""
+    out = {}
+    for sensor, gs in run.gates.by_sensor().items():
+        failed = [g for g in gs if not g.ok]
+        shown = [g for g in failed if g.cause == "data"] or failed
+        if shown:
+            out[sensor] = ", ".join(dict.fromkeys(g.name for g in shown))
+    return out
+
+
+def written_rows(run, force: bool = False) -> list[tuple[str, float | None, float | None, bool, str]]:
+    """Every parameter of the calibration as (name, old, new, changed, note): ``new`` and
+    ``changed`` only for what will be written (:meth:`CalibrationRun.params_to_write`, the
+    .param file and the write plan); a parameter left out has ``new`` None and the note
+    ``not written (rejected: <sensor>: <gates>)``; a rejected sensor's value written with
+    ``force`` has the note ``REJECTED (...), written with --force``."""
+    write = run.params_to_write(force)
+    notes = rejection_notes(run)
+    sensor_of = {n: s for s, p in run.mapping.by_sensor().items() for n in p}
+    out = []
+    for n, v in sorted(run.mapping.new.items(), key=lambda nv: (nv[0] not in write, nv[0])):  # written first
+        old = run.mapping.old.get(n)
+        why = f"{sensor_of[n]}: {notes[sensor_of[n]]}" if sensor_of.get(n) in notes else ""
+        if n in write:
+            out.append((n, old, float(v), _changed(old, v), f"REJECTED ({why}), written anyway" if why else ""))
+        else:
+            out.append((n, old, None, False, f"not written (rejected: {why})" if why else "not written"))
+    return out
+
+
 def _group_vectors(rows):
-    """Merge NAME_X/_Y/_Z rows into one (NAME_{X,Y,Z}) row: (label, olds, news, any changed)."""
+    """Merge NAME_X/_Y/_Z rows into one (NAME_{X,Y,Z}) row: (label, olds, news, any changed, note)."""
     out, i = [], 0
     while i < len(rows):
         n = rows[i][0]
         if n.endswith("_X") and i + 2 < len(rows) and rows[i + 1][0] == n[:-1] + "Y" and rows[i + 2][0] == n[:-1] + "Z":
             trio = rows[i:i + 3]
-            out.append((n[:-2] + "_XYZ", [r[1] for r in trio], [r[2] for r in trio], any(r[3] for r in trio)))
+            out.append((n[:-2] + "_XYZ", [r[1] for r in trio], [r[2] for r in trio], any(r[3] for r in trio),
+                        trio[0][4] if len(rows[i]) > 4 else ""))
             i += 3
         else:
-            out.append((n, [rows[i][1]], [rows[i][2]], rows[i][3]))
+            out.append((n, [rows[i][1]], [rows[i][2]], rows[i][3], rows[i][4] if len(rows[i]) > 4 else ""))
             i += 1
     return out
+
+
+def _table_lines(rows) -> list[str]:
+    """The summary's parameter table: what will be written, old -> new (changed marked ``*``),
+    a rejected sensor's parameters as "not written (rejected: ...)" without its values, and
+    the count of what will be written."""
+    grouped = _group_vectors(rows)
+    w = max(len(g[0]) for g in grouped)
+    L = [f"  {'PARAMETER':<{w}}  OLD -> NEW   (* changed)"]
+    for name, olds, news, ch, note in grouped:
+        if news[0] is None:
+            L.append(f"  {name:<{w}}  {note}")
+            continue
+        old_t, new_t = (f"{format_value(olds[0])}", f"{format_value(news[0])}") if len(news) == 1 else (
+            f"({', '.join(format_value(o) for o in olds)})", f"({', '.join(format_value(v) for v in news)})")
+        L.append(f"  {name:<{w}}  {old_t} -> {new_t}{'  *' if ch else ''}{f'  {note}' if note else ''}")
+    n_w = sum(r[2] is not None for r in rows)
+    n_ch = sum(r[3] for r in rows)
+    L.append(f"  ({n_w} parameter{'s' if n_w != 1 else ''} will be written, {n_ch} of them change"
+             + (f"; {len(rows) - n_w} not written" if n_w < len(rows) else "") + "; _X/_Y/_Z shown together)")
+    return L
 
 
 def gate_failures_by_sensor(run) -> dict[str, list[str]]:
@@ -88,6 +143,16 @@ def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str
     return f"next: nothing is written; fix the causes named above and record again ({force_hint} writes anyway)"
 
 
+def _field_flag(cm) -> str:
+    """" -- IMPLAUSIBLE: ..." when a compass not scaled to a known field measures one Earth never has."""
+    from mavcal.ardupilot.gates import EARTH_FIELD_MGAUSS
+
+    lo, hi = EARTH_FIELD_MGAUSS
+    if cm.field_checked or lo <= cm.field_mgauss <= hi:
+        return ""
+    return f" -- IMPLAUSIBLE: Earth's field is {lo:.0f}-{hi:.0f} mGauss everywhere"
+
+
 def holdout_text(run) -> str:
     """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
     q = run.quality
@@ -109,7 +174,7 @@ def holdout_text(run) -> str:
     return f"held-out error: not run ({why})"
 
 
-def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool = True) -> str:
+def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool = True, force: bool = False) -> str:
     """Short human summary of a run for a terminal.
 
     Parameters
@@ -120,13 +185,16 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     param_table : bool
         Include the parameter table (False when a write to the vehicle follows: its plan shows
         the same parameters against the vehicle's current values, so the table is not printed twice).
+    force : bool
+        The rejected sensors' parameters are written too (``--force``): the table shows them as such.
 
     Returns
     -------
     str
         A few lines: the verdict per sensor with its reasons and the next step first, then
-        intervals, model, the 95 % heading and tilt error bounds, the parameter table
-        old -> new (changed values marked ``*``) and the warnings.
+        intervals, model, the 95 % heading and tilt error bounds, the parameter table of
+        exactly what will be written (:func:`written_rows`), old -> new, changed values marked
+        ``*``, a rejected sensor's parameters as "not written (rejected: ...)", and the warnings.
     """
     q = run.quality
     cal = run.calibration
@@ -152,20 +220,10 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
           for am in run.mapping.accel[:1]]
     L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
-          for cm in run.mapping.compass[:1]]
-    rows = param_rows(run) if param_table else []
+          + _field_flag(cm) for cm in run.mapping.compass[:1]]
+    rows = written_rows(run, force) if param_table else []
     if rows:
-        grouped = _group_vectors(rows)
-        w = max(len(g[0]) for g in grouped)
-        L.append(f"  {'PARAMETER':<{w}}  OLD -> NEW   (* changed)")
-        for name, olds, news, ch in grouped:
-            if len(news) == 1:
-                L.append(f"  {name:<{w}}  {format_value(olds[0])} -> {format_value(news[0])}{'  *' if ch else ''}")
-            else:
-                L.append(f"  {name:<{w}}  ({', '.join(format_value(o) for o in olds)}) -> "
-                         f"({', '.join(format_value(v) for v in news)}){'  *' if ch else ''}")
-        n_ch = sum(r[3] for r in rows)
-        L.append(f"  ({n_ch} of {len(rows)} parameters change; _X/_Y/_Z shown together)")
+        L += _table_lines(rows)
     if run.exit_code == 0:  # (the reasons of a rejection are said once, at the top)
         L.append("ACCEPTED: all quality gates passed")
     if run.mapping.reboot_required:

@@ -36,6 +36,7 @@ IMU messages of their segment.
 """
 from __future__ import annotations
 
+import logging
 import re
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -53,6 +54,8 @@ from mavcal.sources.types import ImuLog, LogEvent, PackedValues, ParamTimeline, 
 
 __all__ = ["assemble_tlog", "assemble_dataflash", "imu_series", "Columns", "IMU_MESSAGES", "TLOG_MESSAGES",
            "DATAFLASH_MESSAGES", "SCALED_INSTANCE", "CALIBRATION_COMMANDS", "MG_TO_MS2", "REBOOT_BACKSTEP_S"]
+
+log = logging.getLogger(__name__)
 
 G0 = GRAVITY_MPS2
 MG_TO_MS2 = G0 / 1000.0
@@ -305,7 +308,8 @@ def _integer_imu_series(imu: Mapping[str, DecodedImu | Mapping[str, np.ndarray]]
             continue
         unused = c.accel_mg is None if isinstance(c, DecodedImu) else "xacc" not in c
         if unused:  # SCALED_IMU beside RAW_IMU: its time columns alone (_tlog_vehicle_imu)
-            out.warns.append("SCALED_IMU not used: RAW_IMU carries the same instance 0")
+            # expected of every ArduPilot tlog (both stream instance 0): said under -v only
+            log.info("SCALED_IMU not used: RAW_IMU carries the same instance 0")
             consumed(name)
             continue
         inst = SCALED_INSTANCE[name]

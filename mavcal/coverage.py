@@ -1,0 +1,185 @@
+"""Whether a sensor's still intervals can identify its calibration: the one rule that
+``mavcal segments`` reports and ``mavcal calibrate``'s gates apply.
+
+An **accelerometer** is identified by the gravity directions of its intervals: its offsets
+and per-axis scales (and cross-axis terms) need gravity seen from at least
+:attr:`CoverageRule.min_orientations` distinct directions (clusters ``cluster_deg`` apart),
+in at least :attr:`CoverageRule.min_intervals` intervals.
+
+A **compass** is identified by the directions of Earth's field in its own frame. Each still
+interval's orientation is pinned by the accelerometer only up to the heading, which the
+fit estimates from the compass itself, so an interval in a new field direction adds two
+equations, not three. The compass's own unknowns are 13 (a general 3 x 3 gain and
+soft-iron matrix, which includes its rotation to the accelerometer, three offsets and the
+field's dip), so 7 field directions determine it exactly and
+:attr:`CoverageRule.min_field_directions` (8, as many as the full joint model needs
+intervals) leave the spare equations that tell a fit from an accident of the data. The
+same field direction seen twice adds nothing: a 6-position accelerometer calibration held
+at one heading has 6. The same side held again at another heading (the vehicle turned
+about the vertical) is a new field direction. The compass is paired with the primary
+accelerometer, so its intervals must also hold enough gravity directions.
+
+The field directions come from the raw compass means, centred on the sphere through them
+(an algebraic least-squares fit; their mean when that is degenerate): the hard-iron offset
+shifts every reading alike, so directions from that centre are the field's up to the soft
+iron, far closer than the 20 deg clusters need.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mavcal.segment import Segmentation, axis_label, count_clusters
+
+__all__ = ["CoverageRule", "SensorCoverage", "accel_coverage", "compass_coverage", "sensor_coverages",
+           "field_directions", "UNIDENTIFIED_HEADING_DEG", "UNIDENTIFIED_TILT_DEG"]
+
+#: a 95 % heading bound this large says the poses did not identify the compass (a heading
+#: error that may be anywhere in a half turn is no estimate at all)
+UNIDENTIFIED_HEADING_DEG = 90.0
+#: a 95 % tilt bound this large says the poses did not identify the accelerometer
+UNIDENTIFIED_TILT_DEG = 45.0
+
+#: the six sides, as body-frame gravity directions (FRD: +z down is level)
+_SIDES = np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], dtype=float)
+
+
+@dataclass(frozen=True)
+class CoverageRule:
+    """How many distinct directions identify a sensor (defaults: mavcal's gates)."""
+
+    min_intervals: int = 6
+    min_orientations: int = 6
+    min_field_directions: int = 8
+    cluster_deg: float = 20.0
+
+
+@dataclass(frozen=True)
+class SensorCoverage:
+    """What one sensor's still intervals can identify.
+
+    ``n_field_directions`` is None for an accelerometer. ``missing``: what the data lacks, in
+    words, the data's cause first (empty when identifiable); ``add``: which poses to add.
+    """
+
+    sensor: str
+    identifiable: bool
+    n_intervals: int
+    n_orientations: int
+    n_field_directions: int | None
+    rule: CoverageRule
+    missing: tuple[str, ...] = ()
+    add: str = ""
+
+    def text(self) -> str:
+        """One line: the sensor, whether the coverage identifies it and, if not, why and what to add."""
+        got = f"{self.n_intervals} interval(s), {self.n_orientations} gravity direction(s)"
+        if self.n_field_directions is not None:
+            got += f", {self.n_field_directions} field direction(s)"
+        if self.identifiable:
+            return f"{self.sensor}: can be identified ({got})"
+        return f"{self.sensor}: cannot be identified ({got}): {'; '.join(self.missing)}; {self.add}"
+
+
+def field_directions(mag_means: np.ndarray) -> np.ndarray:
+    """Unit field directions (M, 3) of (N, 3) raw compass means, from the centre of the sphere
+    through them (least squares |m|^2 = 2 c.m + k; their mean when degenerate); means that are
+    not finite or sit at the centre are left out."""
+    M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
+    M = M[np.isfinite(M).all(axis=1)]  # a mean of readings left out (NaN) is no direction
+    if M.shape[0] == 0:
+        return M
+    centre = M.mean(axis=0)
+    if M.shape[0] >= 4:
+        A = np.c_[2.0 * M, np.ones(M.shape[0])]
+        sv = np.linalg.svd(A, compute_uv=False)
+        if sv[-1] > 1e-6 * sv[0]:
+            centre = np.linalg.lstsq(A, (M ** 2).sum(axis=1), rcond=None)[0][:3]
+    d = M - centre
+    n = np.linalg.norm(d, axis=1)
+    keep = n > 1e-9 * max(float(np.abs(M).max()), 1.0)  # a mean at the centre has no direction
+    return d[keep] / n[keep, None]
+
+
+def _finite(dirs: np.ndarray) -> np.ndarray:
+    d = np.asarray(dirs, dtype=float).reshape(-1, 3)
+    return d[np.isfinite(d).all(axis=1)]
+
+
+def _missing_sides(gravity_dirs: np.ndarray) -> list[str]:
+    """The six sides no gravity direction comes within 45 deg of, in words."""
+    g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
+    if g.shape[0] == 0:
+        return [axis_label(s) for s in _SIDES]
+    near = (g @ _SIDES.T).max(axis=0) >= np.cos(np.radians(45.0))
+    return [axis_label(s) for s, ok in zip(_SIDES, near) if not ok]
+
+
+def _gravity_missing(n: int, n_or: int, gravity_dirs: np.ndarray, r: CoverageRule) -> tuple[list[str], str]:
+    missing = []
+    if n_or < r.min_orientations:
+        missing.append(f"only {n_or} distinct gravity direction(s), at least {r.min_orientations} needed "
+                       "(too few orientations)")
+    if n < r.min_intervals and not missing:
+        missing.append(f"only {n} still interval(s), at least {r.min_intervals} needed")
+    sides = _missing_sides(gravity_dirs)
+    if sides:
+        add = f"add poses: {', '.join(sides)}"
+    elif n_or < r.min_orientations:
+        add = "add poses tilted about 45 deg between the sides"
+    else:
+        add = "hold each pose still for 3-5 s"
+    return missing, add
+
+
+def accel_coverage(sensor: str, gravity_dirs: np.ndarray, rule: CoverageRule = CoverageRule()) -> SensorCoverage:
+    """The rule for an accelerometer: its intervals' unit gravity directions (N, 3)."""
+    g = _finite(gravity_dirs)
+    n, n_or = g.shape[0], count_clusters(g, rule.cluster_deg) if g.shape[0] else 0
+    missing, add = _gravity_missing(n, n_or, g, rule)
+    return SensorCoverage(sensor, not missing, n, n_or, None, rule, tuple(missing), add if missing else "")
+
+
+def compass_coverage(sensor: str, gravity_dirs: np.ndarray, mag_means: np.ndarray,
+                     rule: CoverageRule = CoverageRule()) -> SensorCoverage:
+    """The rule for a compass: its intervals' unit gravity directions (of the accelerometer it
+    is paired with) and its raw mean readings, both (N, 3)."""
+    g = _finite(gravity_dirs)
+    n, n_or = g.shape[0], count_clusters(g, rule.cluster_deg) if g.shape[0] else 0
+    f = field_directions(mag_means)
+    n_f = count_clusters(f, rule.cluster_deg) if f.shape[0] else min(n, 1)  # all alike: one direction
+    missing, add = _gravity_missing(n, n_or, g, rule)
+    if n_f < rule.min_field_directions and not missing:  # the gravity directions first: the data's first cause
+        k = rule.min_field_directions - n_f
+        missing.append(f"only {n_f} distinct field direction(s), at least {rule.min_field_directions} needed "
+                       "(too few headings)")
+        turn = (f"add {k} or more poses at new headings (the same sides again, the vehicle turned about 90 deg "
+                "about the vertical)")
+        add = turn
+    return SensorCoverage(sensor, not missing, n, n_or, n_f, rule, tuple(missing), add if missing else "")
+
+
+def _has(d: dict, inst: int) -> bool:
+    v = d.get(inst)
+    return v is not None and v.shape[0] >= 2
+
+
+def sensor_coverages(seg: Segmentation, accel_instance: int = 0, rule: CoverageRule = CoverageRule(),
+                     accels: Sequence[int] | None = None, compasses: Sequence[int] | None = None
+                     ) -> list[SensorCoverage]:
+    """Every sensor's coverage, on the intervals its fit uses: an accelerometer's own intervals
+    (>= 2 of its samples), a compass's intervals with >= 2 samples of it and of the
+    accelerometer ``accel_instance`` it is paired with."""
+    ivs = seg.intervals
+    out = []
+    for a in (seg.accel_instances if accels is None else accels):
+        g = np.array([iv.gravity_dir for iv in ivs if _has(iv.accel_mps2, a)]).reshape(-1, 3)
+        out.append(accel_coverage(f"accel{a}", g, rule))
+    for m in (seg.mag_instances if compasses is None else compasses):
+        used = [iv for iv in ivs if _has(iv.mag_mgauss, m) and _has(iv.accel_mps2, accel_instance)]
+        g = np.array([iv.gravity_dir for iv in used]).reshape(-1, 3)
+        means = np.array([iv.mag_mgauss[m].mean(axis=0) for iv in used]).reshape(-1, 3)
+        out.append(compass_coverage(f"compass{m}", g, means, rule))
+    return out
