@@ -213,7 +213,9 @@ def holdout_part(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Cali
     ``sensor_reading_model``) with R_j estimated from interval j alone.
 
     Every refit, leave-one-out or K-fold, is warm-started from ``cal``
-    (``calibrate(..., start=cal)``: no search, orientations from its parameters, then the
+    (``calibrate(..., start=cal)``: no search, at its point when it converged, i.e. also its
+    orientations of the kept intervals (``start_orientations``: the same optimum as from
+    orientations computed afresh, to the refinement's tolerance), then the
     joint refinement on the kept intervals alone, its LM bounded: 100 iterations per run,
     no 2000-iteration extension), from statistics computed once for all intervals
     (:func:`~mavcal.core.stats.stats_subset`). This keeps the held-out meaning: each refit
@@ -251,10 +253,12 @@ def holdout_part(acc: Sequence[np.ndarray], mag: Sequence[np.ndarray], cal: Cali
     except MavcalError:
         return None
     k, K = part
+    own_R = cal.n_intervals == N and cal.converged  # cal is these N intervals' optimum: its R_i start the refits
     for keep, pred in folds[k * len(folds) // K:(k + 1) * len(folds) // K]:
         try:
             cj = calibrate(stats_subset(sa, at[keep], "accel_sets"), stats_subset(sm, at[keep], "mag_sets"),
-                           method=method, tol=tol, seed=seed, model=cal.model, start=cal)
+                           method=method, tol=tol, seed=seed, model=cal.model, start=cal,
+                           start_orientations=cal.orientations[keep] if own_R else None)
         except MavcalError:
             continue
         mu_m = interval_means([mag[j] for j in pred])

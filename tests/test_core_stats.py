@@ -94,3 +94,16 @@ def test_pooled_scatter_is_the_deviations_product_to_the_bit():
                        for k, n in enumerate(sizes)])
         D = np.concatenate([s - center - m for s, m in zip(sets, mu)])
         assert np.array_equal(st.scatter, D.T @ D)
+
+
+@pytest.mark.parametrize("d1", [1, 2, 3, 8, 23, 41, 128, 1000, 60000])
+def test_f_sf_matches_scipy(d1):
+    from scipy.stats import f as f_dist
+
+    from mavcal.core.stats import f_sf
+    for d2 in (3, 10, 50, 298, 4000, 1e5, 1e6, 1e7):
+        for x in np.concatenate([np.linspace(0.02, 3.0, 25), np.linspace(1.0, 60.0, 40)]):
+            ref = float(f_dist.sf(x, d1, d2))
+            if ref > 1e-250:
+                assert f_sf(x, d1, d2) == pytest.approx(ref, rel=1e-8 if d2 <= 1e5 else 1e-6), (x, d2)
+    assert f_sf(0.0, d1, 10) == 1.0 and f_sf(np.inf, d1, 10) == 0.0 and np.isnan(f_sf(np.nan, d1, 10))

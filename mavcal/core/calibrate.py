@@ -49,14 +49,13 @@ the reweighting then inflated the noise covariance until the wrong basin's chi2 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
 from contextvars import ContextVar
 from dataclasses import replace
 
 import numpy as np
 
 from mavcal.core import steps
-from mavcal.core.certify import certificate, escape_saddle
+from mavcal.core.certify import SAMPLE_COST, certificate, escape_saddle
 from mavcal.core.gauge import branches, canonical
 from mavcal.core.initial import (
     G_UNIT,
@@ -66,13 +65,22 @@ from mavcal.core.initial import (
     rotation_hz_minima,
     search_rotation_hz,
 )
-from mavcal.core.misfit import inflated_covariance, joint_terms, misfit_factors
+from mavcal.core.misfit import (
+    REWEIGHT_P,
+    cost_name,
+    inflated_covariance,
+    inflation,
+    joint_terms,
+    misfit_factors,
+    misfit_p,
+)
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec, choose_model
 from mavcal.core.reconstruct import estimate_orientations, reconstruction_error
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, blas_kernels, refit_covariances
 from mavcal.core.stats import IntervalStats, chi2_sf, interval_stats
 from mavcal.core.subset import diverse_subset, subset_weights
 from mavcal.core.types import Calibration, OptimumCertificate, SensorModel
+from mavcal.core.uncertainty import REDUCTIONS, transform_cov, wald
 from mavcal.errors import EstimationError, InsufficientDataError
 
 log = logging.getLogger(__name__)
@@ -260,41 +268,6 @@ def _refine(spec: ModelSpec, st: steps.State, a: IntervalStats, m: IntervalStats
     return res, Sa, Sm
 
 
-def _wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> tuple[float, int, float]:
-    """Wald statistic of linear constraints sum_k c_k theta_k = 0 on the global parameters."""
-    if res.cov is None:
-        return np.inf, len(constraints), 0.0
-    idx = {n: i for i, n in enumerate(res.names)}
-    C = np.zeros((len(constraints), len(res.names)))
-    for r, con in enumerate(constraints):
-        for name, coef in con.items():
-            C[r, idx[name]] = coef
-    prob_theta = np.concatenate([np.ravel(x) for x in _theta_by_names(res)])
-    v = C @ prob_theta
-    V = C @ (res.cov * scale) @ C.T
-    try:
-        W = float(v @ np.linalg.solve(V, v))
-    except np.linalg.LinAlgError:
-        return np.inf, len(constraints), 0.0
-    return W, len(constraints), chi2_sf(W, len(constraints))
-
-
-def _theta_by_names(res: RefineResult):
-    """Global parameter vector in ``res.names`` order (recomputed from the structured params)."""
-    from mavcal.core.uncertainty import param_value
-
-    p = res.params
-    return [np.array([param_value(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, n) for n in res.names])]
-
-
-# constraints that turn each model of MODEL_CHAIN into the next (on the *full* parameterisation)
-_REDUCTIONS = {
-    "diag-accel": [{"K_a[12]": 1}, {"K_a[13]": 1}, {"K_a[23]": 1}],
-    "ardupilot": [{"K_m[12]": 1, "K_m[21]": -1}, {"K_m[13]": 1, "K_m[31]": -1}, {"K_m[23]": 1, "K_m[32]": -1}],
-    "offsets-scales": [{"K_m[12]": 1}, {"K_m[13]": 1}, {"K_m[23]": 1}],
-}
-
-
 WEAK_DOF = 6  # fewer degrees of freedom than this (N <= 9, full model): many near-exact-fit minima
 WEAK_P = 1e-3  # chi2 p-value below which the fit is suspected to sit in a wrong basin
 
@@ -413,33 +386,46 @@ def _fit_model(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, star
     return _reweight(spec, a, m, method, tol, out) + (costs,)
 
 
-REWEIGHT_LIMIT = 4.0  # a sensor whose chi2/dof exceeds this gets its covariance inflated and the fit redone
+REWEIGHT_ROUNDS = 6  # refits at most, once the noise model is rejected
 
 
 def _reweight(spec: ModelSpec, a, m, method, tol, out):
-    """Refit with each sensor's noise covariance inflated by its misfit (chi2_s / dof_s).
+    """Refit with each sensor's noise covariance inflated by its misfit, when J' shows the noise
+    model is wrong.
 
     The noise covariance comes from the scatter *within* intervals; disturbances that differ
     *between* intervals (magnetic fields that change with the pose, a hand that is not quite
-    still) are not in it, and one badly fitting sensor then dominates the shared orientations
-    and distorts the other. Iterating Sigma_s <- f_s Sigma_s and refitting until the factors
-    are near 1 weights each sensor by how well it actually fits (a scalar version of the
-    paper's covariance refit). Data that fit their noise model (f_s ~ 1) are left unchanged.
+    still, noise correlated in time) are not in it, and one badly fitting sensor then
+    dominates the shared orientations and distorts the other. Iterating Sigma_s <- f_s Sigma_s
+    (f_s = max(1, chi2_s / dof_s), :func:`misfit_factors`) and refitting weights each sensor
+    by how well it actually fits (a scalar version of the paper's covariance refit).
+
+    Only on evidence: a round runs only while J' rejects the noise model at p < ``REWEIGHT_P``
+    = 1e-6 (:func:`mavcal.core.misfit.misfit_p`; the reasoning is in :mod:`mavcal.core.misfit`),
+    so on data that fit their noise model the result stays the optimum of J' with the sample
+    covariances in all but 1 fit in 10^6. When it runs, the result names the cost it minimises
+    (:func:`mavcal.core.misfit.cost_name`) and ``RefineResult.misfit`` keeps the evidence.
     """
     res, Sa, Sm, block_it, block_conv = out
-    for _ in range(6):
+    evidence = res.misfit
+    for _ in range(REWEIGHT_ROUNDS):
         if res.dof <= 0:
             break
-        fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
-        if max(fa, fm) <= REWEIGHT_LIMIT:
+        p = misfit_p(res.cost, res.dof, a, m)
+        if p >= REWEIGHT_P:
             break
+        fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
+        if fa == 1.0 and fm == 1.0:  # no sensor's share is above its dof: nothing to apportion
+            break
+        if evidence is None:
+            evidence = (float(res.cost), int(res.dof), float(p), cost_name(Sa, Sm, a, m, method), spec.name)
         Sa, Sm = Sa * fa, Sm * fm
-        p = res.params
-        st = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
+        q = res.params
+        st = steps.State(q.gains[0], q.biases[0], q.gains[1], q.biases[1], q.h_z, q.R, Sa, Sm)
         prev = res
         res, Sa, Sm = _refine(spec, st, a, m, method, tol)
         res = replace(res, iterations=res.iterations + prev.iterations)
-    return res, Sa, Sm, block_it, block_conv
+    return replace(res, misfit=evidence), Sa, Sm, block_it, block_conv
 
 
 def _fit_model_once(spec: ModelSpec, a, m, method, tol, max_iter, rng, restarts, start, refine, shape,
@@ -512,8 +498,8 @@ def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol,
     for nxt in chain[1:]:
         if (spec.accel_form == "diag" and nxt == "diag-accel") or (spec.mag_form == "sym" and nxt == "ardupilot"):
             continue
-        cons = cons + _REDUCTIONS[nxt]
-        W, k, pval = _wald(res, cons, scale)
+        cons = cons + REDUCTIONS[nxt]
+        W, k, pval = wald(res, cons, scale)
         tests.append(f"{nxt}: Wald chi2={W:.3g} on {k} dof, p={pval:.3g}")
         if pval <= WALD_ALPHA:
             break
@@ -523,6 +509,8 @@ def _select_model(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, tol,
     p = res.params
     start = steps.State(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, p.R, Sa, Sm)
     res2, Sa, Sm, _, _, _ = _fit_model(chosen, a, m, method, tol, max_iter, rng, restarts, start=start)
+    if res.misfit is not None:  # the evidence that first rejected the noise model: the full fit's
+        res2 = replace(res2, misfit=res.misfit)
     note = f"; the simpler {chosen.name} model explains the data as well ({'; '.join(tests)}), so it was used"
     return chosen, replace(res2, iterations=res.iterations + res2.iterations), Sa, Sm, note
 
@@ -542,8 +530,8 @@ def _escape_saddles(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, to
     return res
 
 
-def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs, search_dof: int | None = None
-             ) -> OptimumCertificate:
+def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs, search_dof: int | None = None,
+             names: tuple[str, str] = (SAMPLE_COST, SAMPLE_COST)) -> OptimumCertificate:
     """Local evidence at the final point plus what the search showed (see :mod:`mavcal.core.certify`).
 
     Global evidence: a single start is trusted only when :func:`_weak_evidence` found nothing
@@ -552,7 +540,8 @@ def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs, search_dof
     in real data), when at least two starts reached it; with few degrees of freedom and a
     misfit the data cannot tell a wrong basin from a bad model, so nothing is certified.
     ``search_dof``: the degrees of freedom of the subset the search ran on (large N), when
-    ``costs`` are that subset's.
+    ``costs`` are that subset's. ``names``: (the cost the returned point minimises, at
+    (Sa, Sm); the cost ``costs`` were compared at): the local evidence is for the first.
     """
     prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
     note = ""
@@ -564,7 +553,7 @@ def _certify(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, costs, search_dof
         if misfit and (dof < WEAK_DOF or agree < 2):
             note = (f"the best of {len(costs)} starts leaves chi2/dof = {best / max(dof, 1):.3g} "
                     f"({agree} start(s) reached it, {dof} degrees of freedom): a wrong basin cannot be ruled out")
-    return certificate(prob, res.params, res.cost, costs, note)
+    return certificate(prob, res.params, res.cost, costs, note, cost_name=names[0], start_cost_name=names[1])
 
 
 def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, block_it, block_conv,
@@ -573,7 +562,7 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
     p = res.params
     K_a, K_m, h_z, R, _ = canonical(p.gains[0], p.gains[1], p.h_z, p.R)
     if K_a[1, 1] != p.gains[0][1, 1] or h_z != p.h_z:  # gauge changed: same fit, same covariance up to signs
-        res = replace(res, cov=_transform_cov(res, p, K_a, K_m, h_z))
+        res = replace(res, cov=transform_cov(res, p, K_a, K_m, h_z))
     p = JointParams((K_a, K_m), p.biases, h_z, R)
     cov = inflated_covariance(spec, a, m, Sa, Sm, p, res)
     converged = bool(block_conv and res.converged)
@@ -586,7 +575,15 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
         if not cert.certified:
             converged = False
             msg += f"; not certified as the global optimum: {cert.reason}"
-    if res.dof > 0 and res.cost / res.dof > 4.0:
+    name = cost_name(Sa, Sm, a, m, method)
+    if name != SAMPLE_COST and method in ("ncar", "ncdr"):
+        why = "the weights of the calibration it started from"
+        if res.misfit is not None:
+            J0, dof0, p0, name0, model0 = res.misfit
+            why = (f"{model0} model: {name0} was {J0:.6g} on {dof0} dof, p={p0:.3g} < {REWEIGHT_P:g}: the readings "
+                   "scatter more than their noise (motion in the intervals or magnetic disturbance?)")
+        msg += f"; the returned point is the optimum of {name}, not of {SAMPLE_COST} ({why})"
+    if res.dof > 0 and misfit_p(res.cost, res.dof, a, m) < REWEIGHT_P:
         msg += (f"; chi2/dof = {res.cost / res.dof:.3g}: the readings scatter more than the noise explains "
                 "(motion in the intervals or magnetic disturbance?)")
     log.info(msg)
@@ -597,17 +594,13 @@ def _result(spec: ModelSpec, res: RefineResult, Sa, Sm, a, m, method, reason, bl
         cost=float(res.cost), iterations=int(block_it + res.iterations), converged=converged, message=msg,
         method=method, model=spec.name, model_reason=reason, param_names=res.names, param_cov=cov,
         n_accel=a.n, n_mag=m.n, block_iterations=int(block_it), refine_iterations=int(res.iterations),
-        dof=int(res.dof), certificate=cert, noise_inflation=(_inflation(Sa, a), _inflation(Sm, m)))
-
-
-def _inflation(S: np.ndarray, s: IntervalStats) -> float:
-    """trace(Sigma) / trace(Sigma_hat): 1.0 exactly when ``S`` is the sample covariance itself."""
-    return 1.0 if S is s.sigma_hat else float(np.trace(S) / np.trace(s.sigma_hat))
+        dof=int(res.dof), certificate=cert, noise_inflation=(inflation(Sa, a), inflation(Sm, m)), cost_name=name)
 
 
 def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, seed: int | None = None,
               model: str = "auto", max_iter: int = 1000, restarts: int = 24,
-              noise_floor=None, refine: bool = True, start: Calibration | None = None) -> Calibration:
+              noise_floor=None, refine: bool = True, start: Calibration | None = None,
+              start_orientations: np.ndarray | None = None) -> Calibration:
     """Joint maximum-likelihood calibration of an accelerometer and a magnetometer.
 
     Parameters
@@ -640,6 +633,12 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         has no ``certificate`` (``converged`` says whether the refinement converged).
         Above ``LARGE_N`` intervals the refit begins at the start's noise weights
         (``start.noise_inflation``, see :func:`_start_weights`).
+    start_orientations : (N, 3, 3) array, optional
+        With ``start``: these intervals' orientations in the start's frame, e.g. the start's
+        own ``orientations`` of the intervals a held-out refit keeps. The refinement then
+        begins at the start's point itself (next to this data's optimum) instead of
+        computing each R_i from the start's parameters; the optimum reached is the same (to
+        the refinement's tolerance, rtol 1e-13 on J').
 
     Above ``LARGE_N`` intervals the search runs on a subset of ``SUBSET_N`` (see the module
     docstring), the refinement on all of them.
@@ -672,31 +671,43 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
     opts = (method, tol, max_iter, rng, restarts)
     if start is not None or a.mu.shape[0] > LARGE_N:
         with blas_kernels():  # the same sums by BLAS: equal up to rounding, several times faster at large N
-            return _large_n(spec, reason, a, m, opts, model, start)
+            return _large_n(spec, reason, a, m, opts, model, start, start_orientations)
     fit = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts)
     return _finish(spec, reason, a, m, opts, model, fit)
 
 
 def _finish(spec: ModelSpec, reason: str, a, m, opts, model: str, fit, search_dof: int | None = None,
-            certify: bool = True) -> Calibration:
+            certify: bool = True, start_name: str | None = None) -> Calibration:
     """Model selection, certificate (leaving a saddle first) and the Calibration of a fit
     ``(res, Sa, Sm, block_it, block_conv, start_costs)``; ``search_dof``: the degrees of
     freedom the start costs were reached with when not those of ``res`` (a subset search).
-    ``certify=False`` (warm-started refits, which search nothing): no certificate."""
+    ``certify=False`` (warm-started refits, which search nothing): no certificate. ``start_name``:
+    the cost the start costs were compared at (default: :func:`_start_cost_name`)."""
     method, tol, max_iter, rng, restarts = opts
     res, Sa, Sm, block_it, block_conv, costs = fit
+    start_name = start_name or _start_cost_name(len(costs), a, m, method)
     if model == "auto" and res.cov is not None:
         spec, res2, Sa, Sm, note = _select_model(spec, res, Sa, Sm, a, m, method, tol, max_iter, rng, restarts)
         if res2 is not res:  # reduced model, started from the full model's optimum
             costs, search_dof = (float(res2.cost),), None
+            start_name = cost_name(Sa, Sm, a, m, method)
         res, reason = res2, reason + note
     if not certify:
         return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv)
-    cert = _certify(spec, res, Sa, Sm, a, m, costs, search_dof)
+    names = (cost_name(Sa, Sm, a, m, method), start_name)
+    cert = _certify(spec, res, Sa, Sm, a, m, costs, search_dof, names)
     if cert.min_hessian_eig < 0:  # stopped at a saddle: leave it and certify again
         res = _escape_saddles(spec, res, Sa, Sm, a, m, method, tol)
-        cert = _certify(spec, res, Sa, Sm, a, m, costs, search_dof)
+        cert = _certify(spec, res, Sa, Sm, a, m, costs, search_dof, names)
     return _result(spec, res, Sa, Sm, a, m, method, reason, block_it, block_conv, cert)
+
+
+def _start_cost_name(n_starts: int, a, m, method: str) -> str:
+    """The cost :func:`_fit_model`'s start costs are of: before any reweighting, the sample
+    covariances (a search compares its starts with NCAR even for FCAR/DCAR), or, for one
+    FCAR/DCAR start, its covariance refit."""
+    return SAMPLE_COST if method in ("ncar", "ncdr") or n_starts > 1 else cost_name(a.sigma_hat, m.sigma_hat, a, m,
+                                                                                      method)
 
 
 def _subset_stats(s: IntervalStats, idx: np.ndarray, n: np.ndarray) -> IntervalStats:
@@ -707,7 +718,7 @@ def _subset_stats(s: IntervalStats, idx: np.ndarray, n: np.ndarray) -> IntervalS
 
 
 def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, opts, model: str,
-             start: Calibration | None) -> Calibration:
+             start: Calibration | None, start_R: np.ndarray | None = None) -> Calibration:
     """Search on a subset (or take ``start``), then refine, reweight, select and certify on all N
     (see the module docstring)."""
     method, tol, max_iter, rng, restarts = opts
@@ -736,14 +747,26 @@ def _large_n(spec: ModelSpec, reason: str, a: IntervalStats, m: IntervalStats, o
         Sa, Sm = _start_weights(c, a, m, method)
         block_it, block_conv = 0, True
         reason += "; refined from a given calibration (no search)"
-    st = steps.State(K_a, b_a, K_m, b_m, h_z, np.zeros((N, 3, 3)), Sa, Sm)
-    st = steps.rotations_direct(steps.rotations_approx(st, a, m), a, m)  # each R_i optimal given the start
+    if start is not None and start_R is not None:
+        st = steps.State(K_a, b_a, K_m, b_m, h_z, _checked_orientations(start_R, N), Sa, Sm)
+    else:
+        st = steps.State(K_a, b_a, K_m, b_m, h_z, np.zeros((N, 3, 3)), Sa, Sm)
+        st = steps.rotations_direct(steps.rotations_approx(st, a, m), a, m)  # each R_i optimal given the start
     res, Sa, Sm, _, _, _ = _fit_model(spec, a, m, method, tol, max_iter, rng, restarts, start=st,
                                       more_iter=LM_MORE_ITER if start is None else 0)
     if start is not None:
         costs = (float(res.cost),)
+    subset = None if start is not None else f"{_start_cost_name(len(costs), a, m, method)} of the search subset"
     return _finish(spec, reason, a, m, opts, model, (res, Sa, Sm, block_it, block_conv, costs), search_dof,
-                   certify=start is None)
+                   certify=start is None, start_name=subset)
+
+
+def _checked_orientations(R, N: int) -> np.ndarray:
+    R = np.asarray(R, dtype=float)
+    if R.shape != (N, 3, 3) or not np.all(np.isfinite(R)):
+        raise EstimationError(f"start_orientations must be {N} finite 3x3 rotations (one per interval); "
+                              f"got shape {R.shape}")
+    return R
 
 
 def _start_weights(c: Calibration, a: IntervalStats, m: IntervalStats, method: str) -> tuple[np.ndarray, np.ndarray]:
@@ -758,14 +781,3 @@ def _start_weights(c: Calibration, a: IntervalStats, m: IntervalStats, method: s
         return a.sigma_hat, m.sigma_hat
     fa, fm = c.noise_inflation if method in ("ncar", "ncdr") else (1.0, 1.0)
     return (a.sigma_hat if fa == 1.0 else a.sigma_hat * fa), (m.sigma_hat if fm == 1.0 else m.sigma_hat * fm)
-
-
-def _transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> np.ndarray | None:
-    """Covariance after a discrete gauge change: every parameter maps to +-1 times itself."""
-    if res.cov is None:
-        return None
-    old = _theta_by_names(res)[0]
-    new_res = replace(res, params=JointParams((K_a, K_m), p.biases, h_z, p.R))
-    new = _theta_by_names(new_res)[0]
-    sign = np.where(np.isclose(new, -old) & (old != 0), -1.0, 1.0)
-    return res.cov * np.outer(sign, sign)

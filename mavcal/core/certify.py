@@ -29,6 +29,7 @@ from mavcal.core.types import OptimumCertificate
 GRAD_TOL = 1e-8  # Gauss-Newton decrement allowed, relative to 1 + J'
 EIG_TOL = 1e-9  # smallest scaled profile-Hessian eigenvalue that counts as positive
 AGREE_RTOL = 1e-9  # another start beating the returned cost by more than this refutes it
+SAMPLE_COST = "J' with the sample covariances"  # the paper's J' (Eq. partial_cost) with Sigma_hat
 
 
 def _gradient(prob: JointProblem, theta: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -176,8 +177,17 @@ def escape_saddle(prob: JointProblem, p: JointParams, cost: float) -> JointParam
 
 
 def certificate(prob: JointProblem, p: JointParams, cost: float, start_costs: tuple[float, ...],
-                note: str | None = None) -> OptimumCertificate:
-    """Combine the local evidence at ``p`` with the costs reached from the other starts."""
+                note: str | None = None, *, cost_name: str = SAMPLE_COST,
+                start_cost_name: str | None = None) -> OptimumCertificate:
+    """Combine the local evidence at ``p`` with the costs reached from the other starts.
+
+    ``prob`` is the cost ``p`` minimises (its noise covariances), named ``cost_name``: the
+    local evidence is for that cost, at the returned point. ``start_costs`` are of
+    ``start_cost_name`` (default: the same cost): a search compares its basins before any
+    reweighting (:func:`mavcal.core.calibrate._reweight`), so after a reweighting the returned
+    point is the search's best basin followed to the optimum of the reweighted cost, and the
+    two names differ.
+    """
     dec, lam, why = local_evidence(prob, p)
     best_other = min(start_costs[1:], default=np.inf)
     reasons = [why] if why else []
@@ -189,8 +199,9 @@ def certificate(prob: JointProblem, p: JointParams, cost: float, start_costs: tu
     global_ok = len(reasons) == (1 if why else 0)
     return OptimumCertificate(starts=len(start_costs), start_costs=tuple(float(c) for c in start_costs),
                               grad_decrement=float(dec), min_hessian_eig=float(lam), local_ok=not why,
-                              global_ok=global_ok, reason="; ".join(reasons))
+                              global_ok=global_ok, reason="; ".join(reasons), cost=float(cost), cost_name=cost_name,
+                              start_cost_name=cost_name if start_cost_name is None else start_cost_name)
 
 
-__all__ = ["OptimumCertificate", "certificate", "escape_saddle", "local_evidence", "exact_hessian_blocks",
-           "exact_hessian_fd"]
+__all__ = ["OptimumCertificate", "SAMPLE_COST", "certificate", "escape_saddle", "local_evidence",
+           "exact_hessian_blocks", "exact_hessian_fd"]

@@ -85,6 +85,9 @@ class RefineResult:
     cov: np.ndarray | None  # global parameter covariance (unscaled (J^T J)^-1)
     names: tuple[str, ...]
     dof: int
+    # (J', dof, p, the cost's name, model) that first rejected the noise model and made the fit
+    # reweight its noise covariances (:func:`mavcal.core.calibrate._reweight`); None when none did
+    misfit: tuple[float, int, float, str, str] | None = None
 
 
 class JointProblem:

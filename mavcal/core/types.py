@@ -86,7 +86,11 @@ class OptimumCertificate:
         Fits run from distinct deterministic starts (1 = the default start alone, used when
         it converged with enough degrees of freedom and a chi2 the noise explains).
     start_costs : tuple of float
-        J' (at the initial noise covariances) reached from each start, the returned one first.
+        The cost named ``start_cost_name`` reached from each start, the basin of the returned
+        point first. A search compares its starts before any reweighting, at the sample
+        covariances; when the returned point minimises a reweighted cost (``cost_name``
+        differs) it is that first basin followed to the reweighted optimum, so
+        ``start_costs[0]`` is not its cost (that is ``cost``).
     grad_decrement : float
         Gauss-Newton decrement g^T (J^T J)^-1 g at the returned point (0 at a stationary point).
     min_hessian_eig : float
@@ -99,6 +103,15 @@ class OptimumCertificate:
         The returned point is the best of the starts and the search is trusted (see ``reason``).
     reason : str
         Empty when certified; otherwise why not, in words.
+    cost : float
+        The cost at the returned point, which the local evidence is for (= ``Calibration.cost``).
+    cost_name : str
+        Which cost the returned point minimises: "J' with the sample covariances" (the
+        paper's Eq. ``partial_cost`` with Sigma_hat, the ML optimum), or e.g. "J' with
+        Sigma_m inflated x 12.5 (reweighted)" when the data rejected the noise model
+        (:func:`mavcal.core.calibrate._reweight`), or a FCAR/DCAR covariance refit.
+    start_cost_name : str
+        Which cost ``start_costs`` are of.
     """
 
     starts: int
@@ -108,6 +121,9 @@ class OptimumCertificate:
     local_ok: bool
     global_ok: bool
     reason: str = ""
+    cost: float = float("nan")
+    cost_name: str = "J' with the sample covariances"
+    start_cost_name: str = "J' with the sample covariances"
 
     @property
     def certified(self) -> bool:
@@ -127,7 +143,8 @@ class Calibration:
         R_i such that mean accel reading = accel.gain @ R_i @ gravity + accel.bias.
     cost : float
         J' (paper Eq. ``partial_cost``) at the returned parameters, with the noise
-        covariances in ``noise_cov``.
+        covariances in ``noise_cov``: the sample covariances, unless the data rejected that
+        noise model and the fit was reweighted (``noise_inflation``, ``cost_name``).
     iterations : int
         Block-coordinate iterations of the paper's algorithm (Sec. VII) plus joint
         refinement iterations.
@@ -159,6 +176,10 @@ class Calibration:
         reweighting inflated each sensor's sample noise covariance (1.0 where the noise
         model fitted and nothing was inflated). A warm-started refit
         (``calibrate(..., start=this)``) begins at these weights.
+    cost_name : str
+        Which cost ``cost`` is and the returned point minimises: "J' with the sample
+        covariances" (the ML optimum of the paper), or the reweighted cost, e.g. "J' with
+        Sigma_m inflated x 12.5 (reweighted)"; ``message`` then says on what evidence.
     """
 
     accel: SensorModel
@@ -182,6 +203,7 @@ class Calibration:
     dof: int = 0
     certificate: OptimumCertificate | None = None
     noise_inflation: tuple[float, float] = (1.0, 1.0)
+    cost_name: str = "J' with the sample covariances"
 
     def __post_init__(self) -> None:
         for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):

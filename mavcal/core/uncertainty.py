@@ -5,11 +5,20 @@ parameters (orientations marginalised), inflated by max(1, J'/dof) when the data
 more than the noise model explains. Drawing parameter sets from N(theta_hat, param_cov)
 and pushing them through any derived quantity (ArduPilot parameters, heading and tilt
 errors over a grid of attitudes) gives that quantity's confidence interval.
+
+Also the Wald tests :mod:`mavcal.core.calibrate`'s model selection runs on the full fit
+(:func:`wald`, ``REDUCTIONS``) and the covariance after a discrete gauge change
+(:func:`transform_cov`).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import replace
+
 import numpy as np
 
+from mavcal.core.refine import JointParams, RefineResult
+from mavcal.core.stats import chi2_sf
 from mavcal.core.types import Calibration
 
 
@@ -92,3 +101,49 @@ def parameter_std(cal: Calibration) -> dict[str, float]:
     if cal.param_cov is None:
         return {}
     return {n: float(np.sqrt(max(v, 0.0))) for n, v in zip(cal.param_names, np.diag(cal.param_cov))}
+
+
+# --- Wald tests of the model reductions and the covariance under a gauge change (calibrate) ---
+
+def wald(res: RefineResult, constraints: Sequence[dict], scale: float) -> tuple[float, int, float]:
+    """Wald statistic of linear constraints sum_k c_k theta_k = 0 on the global parameters."""
+    if res.cov is None:
+        return np.inf, len(constraints), 0.0
+    idx = {n: i for i, n in enumerate(res.names)}
+    C = np.zeros((len(constraints), len(res.names)))
+    for r, con in enumerate(constraints):
+        for name, coef in con.items():
+            C[r, idx[name]] = coef
+    prob_theta = np.concatenate([np.ravel(x) for x in theta_by_names(res)])
+    v = C @ prob_theta
+    V = C @ (res.cov * scale) @ C.T
+    try:
+        W = float(v @ np.linalg.solve(V, v))
+    except np.linalg.LinAlgError:
+        return np.inf, len(constraints), 0.0
+    return W, len(constraints), chi2_sf(W, len(constraints))
+
+
+def theta_by_names(res: RefineResult):
+    """Global parameter vector in ``res.names`` order (recomputed from the structured params)."""
+    p = res.params
+    return [np.array([param_value(p.gains[0], p.biases[0], p.gains[1], p.biases[1], p.h_z, n) for n in res.names])]
+
+
+# constraints that turn each model of MODEL_CHAIN into the next (on the *full* parameterisation)
+REDUCTIONS = {
+    "diag-accel": [{"K_a[12]": 1}, {"K_a[13]": 1}, {"K_a[23]": 1}],
+    "ardupilot": [{"K_m[12]": 1, "K_m[21]": -1}, {"K_m[13]": 1, "K_m[31]": -1}, {"K_m[23]": 1, "K_m[32]": -1}],
+    "offsets-scales": [{"K_m[12]": 1}, {"K_m[13]": 1}, {"K_m[23]": 1}],
+}
+
+
+def transform_cov(res: RefineResult, p: JointParams, K_a, K_m, h_z) -> np.ndarray | None:
+    """Covariance after a discrete gauge change: every parameter maps to +-1 times itself."""
+    if res.cov is None:
+        return None
+    old = theta_by_names(res)[0]
+    new_res = replace(res, params=JointParams((K_a, K_m), p.biases, h_z, p.R))
+    new = theta_by_names(new_res)[0]
+    sign = np.where(np.isclose(new, -old) & (old != 0), -1.0, 1.0)
+    return res.cov * np.outer(sign, sign)
