@@ -66,8 +66,10 @@ class _CaptureLoop:
     """Feeds batches to a session and updates it every ``update_every_s`` until it is done."""
 
     def __init__(self, on_status: Callable[[CaptureStatus], None] | None, should_stop: Callable[[], bool] | None,
-                 max_duration_s: float, update_every_s: float) -> None:
+                 max_duration_s: float, update_every_s: float,
+                 on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None] | None = None) -> None:
         self.on_status = on_status
+        self.on_batch = on_batch
         self.should_stop = should_stop
         self.max_duration_s = max_duration_s
         self.update_every_s = update_every_s
@@ -99,6 +101,8 @@ class _CaptureLoop:
         try:
             for batch in batches:
                 session.add(batch)
+                if self.on_batch is not None:
+                    self.on_batch(session, batch)
                 now = time.monotonic()
                 if not stopping:
                     stopping = self._stop_requested(session, now)
@@ -117,7 +121,8 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
                  rate_hz: float = 25.0, should_stop: Callable[[], bool] | None = None,
                  max_duration_s: float = 600.0, update_every_s: float = 0.5, batch_s: float = 0.1,
                  heartbeat_timeout_s: float = 5.0, param_timeout_s: float = 30.0,
-                 on_info: Callable[[LiveCaptureInfo], None] | None = None) -> CaptureSession:
+                 on_info: Callable[[LiveCaptureInfo], None] | None = None,
+                 on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None] | None = None) -> CaptureSession:
     """Run a guided capture on a live vehicle and return the session.
 
     Parameters
@@ -148,6 +153,9 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         Bounds on waiting for the vehicle's heartbeat and for its parameter table.
     on_info : callable, optional
         Called once at the end with a :class:`LiveCaptureInfo`.
+    on_batch : callable, optional
+        ``on_batch(session, batch)`` after every received batch is added (about every
+        ``batch_s``), from the calling thread: e.g. the live page's attitude. Exceptions propagate.
 
     Returns
     -------
@@ -163,7 +171,7 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         (exit code 3).
     """
     rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s)
-    loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s)
+    loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s, on_batch)
     method = "?"
     streams = STREAM_MESSAGE_IDS
     try:
