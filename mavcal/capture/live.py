@@ -17,6 +17,7 @@ The library logs and never prints.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -95,14 +96,15 @@ class _CaptureLoop:
 
     def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]]) -> None:
         """Until the session is done; a KeyboardInterrupt stops it as the user would."""
+        if self.on_batch is not None:
+            self._run_watched(session, batches)
+            return
         self.t_start = time.monotonic()
         last_update = float("-inf")
         stopping = False
         try:
             for batch in batches:
                 session.add(batch)
-                if self.on_batch is not None:
-                    self.on_batch(session, batch)
                 now = time.monotonic()
                 if not stopping:
                     stopping = self._stop_requested(session, now)
@@ -114,6 +116,86 @@ class _CaptureLoop:
             log.info("capture interrupted by the user")
             session.stop("stopped by the user")
             self._update(session)
+
+    def _run_watched(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]]) -> None:
+        """As :meth:`run`, with every batch handed to ``on_batch`` as it arrives, also while the
+        session updates (a refit takes up to seconds): the update runs on a helper thread, the
+        batches received meanwhile are added when it is over, and ``on_status`` is called here."""
+        self.t_start = time.monotonic()
+        last_update = float("-inf")
+        stopping = False
+        pending: list[Sequence[SensorSeries]] = []
+        updater = _Updater(session)
+        assert self.on_batch is not None
+        try:
+            for batch in batches:
+                self.on_batch(session, batch)
+                pending.append(batch)
+                if updater.busy():
+                    continue
+                st = updater.take()  # the finished update's status (its exception raised here)
+                if st is not None and self._report(st).done:
+                    return
+                for b in pending:
+                    session.add(b)
+                pending.clear()
+                now = time.monotonic()
+                if not stopping:
+                    stopping = self._stop_requested(session, now)
+                if stopping or now - last_update >= self.update_every_s:
+                    last_update = now
+                    updater.start()
+        except KeyboardInterrupt:
+            log.info("capture interrupted by the user")
+            updater.join()
+            session.stop("stopped by the user")
+            self._update(session)
+        finally:
+            updater.join()
+
+    def _report(self, st: CaptureStatus) -> CaptureStatus:
+        self.updates += 1
+        if self.on_status is not None:
+            self.on_status(st)
+        return st
+
+
+class _Updater:
+    """One ``session.update()`` at a time on a helper thread (named ``mavcal-capture-update``)."""
+
+    def __init__(self, session: CaptureSession) -> None:
+        self.session = session
+        self._thread: threading.Thread | None = None
+        self._result: CaptureStatus | None = None
+        self._error: BaseException | None = None
+
+    def _work(self) -> None:
+        try:
+            self._result = self.session.update()
+        except BaseException as exc:  # handed to the capture's thread by take()
+            self._error = exc
+
+    def start(self) -> None:
+        self._result, self._error = None, None
+        self._thread = threading.Thread(target=self._work, name="mavcal-capture-update", daemon=True)
+        self._thread.start()
+
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def take(self) -> CaptureStatus | None:
+        """The status of the update that finished since the last take (None if none)."""
+        if self._thread is None:
+            return None
+        self._thread.join()
+        self._thread = None
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+    def join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
 
 
 def capture_live(device: str, *, config: CaptureConfig | None = None, options: Options | None = None,
@@ -154,8 +236,10 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     on_info : callable, optional
         Called once at the end with a :class:`LiveCaptureInfo`.
     on_batch : callable, optional
-        ``on_batch(session, batch)`` after every received batch is added (about every
-        ``batch_s``), from the calling thread: e.g. the live page's attitude. Exceptions propagate.
+        ``on_batch(session, batch)`` with every received batch as it arrives (about every
+        ``batch_s``), from the calling thread, also while the session refits (the updates then
+        run on a helper thread; ``on_status`` is still called from the calling thread): e.g.
+        the live page's attitude. Exceptions propagate.
 
     Returns
     -------

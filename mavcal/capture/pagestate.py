@@ -29,7 +29,9 @@ from mavcal.sources.types import SensorSeries
 
 __all__ = ["LiveAttitude", "PageFeed", "status_view", "sensor_bounds", "result_view", "attitude_matrix"]
 
-_MAX_SAMPLES = 512  # per sensor kept for the live view (a few seconds at the fastest stream)
+_MAX_SAMPLES = 512
+#: the live heading uses the fit so far once its 95 % heading bound is below this (deg)
+FIT_HEADING_MAX_DEG = 10.0  # per sensor kept for the live view (a few seconds at the fastest stream)
 
 
 def attitude_matrix(accel_mps2: Sequence[float], mag_mgauss: Sequence[float] | None) -> np.ndarray | None:
@@ -69,6 +71,14 @@ class LiveAttitude:
         self._gyr: deque[tuple[float, np.ndarray]] = deque(maxlen=_MAX_SAMPLES)
         self._mag: deque[tuple[float, np.ndarray]] = deque(maxlen=_MAX_SAMPLES)
         self._still_since: float | None = None
+        self._compass_cals: tuple[Any, Any] | None = None
+
+    def use_compass_fit(self, old: Any, new: Any) -> None:
+        """Correct the compass readings (sent corrected by ``old``, the calibration in force) by
+        the fit so far (``new``) before taking the heading: the raw compass of an uncalibrated
+        vehicle can be tens of degrees off. ``old``/``new``: :class:`~mavcal.ardupilot.firmware.CompassCal`."""
+        with self._lock:
+            self._compass_cals = (old, new)
 
     def feed(self, batch: Sequence[SensorSeries]) -> None:
         """File the newest readings of the capture's accelerometer, gyro and compass."""
@@ -105,8 +115,8 @@ class LiveAttitude:
         t_now = self._acc[-1][0]
         if not still:
             self._still_since = None
-        elif self._still_since is None:
-            self._still_since = t_now - min(cfg.window_s, t_now - self._acc[0][0])
+        elif self._still_since is None:  # from when it is seen still: the ring fills from empty
+            self._still_since = t_now
 
     def view(self) -> dict[str, Any] | None:
         """``{"C": 3x3 body->NED (magnetic), "still": bool, "still_s": s, "hold_s": s needed}``,
@@ -118,11 +128,17 @@ class LiveAttitude:
             m = self._window(self._mag, 0.3).mean(axis=0) if self._mag else None
             t_now = self._acc[-1][0]
             since = self._still_since
+            cals = self._compass_cals
+        if m is not None and cals is not None:
+            from mavcal.ardupilot.firmware import apply_compass, undo_compass
+
+            m = np.asarray(apply_compass(cals[1], undo_compass(cals[0], m, sensor_frame=True)), float).reshape(3)
         C = attitude_matrix(a, m)
         cfg = self.still
         return {"C": None if C is None else _r(C), "still": since is not None,
                 "still_s": 0.0 if since is None else round(t_now - since, 2),
-                "hold_s": round(cfg.min_duration_s + 2 * cfg.trim_s, 2), "compass": m is not None}
+                "hold_s": round(cfg.min_duration_s + 2 * cfg.trim_s, 2), "compass": m is not None,
+                "heading_source": "fit" if m is not None and cals is not None else "raw"}
 
 
 def _r(a: Any, nd: int = 4) -> Any:
@@ -184,7 +200,7 @@ def result_view(run: Any, changes: dict[str, float], *, hints: dict[str, str] | 
     sensor_of = {n: s for s, names in by_sensor.items() for n in names}
     rejected = run.rejected_params()
     rows = []
-    for name, new in sorted(run.mapping.new.items()):
+    for name, new in sorted(run.mapping.new.items(), key=lambda kv: (sensor_of.get(kv[0], "~"), kv[0])):
         old = run.mapping.old.get(name)
         changed = old is None or np.float32(old) != np.float32(new)
         rows.append({"name": name, "sensor": sensor_of.get(name, ""), "old": format_value(old),
@@ -213,6 +229,7 @@ class PageFeed:
         self.live_every_s = live_every_s
         self.session: Any = None
         self._last_live = float("-inf")
+        self._fit_used: Any = None
 
     def batch(self, session: Any, batch: Sequence[SensorSeries]) -> None:
         """A received batch (the capture's thread)."""
@@ -227,5 +244,18 @@ class PageFeed:
         """A capture status; ``run`` defaults to the session's latest fit."""
         if run is None and self.session is not None:
             run = self.session.run
+        if run is not None and run is not self._fit_used:
+            self._fit_used = run
+            self._use_fit(run)
         phase = "capturing" if not st.done else ("aborted" if st.aborted else "fitting")
         self.set_state(phase=phase, status=status_view(st, self.config, run), live=self.live.view())
+
+    def _use_fit(self, run: Any) -> None:
+        """The live heading from the compass as calibrated so far, once the fit's heading bound
+        is below ``FIT_HEADING_MAX_DEG`` (an early fit can be worse than the raw compass)."""
+        heading = _finite(run.quality.heading_95_deg)
+        if heading is None or heading > FIT_HEADING_MAX_DEG:
+            return
+        for cm in run.mapping.compass:
+            if cm.instance == self.live.mag_instance:
+                self.live.use_compass_fit(cm.old, cm.new)

@@ -49,7 +49,7 @@ function camera(azDeg, elDeg, cx, cy, k, dist) {
 }
 
 // ------------------------------------------------------------------ the vehicle model (body FRD)
-const L = 1.0, W = 0.72, H = 0.22, GROUND = 1.55;
+const L = 1.1, W = 0.8, H = 0.24, GROUND = 1.25, G_HALF = 2.5;
 const V = [];  // box corners: index bits x(+), y(+), z(+)
 for (let i = 0; i < 8; i++) V.push([(i & 1) ? L : -L, (i & 2) ? W : -W, (i & 4) ? H : -H]);
 // faces as corner lists with their outward normal and colour
@@ -80,7 +80,7 @@ function hull(pts) {  // convex hull (monotone chain) of 2-D points
 }
 
 function drawGround(svg, cam) {
-  const g = GROUND, s = 2.3;
+  const g = GROUND, s = G_HALF;
   const corners = [[s, -s, g], [s, s, g], [-s, s, g], [-s, -s, g]].map((p) => cam.project(p));
   el("polygon", { points: polyPoints(corners), fill: "#e8efe6", stroke: "#9fb39a", "stroke-width": 2 }, svg);
   for (let i = -2; i <= 2; i++) {  // grid lines
@@ -90,14 +90,15 @@ function drawGround(svg, cam) {
     el("line", { x1: c[0], y1: c[1], x2: d[0], y2: d[1], stroke: "#cbd8c7", "stroke-width": 1 }, svg);
   }
   // magnetic north: an arrow on the ground and a big N at its end
-  const tail = cam.project([-1.9, 0, g]), head = cam.project([2.0, 0, g]);
-  const l = cam.project([1.55, -0.3, g]), r = cam.project([1.55, 0.3, g]);
+  const tail = cam.project([-s + 0.3, 0, g]), head = cam.project([s + 0.2, 0, g]);
+  const l = cam.project([s - 0.35, -0.35, g]), r = cam.project([s - 0.35, 0.35, g]);
   el("line", { x1: tail[0], y1: tail[1], x2: head[0], y2: head[1], stroke: "#14202b", "stroke-width": 5 }, svg);
   el("polygon", { points: polyPoints([head, l, r]), fill: "#14202b" }, svg);
-  const n = cam.project([2.45, 0, g]);
-  const t = el("text", { x: n[0], y: n[1] + 10, "text-anchor": "middle", "font-size": 34, "font-weight": "bold", fill: "#14202b" }, svg);
+  const n = cam.project([s + 0.75, 0, g]);
+  el("circle", { cx: n[0], cy: n[1], r: 19, fill: "#fff", stroke: "#14202b", "stroke-width": 3 }, svg);
+  const t = el("text", { x: n[0], y: n[1] + 10, "text-anchor": "middle", "font-size": 28, "font-weight": "bold", fill: "#14202b" }, svg);
   t.textContent = "N";
-  for (const [lab, p] of [["E", [0, 2.5, g]], ["S", [-2.45, 0, g]], ["W", [0, -2.5, g]]]) {
+  for (const [lab, p] of [["E", [0, s + 0.35, g]], ["S", [-s - 0.35, 0, g]], ["W", [0, -s - 0.35, g]]]) {
     const q = cam.project(p);
     const u = el("text", { x: q[0], y: q[1] + 7, "text-anchor": "middle", "font-size": 20, fill: "#6b7b68" }, svg);
     u.textContent = lab;
@@ -122,14 +123,17 @@ function drawVehicle(svg, cam, C, ghost) {
   }
   // the nose: a red pyramid on the front face
   const tip = mul(C, NOSE_TIP), base = NOSE_BASE.map((b) => mul(C, b));
+  const noseHidden = dot(mul(C, [1, 0, 0]), sub(cam.eye, mul(C, [L, 0, 0]))) < 0;
+  const nosePolys = [];
   for (let i = 0; i < 4; i++) {
     const a = base[i], b = base[(i + 1) % 4];
     const centre = scale(add(add(a, b), tip), 1 / 3);
     const nW = cross(sub(b, a), sub(tip, a));
     const out = dot(nW, sub(centre, mul(C, [L, 0, 0]))) > 0 ? nW : scale(nW, -1);
     if (dot(out, sub(cam.eye, centre)) <= 0) continue;
-    polys.push({ pts: [a, b, tip], fill: "#d32f2f", depth: dot(sub(centre, cam.eye), cam.f) - 0.05 });
+    nosePolys.push({ pts: [a, b, tip], fill: "#d32f2f", depth: dot(sub(centre, cam.eye), cam.f) - 0.05 });
   }
+  if (!noseHidden) polys.push(...nosePolys);
   polys.sort((p, q) => q.depth - p.depth);
   const g = el("g", { opacity: ghost ? 0.55 : 1 }, svg);
   for (const p of polys) {
@@ -144,9 +148,14 @@ function drawVehicle(svg, cam, C, ghost) {
       }
     }
   }
+  if (noseHidden) {  // a nose pointing away shows through the body, faint and dashed
+    const pts = [tip].concat(base).map((q) => cam.project(q));
+    el("polygon", { points: polyPoints(hull(pts)), fill: "#d32f2f", opacity: 0.45, stroke: "#8e0000",
+                    "stroke-width": 2, "stroke-dasharray": "6 4" }, g);
+  }
 }
 
-const SCENE_CAM = () => camera(35, 30, 220, 150, 74, 9);
+const SCENE_CAM = () => camera(25, 55, 220, 134, 60, 11);
 
 function drawScene(id, C, waiting) {
   const svg = $(id);
@@ -155,7 +164,7 @@ function drawScene(id, C, waiting) {
   drawGround(svg, cam);
   if (C) drawVehicle(svg, cam, C, false);
   else {
-    const t = el("text", { x: 220, y: 170, "text-anchor": "middle", "font-size": 24, fill: "#4a5a68" }, svg);
+    const t = el("text", { x: 220, y: 140, "text-anchor": "middle", "font-size": 24, fill: "#4a5a68" }, svg);
     t.textContent = waiting || "waiting for the vehicle...";
   }
 }
@@ -223,10 +232,10 @@ function drawBars(sensors, st) {
     const lab = document.createElement("div");
     lab.className = "bar-label";
     const name = document.createElement("span");
-    name.textContent = sensorName(s.sensor) + (s.met ? "  \u2713 good" : "");
+    name.textContent = (s.met ? "\u2713 " : "") + sensorName(s.sensor);
     const num = document.createElement("span");
     num.className = "num";
-    num.textContent = s.bound_deg == null ? "-" : `${s.what} ${s.bound_deg.toFixed(2)}\u00b0 / ${s.target_deg}\u00b0`;
+    num.textContent = s.bound_deg == null ? s.what : `${s.what} ${s.bound_deg.toFixed(2)}\u00b0 (aim ${s.target_deg}\u00b0)`;
     lab.append(name, num);
     const bar = document.createElement("div");
     bar.className = "bar" + (s.met ? " met" : "") + (s.bound_deg == null ? " none" : "");
@@ -255,14 +264,17 @@ function instruction(st, live) {
   if (!st || !st.next) return ["Waiting for the vehicle...", ""];
   if (!live || !live.C) return ["Hold the vehicle as shown", ""];
   const dn = downAngle(st.next.C, live.C), all = angleBetween(st.next.C, live.C);
-  const match = dn < 25 && all < 35;
+  // before the first fit the compass is uncalibrated and its heading may be far off: then the
+  // side down is what must match, the direction only roughly
+  const rough = live.heading_source !== "fit";
+  const match = dn < 25 && (all < 35 || (rough && all < 75));
   $("live-figure").classList.toggle("match", match);
   $("live-figure").classList.toggle("near", !match && dn < 25);
   if (performance.now() < countedUntil) return ["\u2713 Pose counted. Now move to the next one", "good"];
-  if (dn >= 25) return ["Turn it over until the same side faces down", "warn"];
-  if (!match) return ["Right side down. Now turn it to face as shown (N on the ground)", "warn"];
+  if (dn >= 25) return ["Tip it over until the same side faces down", "warn"];
+  if (!match) return ["Good side down. Now turn it until the nose points the same way", "warn"];
   if (!live.still) return ["That's it. Now hold it still", "good"];
-  return ["\u2713 Matches. Keep holding still...", "good"];
+  return ["\u2713 That's it. Keep holding still...", "good"];
 }
 
 // ------------------------------------------------------------------ rendering the state
@@ -284,11 +296,16 @@ function renderCapture(st, live) {
   drawSphere(st ? st.down_dirs : [], st && st.next ? st.next.down : null);
   const n = st ? st.n : 0;
   $("poses-count").textContent = `${n} pose${n === 1 ? "" : "s"} held` + (st ? ` (at least ${st.min_poses})` : "");
-  if (performance.now() < countedUntil) setRing(1, "\u2713", true);
+  const hold = $("hold-text");
+  if (performance.now() < countedUntil) { setRing(1, "\u2713", true); hold.textContent = "Counted!"; hold.className = "hold-text good"; }
   else if (live && live.still) {
     const frac = live.still_s / live.hold_s;
-    setRing(frac, frac >= 1 ? "..." : "hold", false);
-  } else setRing(0, live ? "moving" : "-", false);
+    setRing(frac, "", false);
+    hold.textContent = frac >= 1 ? "Still... counting" : "Still: keep holding";
+    hold.className = "hold-text warn";
+  } else { setRing(0, "", false); hold.textContent = live ? "Moving" : "-"; hold.className = "hold-text"; }
+  $("live-note").textContent = !live || !live.C ? "" : live.heading_source === "fit"
+    ? "direction from the compass as calibrated so far" : "direction from the compass before calibration: may be off";
   drawBars(st ? st.sensors : [], st);
 }
 
@@ -312,6 +329,10 @@ function renderResult(res, phase, write) {
     const head = document.createElement("div");
     head.className = "head";
     head.textContent = (v.accepted ? "\u2713 " : "\u2717 ") + sensorName(v.sensor) + (v.accepted ? " good" : " not good");
+    const code = document.createElement("span");
+    code.className = "code";
+    code.textContent = " " + v.sensor;
+    head.appendChild(code);
     card.appendChild(head);
     for (const r of v.reasons) { const p = document.createElement("p"); p.className = "why"; p.textContent = r; card.appendChild(p); }
     box.appendChild(card);
@@ -326,12 +347,13 @@ function renderResult(res, phase, write) {
     if (!r.write) { mark = "not written (" + (r.why_not || "rejected") + ")"; tr.className = "not-written"; }
     else if (!r.changed) mark = "no change";
     else mark = done ? "\u2713 written" : "will be written";
-    tr.append(td(r.name), td(r.old), td(r.new), td(mark, "state" + (r.write && r.changed ? " yes" : "")));
+    tr.append(td(sensorName(r.sensor)), td(r.name), td(r.old), td(r.new), td(mark, "state" + (r.write && r.changed ? " yes" : "")));
     body.appendChild(tr);
   }
   const can = phase === "result";
   $("write").disabled = !can || res.n_write === 0;
   $("decline").disabled = !can;
+  $("write").hidden = $("decline").hidden = ["written", "declined", "failed"].includes(phase);
   $("write").textContent = res.n_write ? `Write ${res.n_write} parameter${res.n_write === 1 ? "" : "s"} to the vehicle` : "Nothing to write";
   $("confirm-text").textContent = `Write ${res.n_write} parameter${res.n_write === 1 ? "" : "s"} to the vehicle now?`;
   if (state.report) { $("report").hidden = false; $("report").href = state.report; }
