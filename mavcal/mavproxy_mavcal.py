@@ -12,6 +12,8 @@ Load it in MAVProxy with ``module load mavcal.mavproxy_mavcal`` (MAVProxy tries
     mavcal restore FILE [yes]   put back a backup .param (same safe writer)
     mavcal set [NAME [VALUE]]   settings: target_deg accel compass rate_hz hold_s force write_budget ...
     mavcal threads          the module's threads (debugging)
+    mavcal ui [nobrowser]   the live page: the pose to hold drawn beside the vehicle now, the
+                            verdict and a Write button (starts a capture if none ran; 127.0.0.1 only)
 
 A thin adapter: the capture, the fits and the writes are :class:`mavcal.capture.worker.CaptureWorker`
 (one worker thread; the same write flow and words as ``mavcal calibrate --write``). Here only
@@ -45,7 +47,7 @@ from mavcal.capture.worker import FED_TYPES, IMU_TYPES, THREAD_PREFIX, CaptureWo
 
 log = logging.getLogger(__name__)
 
-SUBCOMMANDS = ("start", "stop", "status", "next", "fit", "write", "restore", "set", "threads")
+SUBCOMMANDS = ("start", "stop", "status", "next", "fit", "write", "restore", "set", "threads", "ui")
 _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
 _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
@@ -82,14 +84,16 @@ class MavcalModule(mp_module.MPModule):
         self._streams_seen = False  # the worker's streams_active as idle_task last saw it
         self.worker = CaptureWorker(self._vehicle_ids,
                                     host_restores_rates=lambda: self._saved_streamrate is not None)
+        self.page: Any = None  # the live page (mavcal.capture.workerpage.WorkerPage) while it is open
         self.add_command("mavcal", self.cmd_mavcal, "guided IMU/compass calibration",
-                         ["<start|stop|status|next|fit|write|threads>", "restore (FILENAME)",
+                         ["<start|stop|status|next|fit|write|threads|ui>", "restore (FILENAME)",
                           "set (MAVCALSETTING)"])
         self.add_completion_function("(MAVCALSETTING)", self.mavcal_settings.completion)
 
     # ---------------------------------------------------------------- helpers
     def usage(self) -> str:
-        return "usage: mavcal <start|stop|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]|threads>"
+        return ("usage: mavcal <start|stop|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]|threads"
+                "|ui [nobrowser]>")
 
     def _vehicle_ids(self) -> tuple[int, int] | None:
         """(sysid, compid) of the primary vehicle: from its heartbeats, else what MAVProxy's master saw."""
@@ -125,6 +129,8 @@ class MavcalModule(mp_module.MPModule):
             self._print_status()
         elif sub == "next":
             self._print_next()
+        elif sub == "ui":
+            self._open_page(browser=rest[:1] != ["nobrowser"])
         elif sub == "start":  # the worker waits a moment for a first vehicle heartbeat
             w.submit("start", self._snapshot())
         elif sub == "write":
@@ -154,6 +160,30 @@ class MavcalModule(mp_module.MPModule):
             model = run.calibration.model if run.calibration is not None else "accelerometers alone"
             print(f"fitted: model {model}, heading 95 % {run.quality.heading_95_deg:.2f} deg")
 
+    def _open_page(self, browser: bool = True) -> None:
+        """Serve the live page (a new one with a new token once the last one finished), start a
+        capture if none ran, and open the browser."""
+        import webbrowser
+
+        from mavcal.capture.workerpage import WorkerPage
+
+        if self.page is not None and not self.page.finished.is_set():
+            print(f"mavcal: capture page: {self.page.url}")
+            return
+        if self.page is not None:
+            self.page.close()
+        self.page = WorkerPage(self.worker, self._snapshot).start()
+        print(f"mavcal: capture page: {self.page.url}")
+        if not self.worker.capturing and self.worker.run is None and not self.worker.busy:
+            self.worker.submit("start", self._snapshot())
+        if browser:
+            try:
+                opened = webbrowser.open(self.page.url)
+            except Exception:  # any launcher failure: the address is printed
+                opened = False
+            if not opened:
+                print("mavcal: no browser found; open the address above")
+
     def _print_next(self) -> None:
         w = self.worker
         st = w.status
@@ -171,6 +201,9 @@ class MavcalModule(mp_module.MPModule):
         if mtype in IMU_TYPES:
             if self.worker.capturing and self.message_is_from_primary_vehicle(m):
                 self.worker.add_imu(m)
+                page = self.page
+                if page is not None:
+                    page.add_imu(m)
             return
         if mtype not in FED_TYPES or not self.message_is_from_primary_vehicle(m):
             return
@@ -219,6 +252,9 @@ class MavcalModule(mp_module.MPModule):
     def unload(self) -> None:
         """Stop the worker (after the job in progress) and say whether a mavcal thread is left."""
         self.remove_command("mavcal")
+        if self.page is not None:
+            self.page.close()
+            self.page = None
         stopped = self.worker.shutdown(timeout_s=4.0)
         self._follow_streams()
         master = self.master

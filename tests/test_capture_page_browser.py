@@ -309,3 +309,71 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
     assert not [t for t in threading.enumerate() if t.name == THREAD_NAME]
     with pytest.raises(OSError):
         urllib.request.urlopen(url, timeout=3)
+
+
+@pytest.mark.slow
+def test_mavproxy_ui_page_capture_to_a_confirmed_write(browser, start_vehicle, tmp_path):
+    """``mavcal ui`` in a real MAVProxy: the page starts the capture, the hand follows the page,
+    Write on the page (confirmed in its dialog) writes through the worker's safe writer."""
+    import importlib.util
+
+    if importlib.util.find_spec("MAVProxy") is None:
+        pytest.skip("MAVProxy is not installed (pip install --no-deps MAVProxy)")
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+    from test_mavproxy_module import MAVProxy
+
+    drv = browser
+    v = start_vehicle(truth=VehicleTruth.random(5), seed=5, heartbeat_hz=2)
+    before = v.params
+    mp = MAVProxy(v.gcs_device, tmp_path)
+    hand = None
+    try:
+        mp.expect(r"Detected vehicle 1:1", timeout=20)
+        _, at = mp.expect(r"Loaded module mavcal\.mavproxy_mavcal", after=mp.send("module load mavcal.mavproxy_mavcal"))
+        mp.send("mavcal set hold_s 0.6")
+        mp.send(f"mavcal set backup_dir {tmp_path / 'backups'}")
+        ui = mp.send("mavcal ui nobrowser")
+        m, _ = mp.expect(r"mavcal: capture page: (http://127\.0\.0\.1:\d+/\?t=\S+)", after=ui)
+        url = m.group(1)
+        client = PageClient(url)
+        mp.expect(r"mavcal: capture started", after=at, timeout=40)  # 'ui' started the capture
+        drv.get(url)
+        wait_for("the advice on the page", lambda: "level" in _page_text(drv, "pose-words"), 30)
+        _, threads_at = mp.expect(r"mavcal threads: (.*)$", after=mp.send("mavcal threads"))
+        assert "mavcal-ui-feed" in mp.lines[threads_at - 1] and "mavcal-ui" in mp.lines[threads_at - 1]
+        hand = AdviceHand(v, client.advice)
+        hand.start()
+        wait_for("the verdict on the page", lambda: drv.execute_script(
+            "return !document.getElementById('result').hidden && !document.getElementById('write').disabled"), 150)
+        hand.stop()
+        res = client.state()["result"]
+        assert v.param_sets == []
+        _focus_by_tab(drv, "write")
+        ActionChains(drv).send_keys(Keys.ENTER).perform()
+        _focus_by_tab(drv, "confirm-yes", limit=5)
+        ActionChains(drv).send_keys(Keys.ENTER).perform()
+        wait_for("the write's outcome on the page", lambda: "Written" in _page_text(drv, "write-outcome"), 60)
+        mp.expect(r"mavcal: \d+ parameters written and verified", after=at, timeout=10)
+        written = {r["name"] for r in res["params"] if r["write"] and r["changed"]}
+        assert written and {n for n, *_ in v.param_sets} >= written
+        for r in res["params"]:
+            if not r["write"]:
+                assert v.get_param(r["name"]) == pytest.approx(before[r["name"]], abs=1e-6)
+        # the page stopped after the write; the worker goes on
+        wait_for("the page to stop", lambda: _refused(url), 15)
+        _, threads_at = mp.expect(r"mavcal threads: (.*)$", after=mp.send("mavcal threads"))
+        assert mp.lines[threads_at - 1].endswith("mavcal threads: mavcal-worker")
+        mp.expect(r"mavcal threads left: none", after=mp.send("module unload mavcal"), timeout=15)
+    finally:
+        if hand is not None:
+            hand.stop()
+        mp.close()
+
+
+def _refused(url: str) -> bool:
+    try:
+        urllib.request.urlopen(url, timeout=2)
+    except OSError:
+        return True
+    return False

@@ -371,6 +371,10 @@ class CapturePage:
         log.info("page: %s", what)
         return True, what
 
+    def poll_decision(self) -> str | None:
+        """The decision if one was taken (not waiting)."""
+        return self._decision if self._decided.is_set() else None
+
     def wait_decision(self, timeout_s: float | None = None) -> str | None:
         """``"write"``, ``"decline"``, or None after ``timeout_s``. Ctrl-C (KeyboardInterrupt)
         reaches the caller within a fraction of a second."""
