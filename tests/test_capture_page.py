@@ -252,3 +252,140 @@ def test_live_heading_uses_the_fit_so_far():
     assert live.view()["heading_source"] == "raw" and off_deg(live) > 20
     live.use_compass_fit(CompassCal(), CompassCal(ofs_mgauss=tuple(-hard_iron)))
     assert live.view()["heading_source"] == "fit" and np.allclose(np.array(live.view()["C"]), C, atol=1e-3)
+
+
+# ---------------------------------------------------------------------------- `mavcal capture --ui`
+# The capture is replaced by a finished session whose result is a bundled SITL log's calibration, so
+# these tests reach the page's verdict in seconds (the whole flow against the loopback vehicle, in a
+# browser: tests/test_capture_page_browser.py).
+
+@pytest.fixture(scope="module")
+def sitl_run(sitl_dir):
+    from mavcal.pipeline import calibrate_source
+
+    return calibrate_source(str(sitl_dir / "sitl01.tlog"))
+
+
+@pytest.fixture
+def finished_capture(monkeypatch, sitl_run):
+    from mavcal.capture import CaptureStatus
+    from mavcal.capture import live as live_capture
+
+    class Finished:
+        status = CaptureStatus(0.0, True, 15, (), 0.2, 0.02, "full", None, True, "target reached")
+
+        def result(self):
+            return sitl_run
+
+    calls = []
+
+    def fake(device, **kw):
+        calls.append(kw)
+        return Finished()
+
+    monkeypatch.setattr(live_capture, "capture_live", fake)
+    return calls
+
+
+def _run_cli(argv):
+    from mavcal import cli
+
+    out: dict = {}
+    t = threading.Thread(target=lambda: out.setdefault("rc", cli.main(argv)), name="test-cli", daemon=True)
+    t.start()
+    return t, out
+
+
+def _url_from(capsys, seen: list[str], timeout_s: float = 60.0) -> str:
+    import re
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        _, err = capsys.readouterr()
+        seen.append(err)
+        m = re.search(r"capture page: (http://\S+)", "".join(seen))
+        if m:
+            return m.group(1)
+        time.sleep(0.05)
+    raise AssertionError("no page address printed")
+
+
+def _page_of(url: str) -> CapturePage:
+    """A stand-in with the port and token of the page at ``url``, for request()."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    p = CapturePage.__new__(CapturePage)
+    p.port, p.token = parts.port, parts.query.split("=", 1)[1]
+    return p
+
+
+def _wait_phase(page: CapturePage, phase: str, timeout_s: float = 60.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        state = json.loads(request(page, "GET", "/state")[2])
+        if state.get("phase") == phase:
+            return state
+        time.sleep(0.05)
+    raise AssertionError(f"the page never reached {phase!r}")
+
+
+def test_cli_ui_decline_writes_nothing_and_stops_the_server(finished_capture, capsys, monkeypatch, tmp_path):
+    import webbrowser
+
+    opened = []
+    monkeypatch.setattr(webbrowser, "open", lambda url, *a, **k: opened.append(url) or True)
+    t, out = _run_cli(["capture", "--connect", "udpin:127.0.0.1:1", "--ui", "--no-browser",
+                       "--backup", str(tmp_path / "b.param")])
+    seen: list[str] = []
+    url = _url_from(capsys, seen)
+    assert url.startswith("http://127.0.0.1:") and not opened  # --no-browser: printed, not opened
+    page = _page_of(url)
+    state = _wait_phase(page, "result")
+    assert state["result"]["n_write"] > 0 and state["report"]  # the HTML report is linked
+    code, _, html = request(page, "GET", "/report")
+    assert code == 200 and html.startswith(b"<!DOCTYPE html>")
+    assert finished_capture[0]["on_batch"] is not None  # the live attitude is fed
+    code, _, _ = request(page, "POST", "/decline", headers=origin(page), body={"csrf": state["csrf"]})
+    assert code == 200
+    t.join(timeout=30)
+    assert not t.is_alive() and out["rc"] == 0
+    printed, _ = capsys.readouterr()
+    assert "nothing written to the vehicle" in printed
+    assert not (tmp_path / "b.param").exists()
+    assert not [x for x in threading.enumerate() if x.name == THREAD_NAME]
+    with pytest.raises(OSError):
+        request(page, "GET", "/")
+
+
+def test_cli_ui_ctrl_c_while_waiting_stops_the_server(finished_capture, capsys, monkeypatch):
+    def interrupted(self, timeout_s=None):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(CapturePage, "wait_decision", interrupted)
+    from mavcal import cli
+
+    rc = cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--ui", "--no-browser"])
+    _, err = capsys.readouterr()
+    assert rc == 130 and "capture page: http://127.0.0.1:" in err
+    assert not [x for x in threading.enumerate() if x.name == THREAD_NAME]
+
+
+def test_cli_ui_other_interface_only_with_the_flag_and_a_warning(finished_capture, capsys, monkeypatch):
+    monkeypatch.setattr(CapturePage, "wait_decision", lambda self, timeout_s=None: "decline")
+    from mavcal import cli
+
+    rc = cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--ui", "--no-browser", "--ui-host", "127.0.0.2"])
+    _, err = capsys.readouterr()
+    assert rc == 0 and "WARNING: the capture page is served on 127.0.0.2" in err
+    assert "capture page: http://127.0.0.2:" in err
+
+
+def test_cli_ui_usage_errors(capsys):
+    from mavcal import cli
+
+    assert cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--no-browser"]) == 2
+    assert cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--ui-host", "0.0.0.0"]) == 2
+    assert cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--ui", "--ui-port", "70000"]) == 2
+    _, err = capsys.readouterr()
+    assert "go with --ui" in err
