@@ -389,3 +389,62 @@ def test_cli_ui_usage_errors(capsys):
     assert cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--ui", "--ui-port", "70000"]) == 2
     _, err = capsys.readouterr()
     assert "go with --ui" in err
+
+
+def test_finish_without_a_sensor_that_cannot_get_there(page):
+    """A status naming a sensor that cannot reach its target (the stop rule's ``sensors`` and
+    ``offer_finish_without``): the page shows it and its button; the POST is taken only while
+    offered, and the session is told on the capture's thread (PageFeed.status)."""
+    from dataclasses import dataclass, replace
+
+    @dataclass(frozen=True)
+    class Progress:  # the shape of the stop rule's SensorProgress
+        sensor: str
+        kind: str
+        bound_deg: float | None
+        target_deg: float
+        blocked: str = ""
+        dropped: bool = False
+
+        @property
+        def met(self) -> bool:
+            return self.bound_deg is not None and self.bound_deg <= self.target_deg
+
+    @dataclass(frozen=True)
+    class Status:
+        base: object
+        sensors: tuple = ()
+        offer_finish_without: tuple = ()
+        advice_for: str | None = None
+
+        def __getattr__(self, name):
+            return getattr(self.base, name)
+
+    class Session:
+        run = None
+        dropped: list = []
+
+        def finish_without(self, names):
+            self.dropped.append(tuple(names))
+
+    base = CaptureSession(TestVehicle(seed=1).params).update()
+    st = Status(base, (Progress("accel0", "tilt", 0.2, 0.3), Progress("compass1", "heading", 9.0, 0.5, "disturbed")),
+                ("compass1",), "compass1")
+    feed = PageFeed(page.state.set, CaptureConfig())
+    feed.session = Session()
+    assert request(page, "POST", "/finish", headers=origin(page), body={"csrf": page.csrf})[0] == 409  # not offered
+    feed.status(st)
+    view = page.state.get("status")
+    assert view["finish_without"] == ["compass1"] and view["advice_for"] == "compass1"
+    assert [s["sensor"] for s in view["sensors"]] == ["accel0", "compass1"]
+    assert view["sensors"][0]["met"] and view["sensors"][1]["blocked"] == "disturbed"
+    # another origin cannot ask; the page can, once
+    code, _, _ = request(page, "POST", "/finish", headers={**origin(page), "Origin": "http://evil.example"},
+                         body={"csrf": page.csrf})
+    assert code == 403 and not page.take_finish()
+    assert request(page, "POST", "/finish", headers=origin(page), body={"csrf": page.csrf})[0] == 200
+    assert page.take_finish() and not page.take_finish()
+    feed.status(st, finish=True)
+    assert feed.session.dropped == [("compass1",)]
+    feed.status(replace(st, offer_finish_without=()), finish=True)  # nothing offered: nothing dropped
+    assert feed.session.dropped == [("compass1",)]

@@ -179,15 +179,26 @@ def _pose(p: Any) -> dict[str, Any] | None:
             "roll": p.roll_deg, "pitch": p.pitch_deg, "yaw": p.yaw_deg, "down": _r(p.gravity_body)}
 
 
+def _progress_view(st: CaptureStatus, config: CaptureConfig, run: Any) -> list[dict[str, Any]]:
+    """Each sensor's bound against its target: the status's own (``st.sensors``, the stop
+    rule's view, when the session gives it), else from the fit's gates."""
+    progress = getattr(st, "sensors", ()) or ()
+    if not progress:
+        return sensor_bounds(run, config)
+    return [{"sensor": p.sensor, "what": p.kind, "bound_deg": _finite(p.bound_deg), "target_deg": float(p.target_deg),
+             "met": bool(p.met), "blocked": p.blocked, "dropped": bool(p.dropped)} for p in progress]
+
+
 def status_view(st: CaptureStatus, config: CaptureConfig, run: Any = None) -> dict[str, Any]:
     """The page's view of one capture status (``run``: the session's latest fit, for the
-    per-sensor bounds)."""
-    return {"n": st.n_intervals, "still": st.still_now, "done": st.done, "aborted": st.aborted,
-            "reason": st.reason, "messages": list(st.messages), "down_dirs": _r(st.gravity_dirs, 3),
-            "next": _pose(st.next_pose), "heading_deg": _finite(st.heading_95_deg),
+    per-sensor bounds when the status has none of its own)."""
+    return {"n": st.n_intervals, "finish_without": list(getattr(st, "offer_finish_without", ()) or ()),
+            "advice_for": getattr(st, "advice_for", None), "still": st.still_now, "done": st.done,
+            "aborted": st.aborted, "reason": st.reason, "messages": list(st.messages),
+            "down_dirs": _r(st.gravity_dirs, 3), "next": _pose(st.next_pose), "heading_deg": _finite(st.heading_95_deg),
             "tilt_deg": _finite(st.tilt_95_deg), "target_deg": config.target_heading_deg,
             "min_poses": config.min_intervals, "max_poses": config.max_intervals,
-            "sensors": sensor_bounds(run, config)}
+            "sensors": _progress_view(st, config, run)}
 
 
 def result_view(run: Any, changes: dict[str, float], *, hints: dict[str, str] | None = None) -> dict[str, Any]:
@@ -240,8 +251,15 @@ class PageFeed:
             self._last_live = now
             self.set_state(live=self.live.view())
 
-    def status(self, st: CaptureStatus, run: Any = None) -> None:
-        """A capture status; ``run`` defaults to the session's latest fit."""
+    def status(self, st: CaptureStatus, run: Any = None, finish: bool = False) -> None:
+        """A capture status; ``run`` defaults to the session's latest fit. ``finish``: the page
+        asked to finish without the sensors the status offers to leave out; the session is told
+        (:meth:`~mavcal.capture.CaptureSession.finish_without`, when it has one) here, between
+        two updates, so call it from the thread that updates the session."""
+        if finish and getattr(st, "offer_finish_without", ()) and self.session is not None:
+            finish_without = getattr(self.session, "finish_without", None)
+            if finish_without is not None:
+                finish_without(list(st.offer_finish_without))
         if run is None and self.session is not None:
             run = self.session.run
         if run is not None and run is not self._fit_used:

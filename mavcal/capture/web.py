@@ -15,7 +15,7 @@ A local web page is a door into the vehicle, so by default:
   without it, or with a wrong one, 403;
 * the ``Host`` header must name this server (``127.0.0.1:PORT`` / ``localhost:PORT``, or the
   host given): a DNS-rebinding page gets 403;
-* a POST (``/write``, ``/decline``) must also come from this page: ``Origin`` present and equal
+* a POST (``/write``, ``/decline``, ``/finish``) must also come from this page: ``Origin`` present and equal
   to this server, ``Sec-Fetch-Site`` (when sent) ``same-origin``, a JSON body (a cross-site
   form cannot send one without a CORS preflight, which is refused: no CORS header is ever
   sent) carrying the per-session CSRF token that only the page's event stream reveals;
@@ -196,7 +196,7 @@ class _Handler(BaseHTTPRequestHandler):
         if checked is None or not self._same_origin():
             return
         path, _ = checked
-        if path not in ("/write", "/decline"):
+        if path not in ("/write", "/decline", "/finish"):
             self._refuse(404, "not found")
             return
         ctype = (self.headers.get("Content-Type") or "").split(";")[0].strip().lower()
@@ -220,7 +220,10 @@ class _Handler(BaseHTTPRequestHandler):
         if path == "/write" and body.get("confirmed") is not True:
             self._refuse(400, "the write was not confirmed")
             return
-        ok, why = page.decide("write" if path == "/write" else "decline")
+        if path == "/finish":
+            ok, why = page.request_finish()
+        else:
+            ok, why = page.decide("write" if path == "/write" else "decline")
         self._send(200 if ok else 409, json.dumps({"ok": ok, "message": why}).encode(), "application/json")
 
     def do_OPTIONS(self) -> None:  # a CORS preflight: refused, and no CORS header is ever sent
@@ -302,6 +305,7 @@ class CapturePage:
         self._accepting = False  # True while a decision (write / decline) is awaited
         self._decided = threading.Event()
         self._can_write = False
+        self._finish = False
         self._lock = threading.Lock()
         self._streams = 0
         self._delivered = 0
@@ -370,6 +374,23 @@ class CapturePage:
             self._decided.set()
         log.info("page: %s", what)
         return True, what
+
+    def request_finish(self) -> tuple[bool, str]:
+        """"Finish without" the sensors the capture offers to leave out (a server thread):
+        recorded only while the page shows such an offer; :meth:`take_finish` hands it over."""
+        status = self.state.get("status") or {}
+        if self.state.get("phase") != "capturing" or not status.get("finish_without"):
+            return False, "nothing to finish without now"
+        with self._lock:
+            self._finish = True
+        return True, "finishing without " + ", ".join(status["finish_without"])
+
+    def take_finish(self) -> bool:
+        """True once after the page asked to finish without the sensors offered (the capture's
+        thread calls it and tells the session)."""
+        with self._lock:
+            asked, self._finish = self._finish, False
+        return asked
 
     def poll_decision(self) -> str | None:
         """The decision if one was taken (not waiting)."""

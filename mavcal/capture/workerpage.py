@@ -111,6 +111,11 @@ class WorkerPage:
         if self._feed is not None and st is not None and st is not self._status:
             self._status = st
             self._feed.status(st, session.run if session is not None else None)
+        if self.page.take_finish():
+            try:  # the worker's own job tells the session, on its thread
+                w.submit("finish")
+            except KeyError:
+                log.info("this worker cannot finish without a sensor")
         if w.busy == "fit":
             self.page.state.set(phase="fitting")
         run = w.run

@@ -154,7 +154,7 @@ def _capture(args: argparse.Namespace, config, options, page) -> int:
 
         def on_status(st) -> None:
             printer(st)
-            feed.status(st)
+            feed.status(st, finish=page.take_finish())
 
     session = live_capture.capture_live(args.connect, config=config, options=options, on_status=on_status,
                                         baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,

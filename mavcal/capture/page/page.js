@@ -213,7 +213,7 @@ function setRing(frac, text, done) {
 function sensorName(s) {
   const m = /^(accel|compass)(\d+)$/.exec(s);
   if (!m) return s;
-  return (m[1] === "accel" ? "Accelerometer " : "Compass ") + (Number(m[2]) + 1);
+  return (m[1] === "accel" ? "Accelerometer " : "Compass ") + m[2];  // numbered from 0, as the verdicts
 }
 
 function drawBars(sensors, st) {
@@ -237,8 +237,10 @@ function drawBars(sensors, st) {
     num.className = "num";
     num.textContent = s.bound_deg == null ? s.what : `${s.what} ${s.bound_deg.toFixed(2)}\u00b0 (aim ${s.target_deg}\u00b0)`;
     lab.append(name, num);
+    if (s.dropped) num.textContent = "left out";
     const bar = document.createElement("div");
-    bar.className = "bar" + (s.met ? " met" : "") + (s.bound_deg == null ? " none" : "");
+    bar.className = "bar" + (s.met ? " met" : "") + (s.bound_deg == null ? " none" : "") +
+      (s.blocked ? " blocked" : "") + (s.dropped ? " dropped" : "");
     bar.setAttribute("role", "meter");
     bar.setAttribute("aria-label", sensorName(s.sensor) + " " + s.what);
     const fill = document.createElement("div");
@@ -246,8 +248,18 @@ function drawBars(sensors, st) {
     fill.style.width = (100 * frac).toFixed(0) + "%";
     bar.appendChild(fill);
     row.append(lab, bar);
+    if (s.blocked && !s.dropped) {
+      const why = document.createElement("p");
+      why.className = "blocked-why";
+      why.textContent = "\u2717 cannot get there: " + s.blocked;
+      row.appendChild(why);
+    }
     box.appendChild(row);
   }
+  const offer = (st && st.finish_without) || [];
+  const fin = $("finish");
+  fin.hidden = offer.length === 0;
+  fin.textContent = "Finish without " + offer.map(sensorName).join(", ");
 }
 
 // ------------------------------------------------------------------ matching the pose
@@ -293,6 +305,7 @@ function renderCapture(st, live) {
   drawScene("scene-target", st && st.next ? st.next.C : null, st && st.done ? "done" : "waiting for the first advice...");
   drawScene("scene-live", live ? live.C : null);
   $("pose-words").textContent = st && st.next ? "In words: " + st.next.words : "";
+  $("pose-for").textContent = st && st.next && st.advice_for ? "This pose helps " + sensorName(st.advice_for) + " most." : "";
   drawSphere(st ? st.down_dirs : [], st && st.next ? st.next.down : null);
   const n = st ? st.n : 0;
   $("poses-count").textContent = `${n} pose${n === 1 ? "" : "s"} held` + (st ? ` (at least ${st.min_poses})` : "");
@@ -329,10 +342,6 @@ function renderResult(res, phase, write) {
     const head = document.createElement("div");
     head.className = "head";
     head.textContent = (v.accepted ? "\u2713 " : "\u2717 ") + sensorName(v.sensor) + (v.accepted ? " good" : " not good");
-    const code = document.createElement("span");
-    code.className = "code";
-    code.textContent = " " + v.sensor;
-    head.appendChild(code);
     card.appendChild(head);
     for (const r of v.reasons) { const p = document.createElement("p"); p.className = "why"; p.textContent = r; card.appendChild(p); }
     box.appendChild(card);
@@ -417,6 +426,12 @@ function setup() {
     $("write").disabled = true; $("decline").disabled = true;
     const r = await post("write", { csrf: state.csrf, confirmed: true });
     if (!r.ok) { $("write-outcome").textContent = r.message; }
+  });
+  $("finish").addEventListener("click", async () => {
+    $("finish").disabled = true;
+    const r = await post("finish", { csrf: state.csrf });
+    $("finish").disabled = false;
+    if (!r.ok) $("messages").textContent = r.message;
   });
   $("decline").addEventListener("click", async () => {
     $("write").disabled = true; $("decline").disabled = true;
