@@ -246,7 +246,9 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
             words = _page_text(drv, "pose-words")
             matched = drv.execute_script("return document.getElementById('live-figure').classList.contains('match')")
             holding = "Still" in _page_text(drv, "hold-text")  # the ring filling
-            return n >= 4 and st.get("next") and st["next"]["words"] in words and matched and holding
+            assert client.state().get("phase") == "capturing", "the capture ended before a mid-capture view"
+            bounds = any(s["bound_deg"] is not None for s in st.get("sensors", []))  # after the first fit
+            return n >= 6 and bounds and st.get("next") and st["next"]["words"] in words and matched and holding
         wait_for("a mid-capture view with the advised pose matched", mid, 120, poll_s=0.05)
         assert drv.execute_script("return document.querySelectorAll('#scene-target polygon').length") > 3
         assert drv.execute_script("return document.querySelectorAll('#sphere circle').length") >= 5
