@@ -8,6 +8,13 @@ printed, the outputs are written, and the parameters are written to the vehicle 
 confirmation (interactive y/N, or ``--write``/``--write --yes``) through the same safe
 writer as ``calibrate --write``.
 
+With ``--ui`` the capture is also shown on a local web page (:mod:`mavcal.capture.web`, opened
+in the browser unless ``--no-browser``): the pose to hold drawn beside the vehicle now, the
+poses done, each sensor's bound, then the verdict and the parameters; the write is then
+confirmed on the page (Write, and its dialog) instead of y/N, or happens at once with
+``--write --yes``; Don't write, Ctrl-C or ``--ui-wait`` seconds without an answer write nothing.
+The page's server stops when the command ends.
+
 Exit codes as ``calibrate``: 0 every sensor accepted (and written when asked); 7 some sensors
 accepted (only their parameters are written), some rejected; 2 usage; 3 the device does not
 answer; 4 aborted (impossible field, magnetic disturbance), no sensor accepted or too little
