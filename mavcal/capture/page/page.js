@@ -79,6 +79,16 @@ function hull(pts) {  // convex hull (monotone chain) of 2-D points
   return lower.slice(0, -1).concat(upper.slice(0, -1));
 }
 
+function inside(p, poly) {  // p within the convex polygon (either winding)
+  let sign = 0;
+  for (let i = 0; i < poly.length; i++) {
+    const a = poly[i], b = poly[(i + 1) % poly.length];
+    const z = (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]);
+    if (z !== 0) { if (sign && Math.sign(z) !== sign) return false; sign = Math.sign(z); }
+  }
+  return true;
+}
+
 function drawGround(svg, cam) {
   const g = GROUND, s = G_HALF;
   const corners = [[s, -s, g], [s, s, g], [-s, s, g], [-s, -s, g]].map((p) => cam.project(p));
@@ -123,7 +133,6 @@ function drawVehicle(svg, cam, C, ghost) {
   }
   // the nose: a red pyramid on the front face
   const tip = mul(C, NOSE_TIP), base = NOSE_BASE.map((b) => mul(C, b));
-  const noseHidden = dot(mul(C, [1, 0, 0]), sub(cam.eye, mul(C, [L, 0, 0]))) < 0;
   const nosePolys = [];
   for (let i = 0; i < 4; i++) {
     const a = base[i], b = base[(i + 1) % 4];
@@ -133,7 +142,10 @@ function drawVehicle(svg, cam, C, ghost) {
     if (dot(out, sub(cam.eye, centre)) <= 0) continue;
     nosePolys.push({ pts: [a, b, tip], fill: "#d32f2f", depth: dot(sub(centre, cam.eye), cam.f) - 0.05 });
   }
-  if (!noseHidden) polys.push(...nosePolys);
+  polys.push(...nosePolys);
+  // a nose behind the body (pointing away, or down under it) shows through, faint and dashed
+  const outline = hull(W3.map((p) => cam.project(p)));
+  const noseHidden = dot(mul(C, [1, 0, 0]), sub(cam.eye, mul(C, [L, 0, 0]))) < 0 && inside(cam.project(tip), outline);
   polys.sort((p, q) => q.depth - p.depth);
   const g = el("g", { opacity: ghost ? 0.55 : 1 }, svg);
   for (const p of polys) {
@@ -272,14 +284,26 @@ function downAngle(Ca, Cb) {  // between the body directions that point down
   return deg(Math.acos(Math.max(-1, Math.min(1, dot(Ca[2], Cb[2])))));
 }
 
+// Before the first fit the compass is uncalibrated: its heading can be tens of degrees off. Then
+// the live vehicle is drawn with its measured tilt turned to the target's heading (the rotation
+// about the vertical that brings it closest), and only the side down has to match.
+function shownLive(st, live) {
+  if (!live || !live.C) return null;
+  if (live.heading_source === "fit" || !st || !st.next) return live.C;
+  const T = st.next.C, Cl = live.C;
+  const M = [0, 1, 2].map((i) => [0, 1, 2].map((j) => dot(Cl[i], T[j])));  // Cl T^T
+  const psi = Math.atan2(M[0][1] - M[1][0], M[0][0] + M[1][1]);
+  const c = Math.cos(psi), s = Math.sin(psi);
+  const Rz = [[c, -s, 0], [s, c, 0], [0, 0, 1]];
+  return [0, 1, 2].map((i) => [0, 1, 2].map((j) => Rz[i][0] * Cl[0][j] + Rz[i][1] * Cl[1][j] + Rz[i][2] * Cl[2][j]));
+}
+
 function instruction(st, live) {
   if (!st || !st.next) return ["Waiting for the vehicle...", ""];
   if (!live || !live.C) return ["Hold the vehicle as shown", ""];
   const dn = downAngle(st.next.C, live.C), all = angleBetween(st.next.C, live.C);
-  // before the first fit the compass is uncalibrated and its heading may be far off: then the
-  // side down is what must match, the direction only roughly
-  const rough = live.heading_source !== "fit";
-  const match = dn < 25 && (all < 35 || (rough && all < 75));
+  const rough = live.heading_source !== "fit";  // heading not measured yet: the side down must match
+  const match = dn < 25 && (rough || all < 35);
   $("live-figure").classList.toggle("match", match);
   $("live-figure").classList.toggle("near", !match && dn < 25);
   if (performance.now() < countedUntil) return ["\u2713 Pose counted. Now move to the next one", "good"];
@@ -303,7 +327,7 @@ function renderCapture(st, live) {
   ins.textContent = st && st.done && !state.result ? (st.aborted ? "Stopped: " + st.reason : "Done capturing. Calculating...") : text;
   ins.className = "instruction " + (st && st.aborted ? "bad" : cls);
   drawScene("scene-target", st && st.next ? st.next.C : null, st && st.done ? "done" : "waiting for the first advice...");
-  drawScene("scene-live", live ? live.C : null);
+  drawScene("scene-live", shownLive(st, live));
   $("pose-words").textContent = st && st.next ? "In words: " + st.next.words : "";
   $("pose-for").textContent = st && st.next && st.advice_for ? "This pose helps " + sensorName(st.advice_for) + " most." : "";
   drawSphere(st ? st.down_dirs : [], st && st.next ? st.next.down : null);
@@ -318,7 +342,8 @@ function renderCapture(st, live) {
     hold.className = "hold-text warn";
   } else { setRing(0, "", false); hold.textContent = live ? "Moving" : "-"; hold.className = "hold-text"; }
   $("live-note").textContent = !live || !live.C ? "" : live.heading_source === "fit"
-    ? "direction from the compass as calibrated so far" : "direction from the compass before calibration: may be off";
+    ? "direction from the compass as calibrated so far"
+    : "direction not measured yet (six poses): point the nose as drawn";
   drawBars(st ? st.sensors : [], st);
 }
 
