@@ -1,7 +1,7 @@
 """The live capture page in a real browser (headless chromium driven by selenium through
 Debian's chromium-driver), on a whole guided capture of the loopback vehicle:
 
-* the page loads with the token and is refused without it;
+* the page loads with the token and is refused without it, or under another host name;
 * while the capture runs it shows the advised pose (the words and the drawing) and the
   vehicle's live attitude; a hand (a thread) follows the advice it reads from the page's own
   state, as a person follows the drawing;
@@ -231,6 +231,10 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
         # refused without the token, in the browser too
         drv.get(url.split("?")[0])
         assert "403" in drv.find_element("tag name", "body").text
+        # another name for this computer (chromium resolves *.localhost to 127.0.0.1), as a DNS
+        # rebinding page would use: the Host header is wrong, refused even with the token
+        drv.get(url.replace("127.0.0.1", "rebind.localhost"))
+        assert "403 wrong Host" in drv.find_element("tag name", "body").text
         drv.get(url)
         wait_for("the first advice and the live attitude on the page",
                  lambda: drv.execute_script("return document.querySelectorAll('#scene-live polygon').length") > 3
