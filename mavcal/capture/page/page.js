@@ -371,7 +371,7 @@ function renderResult(res, phase, write) {
     for (const r of v.reasons) { const p = document.createElement("p"); p.className = "why"; p.textContent = r; card.appendChild(p); }
     box.appendChild(card);
   }
-  $("next-step").textContent = res.next_step;
+  $("next-step").textContent = ["written", "declined", "failed"].includes(phase) ? "" : res.next_step;
   const body = $("params").tBodies[0];
   body.textContent = "";
   const done = phase === "written";
