@@ -88,14 +88,17 @@ def shoot(drv, name: str) -> Path:
     return path
 
 
-def wait_for(what: str, cond, timeout_s: float, poll_s: float = 0.1):
+def wait_for(what: str, cond, timeout_s: float, poll_s: float = 0.1, show=None):
+    """``cond()`` once true; the timeouts are generous (a loaded 2-core CI machine), and a
+    failure says what ``show()`` returns (e.g. the page's state)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         got = cond()
         if got:
             return got
         time.sleep(poll_s)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+    seen = f"; seen: {show()}" if show is not None else ""
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}{seen}")
 
 
 class PageClient:
@@ -202,6 +205,7 @@ def _page_text(drv, element_id: str) -> str:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)
 def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle, tmp_path, monkeypatch):
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.keys import Keys
@@ -212,7 +216,7 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
     urls: list[str] = []
     monkeypatch.setattr(webbrowser, "open", lambda url, *a, **k: urls.append(url) or True)
     result: dict = {}
-    argv = ["capture", "--connect", vehicle.gcs_device, "--hold", "0.6", "--rate", "25", "--duration", "150",
+    argv = ["capture", "--connect", vehicle.gcs_device, "--hold", "0.6", "--rate", "25", "--duration", "300",
             "--ui", "--param-out", str(tmp_path / "new.param"), "--backup", str(tmp_path / "backup.param")]
 
     def run() -> None:
@@ -225,7 +229,7 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
     capture.start()
     hand = None
     try:
-        url = wait_for("the page's address (webbrowser.open)", lambda: urls, 30)[0]
+        url = wait_for("the page's address (webbrowser.open)", lambda: urls, 60, show=lambda: result)[0]
         assert url.startswith("http://127.0.0.1:") and "?t=" in url
         client = PageClient(url)
         # refused without the token, in the browser too
@@ -238,7 +242,8 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
         drv.get(url)
         wait_for("the first advice and the live attitude on the page",
                  lambda: drv.execute_script("return document.querySelectorAll('#scene-live polygon').length") > 3
-                 and "level" in _page_text(drv, "pose-words"), 60)
+                 and "level" in _page_text(drv, "pose-words"), 180,
+                 show=lambda: (str(client.state())[:600], _page_text(drv, "instruction"), result))
         shoot(drv, "1-start")
         hand = AdviceHand(vehicle, client.advice)
         hand.start()
@@ -253,14 +258,16 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
             assert client.state().get("phase") == "capturing", "the capture ended before a mid-capture view"
             bounds = any(s["bound_deg"] is not None for s in st.get("sensors", []))  # after the first fit
             return n >= 6 and bounds and st.get("next") and st["next"]["words"] in words and matched and holding
-        wait_for("a mid-capture view with the advised pose matched", mid, 120, poll_s=0.05)
+        wait_for("a mid-capture view with the advised pose matched", mid, 240, poll_s=0.05,
+                 show=lambda: str(client.state().get("status"))[:600])
         assert drv.execute_script("return document.querySelectorAll('#scene-target polygon').length") > 3
         assert drv.execute_script("return document.querySelectorAll('#sphere circle').length") >= 5
         shoot(drv, "2-mid-capture")
 
         # the verdict
         wait_for("the verdict", lambda: drv.execute_script(
-            "return !document.getElementById('result').hidden && !document.getElementById('write').disabled"), 150)
+            "return !document.getElementById('result').hidden && !document.getElementById('write').disabled"), 240,
+            show=lambda: str(client.state().get("phase")))
         hand.stop()
         state = client.state()
         res = state["result"]
@@ -318,6 +325,7 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)
 def test_mavproxy_ui_page_capture_to_a_confirmed_write(browser, start_vehicle, tmp_path):
     """``mavcal ui`` in a real MAVProxy: the page starts the capture, the hand follows the page,
     Write on the page (confirmed in its dialog) writes through the worker's safe writer."""
