@@ -21,7 +21,7 @@ import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 from mavcal.capture.session import CaptureConfig, CaptureSession, CaptureStatus
 from mavcal.errors import InsufficientDataError
@@ -67,10 +67,8 @@ class _CaptureLoop:
     """Feeds batches to a session and updates it every ``update_every_s`` until it is done."""
 
     def __init__(self, on_status: Callable[[CaptureStatus], None] | None, should_stop: Callable[[], bool] | None,
-                 max_duration_s: float, update_every_s: float,
-                 on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None] | None = None) -> None:
+                 max_duration_s: float, update_every_s: float) -> None:
         self.on_status = on_status
-        self.on_batch = on_batch
         self.should_stop = should_stop
         self.max_duration_s = max_duration_s
         self.update_every_s = update_every_s
@@ -96,9 +94,6 @@ class _CaptureLoop:
 
     def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]]) -> None:
         """Until the session is done; a KeyboardInterrupt stops it as the user would."""
-        if self.on_batch is not None:
-            self._run_watched(session, batches)
-            return
         self.t_start = time.monotonic()
         last_update = float("-inf")
         stopping = False
@@ -117,16 +112,27 @@ class _CaptureLoop:
             session.stop("stopped by the user")
             self._update(session)
 
-    def _run_watched(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]]) -> None:
-        """As :meth:`run`, with every batch handed to ``on_batch`` as it arrives, also while the
-        session updates (a refit takes up to seconds): the update runs on a helper thread, the
-        batches received meanwhile are added when it is over, and ``on_status`` is called here."""
+
+class _WatchedLoop(_CaptureLoop):
+    """As :class:`_CaptureLoop`, with every batch handed to ``on_batch`` as it arrives, also while
+    the session updates (a refit takes up to seconds): the update runs on a helper thread, the
+    batches received meanwhile are added when it is over, and ``on_status`` is called from the
+    capture's thread."""
+
+    def __init__(self, on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None], *args: Any) -> None:
+        super().__init__(*args)
+        self.on_batch = on_batch
+
+    def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]],
+            position: Callable[[], Any] | None = None) -> None:
+        """Until the session is done; a KeyboardInterrupt stops it as the user would.
+        ``position``: a vehicle position that may come after the start (``.location``,
+        ``.source``), given to the session when it has none."""
         self.t_start = time.monotonic()
         last_update = float("-inf")
         stopping = False
         pending: list[Sequence[SensorSeries]] = []
         updater = _Updater(session)
-        assert self.on_batch is not None
         try:
             for batch in batches:
                 self.on_batch(session, batch)
@@ -139,6 +145,8 @@ class _CaptureLoop:
                 for b in pending:
                     session.add(b)
                 pending.clear()
+                if position is not None and session.position is None and (pos := position()) is not None:
+                    session.position, session.position_source = pos.location, pos.source  # a GPS fix came later
                 now = time.monotonic()
                 if not stopping:
                     stopping = self._stop_requested(session, now)
@@ -255,7 +263,9 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         (exit code 3).
     """
     rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s)
-    loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s, on_batch)
+    loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s)
+    if on_batch is not None:  # the live page: batches handed over as they come, refits on a helper thread
+        loop = _WatchedLoop(on_batch, on_status, should_stop, max_duration_s, update_every_s)
     method = "?"
     streams = STREAM_MESSAGE_IDS
     try:

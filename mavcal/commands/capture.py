@@ -41,6 +41,7 @@ HELP = "guided live capture: says which pose to hold next, fits as it goes, then
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_link_arguments(p)  # --connect, --baud, --timeout, --param-timeout, --retries, --dry-run, --yes
+    _add_page_arguments(p)
     cap = p.add_argument_group("capture")
     cap.add_argument("--target-deg", type=float, default=0.5, metavar="DEG",
                      help="stop when the 95 %% heading error bound is below this (default 0.5)")
@@ -66,6 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--force", action="store_true",
                    help="write the rejected sensors' parameters too (and values outside ArduPilot's limits)")
     w.add_argument("--backup", metavar="F", help="backup .param of the old values (default mavcal-backup-DATE.param)")
+
+
+def _add_page_arguments(p: argparse.ArgumentParser) -> None:
     ui = p.add_argument_group("live page")
     ui.add_argument("--ui", action="store_true",
                     help="show the capture on a local web page (the pose to hold, the vehicle now, the verdict, "
@@ -118,7 +122,26 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.ui:
+        return _run(args)
+    _check(args)  # usage errors before the page opens
+    page = _start_page(args)
+    try:
+        return _run(args, page)
+    except MavcalError as exc:
+        if page.state.get("phase") not in ("failed", "declined", "aborted"):
+            page.state.set(phase="aborted", error=str(exc))
+        raise
+    except KeyboardInterrupt:
+        page.state.set(phase="declined" if page.state.get("result") else "aborted", error="stopped with Ctrl-C")
+        raise
+    finally:
+        page.close()
+
+
+def _run(args: argparse.Namespace, page=None) -> int:
     from mavcal.capture import CaptureConfig
+    from mavcal.capture import live as live_capture
     from mavcal.pipeline import Options
     from mavcal.segment import StillConfig
 
@@ -132,55 +155,28 @@ def run(args: argparse.Namespace) -> int:
                            min_intervals=min(args.min_poses, args.max_poses), still=still)
     options = Options(still=still, accel_instance=args.accel, mag_instance=args.compass,
                       field_mgauss=args.field_mgauss, location=args.location)
-    page = _start_page(args) if args.ui else None
-    try:
-        return _capture(args, config, options, page)
-    except MavcalError as exc:
-        if page is not None and page.state.get("phase") not in ("failed", "declined", "aborted"):
-            page.state.set(phase="aborted", error=str(exc))
-        raise
-    except KeyboardInterrupt:
-        if page is not None:
-            page.state.set(phase="declined" if page.state.get("result") else "aborted", error="stopped with Ctrl-C")
-        raise
-    finally:
-        if page is not None:
-            page.close()
-
-
-def _capture(args: argparse.Namespace, config, options, page) -> int:
-    from mavcal.capture import live as live_capture
-
     printer = StatusPrinter(sys.stderr, args.target_deg)
-    on_status, on_batch = printer, None
-    if page is not None:
-        from mavcal.capture.pagestate import PageFeed
-
-        feed = PageFeed(page.state.set, config, args.accel, args.compass)
-        on_batch = feed.batch
-
-        def on_status(st) -> None:
-            printer(st)
-            feed.status(st, finish=page.take_finish())
-
-    session = live_capture.capture_live(args.connect, config=config, options=options, on_status=on_status,
+    hooks: dict = {}
+    if page is not None:  # the page sees every status and every batch (the live attitude)
+        printer, hooks = _page_hooks(page, printer, config, args)
+    session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer,
                                         baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,
-                                        heartbeat_timeout_s=args.timeout, on_batch=on_batch)
+                                        heartbeat_timeout_s=args.timeout, **hooks)
     st = session.status
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
     if page is not None:
         page.state.set(phase="fitting")
     run = session.result()  # InsufficientDataError (exit 4) when too little was captured
+    if page is not None:  # the verdict and Write on the page
+        return _page_flow(args, page, run, run.params_to_write(args.force))
+    # 0 all accepted, 7 some rejected (GateError, exit 4, when none was accepted and no --force)
+    offer = args.write or args.dry_run or sys.stdin.isatty()  # a write plan (with the table) follows
+    code = write_outputs(run, args, f"mavcal guided capture on {args.connect}", param_table=not offer)
     # the accepted sensors' parameters only (every sensor's with --force). No log_params for the
     # device-id check: the capture recorded the very vehicle it writes to, so its compasses and
     # IMUs are the vehicle's by construction
     changes = run.params_to_write(args.force)
-    if page is not None:
-        return _page_flow(args, page, run, changes)
-    # 0 all accepted, 7 some rejected (GateError, exit 4, when none was accepted and no --force)
-    offer = args.write or args.dry_run or sys.stdin.isatty()  # a write plan (with the table) follows
-    code = write_outputs(run, args, f"mavcal guided capture on {args.connect}", param_table=not offer)
     if args.write or args.dry_run:
         return write_with_report(args, changes, args.backup, "calibration write") or code
     if offer:  # offer it: the diff, then y/N
@@ -224,6 +220,21 @@ def _start_page(args: argparse.Namespace):
             print("mavcal: no browser found; open the address above", file=sys.stderr)
     sys.stderr.flush()
     return page
+
+
+def _page_hooks(page, printer, config, args: argparse.Namespace):
+    """(on_status, extra capture_live arguments) that also feed the page: every status (and a
+    'finish without' asked on the page, told to the session on the capture's thread) and every
+    batch (the live attitude)."""
+    from mavcal.capture.pagestate import PageFeed
+
+    feed = PageFeed(page.state.set, config, args.accel, args.compass)
+
+    def on_status(st) -> None:
+        printer(st)
+        feed.status(st, finish=page.take_finish())
+
+    return on_status, {"on_batch": feed.batch}
 
 
 def _page_report(args: argparse.Namespace, run) -> str | None:
