@@ -47,7 +47,8 @@ from mavcal.capture.worker import FED_TYPES, IMU_TYPES, THREAD_PREFIX, CaptureWo
 
 log = logging.getLogger(__name__)
 
-SUBCOMMANDS = ("start", "stop", "status", "next", "fit", "write", "restore", "set", "threads", "ui")
+SUBCOMMANDS = ("start", "stop", "status", "next", "fit", "write", "restore", "set", "threads")
+UI_USAGE = "       mavcal ui [nobrowser]   the live capture page in the browser (127.0.0.1 only)"
 _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
 _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
@@ -86,14 +87,13 @@ class MavcalModule(mp_module.MPModule):
                                     host_restores_rates=lambda: self._saved_streamrate is not None)
         self.page: Any = None  # the live page (mavcal.capture.workerpage.WorkerPage) while it is open
         self.add_command("mavcal", self.cmd_mavcal, "guided IMU/compass calibration",
-                         ["<start|stop|status|next|fit|write|threads|ui>", "restore (FILENAME)",
+                         ["<start|stop|status|next|fit|write|threads>", "restore (FILENAME)",
                           "set (MAVCALSETTING)"])
         self.add_completion_function("(MAVCALSETTING)", self.mavcal_settings.completion)
 
     # ---------------------------------------------------------------- helpers
     def usage(self) -> str:
-        return ("usage: mavcal <start|stop|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]|threads"
-                "|ui [nobrowser]>")
+        return "usage: mavcal <start|stop|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]|threads>"
 
     def _vehicle_ids(self) -> tuple[int, int] | None:
         """(sysid, compid) of the primary vehicle: from its heartbeats, else what MAVProxy's master saw."""
@@ -115,8 +115,12 @@ class MavcalModule(mp_module.MPModule):
     # ---------------------------------------------------------------- the command
     def cmd_mavcal(self, args: list[str]) -> None:
         """The ``mavcal`` command (runs on MAVProxy's thread: only quick work here)."""
+        if args[:1] == ["ui"]:  # the live page (UI_USAGE)
+            self._open_page(browser=args[1:2] != ["nobrowser"])
+            return
         if not args or args[0] not in SUBCOMMANDS:
             print(self.usage())
+            print(UI_USAGE)
             return
         sub, rest = args[0], args[1:]
         w = self.worker
@@ -129,8 +133,6 @@ class MavcalModule(mp_module.MPModule):
             self._print_status()
         elif sub == "next":
             self._print_next()
-        elif sub == "ui":
-            self._open_page(browser=rest[:1] != ["nobrowser"])
         elif sub == "start":  # the worker waits a moment for a first vehicle heartbeat
             w.submit("start", self._snapshot())
         elif sub == "write":

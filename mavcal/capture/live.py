@@ -207,12 +207,12 @@ class _Updater:
 
 
 def capture_live(device: str, *, config: CaptureConfig | None = None, options: Options | None = None,
-                 on_status: Callable[[CaptureStatus], None] | None = None, baud: int = 115200,
+                 on_status: Callable[[CaptureStatus], None] | None = None,
+                 on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None] | None = None, baud: int = 115200,
                  rate_hz: float = 25.0, should_stop: Callable[[], bool] | None = None,
                  max_duration_s: float = 600.0, update_every_s: float = 0.5, batch_s: float = 0.1,
                  heartbeat_timeout_s: float = 5.0, param_timeout_s: float = 30.0,
-                 on_info: Callable[[LiveCaptureInfo], None] | None = None,
-                 on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None] | None = None) -> CaptureSession:
+                 on_info: Callable[[LiveCaptureInfo], None] | None = None) -> CaptureSession:
     """Run a guided capture on a live vehicle and return the session.
 
     Parameters
@@ -226,6 +226,11 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     on_status : callable, optional
         Called with every :class:`CaptureStatus` (about every ``update_every_s``), from the
         calling thread. Exceptions propagate.
+    on_batch : callable, optional
+        ``on_batch(session, batch)`` with every received batch as it arrives (about every
+        ``batch_s``), from the calling thread, also while the session refits (the updates then
+        run on a helper thread; ``on_status`` is still called from the calling thread): e.g.
+        the live page's attitude. Exceptions propagate.
     baud : int
         Serial baud rate.
     rate_hz : float
@@ -243,11 +248,6 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         Bounds on waiting for the vehicle's heartbeat and for its parameter table.
     on_info : callable, optional
         Called once at the end with a :class:`LiveCaptureInfo`.
-    on_batch : callable, optional
-        ``on_batch(session, batch)`` with every received batch as it arrives (about every
-        ``batch_s``), from the calling thread, also while the session refits (the updates then
-        run on a helper thread; ``on_status`` is still called from the calling thread): e.g.
-        the live page's attitude. Exceptions propagate.
 
     Returns
     -------

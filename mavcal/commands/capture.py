@@ -159,9 +159,9 @@ def _run(args: argparse.Namespace, page=None) -> int:
     hooks: dict = {}
     if page is not None:  # the page sees every status and every batch (the live attitude)
         printer, hooks = _page_hooks(page, printer, config, args)
-    session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer,
+    session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer, **hooks,
                                         baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,
-                                        heartbeat_timeout_s=args.timeout, **hooks)
+                                        heartbeat_timeout_s=args.timeout)
     st = session.status
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
