@@ -48,10 +48,10 @@ from mavcal.capture.worker import FED_TYPES, IMU_TYPES, THREAD_PREFIX, CaptureWo
 log = logging.getLogger(__name__)
 
 SUBCOMMANDS = ("start", "stop", "status", "next", "fit", "write", "restore", "set", "threads")
-UI_USAGE = "       mavcal ui [nobrowser]   the live capture page in the browser (127.0.0.1 only)"
 _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
 _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
+UI_USAGE = "       mavcal ui [nobrowser]   the live capture page in the browser (127.0.0.1 only)"
 
 
 def _settings_table() -> list[Any]:
