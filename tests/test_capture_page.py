@@ -448,3 +448,28 @@ def test_finish_without_a_sensor_that_cannot_get_there(page):
     assert feed.session.dropped == [("compass1",)]
     feed.status(replace(st, offer_finish_without=()), finish=True)  # nothing offered: nothing dropped
     assert feed.session.dropped == [("compass1",)]
+
+
+def test_connections_are_bounded(page):
+    """Idle connections hold a thread each for at most the handler's timeout, and no more than
+    16 at once: the 17th is closed at once; the page answers again once they are gone."""
+    import socket
+
+    idle = [socket.create_connection(("127.0.0.1", page.port), timeout=5) for _ in range(16)]
+    try:
+        time.sleep(0.3)
+        extra = socket.create_connection(("127.0.0.1", page.port), timeout=5)
+        assert extra.recv(1) == b""  # closed by the server
+        extra.close()
+        assert sum("process_request_thread" in t.name for t in threading.enumerate()) <= 16
+    finally:
+        for s in idle:
+            s.close()
+    deadline = time.monotonic() + 15
+    while True:
+        try:
+            assert request(page, "GET", "/")[0] == 200
+            break
+        except (OSError, http.client.HTTPException):
+            assert time.monotonic() < deadline
+            time.sleep(0.2)

@@ -52,6 +52,7 @@ _CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; connect-src 's
 _REPORT_CSP = "default-src 'none'; style-src 'unsafe-inline'; img-src data:; frame-ancestors 'none'"
 _MAX_BODY = 4096
 _MAX_STREAMS = 8  # event streams open at once (a tab or two; more is refused)
+_MAX_CONNECTIONS = 16  # connections served at once (the event streams included)
 _KEEPALIVE_S = 10.0
 
 
@@ -106,9 +107,33 @@ def _asset(name: str) -> bytes:
 
 
 class _Server(ThreadingHTTPServer):
+    """One thread per connection, at most ``_MAX_CONNECTIONS`` at once (more are closed at once:
+    the threads never grow with what a client does)."""
+
     daemon_threads = False  # server_close() joins the request threads: none is left behind
     block_on_close = True
     page: CapturePage
+
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self._slots = threading.BoundedSemaphore(_MAX_CONNECTIONS)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self._slots.acquire(blocking=False):
+            log.info("page: too many connections; one closed")
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
 
 
 class _Handler(BaseHTTPRequestHandler):
