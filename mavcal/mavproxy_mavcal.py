@@ -13,6 +13,8 @@ Load it in MAVProxy with ``module load mavcal.mavproxy_mavcal`` (MAVProxy tries
     mavcal restore FILE [yes]   put back a backup .param (same safe writer)
     mavcal set [NAME [VALUE]]   settings: target_deg accel compass rate_hz hold_s force write_budget ...
     mavcal threads          the module's threads (debugging)
+    mavcal ui [nobrowser]   the live page: the pose to hold drawn beside the vehicle now, the
+                            verdict and a Write button (starts a capture if none ran; 127.0.0.1 only)
 
 A thin adapter: the capture, the fits and the writes are :class:`mavcal.capture.worker.CaptureWorker`
 (one worker thread; the same write flow and words as ``mavcal calibrate --write``). Here only
@@ -50,6 +52,7 @@ SUBCOMMANDS = ("start", "stop", "finish", "status", "next", "fit", "write", "res
 _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
 _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
+UI_USAGE = "       mavcal ui [nobrowser]   the live capture page in the browser (127.0.0.1 only)"
 
 
 def _settings_table() -> list[Any]:
@@ -86,6 +89,7 @@ class MavcalModule(mp_module.MPModule):
         self._streams_seen = False  # the worker's streams_active as idle_task last saw it
         self.worker = CaptureWorker(self._vehicle_ids,
                                     host_restores_rates=lambda: self._saved_streamrate is not None)
+        self.page: Any = None  # the live page (mavcal.capture.workerpage.WorkerPage) while it is open
         self.add_command("mavcal", self.cmd_mavcal, "guided IMU/compass calibration",
                          ["<start|stop|finish|status|next|fit|write|threads>", "restore (FILENAME)",
                           "set (MAVCALSETTING)"])
@@ -116,8 +120,12 @@ class MavcalModule(mp_module.MPModule):
     # ---------------------------------------------------------------- the command
     def cmd_mavcal(self, args: list[str]) -> None:
         """The ``mavcal`` command (runs on MAVProxy's thread: only quick work here)."""
+        if args[:1] == ["ui"]:  # the live page (UI_USAGE)
+            self._open_page(browser=args[1:2] != ["nobrowser"])
+            return
         if not args or args[0] not in SUBCOMMANDS:
             print(self.usage())
+            print(UI_USAGE)
             return
         sub, rest = args[0], args[1:]
         w = self.worker
@@ -159,6 +167,30 @@ class MavcalModule(mp_module.MPModule):
             model = run.calibration.model if run.calibration is not None else "accelerometers alone"
             print(f"fitted: model {model}, heading 95 % {run.quality.heading_95_deg:.2f} deg")
 
+    def _open_page(self, browser: bool = True) -> None:
+        """Serve the live page (a new one with a new token once the last one finished), start a
+        capture if none ran, and open the browser."""
+        import webbrowser
+
+        from mavcal.capture.workerpage import WorkerPage
+
+        if self.page is not None and not self.page.finished.is_set():
+            print(f"mavcal: capture page: {self.page.url}")
+            return
+        if self.page is not None:
+            self.page.close()
+        self.page = WorkerPage(self.worker, self._snapshot).start()
+        print(f"mavcal: capture page: {self.page.url}")
+        if not self.worker.capturing and self.worker.run is None and not self.worker.busy:
+            self.worker.submit("start", self._snapshot())
+        if browser:
+            try:
+                opened = webbrowser.open(self.page.url)
+            except Exception:  # any launcher failure: the address is printed
+                opened = False
+            if not opened:
+                print("mavcal: no browser found; open the address above")
+
     def _print_next(self) -> None:
         w = self.worker
         st = w.status
@@ -176,6 +208,9 @@ class MavcalModule(mp_module.MPModule):
         if mtype in IMU_TYPES:
             if self.worker.capturing and self.message_is_from_primary_vehicle(m):
                 self.worker.add_imu(m)
+                page = self.page
+                if page is not None:
+                    page.add_imu(m)
             return
         if mtype not in FED_TYPES or not self.message_is_from_primary_vehicle(m):
             return
@@ -224,6 +259,9 @@ class MavcalModule(mp_module.MPModule):
     def unload(self) -> None:
         """Stop the worker (after the job in progress) and say whether a mavcal thread is left."""
         self.remove_command("mavcal")
+        if self.page is not None:
+            self.page.close()
+            self.page = None
         stopped = self.worker.shutdown(timeout_s=4.0)
         self._follow_streams()
         master = self.master

@@ -17,10 +17,11 @@ The library logs and never prints.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 from mavcal.capture.session import CaptureConfig, CaptureSession, CaptureStatus
 from mavcal.errors import InsufficientDataError
@@ -112,8 +113,102 @@ class _CaptureLoop:
             self._update(session)
 
 
+class _WatchedLoop(_CaptureLoop):
+    """As :class:`_CaptureLoop`, with every batch handed to ``on_batch`` as it arrives, also while
+    the session updates (a refit takes up to seconds): the update runs on a helper thread, the
+    batches received meanwhile are added when it is over, and ``on_status`` is called from the
+    capture's thread."""
+
+    def __init__(self, on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None], *args: Any) -> None:
+        super().__init__(*args)
+        self.on_batch = on_batch
+
+    def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]],
+            position: Callable[[], Any] | None = None) -> None:
+        """Until the session is done; a KeyboardInterrupt stops it as the user would.
+        ``position``: a vehicle position that may come after the start (``.location``,
+        ``.source``), given to the session when it has none."""
+        self.t_start = time.monotonic()
+        last_update = float("-inf")
+        stopping = False
+        pending: list[Sequence[SensorSeries]] = []
+        updater = _Updater(session)
+        try:
+            for batch in batches:
+                self.on_batch(session, batch)
+                pending.append(batch)
+                if updater.busy():
+                    continue
+                st = updater.take()  # the finished update's status (its exception raised here)
+                if st is not None and self._report(st).done:
+                    return
+                for b in pending:
+                    session.add(b)
+                pending.clear()
+                if position is not None and session.position is None and (pos := position()) is not None:
+                    session.position, session.position_source = pos.location, pos.source  # a GPS fix came later
+                now = time.monotonic()
+                if not stopping:
+                    stopping = self._stop_requested(session, now)
+                if stopping or now - last_update >= self.update_every_s:
+                    last_update = now
+                    updater.start()
+        except KeyboardInterrupt:
+            log.info("capture interrupted by the user")
+            updater.join()
+            session.stop("stopped by the user")
+            self._update(session)
+        finally:
+            updater.join()
+
+    def _report(self, st: CaptureStatus) -> CaptureStatus:
+        self.updates += 1
+        if self.on_status is not None:
+            self.on_status(st)
+        return st
+
+
+class _Updater:
+    """One ``session.update()`` at a time on a helper thread (named ``mavcal-capture-update``)."""
+
+    def __init__(self, session: CaptureSession) -> None:
+        self.session = session
+        self._thread: threading.Thread | None = None
+        self._result: CaptureStatus | None = None
+        self._error: BaseException | None = None
+
+    def _work(self) -> None:
+        try:
+            self._result = self.session.update()
+        except BaseException as exc:  # handed to the capture's thread by take()
+            self._error = exc
+
+    def start(self) -> None:
+        self._result, self._error = None, None
+        self._thread = threading.Thread(target=self._work, name="mavcal-capture-update", daemon=True)
+        self._thread.start()
+
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def take(self) -> CaptureStatus | None:
+        """The status of the update that finished since the last take (None if none)."""
+        if self._thread is None:
+            return None
+        self._thread.join()
+        self._thread = None
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+    def join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+
+
 def capture_live(device: str, *, config: CaptureConfig | None = None, options: Options | None = None,
-                 on_status: Callable[[CaptureStatus], None] | None = None, baud: int = 115200,
+                 on_status: Callable[[CaptureStatus], None] | None = None,
+                 on_batch: Callable[[CaptureSession, Sequence[SensorSeries]], None] | None = None, baud: int = 115200,
                  rate_hz: float = 25.0, should_stop: Callable[[], bool] | None = None,
                  max_duration_s: float = 600.0, update_every_s: float = 0.5, batch_s: float = 0.1,
                  heartbeat_timeout_s: float = 5.0, param_timeout_s: float = 30.0,
@@ -131,6 +226,11 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     on_status : callable, optional
         Called with every :class:`CaptureStatus` (about every ``update_every_s``), from the
         calling thread. Exceptions propagate.
+    on_batch : callable, optional
+        ``on_batch(session, batch)`` with every received batch as it arrives (about every
+        ``batch_s``), from the calling thread, also while the session refits (the updates then
+        run on a helper thread; ``on_status`` is still called from the calling thread): e.g.
+        the live page's attitude. Exceptions propagate.
     baud : int
         Serial baud rate.
     rate_hz : float
@@ -164,6 +264,8 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     """
     rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s)
     loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s)
+    if on_batch is not None:  # the live page: batches handed over as they come, refits on a helper thread
+        loop = _WatchedLoop(on_batch, on_status, should_stop, max_duration_s, update_every_s)
     method = "?"
     streams = STREAM_MESSAGE_IDS
     try:

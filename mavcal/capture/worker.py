@@ -116,6 +116,8 @@ class CaptureWorker:
         self.status: Any = None
         self.run: Any = None
         self.busy = ""
+        self.jobs_done = 0  # jobs finished (however they ended): a host waiting for its job counts them
+        self.write_result: Any = None  # the last write's WriteReport, or the ParamWriteError it raised
         self._cfg = WorkerSettings()
         self._stream_ids: tuple[int, ...] = ()
         self._last_update = 0.0
@@ -188,6 +190,7 @@ class CaptureWorker:
             self._say(f"internal error: {exc!r}")
         finally:
             self.busy = ""
+            self.jobs_done += 1
 
     def _ids(self, wait_s: float = 3.0) -> tuple[int, int]:
         deadline = time.monotonic() + wait_s
@@ -412,8 +415,10 @@ class CaptureWorker:
                                       force_save=force_save_kinds(r.name for r in plan.changed),
                                       link_timeout_s=max(3.0, 3 * cfg.param_timeout), **opts)
             except ParamWriteError as exc:
+                self.write_result = exc
                 self.say(write_failed_text(exc, what, bpath, prefix=self.prefix))
                 raise  # the worker says "error: ..."
+        self.write_result = report
         self.say(write_done_text(report, prefix=self.prefix))
 
     @staticmethod

@@ -10,6 +10,13 @@ printed, the outputs are written, and the parameters are written to the vehicle 
 confirmation (interactive y/N, or ``--write``/``--write --yes``) through the same safe
 writer as ``calibrate --write``.
 
+With ``--ui`` the capture is also shown on a local web page (:mod:`mavcal.capture.web`, opened
+in the browser unless ``--no-browser``): the pose to hold drawn beside the vehicle now, the
+poses done, each sensor's bound, then the verdict and the parameters; the write is then
+confirmed on the page (Write, and its dialog) instead of y/N, or happens at once with
+``--write --yes``; Don't write, Ctrl-C or ``--ui-wait`` seconds without an answer write nothing.
+The page's server stops when the command ends.
+
 Exit codes as ``calibrate``: 0 every sensor accepted (and written when asked); 7 some sensors
 accepted (only their parameters are written), some rejected; 2 usage; 3 the device does not
 answer; 4 aborted (impossible field, magnetic disturbance), no sensor accepted or too little
@@ -31,13 +38,14 @@ from mavcal.commands.common import (
     write_outputs,
     write_with_report,
 )
-from mavcal.errors import UsageError
+from mavcal.errors import GateError, MavcalError, UsageError
 
 HELP = "guided live capture: says which pose to hold next, fits as it goes, then writes on confirmation"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_link_arguments(p)  # --connect, --baud, --timeout, --param-timeout, --retries, --dry-run, --yes
+    _add_page_arguments(p)
     cap = p.add_argument_group("capture")
     cap.add_argument("--target-deg", type=float, default=0.5, metavar="DEG",
                      help="stop when every compass's 95 %% heading error bound is below this (default 0.5) ...")
@@ -65,6 +73,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--force", action="store_true",
                    help="write the rejected sensors' parameters too (and values outside ArduPilot's limits)")
     w.add_argument("--backup", metavar="F", help=BACKUP_HELP)
+
+
+def _add_page_arguments(p: argparse.ArgumentParser) -> None:
+    ui = p.add_argument_group("live page")
+    ui.add_argument("--ui", action="store_true",
+                    help="show the capture on a local web page (the pose to hold, the vehicle now, the verdict, "
+                         "a Write button) and open it in the browser")
+    ui.add_argument("--no-browser", action="store_true", help="with --ui: print the page's address, open no browser")
+    ui.add_argument("--ui-host", default=None, metavar="HOST",
+                    help="with --ui: serve on this interface instead of 127.0.0.1 (anyone who can reach it and "
+                         "has the address can write to the vehicle)")
+    ui.add_argument("--ui-port", type=int, default=0, metavar="PORT", help="with --ui: port (default: a free one)")
+    ui.add_argument("--ui-wait", type=float, default=3600.0, metavar="S",
+                    help="with --ui: wait this long for Write or Don't write on the page (default 3600)")
 
 
 class StatusPrinter:
@@ -99,9 +121,31 @@ def _check(args: argparse.Namespace) -> None:
     if not args.duration > 0 or not args.hold > 0 or not args.rate > 0:
         raise UsageError("--duration, --hold and --rate must be > 0")
     check_new_backup(args.backup)
+    if (args.no_browser or args.ui_host or args.ui_port) and not args.ui:
+        raise UsageError("--no-browser, --ui-host and --ui-port go with --ui")
+    if not 0 <= args.ui_port <= 65535 or not args.ui_wait > 0:
+        raise UsageError("--ui-port must be 0-65535 and --ui-wait > 0")
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.ui:
+        return _run(args)
+    _check(args)  # usage errors before the page opens
+    page = _start_page(args)
+    try:
+        return _run(args, page)
+    except MavcalError as exc:
+        if page.state.get("phase") not in ("failed", "declined", "aborted"):
+            page.state.set(phase="aborted", error=str(exc))
+        raise
+    except KeyboardInterrupt:
+        page.state.set(phase="declined" if page.state.get("result") else "aborted", error="stopped with Ctrl-C")
+        raise
+    finally:
+        page.close()
+
+
+def _run(args: argparse.Namespace, page=None) -> int:
     from mavcal.capture import CaptureConfig
     from mavcal.capture import live as live_capture
     from mavcal.pipeline import Options
@@ -119,13 +163,20 @@ def run(args: argparse.Namespace) -> int:
     options = Options(still=still, accel_instance=args.accel, mag_instance=args.compass,
                       field_mgauss=args.field_mgauss, location=args.location)
     printer = StatusPrinter(sys.stderr, args.target_deg)
-    session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer,
+    hooks: dict = {}
+    if page is not None:  # the page sees every status and every batch (the live attitude)
+        printer, hooks = _page_hooks(page, printer, config, args)
+    session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer, **hooks,
                                         baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,
                                         heartbeat_timeout_s=args.timeout)
     st = session.status
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
+    if page is not None:
+        page.state.set(phase="fitting")
     run = session.result()  # InsufficientDataError (exit 4) when too little was captured
+    if page is not None:  # the verdict and Write on the page
+        return _page_flow(args, page, run, run.params_to_write(args.force))
     # 0 all accepted, 7 some rejected (GateError, exit 4, when none was accepted and no --force)
     offer = args.write or args.dry_run or sys.stdin.isatty()  # a write plan (with the table) follows
     code = write_outputs(run, args, f"mavcal guided capture on {args.connect}", param_table=not offer)
@@ -144,6 +195,131 @@ def run(args: argparse.Namespace) -> int:
                 return code
             raise
     print("nothing written to the vehicle (use --write to write the parameters)")
+    return code
+
+
+# --------------------------------------------------------------------------- the live page
+
+PAGE_HINTS = {"force_hint": "mavcal capture --force", "write_hint": "the Write button below", "only_hint": ""}
+
+
+def _start_page(args: argparse.Namespace):
+    """Serve the page (127.0.0.1 unless --ui-host, with a warning) and open the browser."""
+    import webbrowser
+
+    from mavcal.capture.web import LOCALHOST, CapturePage
+
+    host = args.ui_host or LOCALHOST
+    if host not in (LOCALHOST, "localhost"):
+        print(f"mavcal: WARNING: the capture page is served on {host}, not only on this computer: anyone who can "
+              "reach it and has its address (with the token) can write to the vehicle", file=sys.stderr)
+    try:
+        page = CapturePage(host, args.ui_port).start()
+    except OSError as exc:
+        raise UsageError(f"--ui: cannot serve the page on {host}:{args.ui_port}: {exc}") from None
+    print(f"capture page: {page.url}", file=sys.stderr)
+    if not args.no_browser:
+        try:
+            opened = webbrowser.open(page.url)
+        except Exception:  # any browser launcher failure: the address is printed
+            opened = False
+        if not opened:
+            print("mavcal: no browser found; open the address above", file=sys.stderr)
+    sys.stderr.flush()
+    return page
+
+
+def _page_hooks(page, printer, config, args: argparse.Namespace):
+    """(on_status, extra capture_live arguments) that also feed the page: every status (and a
+    'finish without' asked on the page, told to the session on the capture's thread) and every
+    batch (the live attitude)."""
+    from mavcal.capture.pagestate import PageFeed
+
+    feed = PageFeed(page.state.set, config, args.accel, args.compass)
+
+    def on_status(st) -> None:
+        printer(st)
+        feed.status(st, finish=page.take_finish())
+
+    return on_status, {"on_batch": feed.batch}
+
+
+def _page_report(args: argparse.Namespace, run) -> str | None:
+    """The HTML report for the page's link: --report's file, else one made in a temporary
+    directory (None without matplotlib)."""
+    import tempfile
+    from pathlib import Path
+
+    from mavcal.report.html import missing_dependencies
+
+    if args.report:
+        path = Path(args.report)
+        return path.read_text(encoding="utf-8") if path.is_file() else None
+    if missing_dependencies():
+        return None
+    from mavcal.report import write_html
+
+    with tempfile.TemporaryDirectory(prefix="mavcal-page-") as d:
+        return write_html(run, Path(d) / "report.html").read_text(encoding="utf-8")
+
+
+class _Tee:
+    """Writes to a stream and keeps a copy (the writer's words, for the page)."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream, self.parts = stream, []
+
+    def write(self, text: str) -> int:
+        self.parts.append(text)
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def text(self) -> str:
+        return "".join(self.parts)
+
+
+def _page_flow(args: argparse.Namespace, page, run, changes: dict) -> int:
+    """Show the verdict and the parameters on the page, wait for Write (confirmed there) or
+    Don't write, then write through the safe writer; the page shows the outcome."""
+    from mavcal.capture.pagestate import result_view
+
+    view = result_view(run, changes, hints=PAGE_HINTS)
+    page.report_html = _page_report(args, run)
+    page.state.set(phase="result", result=view, report=f"report?t={page.token}" if page.report_html else None)
+    try:
+        code = write_outputs(run, args, f"mavcal guided capture on {args.connect}", param_table=False)
+    except GateError:
+        page.state.set(phase="declined")
+        raise
+    if args.dry_run:
+        write_with_report(args, changes, args.backup, "calibration write")
+        page.state.set(phase="declined", error="dry run: nothing written")
+        return code
+    if not view["n_write"]:
+        page.state.set(phase="declined")
+        print("nothing to write: the vehicle already has these values")
+        return code
+    if args.write and args.yes:
+        decision = "write"
+    else:
+        page.offer(view["n_write"])
+        print(f"waiting for Write or Don't write on the page ({page.url}); Ctrl-C: nothing written",
+              file=sys.stderr)
+        decision = page.wait_decision(args.ui_wait)
+    if decision != "write":
+        page.state.set(phase="declined")
+        print("nothing written to the vehicle" + (" (no answer on the page)" if decision is None else ""))
+        return code
+    page.state.set(phase="writing")
+    tee = _Tee(sys.stdout)
+    try:  # confirmed on the page (its dialog) or by --write --yes
+        write_with_report(replace_ns(args, yes=True), changes, args.backup, "calibration write", out=tee)
+    except MavcalError as exc:
+        page.state.set(phase="failed", write={"message": str(exc), "text": tee.text()})
+        raise
+    page.state.set(phase="written", write={"text": tee.text()})
     return code
 
 
