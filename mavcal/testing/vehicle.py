@@ -15,15 +15,18 @@ thread:
     (``AP_Param::set_float``: integers get +/-0.01 in float32, are clamped to the type's
     range and truncated; floats are stored as float32) and echoed as PARAM_VALUE with
     ``param_index`` 65535; setting one element of a Vector3 parameter echoes all three;
-  - internal-use-only parameters (device ids) are refused with STATUSTEXT
-    "Param write denied" and an echo of the unchanged value;
+  - a parameter flagged internal-use-only (``MIS_TOTAL``) is refused with STATUSTEXT
+    "Param write denied (NAME)" and an echo of the unchanged value, unless ``BRD_OPTIONS``
+    has ``ALLOW_SET_INTERNAL_PARM`` (``AP_Param::allow_set_via_mavlink``); device ids are
+    writable, as in ArduPilot (no flag on them; checked against SITL by
+    ``tests/test_vehicle_agrees_with_sitl.py``);
   - with ``param_errors=True`` the vehicle behaves as ArduPilot master since PR #31062
     (2025-10): PARAM_ERROR (to the sender) for a PARAM_SET of an unknown name
     (``MAV_PARAM_ERROR_DOES_NOT_EXIST``), of NaN/Inf (``VALUE_OUT_OF_RANGE``), of a denied
     parameter (``PERMISSION_DENIED``, besides the STATUSTEXT and the echo), and for a
     PARAM_REQUEST_READ of an unknown name or index (``DOES_NOT_EXIST``);
-  - ``deny_params`` names parameters to deny like the device ids (a scripting lock or a
-    read-only defaults entry on a real vehicle).
+  - ``deny_params`` names parameters to deny the same way (a read-only defaults entry,
+    ``@READONLY``, or a scripting lock on a real vehicle).
 
 * COMMAND_LONG: MAV_CMD_PREFLIGHT_CALIBRATION param2=76 / param5=76 (force-save compass /
   accel calibration, recorded in :attr:`TestVehicle.force_saves`), MAV_CMD_SET_MESSAGE_INTERVAL,
@@ -144,7 +147,7 @@ class TestVehicle:
     param_errors : bool
         Answer refused parameter requests with PARAM_ERROR (ArduPilot master), not silence (4.6).
     deny_params : iterable of str
-        More parameters whose PARAM_SET is denied.
+        Parameters whose PARAM_SET is denied (as read-only defaults entries are).
     """
 
     __test__ = False  # not a pytest test class
@@ -697,7 +700,8 @@ class TestVehicle:
             mid = int(m.param1)
             known = (A.MAVLINK_MSG_ID_RAW_IMU, A.MAVLINK_MSG_ID_SCALED_IMU, A.MAVLINK_MSG_ID_SCALED_IMU2,
                      A.MAVLINK_MSG_ID_SCALED_IMU3, A.MAVLINK_MSG_ID_ATTITUDE)
-            if mid not in known:
+            if mid not in known:  # ArduPilot: DENIED and a STATUSTEXT (GCS_MAVLINK::set_message_interval)
+                self._send(self._enc.statustext_encode(A.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({mid})".encode()))
                 self._ack(m, A.MAV_RESULT_DENIED)
                 return
             us = m.param2
