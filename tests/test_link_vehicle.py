@@ -99,12 +99,17 @@ def test_param_type_in_param_set_is_ignored(vehicle, gcs):
     assert m.param_value == 1.75 and m.param_type == A.MAV_PARAM_TYPE_REAL32
 
 
-def test_setting_one_axis_of_a_vector_echoes_all_three(vehicle, gcs):
-    vehicle.set_param_local("COMPASS_OFS2_X", 7.0)
-    param_set(gcs, "COMPASS_OFS2_Y", -4.5)
+def test_setting_x_of_a_vector_echoes_all_three_y_only_itself(vehicle, gcs):
+    # AP_Param::send_parameter (and SITL, tests/test_vehicle_agrees_with_sitl.py): the X
+    # element's pointer is the vector's, so its echo is the whole vector; Y and Z echo alone
+    vehicle.set_param_local("COMPASS_OFS2_Z", 2.0)
+    param_set(gcs, "COMPASS_OFS2_X", 7.0)
     got = [m for m in collect(gcs, 0.3, {"PARAM_VALUE"})]
     assert [(m.param_id, m.param_value, m.param_index) for m in got] == [
-        ("COMPASS_OFS2_X", 7.0, 65535), ("COMPASS_OFS2_Y", -4.5, 65535), ("COMPASS_OFS2_Z", 0.0, 65535)]
+        ("COMPASS_OFS2_X", 7.0, 65535), ("COMPASS_OFS2_Y", 0.0, 65535), ("COMPASS_OFS2_Z", 2.0, 65535)]
+    param_set(gcs, "COMPASS_OFS2_Y", -4.5)
+    got = [m for m in collect(gcs, 0.3, {"PARAM_VALUE"})]
+    assert [(m.param_id, m.param_value, m.param_index) for m in got] == [("COMPASS_OFS2_Y", -4.5, 65535)]
 
 
 def test_internal_use_only_is_write_denied_unless_brd_options_allows(vehicle, gcs):

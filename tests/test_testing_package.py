@@ -79,8 +79,9 @@ def test_param_set_semantics():
     assert store.values[fw.compass_param_names(0)["orient"]] == 6.0
     assert store.param_set("NO_SUCH_PARAM", 1.0).echo == ()
     assert store.param_set(ofs2[0], math.nan).stored is None
-    out = store.param_set(ofs2[1], 0.1)  # a Vector3 element: all three echoed, float32 stored
+    out = store.param_set(ofs2[0], 0.1)  # a Vector3's X: all three echoed, float32 stored
     assert out.stored == float(np.float32(0.1)) and out.echo == ofs2 and not out.denied
+    assert store.param_set(ofs2[1], 0.2).echo == (ofs2[1],)  # Y (or Z): only itself
     for ident in ("COMPASS_DEV_ID", "COMPASS_DEV_ID6", fw.accel_param_names(1)["id"], fw.gyro_param_names(2)["id"]):
         out = store.param_set(ident, 5.0)  # device ids carry no internal-use-only flag: writable
         assert not out.denied and out.stored == 5.0 and out.echo == (ident,) and store.values[ident] == 5.0

@@ -14,7 +14,8 @@ thread:
     ``param_type`` field is ignored; the value is converted to the stored type
     (``AP_Param::set_float``: integers get +/-0.01 in float32, are clamped to the type's
     range and truncated; floats are stored as float32) and echoed as PARAM_VALUE with
-    ``param_index`` 65535; setting one element of a Vector3 parameter echoes all three;
+    ``param_index`` 65535; setting the X element of a Vector3 parameter echoes all three, Y or
+    Z only itself (``AP_Param::send_parameter``);
   - a parameter flagged internal-use-only (``MIS_TOTAL``) is refused with STATUSTEXT
     "Param write denied (NAME)" and an echo of the unchanged value, unless ``BRD_OPTIONS``
     has ``ALLOW_SET_INTERNAL_PARM`` (``AP_Param::allow_set_via_mavlink``); device ids are
@@ -80,6 +81,11 @@ from mavcal.testing.vehicle_sensors import AccelCalTruth, CompassTruth, Motion, 
 __all__ = ["TestVehicle", "VehicleTruth", "AccelCalTruth", "CompassTruth", "Faults"]
 
 log = logging.getLogger(__name__)
+
+
+#: HEARTBEAT base_mode of a disarmed ArduCopter in STABILIZE (SITL 4.7.0-dev sends 81)
+_BASE_MODE = (mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_STABILIZE_ENABLED
+              | mavlink2.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)
 
 
 def _trunc_i16(x: float) -> int:
@@ -568,7 +574,7 @@ class TestVehicle:
             self._last_hb = now
             self._send(self._enc.heartbeat_encode(
                 mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 0, mavlink2.MAV_STATE_STANDBY))
+                _BASE_MODE, 0, mavlink2.MAV_STATE_STANDBY))
         if self._list_cursor is not None:
             for _ in range(20):
                 if self._list_cursor >= len(self._store.names):
@@ -701,7 +707,8 @@ class TestVehicle:
             known = (A.MAVLINK_MSG_ID_RAW_IMU, A.MAVLINK_MSG_ID_SCALED_IMU, A.MAVLINK_MSG_ID_SCALED_IMU2,
                      A.MAVLINK_MSG_ID_SCALED_IMU3, A.MAVLINK_MSG_ID_ATTITUDE)
             if mid not in known:  # ArduPilot: DENIED and a STATUSTEXT (GCS_MAVLINK::set_message_interval)
-                self._send(self._enc.statustext_encode(A.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({mid})".encode()))
+                text = f"No ap_message for mavlink id ({mid})".encode()
+                self._send(self._enc.statustext_encode(A.MAV_SEVERITY_INFO, text))
                 self._ack(m, A.MAV_RESULT_DENIED)
                 return
             us = m.param2

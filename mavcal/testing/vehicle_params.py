@@ -11,7 +11,8 @@ values the way ``AP_Param`` does:
   ``AP_Mission``) is refused ("Param write denied" and an echo of the unchanged value) unless
   ``BRD_OPTIONS`` has ``ALLOW_SET_INTERNAL_PARM`` (bit 2): ``AP_Param::allow_set_via_mavlink``;
   so is a name in ``deny`` (a read-only defaults entry, ``@READONLY``, or a scripting lock on a
-  real vehicle); setting one element of a Vector3 parameter echoes all three elements.
+  real vehicle); setting the X element of a Vector3 parameter echoes all three elements,
+  setting Y or Z echoes only that one (``AP_Param::send_parameter``).
   Device ids (``COMPASS_DEV_IDn``, ``INS_ACCn_ID``, ``INS_GYRn_ID``) are **writable**: their
   ``var_info`` entries are plain ``AP_GROUPINFO`` without the flag (their "@ReadOnly: True"
   is documentation for ground stations only), as ArduPilot SITL 4.7.0-dev confirms;
@@ -260,7 +261,10 @@ class ParamStore:
         if not self.allow_set_via_mavlink(name):
             return SetOutcome(None, denied=True, echo=(name,))
         stored = self.set_local(name, value)
-        return SetOutcome(stored, echo=self._vector_of.get(name, (name,)))
+        vector = self._vector_of.get(name)
+        # AP_Param::send_parameter: the first element's pointer is the vector's, so a set of X
+        # echoes all three; a set of Y or Z echoes only itself
+        return SetOutcome(stored, echo=vector if vector is not None and vector[0] == name else (name,))
 
     def allow_set_via_mavlink(self, name: str) -> bool:
         """``AP_Param::allow_set_via_mavlink``: not a ``deny`` name (read-only), and not flagged
