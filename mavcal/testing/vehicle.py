@@ -40,6 +40,9 @@ thread:
   vehicle with known *true* sensor errors, with the vehicle's **current** calibration
   parameters applied the way ArduPilot applies them (see :meth:`TestVehicle.corrected_sensors`)
   and converted to int16 by truncation toward zero.
+* STATUSTEXT "Internal Errors 0x400000" (CRITICAL), once per boot, when an external
+  compass's orientation is set to a rotation the firmware does not know (``bad_rotation``),
+  as SITL reports it; from then on the HEARTBEAT's system_status is MAV_STATE_CRITICAL.
 * Fault injection per direction (drop / delay / duplicate), :meth:`kill`, :meth:`revive` and
   ``die_after_n_sets``.
 
@@ -86,6 +89,9 @@ log = logging.getLogger(__name__)
 #: HEARTBEAT base_mode of a disarmed ArduCopter in STABILIZE (SITL 4.7.0-dev sends 81)
 _BASE_MODE = (mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_STABILIZE_ENABLED
               | mavlink2.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)
+
+
+_BAD_ROTATION = 1 << 22  # AP_InternalError::error_t::bad_rotation
 
 
 def _trunc_i16(x: float) -> int:
@@ -190,6 +196,8 @@ class TestVehicle:
         self.param_sets: list[tuple[str, float, float | None]] = []  # (name, received, stored or None)
         self.commands: list[tuple[int, tuple[float, ...]]] = []
         self.reboots = 0
+        #: AP_InternalError's mask (cleared at boot); a new bit is announced by STATUSTEXT
+        self.internal_errors = 0
         self.accepted_sets = 0
         self.stats: dict[str, int] = {"rx": 0, "tx": 0, "dropped_in": 0, "dropped_out": 0,
                                       "dup_in": 0, "dup_out": 0}
@@ -411,6 +419,17 @@ class TestVehicle:
         self._boot_time = time.monotonic()
         self._last_hb = 0.0
         self._list_cursor = None
+        self.internal_errors = 0
+        self._check_internal_errors()
+
+    def _check_internal_errors(self) -> None:
+        """A compass rotation the firmware does not know raises ``bad_rotation`` (0x400000)
+        when the compass is next read; a new bit is reported once, as SITL does:
+        STATUSTEXT (CRITICAL) "Internal Errors 0x400000"."""
+        if self._store.bad_compass_rotation() and not self.internal_errors & _BAD_ROTATION:
+            self.internal_errors |= _BAD_ROTATION
+            self._send(self._enc.statustext_encode(mavlink2.MAV_SEVERITY_CRITICAL,
+                                                   f"Internal Errors {self.internal_errors:#x}".encode()))
 
     def _apply_stream_rates(self) -> None:
         def iv(hz: float) -> float | None:
@@ -574,7 +593,7 @@ class TestVehicle:
             self._last_hb = now
             self._send(self._enc.heartbeat_encode(
                 mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                _BASE_MODE, 0, mavlink2.MAV_STATE_STANDBY))
+                _BASE_MODE, 0, mavlink2.MAV_STATE_CRITICAL if self.internal_errors else mavlink2.MAV_STATE_STANDBY))
         if self._list_cursor is not None:
             for _ in range(20):
                 if self._list_cursor >= len(self._store.names):
@@ -678,6 +697,8 @@ class TestVehicle:
                 return
         for n in out.echo:
             self._send_param(n, 65535)
+        if out.stored is not None:
+            self._check_internal_errors()
 
     def _param_error(self, m: Any, name: str, index: int, error: int) -> None:
         """PARAM_ERROR to the sender (``GCS_MAVLINK::send_param_error``), only with ``param_errors``."""

@@ -36,7 +36,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2
+from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, ROTATIONS
 
 __all__ = ["INT8", "INT16", "INT32", "REAL32", "ParamRow", "ParamStore", "SetOutcome", "ap_set_float",
            "default_param_table", "calibration_param_names", "COMPASS_DEV_IDS", "N_COMPASS_SLOTS", "N_IMUS",
@@ -294,6 +294,17 @@ class ParamStore:
         for i, values in enumerate(new):
             if values is not None:
                 p.update(zip(keys[i], values))
+
+    def bad_compass_rotation(self) -> bool:
+        """An external compass's ``COMPASS_ORIENTn`` is no rotation the firmware knows: its
+        ``Vector3::rotate`` flags ``AP_InternalError::error_t::bad_rotation`` (an internal
+        compass ignores ORIENT)."""
+        for slot in range(N_COMPASS_SLOTS):
+            cn = fw.compass_param_names(slot)
+            orient = int(self.values[_name(cn, "orient")])
+            if self.values[_name(cn, "external")] and orient not in ROTATIONS and orient not in (CUSTOM_1, CUSTOM_2):
+                return True
+        return False
 
     def compass_dev_ids(self) -> list[int]:
         """``COMPASS_DEV_ID{,2,3}`` per slot."""
