@@ -214,11 +214,13 @@ class TestVehicle:
         self._sock: socket.socket | None = None
         self._listen: socket.socket | None = None
         self._peers: dict[Any, _Peer] = {}
-        self._out_q: list[tuple[float, int, bytes]] = []
-        self._in_q: list[tuple[float, int, Any]] = []
+        self._out_q: list[tuple[float, int, bytes, Any]] = []  # (due, seq, bytes, peer address or None: all)
+        self._in_q: list[tuple[float, int, Any, Any]] = []  # (due, seq, message, the sender's peer address)
+        self._sender: Any = None  # the peer whose message is being handled: replies go to it alone
         self._seq = itertools.count()
         self._enc = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self._list_cursor: int | None = None
+        self._list_to: Any = None
         self._boot()
 
     # ------------------------------------------------------------------ lifecycle
@@ -447,8 +449,11 @@ class TestVehicle:
         mav.robust_parsing = True
         return mav
 
-    def _send(self, msg: Any) -> None:
-        """Queue one message to every peer, through the outbound fault injection."""
+    def _send(self, msg: Any, to: Any = None) -> None:
+        """Queue one message to peer ``to`` (an address; None: every peer), through the outbound
+        fault injection. ArduPilot answers a request on the asking channel only (PARAM_VALUE of
+        a read or a list, COMMAND_ACK, a requested message) and sends the rest to every channel
+        (heartbeats, the echo of a set, STATUSTEXT)."""
         if self._dead or self._reboot_until is not None:
             return
         buf = msg.pack(self._enc)
@@ -463,13 +468,13 @@ class TestVehicle:
             self.stats["dup_out"] += 1
         due = time.monotonic() + f.delay_out_s
         for _ in range(copies):
-            heapq.heappush(self._out_q, (due, next(self._seq), buf))
+            heapq.heappush(self._out_q, (due, next(self._seq), buf, to))
 
     def _flush_out(self, now: float) -> None:
         while self._out_q and self._out_q[0][0] <= now:
-            _, _, buf = heapq.heappop(self._out_q)
+            _, _, buf, to = heapq.heappop(self._out_q)
             self.stats["tx"] += 1
-            for peer in list(self._peers.values()):
+            for peer in list(self._peers.values()) if to is None else [p for p in [self._peers.get(to)] if p]:
                 try:
                     if peer.sock is not None:
                         peer.sock.sendall(buf)
@@ -559,7 +564,7 @@ class TestVehicle:
                 copies = 2
                 self.stats["dup_in"] += 1
             for _ in range(copies):
-                heapq.heappush(self._in_q, (now + f.delay_in_s, next(self._seq), m))
+                heapq.heappush(self._in_q, (now + f.delay_in_s, next(self._seq), m, peer.addr))
 
     def _run(self) -> None:
         while self._running:
@@ -568,9 +573,10 @@ class TestVehicle:
                 with self._lock:
                     now = time.monotonic()
                     while self._in_q and self._in_q[0][0] <= now:
-                        _, _, m = heapq.heappop(self._in_q)
+                        _, _, m, self._sender = heapq.heappop(self._in_q)
                         if not self._dead and self._reboot_until is None:
                             self._handle(m)
+                        self._sender = None
                     self._periodic(now)
                     self._flush_out(now)
             except Exception:  # keep the vehicle alive; a test will notice the silence
@@ -599,7 +605,7 @@ class TestVehicle:
                 if self._list_cursor >= len(self._store.names):
                     self._list_cursor = None
                     break
-                self._send_param(self._store.names[self._list_cursor], self._list_cursor)
+                self._send_param(self._store.names[self._list_cursor], self._list_cursor, self._list_to)
                 self._list_cursor += 1
         due = [(mid, iv) for mid, iv in self._intervals.items() if iv and now >= self._next_due.get(mid, 0.0)]
         if due:
@@ -641,9 +647,9 @@ class TestVehicle:
         tc = getattr(m, "target_component", 0)
         return ts in (0, self.sysid) and tc in (0, self.compid)
 
-    def _send_param(self, name: str, index: int) -> None:
+    def _send_param(self, name: str, index: int, to: Any = None) -> None:
         self._send(self._enc.param_value_encode(name.encode("ascii"), self._values[name],
-                                                self._store.types[name], len(self._store.names), index))
+                                                self._store.types[name], len(self._store.names), index), to)
 
     def _handle(self, m: Any) -> None:
         mtype = m.get_type()
@@ -652,17 +658,17 @@ class TestVehicle:
         elif mtype == "PARAM_REQUEST_READ" and self._for_us(m):
             if m.param_index != -1:
                 if 0 <= m.param_index < len(self._store.names):
-                    self._send_param(self._store.names[m.param_index], m.param_index)
+                    self._send_param(self._store.names[m.param_index], m.param_index, self._sender)
                 else:
                     self._param_error(m, "", m.param_index, mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST)
             else:
                 name = _name(m.param_id)
                 if name in self._values:
-                    self._send_param(name, 65535)
+                    self._send_param(name, 65535, self._sender)
                 else:
                     self._param_error(m, name, -1, mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST)
         elif mtype == "PARAM_REQUEST_LIST" and self._for_us(m):
-            self._list_cursor = 0
+            self._list_cursor, self._list_to = 0, self._sender
         elif mtype == "COMMAND_LONG" and self._for_us(m):
             self._handle_command(m)
         elif mtype == "REQUEST_DATA_STREAM" and self._for_us(m):
@@ -704,10 +710,11 @@ class TestVehicle:
         """PARAM_ERROR to the sender (``GCS_MAVLINK::send_param_error``), only with ``param_errors``."""
         if self.param_errors:
             self._send(self._enc.param_error_encode(m.get_srcSystem(), m.get_srcComponent(), name.encode("ascii"),
-                                                    index, error))
+                                                    index, error), self._sender)
 
     def _ack(self, m: Any, result: int) -> None:
-        self._send(self._enc.command_ack_encode(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()))
+        self._send(self._enc.command_ack_encode(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()),
+                   self._sender)
 
     def _handle_command(self, m: Any) -> None:
         cmd = m.command
@@ -750,7 +757,7 @@ class TestVehicle:
                     | A.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | A.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
             version = (4 << 24) | (6 << 16) | (0 << 8) | 255  # 4.6.0 official
             self._send(self._enc.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8,
-                                                          [0] * 8, 0, 0, 0))
+                                                          [0] * 8, 0, 0, 0), self._sender)
         elif cmd == A.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
             if int(m.param1) in (1, 3):
                 self._ack(m, A.MAV_RESULT_ACCEPTED)

@@ -50,11 +50,16 @@ class MavProbe:
     def __init__(self, device: str, *, heartbeat_timeout_s: float = 30.0) -> None:
         self._conn = mavutil.mavlink_connection(device, source_system=GCS_SYSTEM, source_component=GCS_COMPONENT,
                                                 dialect="ardupilotmega")
+        # a vehicle that listens (udpin, tcp) learns of this GCS from its first message
+        self._conn.mav.heartbeat_send(const("MAV_TYPE_GCS"), const("MAV_AUTOPILOT_INVALID"), 0, 0, 0)
         hb = self._conn.wait_heartbeat(timeout=heartbeat_timeout_s)
         if hb is None:
             self._conn.close()
             raise TimeoutError(f"no heartbeat on {device} within {heartbeat_timeout_s:g} s")
         self.target = (hb.get_srcSystem(), hb.get_srcComponent())
+        # ArduPilot sends its broadcasts (echoes of a set, STATUSTEXT) only on channels that
+        # have heard from a GCS: now that the address is known (udpin), be heard
+        self._conn.mav.heartbeat_send(const("MAV_TYPE_GCS"), const("MAV_AUTOPILOT_INVALID"), 0, 0, 0)
         self.first_heartbeat = _record(hb)
 
     def close(self) -> None:
