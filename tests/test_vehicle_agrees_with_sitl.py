@@ -175,6 +175,20 @@ def probe_set_vector_element(p: MavProbe) -> dict:
     return out
 
 
+def probe_rapid_sets(p: MavProbe) -> dict:
+    """Three PARAM_SETs of one parameter back to back: SITL may answer the queued saves with
+    fewer echoes (seen: 2 of 4), the loopback vehicle answers each; either way the last echo
+    carries the last value and no echo is of a value never sent."""
+    old = _read(p, ["COMPASS_DEC"])
+    sent = [0.31, 0.32, 0.33]
+    for v in sent:
+        p.param_set("COMPASS_DEC", v)
+    got = _values(p.collect(2.0, {"PARAM_VALUE"}), "COMPASS_DEC")
+    _restore(p, old)
+    return {"last_is_last": bool(got) and got[-1] == _f32(sent[-1]), "count_1_to_3": 1 <= len(got) <= 3,
+            "only_sent_values": set(got) <= {_f32(v) for v in sent}}
+
+
 def probe_set_unknown_and_nan(p: MavProbe) -> dict:
     p.drain()
     p.param_set("NO_SUCH_PARAM", 1.0)
@@ -355,6 +369,14 @@ def probe_compass_correction(p: MavProbe) -> dict:
     return out
 
 
+def _about_probe(r: Received) -> bool:
+    if r.type == "PARAM_VALUE":
+        return r["param_id"] in ("COMPASS_DEC", "MIS_TOTAL")
+    if r.type == "STATUSTEXT":
+        return "denied" in r["text"]
+    return True
+
+
 def probe_channels(p: MavProbe, other: MavProbe) -> dict:
     """What a second GCS on another channel sees of the first one's requests: ArduPilot answers
     a request on the asking channel only, echoes a set and sends STATUSTEXT on every channel,
@@ -362,7 +384,8 @@ def probe_channels(p: MavProbe, other: MavProbe) -> dict:
     def seen(types: set[str], action: Callable[[], object], seconds: float = 1.0) -> list[str]:
         other.drain()
         action()
-        return sorted({r.type for r in other.collect(seconds, types)})
+        # only what is about this request: SITL also announces its own changes (STAT_RUNTIME, ...)
+        return sorted({r.type for r in other.collect(seconds, types) if _about_probe(r)})
 
     old = _read(p, ["COMPASS_DEC", "MIS_TOTAL"])
     out = {"read_answer": seen({"PARAM_VALUE"}, lambda: p.read_param("COMPASS_DEC")),
@@ -381,7 +404,7 @@ def probe_channels(p: MavProbe, other: MavProbe) -> dict:
 PROBES: dict[str, Callable[[MavProbe], dict]] = {
     f.__name__.removeprefix("probe_"): f for f in (
         probe_heartbeat, probe_read_by_name, probe_read_by_index, probe_read_unknown, probe_set_float,
-        probe_set_integer, probe_set_vector_element, probe_set_unknown_and_nan, probe_set_device_id,
+        probe_set_integer, probe_set_vector_element, probe_rapid_sets, probe_set_unknown_and_nan, probe_set_device_id,
         probe_internal_use_only, probe_no_range_check, probe_param_list, probe_data_stream,
         probe_message_interval, probe_commands, probe_accel_correction, probe_compass_correction)}
 

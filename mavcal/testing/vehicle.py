@@ -36,6 +36,10 @@ thread:
   compass parameter sets are reordered by ``COMPASS_PRIOn_ID`` and the custom rotations are
   rebuilt, as at boot). Everything else gets MAV_RESULT_UNSUPPORTED. REQUEST_DATA_STREAM sets
   stream rates (no ACK, as ArduPilot).
+* Channels: an answer goes to the asking client only (the PARAM_VALUE of a read or a list,
+  COMMAND_ACK, a requested AUTOPILOT_VERSION, PARAM_ERROR); heartbeats, the echo of a set,
+  STATUSTEXT and the streams go to every client (ArduPilot keeps stream rates per channel;
+  this vehicle keeps one set).
 * IMU streams RAW_IMU, SCALED_IMU2, SCALED_IMU3 (and ATTITUDE on EXTRA1) from a simulated
   vehicle with known *true* sensor errors, with the vehicle's **current** calibration
   parameters applied the way ArduPilot applies them (see :meth:`TestVehicle.corrected_sensors`)
