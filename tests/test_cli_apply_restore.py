@@ -69,7 +69,7 @@ def test_unknown_parameter_exits_2_before_any_write(vehicle, tmp_path, capsys):
 
 def test_rejected_write_is_restored_exit_5(vehicle, tmp_path, capsys):
     p = tmp_path / "x.param"
-    p.write_text("COMPASS_OFS_X 1\nCOMPASS_DEV_ID 5\n")  # device ids are write-denied
+    p.write_text("COMPASS_OFS_X 1\nMIS_TOTAL 5\n")  # internal-use-only: write-denied (BRD_OPTIONS 0)
     before = vehicle.params
     assert main(["apply", str(p), "--connect", vehicle.gcs_device, "--yes",
                  "--backup", str(tmp_path / "b.param")] + FAST) == 5

@@ -99,18 +99,34 @@ def test_param_type_in_param_set_is_ignored(vehicle, gcs):
     assert m.param_value == 1.75 and m.param_type == A.MAV_PARAM_TYPE_REAL32
 
 
-def test_setting_one_axis_of_a_vector_echoes_all_three(vehicle, gcs):
-    vehicle.set_param_local("COMPASS_OFS2_X", 7.0)
-    param_set(gcs, "COMPASS_OFS2_Y", -4.5)
+def test_setting_x_of_a_vector_echoes_all_three_y_only_itself(vehicle, gcs):
+    # AP_Param::send_parameter (and SITL, tests/test_vehicle_agrees_with_sitl.py): the X
+    # element's pointer is the vector's, so its echo is the whole vector; Y and Z echo alone
+    vehicle.set_param_local("COMPASS_OFS2_Z", 2.0)
+    param_set(gcs, "COMPASS_OFS2_X", 7.0)
     got = [m for m in collect(gcs, 0.3, {"PARAM_VALUE"})]
     assert [(m.param_id, m.param_value, m.param_index) for m in got] == [
-        ("COMPASS_OFS2_X", 7.0, 65535), ("COMPASS_OFS2_Y", -4.5, 65535), ("COMPASS_OFS2_Z", 0.0, 65535)]
+        ("COMPASS_OFS2_X", 7.0, 65535), ("COMPASS_OFS2_Y", 0.0, 65535), ("COMPASS_OFS2_Z", 2.0, 65535)]
+    param_set(gcs, "COMPASS_OFS2_Y", -4.5)
+    got = [m for m in collect(gcs, 0.3, {"PARAM_VALUE"})]
+    assert [(m.param_id, m.param_value, m.param_index) for m in got] == [("COMPASS_OFS2_Y", -4.5, 65535)]
 
 
-def test_device_ids_are_write_denied(vehicle, gcs):
+def test_internal_use_only_is_write_denied_unless_brd_options_allows(vehicle, gcs):
+    param_set(gcs, "MIS_TOTAL", 5.0)
+    m = wait_for(gcs, lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "MIS_TOTAL")
+    assert m.param_value == 0.0 and vehicle.get_param("MIS_TOTAL") == 0.0
+    vehicle.set_param_local("BRD_OPTIONS", 4)  # ALLOW_SET_INTERNAL_PARM
+    param_set(gcs, "MIS_TOTAL", 5.0)
+    m = wait_for(gcs, lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "MIS_TOTAL")
+    assert m.param_value == 5.0 and vehicle.get_param("MIS_TOTAL") == 5.0
+
+
+def test_device_ids_are_writable_as_in_ardupilot(vehicle, gcs):
+    # no AP_PARAM_FLAG_INTERNAL_USE_ONLY on COMPASS_DEV_ID (SITL stores and echoes it too)
     param_set(gcs, "COMPASS_DEV_ID", 5.0)
     m = wait_for(gcs, lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COMPASS_DEV_ID")
-    assert m.param_value == 97539.0 and vehicle.get_param("COMPASS_DEV_ID") == 97539.0
+    assert m.param_value == 5.0 and vehicle.get_param("COMPASS_DEV_ID") == 5.0
 
 
 def test_read_by_name_and_by_index_and_list(vehicle, gcs):

@@ -125,17 +125,17 @@ def test_reboot_needs_are_reported(vehicle, link, tmp_path):
 
 
 def test_a_rejected_value_restores_what_was_written(vehicle, link, tmp_path):
-    # the device id is write-denied: the echo carries the old value, never the new one
+    # MIS_TOTAL is internal-use-only (denied with BRD_OPTIONS 0): the echo carries the old value
     vehicle.set_param_local("COMPASS_OFS_X", 10.0)
     before = vehicle.params
     with pytest.raises(ParamWriteError) as exc:
-        write_params(link, {"COMPASS_OFS_X": 20.0, "COMPASS_DEV_ID": 12345}, backup_path=tmp_path / "b.param",
+        write_params(link, {"COMPASS_OFS_X": 20.0, "MIS_TOTAL": 12}, backup_path=tmp_path / "b.param",
                      **FAST)
     assert not isinstance(exc.value, RestoreFailedError) and exc.value.exit_code == 5
     rep = exc.value.report
     assert rep.restored and not rep.complete and rep.in_doubt == ()
     assert {r.name: (r.ok, r.restored) for r in rep.results} == {
-        "COMPASS_OFS_X": (True, True), "COMPASS_DEV_ID": (False, True)}
+        "COMPASS_OFS_X": (True, True), "MIS_TOTAL": (False, True)}
     assert vehicle.params == before
     assert (tmp_path / "b.param").exists()
 

@@ -79,12 +79,18 @@ def test_param_set_semantics():
     assert store.values[fw.compass_param_names(0)["orient"]] == 6.0
     assert store.param_set("NO_SUCH_PARAM", 1.0).echo == ()
     assert store.param_set(ofs2[0], math.nan).stored is None
-    out = store.param_set(ofs2[1], 0.1)  # a Vector3 element: all three echoed, float32 stored
+    out = store.param_set(ofs2[0], 0.1)  # a Vector3's X: all three echoed, float32 stored
     assert out.stored == float(np.float32(0.1)) and out.echo == ofs2 and not out.denied
+    assert store.param_set(ofs2[1], 0.2).echo == (ofs2[1],)  # Y (or Z): only itself
     for ident in ("COMPASS_DEV_ID", "COMPASS_DEV_ID6", fw.accel_param_names(1)["id"], fw.gyro_param_names(2)["id"]):
-        before = store.values[ident]
-        out = store.param_set(ident, 5.0)
-        assert out.denied and out.stored is None and out.echo == (ident,) and store.values[ident] == before
+        out = store.param_set(ident, 5.0)  # device ids carry no internal-use-only flag: writable
+        assert not out.denied and out.stored == 5.0 and out.echo == (ident,) and store.values[ident] == 5.0
+    out = store.param_set("MIS_TOTAL", 5.0)  # flagged internal-use-only: denied with BRD_OPTIONS 0
+    assert out.denied and out.stored is None and out.echo == ("MIS_TOTAL",) and store.values["MIS_TOTAL"] == 0.0
+    store.set_local("BRD_OPTIONS", 4)  # ALLOW_SET_INTERNAL_PARM
+    assert store.param_set("MIS_TOTAL", 5.0).stored == 5.0
+    denying = ParamStore(deny=("COMPASS_OFS_X",))  # a read-only defaults entry
+    assert denying.param_set("COMPASS_OFS_X", 1.0).denied
     assert ap_set_float(2.995, INT8) == 3.0 and ap_set_float(-1000.0, INT8) == -128.0
     with pytest.raises(KeyError):
         ParamStore({"NO_SUCH_PARAM": 1.0})

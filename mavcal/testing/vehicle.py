@@ -14,16 +14,20 @@ thread:
     ``param_type`` field is ignored; the value is converted to the stored type
     (``AP_Param::set_float``: integers get +/-0.01 in float32, are clamped to the type's
     range and truncated; floats are stored as float32) and echoed as PARAM_VALUE with
-    ``param_index`` 65535; setting one element of a Vector3 parameter echoes all three;
-  - internal-use-only parameters (device ids) are refused with STATUSTEXT
-    "Param write denied" and an echo of the unchanged value;
+    ``param_index`` 65535; setting the X element of a Vector3 parameter echoes all three, Y or
+    Z only itself (``AP_Param::send_parameter``);
+  - a parameter flagged internal-use-only (``MIS_TOTAL``) is refused with STATUSTEXT
+    "Param write denied (NAME)" and an echo of the unchanged value, unless ``BRD_OPTIONS``
+    has ``ALLOW_SET_INTERNAL_PARM`` (``AP_Param::allow_set_via_mavlink``); device ids are
+    writable, as in ArduPilot (no flag on them; checked against SITL by
+    ``tests/test_vehicle_agrees_with_sitl.py``);
   - with ``param_errors=True`` the vehicle behaves as ArduPilot master since PR #31062
     (2025-10): PARAM_ERROR (to the sender) for a PARAM_SET of an unknown name
     (``MAV_PARAM_ERROR_DOES_NOT_EXIST``), of NaN/Inf (``VALUE_OUT_OF_RANGE``), of a denied
     parameter (``PERMISSION_DENIED``, besides the STATUSTEXT and the echo), and for a
     PARAM_REQUEST_READ of an unknown name or index (``DOES_NOT_EXIST``);
-  - ``deny_params`` names parameters to deny like the device ids (a scripting lock or a
-    read-only defaults entry on a real vehicle).
+  - ``deny_params`` names parameters to deny the same way (a read-only defaults entry,
+    ``@READONLY``, or a scripting lock on a real vehicle).
 
 * COMMAND_LONG: MAV_CMD_PREFLIGHT_CALIBRATION param2=76 / param5=76 (force-save compass /
   accel calibration, recorded in :attr:`TestVehicle.force_saves`), MAV_CMD_SET_MESSAGE_INTERVAL,
@@ -32,10 +36,17 @@ thread:
   compass parameter sets are reordered by ``COMPASS_PRIOn_ID`` and the custom rotations are
   rebuilt, as at boot). Everything else gets MAV_RESULT_UNSUPPORTED. REQUEST_DATA_STREAM sets
   stream rates (no ACK, as ArduPilot).
+* Channels: an answer goes to the asking client only (the PARAM_VALUE of a read or a list,
+  COMMAND_ACK, a requested AUTOPILOT_VERSION, PARAM_ERROR); heartbeats, the echo of a set,
+  STATUSTEXT and the streams go to every client (ArduPilot keeps stream rates per channel;
+  this vehicle keeps one set).
 * IMU streams RAW_IMU, SCALED_IMU2, SCALED_IMU3 (and ATTITUDE on EXTRA1) from a simulated
   vehicle with known *true* sensor errors, with the vehicle's **current** calibration
   parameters applied the way ArduPilot applies them (see :meth:`TestVehicle.corrected_sensors`)
   and converted to int16 by truncation toward zero.
+* STATUSTEXT "Internal Errors 0x400000" (CRITICAL), once per boot, when an external
+  compass's orientation is set to a rotation the firmware does not know (``bad_rotation``),
+  as SITL reports it; from then on the HEARTBEAT's system_status is MAV_STATE_CRITICAL.
 * Fault injection per direction (drop / delay / duplicate), :meth:`kill`, :meth:`revive` and
   ``die_after_n_sets``.
 
@@ -77,6 +88,14 @@ from mavcal.testing.vehicle_sensors import AccelCalTruth, CompassTruth, Motion, 
 __all__ = ["TestVehicle", "VehicleTruth", "AccelCalTruth", "CompassTruth", "Faults"]
 
 log = logging.getLogger(__name__)
+
+
+#: HEARTBEAT base_mode of a disarmed ArduCopter in STABILIZE (SITL 4.7.0-dev sends 81)
+_BASE_MODE = (mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_STABILIZE_ENABLED
+              | mavlink2.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)
+
+
+_BAD_ROTATION = 1 << 22  # AP_InternalError::error_t::bad_rotation
 
 
 def _trunc_i16(x: float) -> int:
@@ -144,7 +163,7 @@ class TestVehicle:
     param_errors : bool
         Answer refused parameter requests with PARAM_ERROR (ArduPilot master), not silence (4.6).
     deny_params : iterable of str
-        More parameters whose PARAM_SET is denied.
+        Parameters whose PARAM_SET is denied (as read-only defaults entries are).
     """
 
     __test__ = False  # not a pytest test class
@@ -181,6 +200,8 @@ class TestVehicle:
         self.param_sets: list[tuple[str, float, float | None]] = []  # (name, received, stored or None)
         self.commands: list[tuple[int, tuple[float, ...]]] = []
         self.reboots = 0
+        #: AP_InternalError's mask (cleared at boot); a new bit is announced by STATUSTEXT
+        self.internal_errors = 0
         self.accepted_sets = 0
         self.stats: dict[str, int] = {"rx": 0, "tx": 0, "dropped_in": 0, "dropped_out": 0,
                                       "dup_in": 0, "dup_out": 0}
@@ -197,11 +218,13 @@ class TestVehicle:
         self._sock: socket.socket | None = None
         self._listen: socket.socket | None = None
         self._peers: dict[Any, _Peer] = {}
-        self._out_q: list[tuple[float, int, bytes]] = []
-        self._in_q: list[tuple[float, int, Any]] = []
+        self._out_q: list[tuple[float, int, bytes, Any]] = []  # (due, seq, bytes, peer address or None: all)
+        self._in_q: list[tuple[float, int, Any, Any]] = []  # (due, seq, message, the sender's peer address)
+        self._sender: Any = None  # the peer whose message is being handled: replies go to it alone
         self._seq = itertools.count()
         self._enc = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self._list_cursor: int | None = None
+        self._list_to: Any = None
         self._boot()
 
     # ------------------------------------------------------------------ lifecycle
@@ -402,6 +425,17 @@ class TestVehicle:
         self._boot_time = time.monotonic()
         self._last_hb = 0.0
         self._list_cursor = None
+        self.internal_errors = 0
+        self._check_internal_errors()
+
+    def _check_internal_errors(self) -> None:
+        """A compass rotation the firmware does not know raises ``bad_rotation`` (0x400000)
+        when the compass is next read; a new bit is reported once, as SITL does:
+        STATUSTEXT (CRITICAL) "Internal Errors 0x400000"."""
+        if self._store.bad_compass_rotation() and not self.internal_errors & _BAD_ROTATION:
+            self.internal_errors |= _BAD_ROTATION
+            self._send(self._enc.statustext_encode(mavlink2.MAV_SEVERITY_CRITICAL,
+                                                   f"Internal Errors {self.internal_errors:#x}".encode()))
 
     def _apply_stream_rates(self) -> None:
         def iv(hz: float) -> float | None:
@@ -419,8 +453,11 @@ class TestVehicle:
         mav.robust_parsing = True
         return mav
 
-    def _send(self, msg: Any) -> None:
-        """Queue one message to every peer, through the outbound fault injection."""
+    def _send(self, msg: Any, to: Any = None) -> None:
+        """Queue one message to peer ``to`` (an address; None: every peer), through the outbound
+        fault injection. ArduPilot answers a request on the asking channel only (PARAM_VALUE of
+        a read or a list, COMMAND_ACK, a requested message) and sends the rest to every channel
+        (heartbeats, the echo of a set, STATUSTEXT)."""
         if self._dead or self._reboot_until is not None:
             return
         buf = msg.pack(self._enc)
@@ -435,13 +472,13 @@ class TestVehicle:
             self.stats["dup_out"] += 1
         due = time.monotonic() + f.delay_out_s
         for _ in range(copies):
-            heapq.heappush(self._out_q, (due, next(self._seq), buf))
+            heapq.heappush(self._out_q, (due, next(self._seq), buf, to))
 
     def _flush_out(self, now: float) -> None:
         while self._out_q and self._out_q[0][0] <= now:
-            _, _, buf = heapq.heappop(self._out_q)
+            _, _, buf, to = heapq.heappop(self._out_q)
             self.stats["tx"] += 1
-            for peer in list(self._peers.values()):
+            for peer in list(self._peers.values()) if to is None else [p for p in [self._peers.get(to)] if p]:
                 try:
                     if peer.sock is not None:
                         peer.sock.sendall(buf)
@@ -531,7 +568,7 @@ class TestVehicle:
                 copies = 2
                 self.stats["dup_in"] += 1
             for _ in range(copies):
-                heapq.heappush(self._in_q, (now + f.delay_in_s, next(self._seq), m))
+                heapq.heappush(self._in_q, (now + f.delay_in_s, next(self._seq), m, peer.addr))
 
     def _run(self) -> None:
         while self._running:
@@ -540,9 +577,10 @@ class TestVehicle:
                 with self._lock:
                     now = time.monotonic()
                     while self._in_q and self._in_q[0][0] <= now:
-                        _, _, m = heapq.heappop(self._in_q)
+                        _, _, m, self._sender = heapq.heappop(self._in_q)
                         if not self._dead and self._reboot_until is None:
                             self._handle(m)
+                        self._sender = None
                     self._periodic(now)
                     self._flush_out(now)
             except Exception:  # keep the vehicle alive; a test will notice the silence
@@ -565,13 +603,13 @@ class TestVehicle:
             self._last_hb = now
             self._send(self._enc.heartbeat_encode(
                 mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 0, mavlink2.MAV_STATE_STANDBY))
+                _BASE_MODE, 0, mavlink2.MAV_STATE_CRITICAL if self.internal_errors else mavlink2.MAV_STATE_STANDBY))
         if self._list_cursor is not None:
             for _ in range(20):
                 if self._list_cursor >= len(self._store.names):
                     self._list_cursor = None
                     break
-                self._send_param(self._store.names[self._list_cursor], self._list_cursor)
+                self._send_param(self._store.names[self._list_cursor], self._list_cursor, self._list_to)
                 self._list_cursor += 1
         due = [(mid, iv) for mid, iv in self._intervals.items() if iv and now >= self._next_due.get(mid, 0.0)]
         if due:
@@ -613,9 +651,9 @@ class TestVehicle:
         tc = getattr(m, "target_component", 0)
         return ts in (0, self.sysid) and tc in (0, self.compid)
 
-    def _send_param(self, name: str, index: int) -> None:
+    def _send_param(self, name: str, index: int, to: Any = None) -> None:
         self._send(self._enc.param_value_encode(name.encode("ascii"), self._values[name],
-                                                self._store.types[name], len(self._store.names), index))
+                                                self._store.types[name], len(self._store.names), index), to)
 
     def _handle(self, m: Any) -> None:
         mtype = m.get_type()
@@ -624,17 +662,17 @@ class TestVehicle:
         elif mtype == "PARAM_REQUEST_READ" and self._for_us(m):
             if m.param_index != -1:
                 if 0 <= m.param_index < len(self._store.names):
-                    self._send_param(self._store.names[m.param_index], m.param_index)
+                    self._send_param(self._store.names[m.param_index], m.param_index, self._sender)
                 else:
                     self._param_error(m, "", m.param_index, mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST)
             else:
                 name = _name(m.param_id)
                 if name in self._values:
-                    self._send_param(name, 65535)
+                    self._send_param(name, 65535, self._sender)
                 else:
                     self._param_error(m, name, -1, mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST)
         elif mtype == "PARAM_REQUEST_LIST" and self._for_us(m):
-            self._list_cursor = 0
+            self._list_cursor, self._list_to = 0, self._sender
         elif mtype == "COMMAND_LONG" and self._for_us(m):
             self._handle_command(m)
         elif mtype == "REQUEST_DATA_STREAM" and self._for_us(m):
@@ -669,15 +707,18 @@ class TestVehicle:
                 return
         for n in out.echo:
             self._send_param(n, 65535)
+        if out.stored is not None:
+            self._check_internal_errors()
 
     def _param_error(self, m: Any, name: str, index: int, error: int) -> None:
         """PARAM_ERROR to the sender (``GCS_MAVLINK::send_param_error``), only with ``param_errors``."""
         if self.param_errors:
             self._send(self._enc.param_error_encode(m.get_srcSystem(), m.get_srcComponent(), name.encode("ascii"),
-                                                    index, error))
+                                                    index, error), self._sender)
 
     def _ack(self, m: Any, result: int) -> None:
-        self._send(self._enc.command_ack_encode(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()))
+        self._send(self._enc.command_ack_encode(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent()),
+                   self._sender)
 
     def _handle_command(self, m: Any) -> None:
         cmd = m.command
@@ -697,7 +738,9 @@ class TestVehicle:
             mid = int(m.param1)
             known = (A.MAVLINK_MSG_ID_RAW_IMU, A.MAVLINK_MSG_ID_SCALED_IMU, A.MAVLINK_MSG_ID_SCALED_IMU2,
                      A.MAVLINK_MSG_ID_SCALED_IMU3, A.MAVLINK_MSG_ID_ATTITUDE)
-            if mid not in known:
+            if mid not in known:  # ArduPilot: DENIED and a STATUSTEXT (GCS_MAVLINK::set_message_interval)
+                text = f"No ap_message for mavlink id ({mid})".encode()
+                self._send(self._enc.statustext_encode(A.MAV_SEVERITY_INFO, text))
                 self._ack(m, A.MAV_RESULT_DENIED)
                 return
             us = m.param2
@@ -718,7 +761,7 @@ class TestVehicle:
                     | A.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | A.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
             version = (4 << 24) | (6 << 16) | (0 << 8) | 255  # 4.6.0 official
             self._send(self._enc.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8,
-                                                          [0] * 8, 0, 0, 0))
+                                                          [0] * 8, 0, 0, 0), self._sender)
         elif cmd == A.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
             if int(m.param1) in (1, 3):
                 self._ack(m, A.MAV_RESULT_ACCEPTED)

@@ -7,9 +7,15 @@ values the way ``AP_Param`` does:
   clamped to the type's range and truncated toward zero; floats are stored as float32;
   NaN and Inf are ignored;
 * ``GCS_Param.cpp`` (:meth:`ParamStore.param_set`): an unknown name, NaN or Inf gets no
-  reply; internal-use-only parameters (device ids) are refused ("Param write denied" and
-  an echo of the unchanged value); setting one element of a Vector3 parameter echoes all
-  three elements;
+  reply; a parameter flagged ``AP_PARAM_FLAG_INTERNAL_USE_ONLY`` (here ``MIS_TOTAL``, as in
+  ``AP_Mission``) is refused ("Param write denied" and an echo of the unchanged value) unless
+  ``BRD_OPTIONS`` has ``ALLOW_SET_INTERNAL_PARM`` (bit 2): ``AP_Param::allow_set_via_mavlink``;
+  so is a name in ``deny`` (a read-only defaults entry, ``@READONLY``, or a scripting lock on a
+  real vehicle); setting the X element of a Vector3 parameter echoes all three elements,
+  setting Y or Z echoes only that one (``AP_Param::send_parameter``).
+  Device ids (``COMPASS_DEV_IDn``, ``INS_ACCn_ID``, ``INS_GYRn_ID``) are **writable**: their
+  ``var_info`` entries are plain ``AP_GROUPINFO`` without the flag (their "@ReadOnly: True"
+  is documentation for ground stations only), as ArduPilot SITL 4.7.0-dev confirms;
 * at boot (:meth:`ParamStore.reorder_compass_params`), ``AP_Compass::_reorder_compass_params``
   moves whole compass parameter sets so that slot i holds the compass whose device id is
   ``COMPASS_PRIO{i+1}_ID``.
@@ -30,10 +36,11 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2
+from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, ROTATIONS
 
 __all__ = ["INT8", "INT16", "INT32", "REAL32", "ParamRow", "ParamStore", "SetOutcome", "ap_set_float",
-           "default_param_table", "calibration_param_names", "COMPASS_DEV_IDS", "N_COMPASS_SLOTS", "N_IMUS"]
+           "default_param_table", "calibration_param_names", "COMPASS_DEV_IDS", "N_COMPASS_SLOTS", "N_IMUS",
+           "INTERNAL_USE_ONLY", "BRD_OPTIONS", "ALLOW_SET_INTERNAL_PARM"]
 
 INT8, INT16, INT32, REAL32 = (mavlink2.MAV_PARAM_TYPE_INT8, mavlink2.MAV_PARAM_TYPE_INT16,
                               mavlink2.MAV_PARAM_TYPE_INT32, mavlink2.MAV_PARAM_TYPE_REAL32)
@@ -105,6 +112,8 @@ def default_param_table() -> list[ParamRow]:
         for st, d in (("RAW_SENS", 0), ("EXT_STAT", 2), ("RC_CHAN", 0), ("POSITION", 0),
                       ("EXTRA1", 0), ("EXTRA2", 0), ("EXTRA3", 0), ("PARAMS", 0)):
             s(f"SR{ch}_{st}", INT16, d)
+    s(BRD_OPTIONS, INT32, 0)  # SITL 4.7.0-dev: 0
+    s("MIS_TOTAL", INT16, 0)
     s("AHRS_EKF_TYPE", INT8, 3)
     s(_name(board, "orientation"), INT8, 0)
     vec(board["trim"])
@@ -170,16 +179,12 @@ def _imu_rows(s, vec) -> None:
     s("INS_FAST_SAMPLE", INT8, 1)
 
 
-def _internal_use_only() -> frozenset:
-    """Parameters with AP_PARAM_FLAG_INTERNAL_USE_ONLY (device ids): PARAM_SET is denied."""
-    names = [_name(fw.compass_param_names(k), "dev_id") for k in range(N_COMPASS_SLOTS)]
-    names += list(_EXTRA_COMPASS_DEV_IDS)
-    for i in range(N_IMUS):
-        names += [_name(fw.accel_param_names(i), "id"), _name(fw.gyro_param_names(i), "id")]
-    return frozenset(names)
-
-
-_INTERNAL_USE_ONLY = _internal_use_only()
+#: parameters flagged ``AP_PARAM_FLAG_INTERNAL_USE_ONLY`` in the table (``AP_Mission``'s
+#: ``MIS_TOTAL``); a PARAM_SET of one is denied unless BRD_OPTIONS allows it
+INTERNAL_USE_ONLY: frozenset[str] = frozenset({"MIS_TOTAL"})
+BRD_OPTIONS = "BRD_OPTIONS"
+#: ``AP_BoardConfig::board_options::ALLOW_SET_INTERNAL_PARM``
+ALLOW_SET_INTERNAL_PARM = 1 << 2
 
 
 def calibration_param_names() -> tuple[str, ...]:
@@ -230,7 +235,7 @@ class ParamStore:
         for r in table:
             self.values[r.name] = self._stored(r.default, r.param_type)
         self._vector_of: dict[str, tuple[str, str, str]] = {r.name: r.vector for r in table if r.vector}
-        self.denied = _INTERNAL_USE_ONLY | frozenset(deny)
+        self.denied = frozenset(deny)
         for n, v in (overrides or {}).items():
             if n not in self.values:
                 raise KeyError(f"unknown parameter {n!r}")
@@ -253,10 +258,22 @@ class ParamStore:
         """A PARAM_SET from a GCS (``GCS_MAVLINK::handle_param_set``; its param_type is ignored)."""
         if name not in self.values or math.isnan(value) or math.isinf(value):
             return SetOutcome(None)  # silently ignored: no reply
-        if name in self.denied:
+        if not self.allow_set_via_mavlink(name):
             return SetOutcome(None, denied=True, echo=(name,))
         stored = self.set_local(name, value)
-        return SetOutcome(stored, echo=self._vector_of.get(name, (name,)))
+        vector = self._vector_of.get(name)
+        # AP_Param::send_parameter: the first element's pointer is the vector's, so a set of X
+        # echoes all three; a set of Y or Z echoes only itself
+        return SetOutcome(stored, echo=vector if vector is not None and vector[0] == name else (name,))
+
+    def allow_set_via_mavlink(self, name: str) -> bool:
+        """``AP_Param::allow_set_via_mavlink``: not a ``deny`` name (read-only), and not flagged
+        internal-use-only unless ``BRD_OPTIONS`` has ``ALLOW_SET_INTERNAL_PARM``."""
+        if name in self.denied:
+            return False
+        if name in INTERNAL_USE_ONLY:
+            return (int(self.values[BRD_OPTIONS]) & ALLOW_SET_INTERNAL_PARM) != 0
+        return True
 
     def reorder_compass_params(self) -> None:
         """``AP_Compass::_reorder_compass_params``: slot i gets the set of the compass whose
@@ -277,6 +294,17 @@ class ParamStore:
         for i, values in enumerate(new):
             if values is not None:
                 p.update(zip(keys[i], values))
+
+    def bad_compass_rotation(self) -> bool:
+        """An external compass's ``COMPASS_ORIENTn`` is no rotation the firmware knows: its
+        ``Vector3::rotate`` flags ``AP_InternalError::error_t::bad_rotation`` (an internal
+        compass ignores ORIENT)."""
+        for slot in range(N_COMPASS_SLOTS):
+            cn = fw.compass_param_names(slot)
+            orient = int(self.values[_name(cn, "orient")])
+            if self.values[_name(cn, "external")] and orient not in ROTATIONS and orient not in (CUSTOM_1, CUSTOM_2):
+                return True
+        return False
 
     def compass_dev_ids(self) -> list[int]:
         """``COMPASS_DEV_ID{,2,3}`` per slot."""
