@@ -4,8 +4,9 @@ The safe writer in :mod:`mavcal.link.writer` is name-agnostic; the few name rule
 live here, next to the rest of the ArduPilot knowledge:
 
 * :func:`vector_group`: ArduPilot stores ``*_X/_Y/_Z`` calibration values as one
-  ``AP_Vector3f``; a PARAM_SET of one element makes the vehicle echo all three
-  (``AP_Param::send_parameter``), so the writer must expect sibling echoes.
+  ``AP_Vector3f``; a PARAM_SET of its X element makes the vehicle echo all three
+  (``AP_Param::send_parameter``; Y or Z echo only themselves), so the writer must expect
+  sibling echoes.
 * :func:`needs_reboot`: parameters whose new value is only read at boot
   (``@RebootRequired`` and code reading, research note section 8).
 * :func:`force_save_kinds`: which ``MAV_CMD_PREFLIGHT_CALIBRATION`` force-saves a set of

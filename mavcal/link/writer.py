@@ -14,8 +14,8 @@ section 8):
 * Retries are bounded by time (``budget_s`` per parameter / force-save, after at least
   ``retries`` attempts), not by a fixed count: a lossy link gets as many attempts as fit.
 * The vehicle converts the float to the stored type (integers: +/-0.01 in float32, clamp,
-  truncate) and echoes PARAM_VALUE (``param_index`` 65535) after storing it; setting one
-  element of a Vector3 echoes all three. An echo with the right name and the expected value
+  truncate) and echoes PARAM_VALUE (``param_index`` 65535) after storing it; setting the X
+  element of a Vector3 echoes all three (Y or Z only themselves). An echo with the right name and the expected value
   (float32-equal after the conversion) confirms a write; anything else is ignored until the
   attempt times out, then the PARAM_SET is sent again.
 * Values go out as plain float32 (REAL32), never byte-wise (PX4 style).

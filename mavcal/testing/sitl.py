@@ -75,9 +75,10 @@ loopback vehicle (:mod:`mavcal.testing.vehicle`) differs:
   loopback vehicle without ``param_errors=True``);
 * no range check: ``INS_ACCSCAL_X`` 1.5 or ``COMPASS_ORIENT`` 77 are stored and echoed (the
   latter with a STATUSTEXT "Internal Errors 0x400000"); only mavcal's own limits refuse them;
-* device ids (``COMPASS_DEV_ID``, ``INS_ACC_ID``) are **writable** over MAVLink here (the
-  loopback vehicle denies them with "Param write denied", as boards with internal-use-only
-  parameters do);
+* device ids (``COMPASS_DEV_ID``, ``INS_ACC_ID``) are **writable** over MAVLink, as on every
+  ArduPilot board (they carry no ``AP_PARAM_FLAG_INTERNAL_USE_ONLY``; "@ReadOnly" is only a
+  note for ground stations); the loopback vehicle does the same
+  (``tests/test_vehicle_agrees_with_sitl.py``);
 * an accepted PARAM_SET is echoed on every channel (so the fixture sees what a tool wrote), and
   the vehicle announces its own changes (``STAT_RUNTIME``, ``MIS_TOTAL``) the same way;
 * the IMU streams are off on every channel until a GCS asks for them; heartbeats at 1 Hz.
