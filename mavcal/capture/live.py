@@ -25,6 +25,7 @@ from typing import Callable
 from mavcal.capture.session import CaptureConfig, CaptureSession, CaptureStatus
 from mavcal.errors import InsufficientDataError
 from mavcal.link.live import open_recorder
+from mavcal.link.signing import SigningKey
 from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, reset_streams
 from mavcal.pipeline import Options
 from mavcal.sources.types import SensorSeries
@@ -117,7 +118,8 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
                  rate_hz: float = 25.0, should_stop: Callable[[], bool] | None = None,
                  max_duration_s: float = 600.0, update_every_s: float = 0.5, batch_s: float = 0.1,
                  heartbeat_timeout_s: float = 5.0, param_timeout_s: float = 30.0,
-                 on_info: Callable[[LiveCaptureInfo], None] | None = None) -> CaptureSession:
+                 on_info: Callable[[LiveCaptureInfo], None] | None = None, budget_s: float = 15.0,
+                 signing_key: SigningKey | None = None) -> CaptureSession:
     """Run a guided capture on a live vehicle and return the session.
 
     Parameters
@@ -146,6 +148,11 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         Receive batch length.
     heartbeat_timeout_s, param_timeout_s : float
         Bounds on waiting for the vehicle's heartbeat and for its parameter table.
+    budget_s : float
+        How long the start (heartbeat once the device is heard, stream requests) keeps
+        retrying on a lossy link.
+    signing_key : SigningKey, optional
+        Sign the link (:mod:`mavcal.link.signing`).
     on_info : callable, optional
         Called once at the end with a :class:`LiveCaptureInfo`.
 
@@ -158,17 +165,23 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
 
     Raises
     ------
+    SigningError
+        The vehicle requires MAVLink 2 signing and ``signing_key`` is missing or wrong (exit 8).
     LinkError
         The device cannot be opened, sends no heartbeat, no parameters or no IMU data
         (exit code 3).
     """
-    rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s)
+    rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s, budget_s=budget_s,
+                        signing_key=signing_key)
     loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s)
     method = "?"
     streams = STREAM_MESSAGE_IDS
     try:
         params = rec.fetch_params(timeout_s=param_timeout_s)
-        session = CaptureSession(params, config or CaptureConfig(), options, source=device)
+        position = rec.read_position()  # the World Magnetic Model's field strength, unless --location/--field-mgauss
+        session = CaptureSession(params, config or CaptureConfig(), options, source=device,
+                                 position=position.location if position is not None else None)
+        session.position_source = position.source if position is not None else ""
         streams = needed_stream_ids(params)  # only the IMU messages this vehicle has
         method = rec.start_streams(rate_hz, message_ids=streams)
         log.info("capturing from %s (%s streams at %g Hz)", device, method, rate_hz)

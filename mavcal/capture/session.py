@@ -303,6 +303,8 @@ class CaptureSession:
         from dataclasses import replace
         self.options = replace(base, still=config.still, uncertainty_draws=config.uncertainty_draws, holdout=False)
         self.position = position
+        #: where ``position`` came from, named in the report (e.g. "vehicle GPS"; set with it)
+        self.position_source = ""
         self.source = source
         self._chunks: dict[tuple[str, int, str], list[tuple[np.ndarray, np.ndarray]]] = {}
         self._run: CalibrationRun | None = None
@@ -334,7 +336,8 @@ class CaptureSession:
             series.append(SensorSeries(sensor, inst, msg, t, v))
         t0 = min((float(s.time_s[0]) for s in series), default=0.0)
         params = ParamTimeline({k: (np.array([t0 - 1.0]), np.array([v])) for k, v in self.params.items()})
-        return ImuLog(self.source, "live", tuple(series), params, (), self.position)
+        return ImuLog(self.source, "live", tuple(series), params, (), self.position,
+                      position_source=self.position_source)
 
     def stop(self, reason: str = "stopped by the user") -> None:
         self._stopped = reason

@@ -17,11 +17,14 @@ from typing import TextIO
 
 from mavcal.commands.common import (
     add_device_map_arguments,
+    add_signing_arguments,
     add_still_arguments,
     add_write_budget_argument,
     check_new_backup,
     check_optional_dependencies,
     parse_location,
+    signing_key,
+    start_budget_s,
     still_config,
     write_outputs,
     write_text_output,
@@ -107,6 +110,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--retries", type=int, default=3)
     w.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation before writing")
     add_write_budget_argument(w)
+    add_signing_arguments(w)
     add_device_map_arguments(w)
 
 
@@ -173,6 +177,7 @@ def _single(args, source: str) -> int:
             from mavcal.link.live import record_device
 
             log_ = record_device(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout,
+                                 budget_s=start_budget_s(args), signing_key=signing_key(args),
                                  on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))
         else:
             log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))

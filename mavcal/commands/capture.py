@@ -24,6 +24,8 @@ from mavcal.commands.common import (
     check_new_backup,
     check_optional_dependencies,
     parse_location,
+    signing_key,
+    start_budget_s,
     write_outputs,
     write_with_report,
 )
@@ -114,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
     printer = StatusPrinter(sys.stderr, args.target_deg)
     session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer,
                                         baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,
-                                        heartbeat_timeout_s=args.timeout)
+                                        heartbeat_timeout_s=args.timeout, budget_s=start_budget_s(args),
+                                        signing_key=signing_key(args))
     st = session.status
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")
