@@ -39,3 +39,23 @@ def start_vehicle() -> Iterator[Callable[..., TestVehicle]]:
     yield start
     for vehicle in started:
         vehicle.stop()
+
+
+@pytest.fixture
+def start_sitl():
+    """Factory: ``start_sitl(errors=None, **options)`` starts a
+    :class:`mavcal.testing.sitl.SitlVehicle` (skips without SITL; fails under CI=true) and
+    returns it; every one it started is stopped at teardown, whatever the test did."""
+    from mavcal.testing.sitl import SitlVehicle, require_sitl
+
+    require_sitl()
+    started: list[SitlVehicle] = []
+
+    def start(errors=None, **options) -> SitlVehicle:
+        vehicle = SitlVehicle(errors, **options)
+        started.append(vehicle)
+        return vehicle.start()
+
+    yield start
+    for vehicle in started:
+        vehicle.stop()
