@@ -42,7 +42,7 @@ from typing import Any, Callable
 
 from mavcal.errors import MavcalError
 
-__all__ = ["CaptureWorker", "WorkerSettings", "IMU_TYPES", "FED_TYPES", "THREAD_PREFIX"]
+__all__ = ["CaptureWorker", "WorkerSettings", "IMU_TYPES", "FED_TYPES", "POSITION_TYPES", "THREAD_PREFIX"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,9 @@ log = logging.getLogger(__name__)
 IMU_TYPES = frozenset(("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"))
 #: what a parameter operation needs from the vehicle
 FED_TYPES = frozenset(("HEARTBEAT", "PARAM_VALUE", "PARAM_ERROR", "COMMAND_ACK", "STATUSTEXT"))
+#: where the vehicle is (for the World Magnetic Model; :mod:`mavcal.link.position`)
+POSITION_TYPES = frozenset(("GPS_RAW_INT", "GLOBAL_POSITION_INT", "HOME_POSITION"))
+_POSITION_WAIT_S = 3.0
 #: every thread of the worker is named with this prefix
 THREAD_PREFIX = "mavcal"
 _MAX_BUFFERED = 200_000  # IMU messages kept if the worker falls behind
@@ -104,6 +107,7 @@ class CaptureWorker:
         self.jobs: queue.Queue[tuple[Callable[..., None], tuple]] = queue.Queue()
         self._imu: list[Any] = []
         self._imu_lock = threading.Lock()
+        self._positions: list[Any] = []  # position messages filed by the host, read by the worker
         self.fed: Any = None  # the FedConnection of the parameter operation in progress
         self.capturing = False
         self.streams_active = False
@@ -128,6 +132,12 @@ class CaptureWorker:
         with self._imu_lock:
             if len(self._imu) < _MAX_BUFFERED:
                 self._imu.append(m)
+
+    def add_position(self, m: Any) -> None:
+        """File one position message of the vehicle (GPS_RAW_INT, GLOBAL_POSITION_INT, HOME_POSITION):
+        the latest few are kept for the World Magnetic Model."""
+        with self._imu_lock:
+            self._positions = (self._positions + [m])[-8:]
 
     def submit(self, job: str, *args: Any) -> None:
         """Queue a job: ``start(settings)``, ``stop()``, ``fit()``, ``write(settings, confirmed)``,
@@ -248,6 +258,30 @@ class CaptureWorker:
             self._ask_streams(self._cfg.rate_hz)
         self._imu_count, self._imu_since = 0, now
 
+    def _vehicle_position(self) -> Any:
+        """The vehicle's position from the filed messages; asked for (MAV_CMD_REQUEST_MESSAGE
+        through the outbox, every 0.5 s) when none is known yet, for up to 3 s. None: unknown."""
+        from mavcal.link.fed import QueuedSender
+        from mavcal.link.position import PositionWatch, request_position
+
+        watch = PositionWatch()
+        deadline = time.monotonic() + _POSITION_WAIT_S
+        asked = float("-inf")
+        while True:
+            with self._imu_lock:
+                msgs = list(self._positions)
+            for m in msgs:
+                watch.feed(m)
+            ids = self.vehicle_ids()
+            now = time.monotonic()
+            if watch.best() is not None or now >= deadline or ids is None:
+                return watch.best()
+            if now - asked >= 0.5:
+                request_position(QueuedSender(self.outbox), ids[0], ids[1])
+                asked = now
+            if self._halt.wait(0.05):
+                return watch.best()
+
     # -------------------------------------------------------------- jobs
     def _start(self, cfg: WorkerSettings) -> None:
         from mavcal.capture import CaptureConfig, CaptureSession, status_line
@@ -266,8 +300,11 @@ class CaptureWorker:
         still = StillConfig(min_duration_s=cfg.hold_s)
         config = CaptureConfig(target_heading_deg=cfg.target_deg, max_intervals=cfg.max_poses,
                                min_intervals=min(cfg.min_poses, cfg.max_poses), still=still)
+        position = self._vehicle_position()
         self.session = CaptureSession(values, config, Options(still=still, accel_instance=cfg.accel,
-                                                              mag_instance=cfg.compass), source="mavproxy")
+                                                              mag_instance=cfg.compass), source="mavproxy",
+                                      position=position.location if position is not None else None)
+        self.session.position_source = position.source if position is not None else ""
         self.run = None
         self._cfg = cfg
         self._stream_ids = needed_stream_ids(values)
@@ -279,7 +316,9 @@ class CaptureWorker:
         self._last_update = time.monotonic()
         self.status = self.session.update()
         self._last_line = status_line(self.status)
-        self._say(f"capture started ({len(table)} parameters); hold each advised pose still until it is "
+        where = (f"field from the World Magnetic Model at {position.describe()}" if position is not None
+                 else "no position from the vehicle: the compass keeps its own scale")
+        self._say(f"capture started ({len(table)} parameters; {where}); hold each advised pose still until it is "
                   f"counted\n{self._last_line}")
 
     def _update(self) -> None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 from pymavlink import mavutil
 
@@ -118,10 +118,19 @@ def read_position(link: Link, *, timeout_s: float = 3.0, retry_s: float = 0.5) -
 
     Requests are repeated every ``retry_s`` for the messages that have not answered, until a
     valid position arrives, every message answered without one (no GPS fix, no EKF origin, no
-    home), or ``timeout_s`` passes.
+    home) or was refused (a COMMAND_ACK other than accepted for each request of a round: the
+    vehicle cannot send it), or ``timeout_s`` passes.
     """
     watch = PositionWatch((link.target_system, link.target_component))
+    refusals = [0]
+
+    def on_ack(m: Any) -> None:
+        if (link.is_from_vehicle(m) and m.command == _A.MAV_CMD_REQUEST_MESSAGE
+                and m.result not in (_A.MAV_RESULT_ACCEPTED, _A.MAV_RESULT_IN_PROGRESS)):
+            refusals[0] += 1
+
     tokens = [link.add_handler(k, watch.feed) for k in POSITION_MESSAGES]
+    tokens.append(link.add_handler("COMMAND_ACK", on_ack))
     deadline = time.monotonic() + timeout_s
     try:
         while watch.best() is None:
@@ -129,10 +138,17 @@ def read_position(link: Link, *, timeout_s: float = 3.0, retry_s: float = 0.5) -
             remaining = deadline - time.monotonic()
             if not pending or remaining <= 0:
                 break
+            refusals[0] = 0
             request_position(link.mav, link.target_system, link.target_component, pending)
-            link.wait(lambda: watch.best() is not None, min(retry_s, remaining))
+            done = _found_or_refused(watch, refusals, len(pending))
+            link.wait(done, min(retry_s, remaining))
+            if watch.best() is None and refusals[0] >= len(pending):
+                break  # the vehicle cannot send any of them
     finally:
         for t in tokens:
             link.remove_handler(t)
     return watch.best()
 
+
+def _found_or_refused(watch: PositionWatch, refusals: list[int], n: int) -> Callable[[], bool]:
+    return lambda: watch.best() is not None or refusals[0] >= n
