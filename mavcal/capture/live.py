@@ -25,6 +25,7 @@ from typing import Callable
 from mavcal.capture.session import CaptureConfig, CaptureSession, CaptureStatus
 from mavcal.errors import InsufficientDataError
 from mavcal.link.live import open_recorder
+from mavcal.link.position import VehiclePosition
 from mavcal.link.signing import SigningKey
 from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, reset_streams
 from mavcal.pipeline import Options
@@ -92,7 +93,8 @@ class _CaptureLoop:
             return True
         return False
 
-    def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]]) -> None:
+    def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]],
+            position: Callable[[], VehiclePosition | None] = lambda: None) -> None:
         """Until the session is done; a KeyboardInterrupt stops it as the user would."""
         self.t_start = time.monotonic()
         last_update = float("-inf")
@@ -100,6 +102,8 @@ class _CaptureLoop:
         try:
             for batch in batches:
                 session.add(batch)
+                if session.position is None and (pos := position()) is not None:  # a GPS fix came later
+                    session.position, session.position_source = pos.location, pos.source
                 now = time.monotonic()
                 if not stopping:
                     stopping = self._stop_requested(session, now)
@@ -185,7 +189,7 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         streams = needed_stream_ids(params)  # only the IMU messages this vehicle has
         method = rec.start_streams(rate_hz, message_ids=streams)
         log.info("capturing from %s (%s streams at %g Hz)", device, method, rate_hz)
-        loop.run(session, rec.iter_batches(None, batch_s))
+        loop.run(session, rec.iter_batches(None, batch_s), position=rec.current_position)
         return session
     finally:
         reset_streams(rec.link, streams)

@@ -258,29 +258,41 @@ class CaptureWorker:
             self._ask_streams(self._cfg.rate_hz)
         self._imu_count, self._imu_since = 0, now
 
+    def _filed_position(self) -> Any:
+        """The best position among the filed messages (None: none)."""
+        from mavcal.link.position import PositionWatch
+
+        watch = PositionWatch()
+        with self._imu_lock:
+            msgs = list(self._positions)
+        for m in msgs:
+            watch.feed(m)
+        return watch.best()
+
+    def _take_position(self, position: Any) -> None:
+        if position is not None and self.session is not None:
+            self.session.position, self.session.position_source = position.location, position.source
+            self._say(f"field from the World Magnetic Model at {position.describe()}")
+
     def _vehicle_position(self) -> Any:
         """The vehicle's position from the filed messages; asked for (MAV_CMD_REQUEST_MESSAGE
         through the outbox, every 0.5 s) when none is known yet, for up to 3 s. None: unknown."""
         from mavcal.link.fed import QueuedSender
-        from mavcal.link.position import PositionWatch, request_position
+        from mavcal.link.position import request_position
 
-        watch = PositionWatch()
         deadline = time.monotonic() + _POSITION_WAIT_S
         asked = float("-inf")
         while True:
-            with self._imu_lock:
-                msgs = list(self._positions)
-            for m in msgs:
-                watch.feed(m)
+            best = self._filed_position()
             ids = self.vehicle_ids()
             now = time.monotonic()
-            if watch.best() is not None or now >= deadline or ids is None:
-                return watch.best()
+            if best is not None or now >= deadline or ids is None:
+                return best
             if now - asked >= 0.5:
                 request_position(QueuedSender(self.outbox), ids[0], ids[1])
                 asked = now
             if self._halt.wait(0.05):
-                return watch.best()
+                return self._filed_position()
 
     # -------------------------------------------------------------- jobs
     def _start(self, cfg: WorkerSettings) -> None:
@@ -331,6 +343,8 @@ class CaptureWorker:
             msgs, self._imu = self._imu, []
         ids = self.vehicle_ids()
         self.session.add(imu_batch_from_messages(msgs, target_system=ids[0] if ids else None))
+        if self.session.position is None:  # a GPS fix that came after the start
+            self._take_position(self._filed_position())
         self._watch_rate(msgs, now)
         st = self.session.update()
         self.status = st

@@ -33,7 +33,7 @@ import numpy as np
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link, open_link
 from mavcal.link.params import download_params
-from mavcal.link.position import VehiclePosition, read_position
+from mavcal.link.position import POSITION_MESSAGES, PositionWatch, VehiclePosition, read_position, request_position
 from mavcal.link.signing import SigningKey
 from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, start_streams
 from mavcal.sources.assemble import IMU_MESSAGES, SCALED_INSTANCE, TLOG_MESSAGES, assemble_tlog, imu_series
@@ -51,6 +51,8 @@ GCS_HEARTBEAT_PERIOD_S = 1.0
 
 #: how often a recording reports its progress
 PROGRESS_PERIOD_S = 0.5
+#: while the vehicle's position is unknown (no GPS fix yet at boot), ask for it this often
+POSITION_ASK_PERIOD_S = 5.0
 
 Batch = tuple[SensorSeries, ...]
 
@@ -100,6 +102,9 @@ class LiveRecorder:
         self._batch_mark: dict[str, int] = {n: 0 for n in IMU_MESSAGES}
         self._index = 0
         self._token = link.add_handler("*", self._record)
+        self._positions = PositionWatch((link.target_system, link.target_component))
+        self._position_tokens = [link.add_handler(k, self._positions.feed) for k in POSITION_MESSAGES]
+        self._position_asked: float | None = None  # None: not asked for (read_position not called)
         link.heartbeat_period_s = GCS_HEARTBEAT_PERIOD_S
 
     @property
@@ -150,9 +155,25 @@ class LiveRecorder:
     def read_position(self, timeout_s: float = 3.0) -> VehiclePosition | None:
         """Ask the vehicle where it is (:func:`mavcal.link.position.read_position`); kept in
         :attr:`position` and given to the snapshot (None: the vehicle does not know)."""
-        self.position = read_position(self.link, timeout_s=timeout_s)
+        self.position = read_position(self.link, timeout_s=timeout_s) or self._positions.best()
         if self.position is not None:
             log.info("vehicle position for the World Magnetic Model: %s", self.position.describe())
+        self._position_asked = time.monotonic()
+        return self.position
+
+    def current_position(self) -> VehiclePosition | None:
+        """:attr:`position`, or the first the vehicle reported since (a GPS fix that came
+        later); while none is known it is asked for every :data:`POSITION_ASK_PERIOD_S` as
+        the recording runs (once :meth:`read_position` was called)."""
+        if self.position is None:
+            self.position = self._positions.best()
+            now = time.monotonic()
+            if (self.position is None and self._position_asked is not None
+                    and now - self._position_asked >= POSITION_ASK_PERIOD_S):
+                self._position_asked = now
+                request_position(self.link.mav, self.link.target_system, self.link.target_component)
+            elif self.position is not None:
+                log.info("vehicle position for the World Magnetic Model: %s", self.position.describe())
         return self.position
 
     # ------------------------------------------------------------------ samples
@@ -176,6 +197,7 @@ class LiveRecorder:
         while end is None or time.monotonic() < end:
             left = batch_s if end is None else min(batch_s, end - time.monotonic())
             self.pump(max(left, 0.0))
+            self.current_position()
             yield self._new_batch()
 
     def capture(self, duration_s: float, callback: Callable[[Batch], None] | None = None,
@@ -208,6 +230,7 @@ class LiveRecorder:
             c["_compid"] = np.array([r[3] for r in rows])
             cols[name] = c
         imu_log = assemble_tlog(cols, self.device, self.warnings)
+        self.current_position()
         if self.position is not None:
             return dataclasses.replace(imu_log, kind="live", position=self.position.location,
                                        position_source=self.position.source)
@@ -216,7 +239,8 @@ class LiveRecorder:
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
         """Stop recording (and close the link if the recorder owns it)."""
-        self.link.remove_handler(self._token)
+        for token in [self._token, *self._position_tokens]:
+            self.link.remove_handler(token)
         self.link.heartbeat_period_s = None
         if self.owns_link:
             self.link.close()
