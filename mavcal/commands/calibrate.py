@@ -45,6 +45,7 @@ exit codes:
   4  no sensor accepted, or too little data to calibrate
   2  usage error      3  unreadable source or no IMU data
   5  write failed, vehicle restored      6  write failed and restore failed
+  8  the vehicle requires MAVLink 2 signing: no or wrong --signing-key (nothing written)
   70 internal error (a bug in mavcal: please report it with the -vv output)
 with --json, a log that was read but could not be calibrated still gets its report: every
 sensor with data rejected with the reason, "exit_code" and "error".

@@ -11,7 +11,8 @@ writer as ``calibrate --write``.
 Exit codes as ``calibrate``: 0 every sensor accepted (and written when asked); 7 some sensors
 accepted (only their parameters are written), some rejected; 2 usage; 3 the device does not
 answer; 4 aborted (impossible field, magnetic disturbance), no sensor accepted or too little
-data; 5 write failed and the vehicle was restored; 6 write failed and the restore failed.
+data; 5 write failed and the vehicle was restored; 6 write failed and the restore failed; 8 the
+vehicle requires MAVLink 2 signing and ``--signing-key`` is missing or wrong.
 """
 from __future__ import annotations
 
