@@ -190,10 +190,10 @@ def test_live_calibrate_scales_the_compass_to_the_wmm_at_the_vehicles_gps(start_
     def hand() -> None:  # the poses once the recording streams (the IMU interval asked for)
         while not any(cmd == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL for cmd, _ in v.commands):
             time.sleep(0.05)
-        v.run_pose_script(poses, hold_s=1.6, move_s=0.4)
+        v.run_pose_script(poses, hold_s=2.0, move_s=0.4)
 
     threading.Thread(target=hand, daemon=True).start()
-    rc = main(["calibrate", v.gcs_device, "--duration", "24", "--write", "--yes", "--json", str(tmp_path / "r.json"),
+    rc = main(["calibrate", v.gcs_device, "--duration", "28", "--write", "--yes", "--json", str(tmp_path / "r.json"),
                "--backup", str(tmp_path / "b.param"), "--primary-only", "--min-duration", "1.0"])
     out, err = capsys.readouterr()
     assert rc == 0, err + out
@@ -208,3 +208,45 @@ def test_live_calibrate_scales_the_compass_to_the_wmm_at_the_vehicles_gps(start_
         v.set_attitude(roll=pose[0], pitch=pose[1], yaw=pose[2])
         fields.append(np.linalg.norm(v.corrected_sensors(noise=False)["mag_mgauss"][0]))
     assert np.max(np.abs(np.array(fields) / wmm - 1)) < 0.01, fields
+
+
+def test_mavproxy_worker_takes_the_field_from_the_vehicles_position(start_vehicle):
+    """The MAVProxy module's worker, with a host that files what MAVProxy would: the parameter
+    protocol's messages and the position messages. The capture's field is the WMM's at the
+    vehicle's GPS, and the worker says so."""
+    from mavcal.capture.worker import FED_TYPES, POSITION_TYPES, CaptureWorker, WorkerSettings
+    from mavcal.link.fed import flush_outbox
+
+    v = start_vehicle(truth=VehicleTruth.random(3), seed=3, heartbeat_hz=5, position=BEIJING)
+    link = open_link(v.gcs_device, timeout_s=5)
+    worker = CaptureWorker(lambda: (link.target_system, link.target_component))
+    said: list[str] = []
+    halt = threading.Event()
+
+    def host() -> None:
+        while not halt.is_set():
+            flush_outbox(worker.outbox, link.mav)
+            m = link.conn.recv_match(blocking=True, timeout=0.01)
+            if m is not None and m.get_type() in POSITION_TYPES:
+                worker.add_position(m)
+            elif m is not None and worker.fed is not None and m.get_type() in FED_TYPES:
+                worker.fed.feed(m)
+            while not worker.out.empty():
+                said.append(worker.out.get_nowait())
+
+    t = threading.Thread(target=host, daemon=True)
+    t.start()
+    try:
+        worker.submit("start", WorkerSettings())
+        deadline = time.monotonic() + 30
+        while not any("capture started" in s for s in said) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        started = next(s for s in said if "capture started" in s)
+        assert "field from the World Magnetic Model at vehicle GPS 39.9000, 116.4000" in started
+        assert worker.session.position == pytest.approx(BEIJING)
+        assert worker.session.position_source == "vehicle GPS"
+    finally:
+        assert worker.shutdown(timeout_s=10)
+        halt.set()
+        t.join(timeout=5)
+        link.close()

@@ -275,24 +275,21 @@ class CaptureWorker:
             self._say(f"field from the World Magnetic Model at {position.describe()}")
 
     def _vehicle_position(self) -> Any:
-        """The vehicle's position from the filed messages; asked for (MAV_CMD_REQUEST_MESSAGE
-        through the outbox, every 0.5 s) when none is known yet, for up to 3 s. None: unknown."""
+        """The vehicle's position from the filed messages (MAVProxy streams them); asked for once
+        (MAV_CMD_REQUEST_MESSAGE through the outbox: MAVProxy prints every COMMAND_ACK, so not
+        again and again) when none is known yet, then waited for up to 3 s. None: unknown (a later
+        fix is taken by :meth:`_update`)."""
         from mavcal.link.fed import QueuedSender
         from mavcal.link.position import request_position
 
+        best, ids = self._filed_position(), self.vehicle_ids()
+        if best is not None or ids is None:
+            return best
+        request_position(QueuedSender(self.outbox), ids[0], ids[1])
         deadline = time.monotonic() + _POSITION_WAIT_S
-        asked = float("-inf")
-        while True:
+        while best is None and time.monotonic() < deadline and not self._halt.wait(0.05):
             best = self._filed_position()
-            ids = self.vehicle_ids()
-            now = time.monotonic()
-            if best is not None or now >= deadline or ids is None:
-                return best
-            if now - asked >= 0.5:
-                request_position(QueuedSender(self.outbox), ids[0], ids[1])
-                asked = now
-            if self._halt.wait(0.05):
-                return self._filed_position()
+        return best
 
     # -------------------------------------------------------------- jobs
     def _start(self, cfg: WorkerSettings) -> None:

@@ -99,14 +99,24 @@ class _StreamWatch:
 
 
 def _ask_intervals(link: Link, watch: _StreamWatch, rate_hz: float, message_ids: Sequence[int],
-                   ack_timeout_s: float, until: float) -> bool:
-    """SET_MESSAGE_INTERVAL, repeated while no COMMAND_ACK comes (lost on the way or back) until
-    ``until``; True once the vehicle accepted it."""
-    while True:
-        send_message_intervals(link.mav, link.target_system, link.target_component, rate_hz, message_ids)
-        link.wait(lambda: bool(watch.acks), ack_timeout_s)
-        if watch.acks or time.monotonic() >= until:
-            return _A.MAV_RESULT_ACCEPTED in watch.acks
+                   ack_timeout_s: float, until: float) -> str:
+    """SET_MESSAGE_INTERVAL one message at a time (a COMMAND_ACK does not say which message it
+    answers), each sent again every ``ack_timeout_s`` until acknowledged or ``until``.
+
+    Returns ``"accepted"`` (every one), ``"refused"`` (an ack other than accepted) or
+    ``"unanswered"``.
+    """
+    for mid in message_ids:
+        while True:
+            n0 = len(watch.acks)
+            send_message_intervals(link.mav, link.target_system, link.target_component, rate_hz, (mid,))
+            if link.wait(lambda n0=n0: len(watch.acks) > n0, ack_timeout_s):
+                if watch.acks[n0] != _A.MAV_RESULT_ACCEPTED:
+                    return "refused"
+                break
+            if time.monotonic() >= until:
+                return "unanswered"
+    return "accepted"
 
 
 def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1.0,
@@ -115,12 +125,13 @@ def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1
     """Ask for RAW_IMU, SCALED_IMU2 and SCALED_IMU3 (``message_ids``, e.g. :func:`needed_stream_ids`)
     at ``rate_hz`` (at least 25 Hz) and check data comes.
 
-    Uses MAV_CMD_SET_MESSAGE_INTERVAL, sent again every ``ack_timeout_s`` while no COMMAND_ACK
-    comes back, for up to a third of ``budget_s``; falls back to REQUEST_DATA_STREAM
-    (MAV_DATA_STREAM_RAW_SENSORS) when it is refused, never acknowledged, or gives no RAW_IMU
-    within ``data_timeout_s``. The fallback request is repeated every ``data_timeout_s`` until
-    data comes or the budget (at least one ``data_timeout_s``) is spent: on a lossy link each
-    request may be lost, as may the first answers.
+    Uses MAV_CMD_SET_MESSAGE_INTERVAL, one message at a time, each sent again every
+    ``ack_timeout_s`` while no COMMAND_ACK comes back, and the whole request again while no
+    RAW_IMU follows within ``data_timeout_s``, for up to a third of ``budget_s`` (at least one
+    round); falls back to REQUEST_DATA_STREAM (MAV_DATA_STREAM_RAW_SENSORS) when it is refused,
+    never acknowledged, or gives no RAW_IMU. The fallback request is repeated every
+    ``data_timeout_s`` until data comes or the budget (at least one ``data_timeout_s``) is
+    spent: on a lossy link each request may be lost, as may the first answers.
 
     Returns
     -------
@@ -136,11 +147,14 @@ def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1
     watch = _StreamWatch(link)
     start = time.monotonic()
     try:
-        accepted = _ask_intervals(link, watch, rate_hz, message_ids, ack_timeout_s, start + budget_s / 3)
-        if accepted and watch.wait_data(rate_hz, data_timeout_s):
-            return "interval"
+        while True:
+            outcome = _ask_intervals(link, watch, rate_hz, message_ids, ack_timeout_s, start + budget_s / 3)
+            if outcome == "accepted" and watch.wait_data(rate_hz, data_timeout_s):
+                return "interval"
+            if outcome == "refused" or time.monotonic() >= start + budget_s / 3:
+                break
         log.info("SET_MESSAGE_INTERVAL %s; falling back to REQUEST_DATA_STREAM",
-                 "gave no data" if accepted else "not accepted" if watch.acks else "not acknowledged")
+                 {"accepted": "gave no data", "refused": "not accepted"}.get(outcome, "not acknowledged"))
         end = max(start + budget_s, time.monotonic() + data_timeout_s)
         while True:
             link.mav.request_data_stream_send(link.target_system, link.target_component,
