@@ -8,7 +8,13 @@
 * :mod:`mavcal.testing.simlog` -- simulated hand-held calibration sessions written as
   .tlog / DataFlash .bin logs, with their truth.
 * :mod:`mavcal.testing.logwriters` -- .tlog and DataFlash writers.
-* :mod:`mavcal.testing.sitl_truth` -- the truth files of the SITL logs in ``sitl_logs/``.
+* :mod:`mavcal.testing.sitl_truth` -- the truth files of the SITL logs in ``sitl_logs/``, and
+  the errors a live SITL is started with (:class:`~mavcal.testing.sitl_truth.InjectedErrors`)
+  with a scorer of a written calibration.
+* :mod:`mavcal.testing.sitl` -- :class:`~mavcal.testing.sitl.SitlVehicle`, the real ArduPilot
+  SITL (``../shared/sitl``) in a private network namespace: known injected errors, poses,
+  the truth, processes in its namespace; :mod:`mavcal.testing.sitl_hand` -- a scripted hand
+  that holds the poses a guided capture advises.
 
 Two conventions for a sensor's truth exist, and the class names say which:
 :class:`~mavcal.testing.vehicle_sensors.AccelCalTruth` states the truth as the ideal

@@ -20,7 +20,9 @@ only ever started inside a **private network namespace** whose only interface is
   ``--speedup 1`` (real time) and ``-I N``, N unique per process (the pytest-xdist worker
   number and a counter);
 * :meth:`~SitlVehicle.stop` stops the processes by PID (SIGTERM, then SIGKILL) and removes the
-  working directory; it runs at ``__exit__``, from a finaliser, and ``atexit``.
+  working directory; it runs at ``__exit__`` (and the teardown of ``tests/conftest.py``'s
+  ``start_sitl``) and ``atexit`` for any vehicle still running; a process killed outright
+  takes its vehicle with it through the parent-death signal.
 
 Serial ports (all UDP *clients* to loopback in the namespace; nothing listens):
 
@@ -54,9 +56,31 @@ Typical use (pytest; :func:`require_sitl` skips, or fails under ``CI=true``, wit
             link = open_link(sitl.tool_device)
         sitl.get_params(["COMPASS_OFS_X"])          # over the control link
 
-Differences from the loopback vehicle (:mod:`mavcal.testing.vehicle`) seen on this build
-(ArduCopter 4.7.0-dev, 90700977): no ``PARAM_ERROR`` (a PARAM_SET of an unknown name gets no
-answer at all); the IMU streams are off on every channel until a GCS asks for them.
+The API in short: :attr:`~SitlVehicle.tool_device` / :attr:`~SitlVehicle.relay_device` /
+:attr:`~SitlVehicle.control_device`; :meth:`~SitlVehicle.netns`, :meth:`~SitlVehicle.popen`,
+:meth:`~SitlVehicle.run`, :meth:`~SitlVehicle.launch_argv`, :attr:`~SitlVehicle.netns_path`;
+:meth:`~SitlVehicle.set_pose` (returns the settled :class:`SimState`),
+:attr:`~SitlVehicle.simstate`, :meth:`~SitlVehicle.set_servo`; :meth:`~SitlVehicle.get_params`,
+:meth:`~SitlVehicle.set_params` (waits for the echo), :meth:`~SitlVehicle.send_param_set` (does
+not), :meth:`~SitlVehicle.writes_since` (what some GCS wrote, seen on the control channel),
+:meth:`~SitlVehicle.read_imu`, :attr:`~SitlVehicle.statustexts`; :attr:`~SitlVehicle.truth`,
+:attr:`~SitlVehicle.errors`, :attr:`~SitlVehicle.field_ned_mgauss`,
+:attr:`~SitlVehicle.declination_deg`, :attr:`~SitlVehicle.home`, :meth:`~SitlVehicle.score`.
+A scripted hand that follows a capture's advice: :mod:`mavcal.testing.sitl_hand`.
+
+What this build (ArduCopter 4.7.0-dev, 90700977) does that a test may not expect, and where the
+loopback vehicle (:mod:`mavcal.testing.vehicle`) differs:
+
+* no ``PARAM_ERROR``: a PARAM_SET of an unknown name, or of NaN, gets no answer at all (as the
+  loopback vehicle without ``param_errors=True``);
+* no range check: ``INS_ACCSCAL_X`` 1.5 or ``COMPASS_ORIENT`` 77 are stored and echoed (the
+  latter with a STATUSTEXT "Internal Errors 0x400000"); only mavcal's own limits refuse them;
+* device ids (``COMPASS_DEV_ID``, ``INS_ACC_ID``) are **writable** over MAVLink here (the
+  loopback vehicle denies them with "Param write denied", as boards with internal-use-only
+  parameters do);
+* an accepted PARAM_SET is echoed on every channel (so the fixture sees what a tool wrote), and
+  the vehicle announces its own changes (``STAT_RUNTIME``, ``MIS_TOTAL``) the same way;
+* the IMU streams are off on every channel until a GCS asks for them; heartbeats at 1 Hz.
 
 Call :class:`SitlVehicle` (and :meth:`~SitlVehicle.popen`) from a thread that lives as long as
 the processes should: the parent-death signal fires when the *thread* that started a process
@@ -77,7 +101,6 @@ import sys
 import tempfile
 import threading
 import time
-import weakref
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -254,7 +277,19 @@ def _next_instance() -> int:
         return (w * 100 + next(_instances) % 100) % 250
 
 
-_live: weakref.WeakSet[SitlVehicle] = weakref.WeakSet()
+def _sweep_workdirs() -> None:
+    """Remove the working directories of test processes that were killed outright (SIGKILL:
+    their SITL died with them, nothing removed the directory); named mavcal-sitl-PID-*."""
+    for d in Path(tempfile.gettempdir()).glob("mavcal-sitl-*-*-*"):
+        try:
+            os.kill(int(d.name.split("-")[2]), 0)
+        except ProcessLookupError:
+            shutil.rmtree(d, ignore_errors=True)
+        except (ValueError, PermissionError, IndexError):
+            continue
+
+
+_live: set[SitlVehicle] = set()  # started and not stopped: atexit stops them
 
 
 @atexit.register
@@ -442,15 +477,18 @@ class SitlVehicle:
         self._children.append(p)
         return p
 
-    def run(self, argv: Sequence[str], *, timeout: float = 300.0, **kw: Any) -> subprocess.CompletedProcess:
-        """Run ``argv`` in the namespace to its end (``capture_output=True, text=True`` by default);
-        killed after ``timeout`` s."""
-        kw.setdefault("capture_output", True)
+    def run(self, argv: Sequence[str], *, timeout: float = 300.0, input: str | None = None,
+            **kw: Any) -> subprocess.CompletedProcess:
+        """Run ``argv`` in the namespace to its end (stdout and stderr captured as text unless
+        given); killed (and TimeoutExpired raised) after ``timeout`` s."""
+        kw.setdefault("stdout", subprocess.PIPE)
+        kw.setdefault("stderr", subprocess.PIPE)
         kw.setdefault("text", True)
-        p = self.popen(argv, stdout=subprocess.PIPE if kw.pop("capture_output") else kw.pop("stdout", None),
-                       stderr=subprocess.PIPE if "stderr" not in kw else kw.pop("stderr"), **kw)
+        if input is not None:
+            kw.setdefault("stdin", subprocess.PIPE)
+        p = self.popen(argv, **kw)
         try:
-            out, err = p.communicate(timeout=timeout)
+            out, err = p.communicate(input=input, timeout=timeout)
         except subprocess.TimeoutExpired:
             _stop_pid(p, 1.0)
             raise
@@ -467,7 +505,7 @@ class SitlVehicle:
         self.stop()
 
     def start(self) -> SitlVehicle:
-        reason = unavailable_reason() if binary_is_default(self.binary) else None
+        reason = unavailable_reason() if self.binary == sitl_binary() else None
         if reason is not None:
             raise SitlError(reason)
         _live.add(self)
@@ -489,7 +527,8 @@ class SitlVehicle:
         return path
 
     def _start(self) -> None:
-        self.workdir = Path(tempfile.mkdtemp(prefix=f"mavcal-sitl{self.instance}-"))
+        _sweep_workdirs()
+        self.workdir = Path(tempfile.mkdtemp(prefix=f"mavcal-sitl-{os.getpid()}-{self.instance}-"))
         self._keeper = _start_keeper()
         with self.netns():
             self._conn = mavutil.mavlink_connection(self.control_device, source_system=FIXTURE_SYSTEM,
@@ -676,6 +715,11 @@ class SitlVehicle:
                     else:
                         self._params.pop(n, None)
 
+    def send_param_set(self, name: str, value: float) -> None:
+        """One PARAM_SET on the control link, without waiting for anything."""
+        self._send("param_set_send", self.target_system, self.target_component, name.encode(), float(value),
+                   mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+
     def _check_injected(self) -> None:
         want = {**self.errors.sim_params(), **self.calibration_at_boot, **self.extra_params}
         got = self.get_params(want)
@@ -737,10 +781,9 @@ class SitlVehicle:
             raise SitlError(f"the vehicle did not settle within {timeout_s:g} s (SIMSTATE {self._simstate})")
         return self.simstate
 
-    def _measure_field(self, n: int = 40) -> np.ndarray:
-        """SITL's Earth field (NED, mGauss) from RAW_IMU of compass 1 at the current pose: the
-        calibration in force and the injected errors undone, rotated by SIMSTATE's attitude."""
-        s = self.wait_settled(timeout_s=20.0)
+    def read_imu(self, n: int = 40) -> tuple[np.ndarray, np.ndarray]:
+        """The mean of ``n`` RAW_IMU messages on the control link (IMU 1 and compass 1, as sent:
+        corrected with the calibration in force): accelerometer (m/s^2), compass (mGauss)."""
         with self._cond:
             self._raw_imu, self._collect_raw = [], True
         try:
@@ -751,14 +794,17 @@ class SitlVehicle:
             with self._cond:
                 self._collect_raw = False
             self.set_message_interval(MSG_RAW_IMU, 0)
-        reading = np.mean([[m.xmag, m.ymag, m.zmag] for m in self._raw_imu[:n]], axis=0)
-        in_force = {**self.get_params(CALIBRATION_NAMES)}
-        cal = fw.compass_cal_from_params(in_force, 0)
+        msgs = self._raw_imu[:n]
+        acc = np.mean([[m.xacc, m.yacc, m.zacc] for m in msgs], axis=0) * fw.GRAVITY_MSS / 1000.0
+        mag = np.mean([[m.xmag, m.ymag, m.zmag] for m in msgs], axis=0)
+        return acc, mag
+
+    def _measure_field(self) -> np.ndarray:
+        """SITL's Earth field (NED, mGauss) from compass 1 at the current pose: the calibration
+        in force and the injected errors undone, rotated by SIMSTATE's attitude."""
+        s = self.wait_settled(timeout_s=20.0)
+        _, reading = self.read_imu()
+        cal = fw.compass_cal_from_params(self.get_params(CALIBRATION_NAMES), 0)
         raw = fw.undo_compass(cal, reading[None, :], sensor_frame=True)[0]
         B_body = self.errors.body_field(raw)
-        C = euler_to_matrix(*np.radians([s.roll_deg, s.pitch_deg, s.yaw_deg]))
-        return C @ B_body
-
-
-def binary_is_default(path: Path) -> bool:
-    return Path(path) == sitl_binary()
+        return euler_to_matrix(*np.radians([s.roll_deg, s.pitch_deg, s.yaw_deg])) @ B_body
