@@ -148,3 +148,31 @@ def test_calibrate_device_scales_the_compass_to_the_wmm_at_the_vehicles_position
         fields = _calibrated_field(sitl, [(0, 0, 0), (90, 0, 45), (0, -85, 225), (180, 0, 90)])
         print(f"calibrated |B| {[round(f, 1) for f in fields]} mGauss vs WMM {wmm:.1f}")
         assert np.max(np.abs(np.array(fields) / wmm - 1)) < 0.02, fields
+
+
+def test_a_capture_starts_through_the_30_percent_loss_relay():
+    """The start of a capture (heartbeat, all 1354 parameters, the position, the IMU streams)
+    through the lossy relay, with the CLI's defaults: the whole table arrives (its budget grows
+    with the count: 68 s; it takes about 30 s) and the streams start by SET_MESSAGE_INTERVAL."""
+    from mavcal.link.live import open_recorder
+    from mavcal.link.streams import needed_stream_ids
+
+    require_sitl()
+    with SitlVehicle(wrong_calibration=False, measure_field=False) as sitl:
+        with sitl.netns():
+            relay = LossRelay(TOOL_PORTS[0], vehicle_port=TOOL_PORT, loss=0.3, dup=0.05, seed=5)
+        with relay:
+            t0 = time.monotonic()
+            with sitl.netns():
+                rec = open_recorder(relay.tool_device)
+            with rec:
+                params = rec.fetch_params()
+                t_params = time.monotonic() - t0
+                position = rec.read_position()
+                method = rec.start_streams(25, message_ids=needed_stream_ids(params))
+                took = time.monotonic() - t0
+    print(f"\ncapture start through 30 % loss: {len(params)} parameters in {t_params:.1f} s, position {position}, "
+          f"streams by {method}, {took:.1f} s in all; relay {relay.stats}")
+    assert len(params) == 1354 and not rec.warnings
+    assert method == "interval"
+    assert position is not None and position.location[:2] == pytest.approx(DEFAULT_HOME[:2], abs=1e-5)
