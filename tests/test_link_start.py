@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -250,3 +251,29 @@ def test_mavproxy_worker_takes_the_field_from_the_vehicles_position(start_vehicl
         halt.set()
         t.join(timeout=5)
         link.close()
+
+
+def test_capture_advice_survives_a_fit_that_maps_no_sensor():
+    """A fit of a few poses can reject the primary pair's sensors (the compass judged against
+    the WMM once the vehicle's position is known, the accelerometer's own fit too few poses):
+    the session then advises from its plan instead of failing (seen against SITL through the
+    MAVProxy module: IndexError in the pose scores)."""
+    import dataclasses
+
+    from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from capture_guidance import Hand  # the simulated hand of the benchmark (as tests/test_capture.py)
+
+    v = TestVehicle(truth=VehicleTruth.random(3), seed=3)
+    hand = Hand(v)
+    sess = CaptureSession(v.params, CaptureConfig())
+    st = sess.update()
+    while sess.run is None or len(sess.run.intervals_used) < 7:
+        a = st.next_pose
+        sess.add(hand.go(euler_matrix(a.roll_deg, a.pitch_deg, a.yaw_deg)))
+        st = sess.update()
+    sess._run = dataclasses.replace(sess.run, mapping=dataclasses.replace(sess.run.mapping, accel=(), compass=()))
+    assert sess.next_pose().words  # plan advice, no exception
+    st = sess.update()  # the same fit (no new interval): a status with advice
+    assert st.next_pose is not None and st.field_calibrated_mgauss is None

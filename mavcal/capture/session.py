@@ -399,7 +399,7 @@ class CaptureSession:
         model = None
         if run is not None and not aborted:
             heading, tilt, model = run.quality.heading_95_deg, run.quality.tilt_95_deg, run.calibration.model
-            spread = _field_spread(run)
+            spread = _field_spread(run) if _paired(run) else 0.0
             if spread > cfg.max_field_spread and n >= n_min + 2:
                 aborted = True
                 reason = (f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses: magnetic "
@@ -425,7 +425,7 @@ class CaptureSession:
                            heading_95_deg=heading, tilt_95_deg=tilt, model=model, next_pose=advice, done=done,
                            reason=reason or ("still: keep holding" if still_now else "move to the next pose"),
                            aborted=aborted, field_mgauss=fields[-1] if fields else None,
-                           field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if run is not None and ivs
+                           field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if _paired(run) and ivs
                            else None,
                            messages=tuple(messages))
         self._status = st
@@ -460,7 +460,7 @@ class CaptureSession:
         """
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
-        if self._run is None or len(dirs) < PLAN_FIRST:
+        if not _paired(self._run) or len(dirs) < PLAN_FIRST:  # no fit yet, or no sensor of the pair accepted
             plan = [q for q in INITIAL_PLAN if q not in self._given_up] or INITIAL_PLAN
             for pose in plan:
                 g = euler_matrix(*pose).T @ np.array([0.0, 0.0, 1.0])
@@ -514,6 +514,13 @@ class CaptureSession:
                                                                   location=self.options.location,
                                                                   field_mgauss=self.options.field_mgauss),
                                   progress=progress)
+
+
+def _paired(run: CalibrationRun | None) -> bool:
+    """True when ``run`` maps the primary pair: an accelerometer and a compass. A fit of a few
+    poses may reject both (e.g. the compass's dip against the World Magnetic Model at the
+    vehicle's position, and the accelerometer's own fit): it gives no advice then."""
+    return run is not None and bool(run.mapping.accel) and bool(run.mapping.compass)
 
 
 def _calibrated_field(run: CalibrationRun, iv) -> float | None:
