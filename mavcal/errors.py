@@ -14,6 +14,7 @@ Exit codes (CLI contract):
 5   parameter write failed and the vehicle was restored
 6   parameter write failed and the restore failed too
 7   some sensors accepted (written / in the .param), some rejected
+8   the vehicle requires MAVLink 2 signing and no key, or a wrong key, was given
 ==  =========================================================
 """
 from __future__ import annotations
@@ -62,6 +63,14 @@ class SourceError(MavcalError):
 
 class LinkError(SourceError):
     """A live MAVLink device could not be reached or stopped answering."""
+
+
+class SigningError(LinkError):
+    """The vehicle and mavcal disagree on MAVLink 2 signing: the vehicle signs its messages and
+    drops our unsigned ones (no key given), or its signatures do not match the key given, or
+    a key was given and the vehicle does not sign. Nothing was written."""
+
+    exit_code = 8
 
 
 class InsufficientDataError(MavcalError):

@@ -471,6 +471,7 @@ def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
     mapping = map_calibration(cal, params_now, interval_means(_sets(prep, "mag", mi, used)), accel_instance=ai,
                               mag_instance=mi, location=opts.location or log_.position,
+                              location_source="" if opts.location else log_.position_source,
                               field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,
                               allow_custom=opts.allow_custom, force_external=opts.force_external)
     return _PairFit(used, cal, mapping, params_now, warnings)

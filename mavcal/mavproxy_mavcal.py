@@ -22,7 +22,8 @@ MAVProxy's side:
 
 * ``mavlink_packet`` runs on MAVProxy's thread and only *files* messages from the primary
   vehicle into the worker (IMU messages while capturing, the parameter protocol's while a
-  parameter operation runs). It never reads the master (MAVProxy owns the read loop).
+  parameter operation runs, its position messages for the World Magnetic Model). It never
+  reads the master (MAVProxy owns the read loop).
 * ``idle_task`` sends what the worker queued with ``self.master.mav`` and prints what it said.
   While the worker streams the IMU at its own rate, MAVProxy's periodic REQUEST_DATA_STREAM
   (setting ``streamrate``, every 15 s) would reset those rates to 4 Hz on ArduPilot: the
@@ -44,7 +45,7 @@ from typing import Any
 
 from MAVProxy.modules.lib import mp_module, mp_settings
 
-from mavcal.capture.worker import FED_TYPES, IMU_TYPES, THREAD_PREFIX, CaptureWorker, WorkerSettings
+from mavcal.capture.worker import FED_TYPES, IMU_TYPES, POSITION_TYPES, THREAD_PREFIX, CaptureWorker, WorkerSettings
 
 log = logging.getLogger(__name__)
 
@@ -211,6 +212,10 @@ class MavcalModule(mp_module.MPModule):
                 page = self.page
                 if page is not None:
                     page.add_imu(m)
+            return
+        if mtype in POSITION_TYPES:
+            if self.message_is_from_primary_vehicle(m):
+                self.worker.add_position(m)
             return
         if mtype not in FED_TYPES or not self.message_is_from_primary_vehicle(m):
             return

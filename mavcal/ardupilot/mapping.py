@@ -312,13 +312,14 @@ def old_values(params: Mapping[str, float], names) -> dict[str, float | None]:
 # --------------------------------------------------------------------------- one pair, several pairs
 
 def field_magnitude(raw_mag_means: np.ndarray, old: fw.CompassCal, *,
-                    location: Sequence[float] | None = None,
-                    field_mgauss: float | None = None) -> tuple[float | None, str, float | None]:
+                    location: Sequence[float] | None = None, field_mgauss: float | None = None,
+                    location_source: str = "") -> tuple[float | None, str, float | None]:
     """The field magnitude |B| to scale the compass to: (mGauss or None, source in words,
     WMM inclination deg or None).
 
     The World Magnetic Model at ``location`` (lat, lon[, alt]) when known and no
-    ``field_mgauss`` is given; else ``field_mgauss``; else None: the sensor keeps its own
+    ``field_mgauss`` is given (``location_source``, e.g. "vehicle GPS", is named in the words);
+    else ``field_mgauss``; else None: the sensor keeps its own
     scale and the absolute field strength is not checked (still intervals do not determine
     |B|, and the calibration in force is what is being replaced). ``raw_mag_means`` and
     ``old`` are kept for the signature's sake.
@@ -333,7 +334,8 @@ def field_magnitude(raw_mag_means: np.ndarray, old: fw.CompassCal, *,
             log.warning("World Magnetic Model unavailable: %s", exc)
             intensity = None
         if field_mgauss is None and intensity:
-            return float(intensity), f"World Magnetic Model at {loc[0]:.4f}, {loc[1]:.4f}", incl
+            where = f"{location_source} " if location_source else ""
+            return float(intensity), f"World Magnetic Model at {where}{loc[0]:.4f}, {loc[1]:.4f}", incl
     if field_mgauss is not None:
         return float(field_mgauss), "given", incl
     return None, NO_FIELD_SOURCE, incl
@@ -343,7 +345,7 @@ def map_calibration(cal: Calibration, params: Mapping[str, float], raw_mag_means
                     accel_instance: int = 0, mag_instance: int = 0,
                     location: Sequence[float] | None = None, field_mgauss: float | None = None,
                     orient_tol_deg: float = 1.0, allow_custom: bool = True,
-                    force_external: bool = False) -> ParamMapping:
+                    force_external: bool = False, location_source: str = "") -> ParamMapping:
     """The :class:`ParamMapping` of one accelerometer/compass pair fitted jointly.
 
     ``params`` are the vehicle's current parameters (the old calibration and the mounting);
@@ -353,7 +355,7 @@ def map_calibration(cal: Calibration, params: Mapping[str, float], raw_mag_means
     old_a = fw.accel_cal_from_params(params, accel_instance)
     old_c = fw.compass_cal_from_params(params, mag_instance)
     field_norm, field_src, incl_model = field_magnitude(np.asarray(raw_mag_means, float), old_c, location=location,
-                                                        field_mgauss=field_mgauss)
+                                                        field_mgauss=field_mgauss, location_source=location_source)
     am = map_accel(cal.accel.gain, cal.accel.bias, old_a, accel_instance)
     cm = map_compass(cal.mag.gain, cal.mag.bias, cal.h_z, am.frame_rotation, old_c, params, instance=mag_instance,
                      field_mgauss=field_norm, field_source=field_src, board_rotation=old_a.board_matrix,

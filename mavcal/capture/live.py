@@ -26,6 +26,8 @@ from typing import Any, Callable
 from mavcal.capture.session import CaptureConfig, CaptureSession, CaptureStatus
 from mavcal.errors import InsufficientDataError
 from mavcal.link.live import open_recorder
+from mavcal.link.position import VehiclePosition
+from mavcal.link.signing import SigningKey
 from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, reset_streams
 from mavcal.pipeline import Options
 from mavcal.sources.types import SensorSeries
@@ -92,7 +94,8 @@ class _CaptureLoop:
             return True
         return False
 
-    def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]]) -> None:
+    def run(self, session: CaptureSession, batches: Iterable[Sequence[SensorSeries]],
+            position: Callable[[], VehiclePosition | None] = lambda: None) -> None:
         """Until the session is done; a KeyboardInterrupt stops it as the user would."""
         self.t_start = time.monotonic()
         last_update = float("-inf")
@@ -100,6 +103,8 @@ class _CaptureLoop:
         try:
             for batch in batches:
                 session.add(batch)
+                if session.position is None and (pos := position()) is not None:  # a GPS fix came later
+                    session.position, session.position_source = pos.location, pos.source
                 now = time.monotonic()
                 if not stopping:
                     stopping = self._stop_requested(session, now)
@@ -212,7 +217,8 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
                  rate_hz: float = 25.0, should_stop: Callable[[], bool] | None = None,
                  max_duration_s: float = 600.0, update_every_s: float = 0.5, batch_s: float = 0.1,
                  heartbeat_timeout_s: float = 5.0, param_timeout_s: float = 30.0,
-                 on_info: Callable[[LiveCaptureInfo], None] | None = None) -> CaptureSession:
+                 on_info: Callable[[LiveCaptureInfo], None] | None = None, budget_s: float = 15.0,
+                 signing_key: SigningKey | None = None) -> CaptureSession:
     """Run a guided capture on a live vehicle and return the session.
 
     Parameters
@@ -231,10 +237,8 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         ``batch_s``), from the calling thread, also while the session refits (the updates then
         run on a helper thread; ``on_status`` is still called from the calling thread): e.g.
         the live page's attitude. Exceptions propagate.
-    baud : int
-        Serial baud rate.
-    rate_hz : float
-        IMU stream rate to ask for (at least 25 Hz).
+    baud, rate_hz, batch_s : int, float, float
+        Serial baud rate; IMU stream rate to ask for (at least 25 Hz); receive batch length.
     should_stop : callable, optional
         Polled after every batch; True stops the capture ("stopped by the user").
     max_duration_s : float
@@ -242,10 +246,11 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     update_every_s : float
         Seconds between ``session.update()`` calls (not on every batch: a fit costs up to a
         few hundred ms).
-    batch_s : float
-        Receive batch length.
-    heartbeat_timeout_s, param_timeout_s : float
-        Bounds on waiting for the vehicle's heartbeat and for its parameter table.
+    heartbeat_timeout_s, param_timeout_s, budget_s : float
+        Bounds on waiting for the vehicle's heartbeat and for its parameter table; how long
+        the start (heartbeat once the device is heard, stream requests) retries on a lossy link.
+    signing_key : SigningKey, optional
+        Sign the link (:mod:`mavcal.link.signing`).
     on_info : callable, optional
         Called once at the end with a :class:`LiveCaptureInfo`.
 
@@ -258,11 +263,14 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
 
     Raises
     ------
+    SigningError
+        The vehicle requires MAVLink 2 signing and ``signing_key`` is missing or wrong (exit 8).
     LinkError
         The device cannot be opened, sends no heartbeat, no parameters or no IMU data
         (exit code 3).
     """
-    rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s)
+    rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s, budget_s=budget_s,
+                        signing_key=signing_key)
     loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s)
     if on_batch is not None:  # the live page: batches handed over as they come, refits on a helper thread
         loop = _WatchedLoop(on_batch, on_status, should_stop, max_duration_s, update_every_s)
@@ -270,11 +278,14 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     streams = STREAM_MESSAGE_IDS
     try:
         params = rec.fetch_params(timeout_s=param_timeout_s)
-        session = CaptureSession(params, config or CaptureConfig(), options, source=device)
+        position = rec.read_position()  # the World Magnetic Model's field strength, unless --location/--field-mgauss
+        session = CaptureSession(params, config or CaptureConfig(), options, source=device,
+                                 position=position.location if position is not None else None)
+        session.position_source = position.source if position is not None else ""
         streams = needed_stream_ids(params)  # only the IMU messages this vehicle has
         method = rec.start_streams(rate_hz, message_ids=streams)
         log.info("capturing from %s (%s streams at %g Hz)", device, method, rate_hz)
-        loop.run(session, rec.iter_batches(None, batch_s))
+        loop.run(session, rec.iter_batches(None, batch_s), position=rec.current_position)
         return session
     finally:
         reset_streams(rec.link, streams)

@@ -324,6 +324,8 @@ class CaptureSession:
         from dataclasses import replace
         self.options = replace(base, still=config.still, uncertainty_draws=config.uncertainty_draws, holdout=False)
         self.position = position
+        #: where ``position`` came from, named in the report (e.g. "vehicle GPS"; set with it)
+        self.position_source = ""
         self.source = source
         self._chunks: dict[tuple[str, int, str], list[tuple[np.ndarray, np.ndarray]]] = {}
         self._run: CalibrationRun | None = None
@@ -358,7 +360,8 @@ class CaptureSession:
             series.append(SensorSeries(sensor, inst, msg, t, v))
         t0 = min((float(s.time_s[0]) for s in series), default=0.0)
         params = ParamTimeline({k: (np.array([t0 - 1.0]), np.array([v])) for k, v in self.params.items()})
-        return ImuLog(self.source, "live", tuple(series), params, (), self.position)
+        return ImuLog(self.source, "live", tuple(series), params, (), self.position,
+                      position_source=self.position_source)
 
     def stop(self, reason: str = "stopped by the user") -> None:
         self._stopped = reason
@@ -433,7 +436,7 @@ class CaptureSession:
         model = None
         if run is not None and not aborted:
             heading, tilt, model = run.quality.heading_95_deg, run.quality.tilt_95_deg, run.calibration.model
-            spread = _field_spread(run)
+            spread = _field_spread(run) if _paired(run) else 0.0
             if spread > cfg.max_field_spread and n >= n_min + 2:
                 aborted = True
                 reason = (f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses: magnetic "
@@ -455,7 +458,7 @@ class CaptureSession:
                            heading_95_deg=heading, tilt_95_deg=tilt, model=model, next_pose=advice, done=done,
                            reason=reason or ("still: keep holding" if still_now else "move to the next pose"),
                            aborted=aborted, field_mgauss=fields[-1] if fields else None,
-                           field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if run is not None and ivs
+                           field_calibrated_mgauss=_calibrated_field(run, ivs[-1]) if _paired(run) and ivs
                            else None,
                            messages=tuple(messages), sensors=progress, advice_for=target,
                            offer_finish_without=() if done else offer)
@@ -541,7 +544,7 @@ class CaptureSession:
         """
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
-        if self._run is None or len(dirs) < PLAN_FIRST:
+        if not _paired(self._run) or len(dirs) < PLAN_FIRST:  # no fit yet, or no sensor of the pair accepted
             plan = [q for q in INITIAL_PLAN if q not in self._given_up] or INITIAL_PLAN
             for pose in plan:
                 g = euler_matrix(*pose).T @ np.array([0.0, 0.0, 1.0])
@@ -626,6 +629,13 @@ class CaptureSession:
                                                                   location=self.options.location,
                                                                   field_mgauss=self.options.field_mgauss),
                                   progress=progress)
+
+
+def _paired(run: CalibrationRun | None) -> bool:
+    """True when ``run`` maps the primary pair: an accelerometer and a compass. A fit of a few
+    poses may reject both (e.g. the compass's dip against the World Magnetic Model at the
+    vehicle's position, and the accelerometer's own fit): it gives no advice then."""
+    return run is not None and bool(run.mapping.accel) and bool(run.mapping.compass)
 
 
 def _calibrated_field(run: CalibrationRun, iv) -> float | None:

@@ -46,7 +46,7 @@ from typing import Any, Callable
 
 from mavcal.errors import MavcalError
 
-__all__ = ["CaptureWorker", "WorkerSettings", "IMU_TYPES", "FED_TYPES", "THREAD_PREFIX"]
+__all__ = ["CaptureWorker", "WorkerSettings", "IMU_TYPES", "FED_TYPES", "POSITION_TYPES", "THREAD_PREFIX"]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,9 @@ log = logging.getLogger(__name__)
 IMU_TYPES = frozenset(("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"))
 #: what a parameter operation needs from the vehicle
 FED_TYPES = frozenset(("HEARTBEAT", "PARAM_VALUE", "PARAM_ERROR", "COMMAND_ACK", "STATUSTEXT"))
+#: where the vehicle is (for the World Magnetic Model; :mod:`mavcal.link.position`)
+POSITION_TYPES = frozenset(("GPS_RAW_INT", "GLOBAL_POSITION_INT", "HOME_POSITION"))
+_POSITION_WAIT_S = 3.0
 #: every thread of the worker is named with this prefix
 THREAD_PREFIX = "mavcal"
 _MAX_BUFFERED = 200_000  # IMU messages kept if the worker falls behind
@@ -109,6 +112,7 @@ class CaptureWorker:
         self.jobs: queue.Queue[tuple[Callable[..., None], tuple]] = queue.Queue()
         self._imu: list[Any] = []
         self._imu_lock = threading.Lock()
+        self._positions: list[Any] = []  # position messages filed by the host, read by the worker
         self.fed: Any = None  # the FedConnection of the parameter operation in progress
         self.capturing = False
         self.streams_active = False
@@ -135,6 +139,12 @@ class CaptureWorker:
         with self._imu_lock:
             if len(self._imu) < _MAX_BUFFERED:
                 self._imu.append(m)
+
+    def add_position(self, m: Any) -> None:
+        """File one position message of the vehicle (GPS_RAW_INT, GLOBAL_POSITION_INT, HOME_POSITION):
+        the latest few are kept for the World Magnetic Model."""
+        with self._imu_lock:
+            self._positions = (self._positions + [m])[-8:]
 
     def submit(self, job: str, *args: Any) -> None:
         """Queue a job: ``start(settings)``, ``stop()``, ``finish()``, ``fit()``, ``write(settings, confirmed)``,
@@ -256,6 +266,39 @@ class CaptureWorker:
             self._ask_streams(self._cfg.rate_hz)
         self._imu_count, self._imu_since = 0, now
 
+    def _filed_position(self) -> Any:
+        """The best position among the filed messages (None: none)."""
+        from mavcal.link.position import PositionWatch
+
+        watch = PositionWatch()
+        with self._imu_lock:
+            msgs = list(self._positions)
+        for m in msgs:
+            watch.feed(m)
+        return watch.best()
+
+    def _take_position(self, position: Any) -> None:
+        if position is not None and self.session is not None:
+            self.session.position, self.session.position_source = position.location, position.source
+            self._say(f"field from the World Magnetic Model at {position.describe()}")
+
+    def _vehicle_position(self) -> Any:
+        """The vehicle's position from the filed messages (MAVProxy streams them); asked for once
+        (MAV_CMD_REQUEST_MESSAGE through the outbox: MAVProxy prints every COMMAND_ACK, so not
+        again and again) when none is known yet, then waited for up to 3 s. None: unknown (a later
+        fix is taken by :meth:`_update`)."""
+        from mavcal.link.fed import QueuedSender
+        from mavcal.link.position import request_position
+
+        best, ids = self._filed_position(), self.vehicle_ids()
+        if best is not None or ids is None:
+            return best
+        request_position(QueuedSender(self.outbox), ids[0], ids[1])
+        deadline = time.monotonic() + _POSITION_WAIT_S
+        while best is None and time.monotonic() < deadline and not self._halt.wait(0.05):
+            best = self._filed_position()
+        return best
+
     # -------------------------------------------------------------- jobs
     def _start(self, cfg: WorkerSettings) -> None:
         from mavcal.capture import CaptureConfig, CaptureSession, status_line
@@ -275,8 +318,11 @@ class CaptureWorker:
         config = CaptureConfig(target_heading_deg=cfg.target_deg, target_tilt_deg=cfg.target_tilt_deg,
                                max_intervals=cfg.max_poses,
                                min_intervals=min(cfg.min_poses, cfg.max_poses), still=still)
+        position = self._vehicle_position()
         self.session = CaptureSession(values, config, Options(still=still, accel_instance=cfg.accel,
-                                                              mag_instance=cfg.compass), source="mavproxy")
+                                                              mag_instance=cfg.compass), source="mavproxy",
+                                      position=position.location if position is not None else None)
+        self.session.position_source = position.source if position is not None else ""
         self.run = None
         self._cfg = cfg
         self._stream_ids = needed_stream_ids(values)
@@ -288,7 +334,9 @@ class CaptureWorker:
         self._last_update = time.monotonic()
         self.status = self.session.update()
         self._last_line = status_line(self.status)
-        self._say(f"capture started ({len(table)} parameters); hold each advised pose still until it is "
+        where = (f"field from the World Magnetic Model at {position.describe()}" if position is not None
+                 else "no position from the vehicle: the compass keeps its own scale")
+        self._say(f"capture started ({len(table)} parameters; {where}); hold each advised pose still until it is "
                   f"counted\n{self._last_line}")
 
     def _update(self) -> None:
@@ -301,6 +349,8 @@ class CaptureWorker:
             msgs, self._imu = self._imu, []
         ids = self.vehicle_ids()
         self.session.add(imu_batch_from_messages(msgs, target_system=ids[0] if ids else None))
+        if self.session.position is None:  # a GPS fix that came after the start
+            self._take_position(self._filed_position())
         self._watch_rate(msgs, now)
         st = self.session.update()
         self.status = st

@@ -18,13 +18,16 @@ from mavcal.commands.common import (
     BACKUP_HELP,
     add_device_map_arguments,
     add_json_argument,
+    add_signing_arguments,
     add_still_arguments,
     add_write_budget_argument,
     check_new_backup,
     check_optional_dependencies,
     json_output,
     parse_location,
+    signing_key,
     slot_maps,
+    start_budget_s,
     still_config,
     write_outputs,
     write_with_report,
@@ -44,6 +47,7 @@ exit codes:
   4  no sensor accepted, or too little data to calibrate
   2  usage error      3  unreadable source or no IMU data
   5  write failed, vehicle restored      6  write failed and restore failed
+  8  the vehicle requires MAVLink 2 signing: no or wrong --signing-key (nothing written)
   70 internal error (a bug in mavcal: please report it with the -vv output)
 with --json, a log that was read but could not be calibrated still gets its report: every
 sensor with data rejected with the reason, "exit_code" and "error".
@@ -112,6 +116,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="PARAM_SET attempts per parameter at least (default 3; see --write-budget)")
     w.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation before writing")
     add_write_budget_argument(w)
+    add_signing_arguments(w)
     add_device_map_arguments(w)
 
 
@@ -178,6 +183,7 @@ def _single(args, source: str) -> int:
             from mavcal.link.live import record_device
 
             log_ = record_device(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout,
+                                 budget_s=start_budget_s(args), signing_key=signing_key(args),
                                  on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))
         else:
             log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))

@@ -20,7 +20,8 @@ The page's server stops when the command ends.
 Exit codes as ``calibrate``: 0 every sensor accepted (and written when asked); 7 some sensors
 accepted (only their parameters are written), some rejected; 2 usage; 3 the device does not
 answer; 4 aborted (impossible field, magnetic disturbance), no sensor accepted or too little
-data; 5 write failed and the vehicle was restored; 6 write failed and the restore failed.
+data; 5 write failed and the vehicle was restored; 6 write failed and the restore failed; 8 the
+vehicle requires MAVLink 2 signing and ``--signing-key`` is missing or wrong.
 """
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ from mavcal.commands.common import (
     check_new_backup,
     check_optional_dependencies,
     parse_location,
+    signing_key,
+    start_budget_s,
     write_outputs,
     write_with_report,
 )
@@ -168,7 +171,8 @@ def _run(args: argparse.Namespace, page=None) -> int:
         printer, hooks = _page_hooks(page, printer, config, args)
     session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer, **hooks,
                                         baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,
-                                        heartbeat_timeout_s=args.timeout)
+                                        heartbeat_timeout_s=args.timeout, budget_s=start_budget_s(args),
+                                        signing_key=signing_key(args))
     st = session.status
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")

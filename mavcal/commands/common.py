@@ -17,7 +17,7 @@ from mavcal.errors import GateError, UsageError
 __all__ = ["add_json_argument", "json_output", "BACKUP_HELP",
            "parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
            "write_outputs", "confirm", "write_with_report", "check_new_backup", "add_device_map_arguments", "slot_maps",
-           "add_write_budget_argument"]
+           "add_write_budget_argument", "add_signing_arguments", "signing_key", "start_budget_s"]
 
 
 # --------------------------------------------------------------------------- arguments
@@ -65,6 +65,7 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--retries", type=int, default=3,
                         help="PARAM_SET attempts per parameter at least (default 3; see --write-budget)")
     add_write_budget_argument(parser)
+    add_signing_arguments(parser)
     parser.add_argument("--dry-run", action="store_true", help="show what would change; write nothing")
     parser.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation")
 
@@ -74,6 +75,36 @@ def add_write_budget_argument(parser: Any) -> None:
     parser.add_argument("--write-budget", type=float, default=None, metavar="S",
                         help="seconds to keep retrying each PARAM_SET, force-save and read on a lossy link "
                              "(default 15 x --param-timeout)")
+
+
+def add_signing_arguments(parser: Any) -> None:
+    """``--signing-key PASSPHRASE`` / ``--signing-key-file F``: MAVLink 2 signing, MAVProxy's key derivation."""
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("--signing-key", metavar="PASSPHRASE", default=None,
+                   help="sign the link with MAVLink 2 signing; the key is SHA-256 of PASSPHRASE, as MAVProxy's "
+                        "'signing setup PASSPHRASE' (visible in the process list: prefer --signing-key-file)")
+    g.add_argument("--signing-key-file", metavar="F", default=None,
+                   help="as --signing-key, with the passphrase on the first line of the file F")
+
+
+def signing_key(args: argparse.Namespace):
+    """The :class:`mavcal.link.signing.SigningKey` of ``--signing-key``/``--signing-key-file``, or None."""
+    from mavcal.link.signing import key_from_file, key_from_passphrase
+
+    if getattr(args, "signing_key_file", None):
+        return key_from_file(args.signing_key_file)
+    if getattr(args, "signing_key", None) is not None:
+        return key_from_passphrase(args.signing_key)
+    return None
+
+
+def start_budget_s(args: argparse.Namespace) -> float:
+    """How long the start of a session (heartbeat, parameter reads, stream requests) keeps
+    retrying on a lossy link: the write budget (``--write-budget``, default 15 x --param-timeout)."""
+    from mavcal.link.writer import DEFAULT_BUDGET_FACTOR
+
+    budget = getattr(args, "write_budget", None)
+    return float(budget) if budget is not None else DEFAULT_BUDGET_FACTOR * float(args.param_timeout)
 
 
 def add_device_map_arguments(parser: Any) -> None:
@@ -311,7 +342,7 @@ def _vehicle_values(link, args: argparse.Namespace, names: list) -> dict:
 
     context = related_names(names) + id_names()
     return fetch_for_write(link, names, context=context, timeout_s=args.param_timeout,
-                           fetch_timeout_s=max(30.0, 10 * args.param_timeout))
+                           fetch_timeout_s=max(30.0, 10 * args.param_timeout), budget_s=start_budget_s(args))
 
 
 def write_with_report(args: argparse.Namespace, changes: dict, backup: str | None, what: str,
@@ -333,7 +364,8 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
     force = bool(getattr(args, "force", False))
     opts = dict(retries=args.retries, timeout_s=args.param_timeout, budget_s=getattr(args, "write_budget", None),
                 allow_out_of_range=force)
-    link = open_link(args.connect, baud=args.baud, timeout_s=args.timeout)
+    link = open_link(args.connect, baud=args.baud, timeout_s=args.timeout, budget_s=start_budget_s(args),
+                     signing_key=signing_key(args))
     try:
         table = _vehicle_values(link, args, list(changes))
         changes = _matched_changes(args, changes, log_params, table)

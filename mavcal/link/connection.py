@@ -8,6 +8,17 @@ holds. Every message received goes to every handler registered for its type.
 
 A :class:`Link` is not thread-safe: one thread owns it and pumps it.
 
+Starting a session under loss: :func:`open_link` waits ``timeout_s`` for the vehicle's
+HEARTBEAT, and as long as ``budget_s`` when the device is heard (any MAVLink from it) but no
+heartbeat got through yet, so a lossy link gets the same retry budget as the writes while a
+dead device still fails after ``timeout_s``.
+
+Signing (:mod:`mavcal.link.signing`): with ``signing_key`` every message is signed and only
+validly signed ones are accepted; without one, a vehicle whose heartbeat is signed is asked
+once (with retries) for a parameter, and when it never answers our unsigned requests the
+error says the vehicle requires signing (:class:`~mavcal.errors.SigningError`, exit 8), not
+that the link is lossy.
+
 Device strings are pymavlink's: ``udpin:HOST:PORT`` (listen), ``udpout:HOST:PORT`` (send
 first), ``udp:HOST:PORT`` (= udpin), ``tcp:HOST:PORT`` (client), ``tcpin:HOST:PORT``, or a
 serial device (``/dev/ttyACM0``, ``COM3``) with ``baud``.
@@ -16,12 +27,14 @@ from __future__ import annotations
 
 import itertools
 import logging
+import os
 import time
 from typing import Any, Callable
 
 from pymavlink import mavutil
 
-from mavcal.errors import LinkError
+from mavcal.errors import LinkError, SigningError
+from mavcal.link.signing import NEEDS_KEY, SigningKey, is_signed, setup_signing, signing_problem
 
 __all__ = ["Link", "open_link", "as_link", "GCS_SYSTEM_ID", "GCS_COMPONENT_ID"]
 
@@ -67,6 +80,10 @@ class Link:
         #: them while it waits for the vehicle either way)
         self.heartbeat_period_s: float | None = None
         self._last_hb_sent = float("-inf")
+        #: the signing key set on the connection (None: unsigned)
+        self.signing_key: SigningKey | None = None
+        #: messages from the vehicle that arrived signed
+        self.signed_received = 0
 
     # -- ids ---------------------------------------------------------------------------------
     @property
@@ -103,6 +120,8 @@ class Link:
         self.messages_received += 1
         if self.is_from_vehicle(m):
             self.last_rx_s = time.monotonic()
+            if is_signed(m):
+                self.signed_received += 1
             if mtype == "HEARTBEAT":
                 self.last_heartbeat_s = self.last_rx_s
         for table in (self._handlers.get(mtype), self._handlers.get("*")):
@@ -192,9 +211,78 @@ def _is_vehicle_heartbeat(m: Any) -> bool:
             and m.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID)
 
 
+def _connect(device: str, baud: int, source_system: int, source_component: int,
+             signing_key: SigningKey | None) -> Any:
+    kwargs: dict[str, Any] = dict(source_system=source_system, source_component=source_component,
+                                  dialect="ardupilotmega", autoreconnect=False)
+    if device.startswith("tcp:"):
+        kwargs["retries"] = 0  # one connect attempt: pymavlink would otherwise sleep and print
+    elif not device.startswith(_NETWORK_PREFIXES):
+        kwargs["baud"] = baud
+    if signing_key is not None:
+        # signing is MAVLink 2 only; pymavlink would otherwise start in MAVLink 1 and replace its
+        # encoder (and the signing state with it) on the first MAVLink 2 frame. pymavlink sets
+        # this variable itself at that switch.
+        os.environ["MAVLINK20"] = "1"
+    try:
+        conn = mavutil.mavlink_connection(device, **kwargs)
+    except Exception as exc:  # socket / serial errors of many kinds
+        raise LinkError(f"cannot open {device}: {exc}") from None
+    if signing_key is not None:
+        setup_signing(conn, signing_key)
+    return conn
+
+
+def _wait_heartbeat(link: Link, target_system: int | None, timeout_s: float, budget_s: float) -> Any:
+    """The first vehicle HEARTBEAT: wait ``timeout_s``, or ``budget_s`` once the device is heard."""
+    found: list[Any] = []
+
+    def on_heartbeat(m: Any) -> None:
+        if not found and _is_vehicle_heartbeat(m) and (target_system is None or m.get_srcSystem() == target_system):
+            found.append(m)
+
+    def heard() -> bool:  # a lossy link: messages from the device, not frames refused for their signature
+        return link.messages_received > 0
+
+    token = link.add_handler("HEARTBEAT", on_heartbeat)
+    start = time.monotonic()
+    try:
+        while not found:
+            limit = start + (max(timeout_s, budget_s) if heard() else timeout_s)
+            remaining = limit - time.monotonic()
+            if remaining <= 0:
+                break
+            link.send_gcs_heartbeat()
+            link.wait(lambda: bool(found), min(0.5, remaining))
+    finally:
+        link.remove_handler(token)
+    return found[0] if found else None
+
+
+def _answers_unsigned(link: Link, budget_s: float, retry_s: float = 0.5) -> bool:
+    """True once the vehicle answers an unsigned request (PARAM_REQUEST_READ of index 0),
+    asked every ``retry_s`` for at most ``budget_s``."""
+    answered: list[bool] = []
+
+    def on_value(m: Any) -> None:  # the answer to our request: index 0 (a broadcast of a changed
+        if link.is_from_vehicle(m) and int(m.param_index) == 0:  # parameter has index 65535)
+            answered.append(True)
+
+    token = link.add_handler("PARAM_VALUE", on_value)
+    deadline = time.monotonic() + budget_s
+    try:
+        while not answered and time.monotonic() < deadline:
+            link.mav.param_request_read_send(link.target_system, link.target_component, b"", 0)
+            link.wait(lambda: bool(answered), min(retry_s, max(deadline - time.monotonic(), 0.0)))
+    finally:
+        link.remove_handler(token)
+    return bool(answered)
+
+
 def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
               source_system: int = GCS_SYSTEM_ID, source_component: int = GCS_COMPONENT_ID,
-              target_system: int | None = None) -> Link:
+              target_system: int | None = None, budget_s: float = 15.0,
+              signing_key: SigningKey | None = None) -> Link:
     """Open ``device`` and wait for a vehicle HEARTBEAT.
 
     Parameters
@@ -204,11 +292,16 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
     baud : int
         Serial baud rate (ignored for network links).
     timeout_s : float
-        How long to wait for the vehicle's HEARTBEAT.
+        How long to wait for the vehicle's HEARTBEAT when nothing at all is heard.
     source_system, source_component : int
         Our own MAVLink ids.
     target_system : int, optional
         Only accept a vehicle with this system id (default: the first vehicle heard).
+    budget_s : float
+        How long to keep waiting for a HEARTBEAT once the device is heard (a lossy link), and
+        for an answer to an unsigned request when the vehicle signs and no key was given.
+    signing_key : SigningKey, optional
+        Sign every message and accept only validly signed ones (:mod:`mavcal.link.signing`).
 
     Returns
     -------
@@ -217,51 +310,36 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
 
     Raises
     ------
+    SigningError
+        The vehicle requires signing and no key was given, or its signatures do not match
+        ``signing_key``, or it does not sign although a key was given (exit code 8).
     LinkError
-        The device cannot be opened or no vehicle HEARTBEAT arrives within ``timeout_s``.
+        The device cannot be opened or no vehicle HEARTBEAT arrives in time.
     """
     if not device:
         raise LinkError("no device given")
-    kwargs: dict[str, Any] = dict(source_system=source_system, source_component=source_component,
-                                  dialect="ardupilotmega", autoreconnect=False)
-    if device.startswith("tcp:"):
-        kwargs["retries"] = 0  # one connect attempt: pymavlink would otherwise sleep and print
-    elif not device.startswith(_NETWORK_PREFIXES):
-        kwargs["baud"] = baud
-    try:
-        conn = mavutil.mavlink_connection(device, **kwargs)
-    except Exception as exc:  # socket / serial errors of many kinds
-        raise LinkError(f"cannot open {device}: {exc}") from None
+    conn = _connect(device, baud, source_system, source_component, signing_key)
     link = Link(conn, target_system=target_system or 0, target_component=0, device=device)
-    found: list[Any] = []
-
-    def on_heartbeat(m: Any) -> None:
-        if not found and _is_vehicle_heartbeat(m) and (target_system is None or m.get_srcSystem() == target_system):
-            found.append(m)
-
-    token = link.add_handler("HEARTBEAT", on_heartbeat)
-    deadline = time.monotonic() + timeout_s
+    link.signing_key = signing_key
     try:
-        while not found:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            link.send_gcs_heartbeat()
-            link.wait(lambda: bool(found), min(0.5, remaining))
+        hb = _wait_heartbeat(link, target_system, timeout_s, budget_s)
+        if hb is None:
+            problem = signing_problem(conn, signing_key)
+            if problem is not None:
+                raise SigningError(f"{device}: {problem}")
+            waited = max(timeout_s, budget_s) if link.messages_received else timeout_s
+            raise LinkError(f"no heartbeat from a vehicle on {device} within {waited:g} s")
+        link.target_system = hb.get_srcSystem()
+        link.target_component = hb.get_srcComponent()
+        conn.target_system = link.target_system
+        conn.target_component = link.target_component
+        if signing_key is None and is_signed(hb) and not _answers_unsigned(link, max(timeout_s, budget_s)):
+            raise SigningError(f"{device}: {NEEDS_KEY}")
     except LinkError:
         link.close()
         raise
-    finally:
-        link.remove_handler(token)
-    if not found:
-        link.close()
-        raise LinkError(f"no heartbeat from a vehicle on {device} within {timeout_s:g} s")
-    hb = found[0]
-    link.target_system = hb.get_srcSystem()
-    link.target_component = hb.get_srcComponent()
-    conn.target_system = link.target_system
-    conn.target_component = link.target_component
-    log.info("connected to system %d component %d on %s", link.target_system, link.target_component, device)
+    log.info("connected to system %d component %d on %s%s", link.target_system, link.target_component, device,
+             " (signed)" if signing_key is not None else "")
     return link
 
 

@@ -7,6 +7,7 @@ parameter download (:func:`mavcal.link.params.download_params`), the one stream 
 
     with open_recorder("udpin:0.0.0.0:14550") as rec:     # LinkError if no heartbeat
         params = rec.fetch_params()                        # dict name -> value
+        rec.read_position()                                # GPS/home for the WMM, or None
         rec.start_streams(rate_hz=50)                      # SET_MESSAGE_INTERVAL or fallback
         for batch in rec.iter_batches(duration_s=30):      # tuples of SensorSeries
             ...
@@ -32,6 +33,8 @@ import numpy as np
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link, open_link
 from mavcal.link.params import download_params
+from mavcal.link.position import POSITION_MESSAGES, PositionWatch, VehiclePosition, read_position, request_position
+from mavcal.link.signing import SigningKey
 from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, start_streams
 from mavcal.sources.assemble import IMU_MESSAGES, SCALED_INSTANCE, TLOG_MESSAGES, assemble_tlog, imu_series
 from mavcal.sources.types import ImuLog, SensorSeries
@@ -48,6 +51,8 @@ GCS_HEARTBEAT_PERIOD_S = 1.0
 
 #: how often a recording reports its progress
 PROGRESS_PERIOD_S = 0.5
+#: while the vehicle's position is unknown (no GPS fix yet at boot), ask for it this often
+POSITION_ASK_PERIOD_S = 5.0
 
 Batch = tuple[SensorSeries, ...]
 
@@ -88,11 +93,18 @@ class LiveRecorder:
         self.owns_link = owns_link
         self.warnings: list[str] = []
         self.params: dict[str, float] = {}
+        #: the vehicle's position (:meth:`read_position`), for the World Magnetic Model
+        self.position: VehiclePosition | None = None
+        #: seconds each start-up request (stream rates) keeps being retried on a lossy link
+        self.budget_s = 0.0
         self._rows: dict[str, list[tuple]] = {n: [] for n in TLOG_MESSAGES}
         self._fields: dict[str, Sequence[str]] = {}
         self._batch_mark: dict[str, int] = {n: 0 for n in IMU_MESSAGES}
         self._index = 0
         self._token = link.add_handler("*", self._record)
+        self._positions = PositionWatch((link.target_system, link.target_component))
+        self._position_tokens = [link.add_handler(k, self._positions.feed) for k in POSITION_MESSAGES]
+        self._position_asked: float | None = None  # None: not asked for (read_position not called)
         link.heartbeat_period_s = GCS_HEARTBEAT_PERIOD_S
 
     @property
@@ -135,9 +147,34 @@ class LiveRecorder:
 
     def start_streams(self, rate_hz: float = 50.0, ack_timeout_s: float = 1.0, data_timeout_s: float = 2.0,
                       message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> str:
-        """:func:`mavcal.link.streams.start_streams` on this link: ``"interval"`` or ``"data_stream"``."""
+        """:func:`mavcal.link.streams.start_streams` on this link (retried for :attr:`budget_s`):
+        ``"interval"`` or ``"data_stream"``."""
         return start_streams(self.link, rate_hz, ack_timeout_s=ack_timeout_s, data_timeout_s=data_timeout_s,
-                             message_ids=message_ids)
+                             message_ids=message_ids, budget_s=self.budget_s)
+
+    def read_position(self, timeout_s: float = 3.0) -> VehiclePosition | None:
+        """Ask the vehicle where it is (:func:`mavcal.link.position.read_position`); kept in
+        :attr:`position` and given to the snapshot (None: the vehicle does not know)."""
+        self.position = read_position(self.link, timeout_s=timeout_s) or self._positions.best()
+        if self.position is not None:
+            log.info("vehicle position for the World Magnetic Model: %s", self.position.describe())
+        self._position_asked = time.monotonic()
+        return self.position
+
+    def current_position(self) -> VehiclePosition | None:
+        """:attr:`position`, or the first the vehicle reported since (a GPS fix that came
+        later); while none is known it is asked for every :data:`POSITION_ASK_PERIOD_S` as
+        the recording runs (once :meth:`read_position` was called)."""
+        if self.position is None:
+            self.position = self._positions.best()
+            now = time.monotonic()
+            if (self.position is None and self._position_asked is not None
+                    and now - self._position_asked >= POSITION_ASK_PERIOD_S):
+                self._position_asked = now
+                request_position(self.link.mav, self.link.target_system, self.link.target_component)
+            elif self.position is not None:
+                log.info("vehicle position for the World Magnetic Model: %s", self.position.describe())
+        return self.position
 
     # ------------------------------------------------------------------ samples
     def _new_batch(self) -> Batch:
@@ -160,6 +197,7 @@ class LiveRecorder:
         while end is None or time.monotonic() < end:
             left = batch_s if end is None else min(batch_s, end - time.monotonic())
             self.pump(max(left, 0.0))
+            self.current_position()
             yield self._new_batch()
 
     def capture(self, duration_s: float, callback: Callable[[Batch], None] | None = None,
@@ -192,12 +230,17 @@ class LiveRecorder:
             c["_compid"] = np.array([r[3] for r in rows])
             cols[name] = c
         imu_log = assemble_tlog(cols, self.device, self.warnings)
+        self.current_position()
+        if self.position is not None:
+            return dataclasses.replace(imu_log, kind="live", position=self.position.location,
+                                       position_source=self.position.source)
         return dataclasses.replace(imu_log, kind="live")
 
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
         """Stop recording (and close the link if the recorder owns it)."""
-        self.link.remove_handler(self._token)
+        for token in [self._token, *self._position_tokens]:
+            self.link.remove_handler(token)
         self.link.heartbeat_period_s = None
         if self.owns_link:
             self.link.close()
@@ -209,27 +252,40 @@ class LiveRecorder:
         self.close()
 
 
-def open_recorder(device: str, *, baud: int = 115200, heartbeat_timeout_s: float = 5.0) -> LiveRecorder:
+def open_recorder(device: str, *, baud: int = 115200, heartbeat_timeout_s: float = 5.0, budget_s: float = 15.0,
+                  signing_key: SigningKey | None = None) -> LiveRecorder:
     """Open ``device`` (:func:`~mavcal.link.connection.open_link`) and record from it.
+
+    ``budget_s``: how long the start (heartbeat once the device is heard, stream requests)
+    keeps retrying on a lossy link; ``signing_key``: sign the link (:mod:`mavcal.link.signing`).
 
     Raises
     ------
+    SigningError
+        The vehicle requires signing and the key is missing or wrong (exit 8).
     LinkError
         The device cannot be opened or no vehicle heartbeat arrives within ``heartbeat_timeout_s``.
     """
-    return LiveRecorder(open_link(device, baud=baud, timeout_s=heartbeat_timeout_s), owns_link=True)
+    rec = LiveRecorder(open_link(device, baud=baud, timeout_s=heartbeat_timeout_s, budget_s=budget_s,
+                                 signing_key=signing_key), owns_link=True)
+    rec.budget_s = budget_s
+    return rec
 
 
 def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, heartbeat_timeout_s: float = 5.0,
                   param_timeout_s: float = 30.0, rate_hz: float = 50.0,
                   progress: Callable[[int, int], None] | None = None,
-                  on_progress: Callable[[RecordingProgress], None] | None = None) -> ImuLog:
+                  on_progress: Callable[[RecordingProgress], None] | None = None, budget_s: float = 15.0,
+                  signing_key: SigningKey | None = None) -> ImuLog:
     """Record ``duration_s`` seconds of IMU data from a live vehicle as an ImuLog of kind ``"live"``.
 
-    Connect (``LinkError`` when no heartbeat within ``heartbeat_timeout_s``), fetch all
+    Connect (``LinkError`` when no heartbeat within ``heartbeat_timeout_s``; ``SigningError``
+    when the vehicle requires signing and ``signing_key`` is missing or wrong), fetch all
     parameters (bounded by ``param_timeout_s``; an incomplete table is a warning of the log),
-    stream the IMU messages the vehicle has (:func:`mavcal.link.streams.needed_stream_ids`) at
-    ``rate_hz`` and record.
+    ask where the vehicle is (its GPS / position estimate / home, for the World Magnetic Model:
+    the log's ``position`` and ``position_source``), stream the IMU messages the vehicle has
+    (:func:`mavcal.link.streams.needed_stream_ids`) at ``rate_hz`` and record. ``budget_s``
+    bounds the retries of the start on a lossy link.
 
     Parameters
     ----------
@@ -250,8 +306,10 @@ def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, 
         if on_progress is not None:
             on_progress(p)
 
-    with open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s) as rec:
+    with open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s, budget_s=budget_s,
+                       signing_key=signing_key) as rec:
         params = rec.fetch_params(timeout_s=param_timeout_s)
+        rec.read_position()
         rec.start_streams(rate_hz=rate_hz, message_ids=needed_stream_ids(params))
         rec.capture(duration_s, on_progress=report if (progress or on_progress) else None)
         return rec.snapshot()

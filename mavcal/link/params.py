@@ -293,7 +293,7 @@ class NameRead:
 
 
 def read_params_by_name(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, attempts: int = 3,
-                        window: int = 10, budget_s: float = 0.0) -> NameRead:
+                        window: int = 10, budget_s: float = 0.0, optional: Iterable[str] = ()) -> NameRead:
     """Read a few parameters by name (PARAM_REQUEST_READ), in parallel, with retries.
 
     Parameters
@@ -310,8 +310,13 @@ def read_params_by_name(conn: Any, names: Iterable[str], *, timeout_s: float = 1
         At most this many requests in flight.
     budget_s : float
         Keep asking for a name until ``attempts`` were sent *and* this long has passed.
+    optional : iterable of str
+        Names (among ``names``) that may not exist: asked for ``attempts`` times only, never
+        for the whole ``budget_s`` (ArduPilot up to 4.6 does not answer an unknown name, so
+        insisting on it would cost the whole budget on every healthy link).
     """
     link: Link = as_link(conn)
+    maybe = set(optional)
     wanted: list[str] = list(dict.fromkeys(names))
     got: ParamTable = {}
     errors: dict[str, str] = {}
@@ -332,7 +337,7 @@ def read_params_by_name(conn: Any, names: Iterable[str], *, timeout_s: float = 1
             errors[hit[0]] = hit[1]
 
     def given_up(n: str, now: float) -> bool:
-        return tries[n] >= attempts and now - start >= budget_s
+        return tries[n] >= attempts and (n in maybe or now - start >= budget_s)
 
     tokens = [link.add_handler("PARAM_VALUE", on_value), link.add_handler("PARAM_ERROR", on_error)]
     try:

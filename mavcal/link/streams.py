@@ -14,6 +14,7 @@ module, which does not own its read loop, uses it too.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -97,14 +98,40 @@ class _StreamWatch:
             self.link.remove_handler(t)
 
 
+def _ask_intervals(link: Link, watch: _StreamWatch, rate_hz: float, message_ids: Sequence[int],
+                   ack_timeout_s: float, until: float) -> str:
+    """SET_MESSAGE_INTERVAL one message at a time (a COMMAND_ACK does not say which message it
+    answers), each sent again every ``ack_timeout_s`` until acknowledged or ``until``.
+
+    Returns ``"accepted"`` (every one), ``"refused"`` (an ack other than accepted) or
+    ``"unanswered"``.
+    """
+    for mid in message_ids:
+        while True:
+            n0 = len(watch.acks)
+            send_message_intervals(link.mav, link.target_system, link.target_component, rate_hz, (mid,))
+            if link.wait(lambda n0=n0: len(watch.acks) > n0, ack_timeout_s):
+                if watch.acks[n0] != _A.MAV_RESULT_ACCEPTED:
+                    return "refused"
+                break
+            if time.monotonic() >= until:
+                return "unanswered"
+    return "accepted"
+
+
 def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1.0,
-                  data_timeout_s: float = 2.0, message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> str:
+                  data_timeout_s: float = 2.0, message_ids: Sequence[int] = STREAM_MESSAGE_IDS,
+                  budget_s: float = 0.0) -> str:
     """Ask for RAW_IMU, SCALED_IMU2 and SCALED_IMU3 (``message_ids``, e.g. :func:`needed_stream_ids`)
     at ``rate_hz`` (at least 25 Hz) and check data comes.
 
-    Uses MAV_CMD_SET_MESSAGE_INTERVAL; falls back to REQUEST_DATA_STREAM
-    (MAV_DATA_STREAM_RAW_SENSORS) when it is not acknowledged (within ``ack_timeout_s``) or
-    no RAW_IMU arrives (within ``data_timeout_s``).
+    Uses MAV_CMD_SET_MESSAGE_INTERVAL, one message at a time, each sent again every
+    ``ack_timeout_s`` while no COMMAND_ACK comes back, and the whole request again while no
+    RAW_IMU follows within ``data_timeout_s``, for up to a third of ``budget_s`` (at least one
+    round); falls back to REQUEST_DATA_STREAM (MAV_DATA_STREAM_RAW_SENSORS) when it is refused,
+    never acknowledged, or gives no RAW_IMU. The fallback request is repeated every
+    ``data_timeout_s`` until data comes or the budget (at least one ``data_timeout_s``) is
+    spent: on a lossy link each request may be lost, as may the first answers.
 
     Returns
     -------
@@ -118,26 +145,41 @@ def start_streams(link: Link, rate_hz: float = 50.0, *, ack_timeout_s: float = 1
     """
     rate_hz = max(float(rate_hz), MIN_STREAM_RATE_HZ)
     watch = _StreamWatch(link)
+    start = time.monotonic()
     try:
-        send_message_intervals(link.mav, link.target_system, link.target_component, rate_hz, message_ids)
-        link.wait(lambda: bool(watch.acks), ack_timeout_s)
-        accepted = _A.MAV_RESULT_ACCEPTED in watch.acks
-        if accepted and watch.wait_data(rate_hz, data_timeout_s):
-            return "interval"
+        while True:
+            outcome = _ask_intervals(link, watch, rate_hz, message_ids, ack_timeout_s, start + budget_s / 3)
+            if outcome == "accepted" and watch.wait_data(rate_hz, data_timeout_s):
+                return "interval"
+            if outcome == "refused" or time.monotonic() >= start + budget_s / 3:
+                break
         log.info("SET_MESSAGE_INTERVAL %s; falling back to REQUEST_DATA_STREAM",
-                 "not accepted" if not accepted else "gave no data")
-        link.mav.request_data_stream_send(link.target_system, link.target_component,
-                                          _A.MAV_DATA_STREAM_RAW_SENSORS, int(round(rate_hz)), 1)
-        if not watch.wait_data(1.0, data_timeout_s):
-            raise LinkError(f"no RAW_IMU data from {link.device} after requesting it")
-        return "data_stream"
+                 {"accepted": "gave no data", "refused": "not accepted"}.get(outcome, "not acknowledged"))
+        end = max(start + budget_s, time.monotonic() + data_timeout_s)
+        while True:
+            link.mav.request_data_stream_send(link.target_system, link.target_component,
+                                              _A.MAV_DATA_STREAM_RAW_SENSORS, int(round(rate_hz)), 1)
+            if watch.wait_data(1.0, min(data_timeout_s, max(end - time.monotonic(), 0.0))):
+                return "data_stream"
+            if time.monotonic() >= end:
+                raise LinkError(f"no RAW_IMU data from {link.device} after requesting it")
     finally:
         watch.close()
 
 
-def reset_streams(link: Link, message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> None:
-    """Give the IMU messages back their default rates (best effort: the link may be dead)."""
+def reset_streams(link: Link, message_ids: Sequence[int] = STREAM_MESSAGE_IDS, *, attempts: int = 3,
+                  ack_timeout_s: float = 0.3) -> None:
+    """Give the IMU messages back their default rates (best effort: the link may be dead or
+    lossy; asked up to ``attempts`` times until every request is acknowledged)."""
     try:
-        send_message_intervals(link.mav, link.target_system, link.target_component, None, message_ids)
+        watch = _StreamWatch(link)
+        try:
+            for _ in range(max(1, attempts)):
+                n0 = len(watch.acks)
+                send_message_intervals(link.mav, link.target_system, link.target_component, None, message_ids)
+                if link.wait(lambda n0=n0: len(watch.acks) - n0 >= len(message_ids), ack_timeout_s):
+                    return
+        finally:
+            watch.close()
     except Exception as exc:  # a dead socket, a closed connection: nothing to restore
         log.debug("could not reset the stream rates: %s", exc)

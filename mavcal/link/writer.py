@@ -715,11 +715,13 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
 
 
 def fetch_for_write(conn: Any, names: Sequence[str], *, context: Sequence[str] = (), timeout_s: float = 1.0,
-                    attempts: int = 5, fetch_timeout_s: float = 30.0) -> ParamTable:
+                    attempts: int = 5, fetch_timeout_s: float = 30.0, budget_s: float = 0.0) -> ParamTable:
     """The part of the vehicle's table a write of ``names`` needs, without a full download when
     the names answer.
 
-    ``names`` (and ``context``, optional names such as device ids and limits) are read by name;
+    ``names`` (and ``context``, optional names such as device ids and limits) are read by name,
+    ``names`` for at least ``attempts`` requests and ``budget_s`` seconds each (a lossy link),
+    ``context`` for ``attempts`` requests (they may not exist);
     a name the vehicle refuses with PARAM_ERROR is unknown at once. Only when some of ``names``
     do not answer is the table downloaded (re-requesting the holes by index and the names by
     name, with a budget that grows with the count), until they are known or the table is
@@ -735,7 +737,8 @@ def fetch_for_write(conn: Any, names: Sequence[str], *, context: Sequence[str] =
     link = as_link(conn)
     wanted = list(dict.fromkeys(names))
     extra = [c for c in dict.fromkeys(context) if c not in wanted]
-    got = read_params_by_name(link, wanted + extra, timeout_s=timeout_s, attempts=attempts)
+    got = read_params_by_name(link, wanted + extra, timeout_s=timeout_s, attempts=attempts, budget_s=budget_s,
+                              optional=extra)
     unknown = [n for n in wanted if n in got.errors]
     if unknown:
         raise UnknownParameterError(unknown)

@@ -307,6 +307,7 @@ class ImuLog:
     params : ParamTimeline, on the same time base as the series' ``time_s``
     events : tuple of LogEvent
     position : (lat_deg, lon_deg, alt_m) or None, vehicle/home position if known
+    position_source : str, where a live position came from (``"vehicle GPS"``...); "" for a log's
     vehicle : mapping with what is known of the vehicle (``"sysid"``, ``"autopilot"``,
         ``"vehicle_type"``, ``"firmware"`` ...)
     warnings : tuple of str, what was skipped and how many (bad CRC, unknown messages...)
@@ -320,6 +321,7 @@ class ImuLog:
     position: tuple[float, float, float] | None = None
     vehicle: Mapping[str, object] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    position_source: str = ""
 
     def get(self, sensor: str, instance: int = 0) -> SensorSeries | None:
         for s in self.series:

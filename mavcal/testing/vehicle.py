@@ -31,7 +31,8 @@ thread:
 
 * COMMAND_LONG: MAV_CMD_PREFLIGHT_CALIBRATION param2=76 / param5=76 (force-save compass /
   accel calibration, recorded in :attr:`TestVehicle.force_saves`), MAV_CMD_SET_MESSAGE_INTERVAL,
-  MAV_CMD_REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES (AUTOPILOT_VERSION),
+  MAV_CMD_REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES (AUTOPILOT_VERSION; with ``position``
+  also GPS_RAW_INT with a 3D fix, GLOBAL_POSITION_INT and HOME_POSITION there),
   MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN (a simulated reboot: silent for ``reboot_s``, then the
   compass parameter sets are reordered by ``COMPASS_PRIOn_ID`` and the custom rotations are
   rebuilt, as at boot). Everything else gets MAV_RESULT_UNSUPPORTED. REQUEST_DATA_STREAM sets
@@ -49,6 +50,8 @@ thread:
   as SITL reports it; from then on the HEARTBEAT's system_status is MAV_STATE_CRITICAL.
 * Fault injection per direction (drop / delay / duplicate), :meth:`kill`, :meth:`revive` and
   ``die_after_n_sets``.
+* MAVLink 2 signing (``signing_key``, 32 bytes): everything sent is signed and unsigned or
+  wrongly signed messages are dropped, as ArduPilot on any channel but the first.
 
 Transports (``transport=``): ``"udpout"`` (the vehicle sends to the GCS port; the GCS uses
 ``udpin:127.0.0.1:PORT``), ``"udpin"`` (the vehicle listens; the GCS uses ``udpout:``) and
@@ -164,6 +167,10 @@ class TestVehicle:
         Answer refused parameter requests with PARAM_ERROR (ArduPilot master), not silence (4.6).
     deny_params : iterable of str
         Parameters whose PARAM_SET is denied (as read-only defaults entries are).
+    position : (lat_deg, lon_deg, alt_m), optional
+        Where the vehicle is (answers REQUEST_MESSAGE of the position messages).
+    signing_key : bytes, optional
+        MAVLink 2 signing key (see the module docstring).
     """
 
     __test__ = False  # not a pytest test class
@@ -173,7 +180,8 @@ class TestVehicle:
                  seed: int = 0, heartbeat_hz: float = 1.0, reboot_s: float = 0.5,
                  die_after_n_sets: int | None = None, faults: Faults | None = None,
                  sysid: int = 1, compid: int = 1, param_errors: bool = False,
-                 deny_params: Sequence[str] = ()) -> None:
+                 deny_params: Sequence[str] = (), position: Sequence[float] | None = None,
+                 signing_key: bytes | None = None) -> None:
         if transport not in ("udpout", "udpin", "tcp"):
             raise ValueError(f"transport must be 'udpout', 'udpin' or 'tcp', got {transport!r}")
         self.transport = transport
@@ -222,7 +230,9 @@ class TestVehicle:
         self._in_q: list[tuple[float, int, Any, Any]] = []  # (due, seq, message, the sender's peer address)
         self._sender: Any = None  # the peer whose message is being handled: replies go to it alone
         self._seq = itertools.count()
-        self._enc = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self.position = None if position is None else tuple(float(x) for x in position)
+        self.signing_key = signing_key
+        self._enc = self._sign(mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid))
         self._list_cursor: int | None = None
         self._list_to: Any = None
         self._boot()
@@ -448,8 +458,17 @@ class TestVehicle:
         self._next_due = {mid: time.monotonic() for mid in self._intervals}
 
     # ------------------------------------------------------------------ I/O
+    def _sign(self, mav: Any) -> Any:
+        """Sign what ``mav`` sends and drop unsigned/badly signed input, with ``signing_key``."""
+        if self.signing_key is not None:
+            mav.signing.secret_key = self.signing_key
+            mav.signing.sign_outgoing = True
+            mav.signing.timestamp = int((time.time() - 1420070400) * 1e5)
+            mav.signing.allow_unsigned_callback = lambda _mav, _msg_id: False
+        return mav
+
     def _new_parser(self) -> Any:
-        mav = mavlink2.MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid)
+        mav = self._sign(mavlink2.MAVLink(None, srcSystem=self.sysid, srcComponent=self.compid))
         mav.robust_parsing = True
         return mav
 
@@ -710,6 +729,19 @@ class TestVehicle:
         if out.stored is not None:
             self._check_internal_errors()
 
+    def _send_position(self, mid: int) -> None:
+        """A requested position message, to the channel that asked (as every requested message)."""
+        assert self.position is not None
+        lat, lon, alt = int(self.position[0] * 1e7), int(self.position[1] * 1e7), int(self.position[2] * 1e3)
+        t_us = int((time.monotonic() - self._boot_time) * 1e6)
+        if mid == mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT:
+            self._send(self._enc.gps_raw_int_encode(t_us, 3, lat, lon, alt, 80, 120, 0, 0, 12), self._sender)
+        elif mid == mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+            self._send(self._enc.global_position_int_encode(t_us // 1000, lat, lon, alt, 0, 0, 0, 0, 0), self._sender)
+        else:
+            self._send(self._enc.home_position_encode(lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0],
+                                                      0.0, 0.0, 0.0), self._sender)
+
     def _param_error(self, m: Any, name: str, index: int, error: int) -> None:
         """PARAM_ERROR to the sender (``GCS_MAVLINK::send_param_error``), only with ``param_errors``."""
         if self.param_errors:
@@ -752,6 +784,9 @@ class TestVehicle:
                 self._intervals[mid] = max(us * 1e-6, 1.0 / 400.0)
                 self._next_due[mid] = time.monotonic()
             self._ack(m, A.MAV_RESULT_ACCEPTED)
+        elif cmd == A.MAV_CMD_REQUEST_MESSAGE and self.position is not None and int(m.param1) in _POSITION_IDS:
+            self._ack(m, A.MAV_RESULT_ACCEPTED)
+            self._send_position(int(m.param1))
         elif cmd in (A.MAV_CMD_REQUEST_MESSAGE, A.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
             if cmd == A.MAV_CMD_REQUEST_MESSAGE and int(m.param1) != A.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
                 self._ack(m, A.MAV_RESULT_UNSUPPORTED)
@@ -772,6 +807,10 @@ class TestVehicle:
                 self._ack(m, A.MAV_RESULT_UNSUPPORTED)
         else:
             self._ack(m, A.MAV_RESULT_UNSUPPORTED)
+
+
+_POSITION_IDS = (mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT, mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                 mavlink2.MAVLINK_MSG_ID_HOME_POSITION)
 
 
 def _name(param_id: Any) -> str:
