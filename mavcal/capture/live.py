@@ -241,11 +241,9 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         Serial baud rate; IMU stream rate to ask for (at least 25 Hz); receive batch length.
     should_stop : callable, optional
         Polled after every batch; True stops the capture ("stopped by the user").
-    max_duration_s : float
-        The capture stops after this long ("time limit ... reached").
-    update_every_s : float
-        Seconds between ``session.update()`` calls (not on every batch: a fit costs up to a
-        few hundred ms).
+    max_duration_s, update_every_s : float
+        The capture stops after this long ("time limit ... reached"); seconds between
+        ``session.update()`` calls (not on every batch: a fit costs up to a few hundred ms).
     heartbeat_timeout_s, param_timeout_s, budget_s : float
         Bounds on waiting for the vehicle's heartbeat and for its parameter table; how long
         the start (heartbeat once the device is heard, stream requests) retries on a lossy link.
