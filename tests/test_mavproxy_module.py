@@ -205,7 +205,7 @@ def test_mavproxy_module_capture_fit_write_restore_unload(tmp_path, start_vehicl
         mp.expect(r"mavcal: unloaded; worker stopped; mavcal threads left: none", after=mark)
         mp.expect(r"Unloaded module mavcal", after=mark)
         mp.expect(r"Unknown command 'mavcal", after=mp.send("mavcal threads"))
-        _check_stream_rates(mp, clock, loaded, t_started, t_finished)
+        _check_stream_rates(v, mp, clock, t_started, t_finished)
     finally:
         hand.stop()
         mp.close()
@@ -213,15 +213,23 @@ def test_mavproxy_module_capture_fit_write_restore_unload(tmp_path, start_vehicl
         v.stop()
 
 
-def _check_stream_rates(mp, clock, loaded, t_started, t_finished):
-    """Issue 13 item 5: one SET_MESSAGE_INTERVAL per IMU message the vehicle has (3 here), no
-    re-request and no reset of our own; the IMU rate never falls to MAVProxy's 4 Hz during the
-    capture (MAVProxy's REQUEST_DATA_STREAM, every 15 s, is paused); MAVProxy's own rate is back
-    after the capture (MAVProxy re-requested it: no reset of ours was needed)."""
-    acks = [line for line in mp.lines[loaded:] if "COMMAND_ACK: SET_MESSAGE_INTERVAL" in line]
-    assert len(acks) == 3, acks
+def _check_stream_rates(v, mp, clock, t_started, t_finished):
+    """Issue 13 item 5: one SET_MESSAGE_INTERVAL per IMU message the vehicle has (3 here), at the
+    asked rate, and no reset of our own; MAVProxy's REQUEST_DATA_STREAM (every 15 s) is paused
+    during the capture, so the IMU rate stays at ours; MAVProxy's own rate is back after the
+    capture (MAVProxy re-requested it: no reset of ours was needed).
+
+    What the vehicle received is checked, not only the rate seen: on a loaded machine a starved
+    MAVProxy forwards fewer messages for a second (6 Hz was seen), and a slow acknowledgement
+    makes the start repeat a request (link: a request is sent until its own ack arrives), which
+    says nothing about the pause or the resets."""
+    intervals = [p for cmd, p in v.commands if cmd == 511]  # MAV_CMD_SET_MESSAGE_INTERVAL
+    assert {int(p[0]) for p in intervals} == {27, 116, 129}, intervals  # RAW_IMU, SCALED_IMU2, SCALED_IMU3
+    assert all(p[1] == pytest.approx(40000) for p in intervals), intervals  # 25 Hz, never a reset (-1/0)
+    during_requests = [r for r in v.stream_requests if t_started + 1.0 < r[0] < t_finished - 0.5]
+    assert during_requests == [], during_requests  # MAVProxy's periodic request paused
     during = clock.rates(t_started + 1.5, t_finished)
-    assert during and min(during) >= 12, during  # asked 25 Hz; MAVProxy's 4 Hz would show as <= 5
+    assert during and np.median(during) >= 12, during  # asked 25 Hz; MAVProxy's 4 Hz would show as <= 5
     # MAVProxy asks for its stream rates every 15 s: the capture spanned such a moment
     assert t_finished - mp.started > 15.5, "the capture ended before MAVProxy's first periodic stream request"
     after = clock.rates(t_finished + 1.5, t_finished + 3.5)

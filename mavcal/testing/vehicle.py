@@ -207,6 +207,7 @@ class TestVehicle:
         self.force_saves: list[str] = []
         self.param_sets: list[tuple[str, float, float | None]] = []  # (name, received, stored or None)
         self.commands: list[tuple[int, tuple[float, ...]]] = []
+        self.stream_requests: list[tuple[float, int, int]] = []  # (monotonic s, stream id, Hz) of REQUEST_DATA_STREAM
         self.reboots = 0
         #: AP_InternalError's mask (cleared at boot); a new bit is announced by STATUSTEXT
         self.internal_errors = 0
@@ -698,6 +699,7 @@ class TestVehicle:
             rate = m.req_message_rate if m.start_stop == 1 else 0
             if m.start_stop not in (0, 1):
                 return
+            self.stream_requests.append((time.monotonic(), m.req_stream_id, rate))
             if m.req_stream_id in (mavlink2.MAV_DATA_STREAM_ALL, mavlink2.MAV_DATA_STREAM_RAW_SENSORS):
                 self._stream_hz["RAW_SENS"] = rate
                 self._values["SR0_RAW_SENS"] = float(rate)
