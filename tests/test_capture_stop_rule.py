@@ -72,7 +72,10 @@ def test_every_sensor_reaches_its_target_and_is_accepted_with_the_default_settin
     assert all(p.met for p in st.sensors), st.sensors
     assert "on every compass" in st.reason and "on every accelerometer" in st.reason
     assert st.heading_95_deg <= 0.5
-    assert any(s != "compass0" for s in advised_for)  # not only the primary pair is advised for
+    # the advice was checked (it went to the sensor furthest from its target); this vehicle meets
+    # every target at its first fit since a chance chi2/dof no longer widens the extra compasses'
+    # bounds, so advice to other sensors is checked in the accelerometer test below
+    assert advised_for
     run = sess.result()
     assert {x.sensor: x.accepted for x in run.gates.verdicts()} == dict.fromkeys(ALL, True)
     assert "every sensor's bound/target (deg): accel0 tilt" in status_screen(st)

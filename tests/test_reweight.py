@@ -9,8 +9,9 @@ from scipy.stats import f as f_dist
 import mavcal
 from mavcal import sim
 from mavcal.core import calibrate as C
+from mavcal.core.accel_fit import MISFIT_ALPHA
 from mavcal.core.certify import SAMPLE_COST, local_evidence
-from mavcal.core.misfit import joint_terms, misfit_factors
+from mavcal.core.misfit import INFLATE_P, joint_terms, misfit_factors
 from mavcal.core.models import MODELS
 from mavcal.core.refine import JointParams, JointProblem
 
@@ -91,3 +92,47 @@ def test_a_disturbed_compass_is_reweighted_and_the_result_names_the_cost():
     assert float(np.sum(prob.residuals(_params(cal)) ** 2)) == pytest.approx(cal.cost, rel=1e-12)
     assert cert.local_ok and cert.grad_decrement <= 1e-8 * (1 + cal.cost)
     assert C.misfit_p(cal.cost, cal.dof, a, m) >= C.REWEIGHT_P  # the reweighted cost fits its noise model
+
+
+def _fisher(spec, a, m, Sa, Sm, p: JointParams) -> np.ndarray:
+    prob = JointProblem(joint_terms(spec, a, m, Sa, Sm))
+    _, Jg, Jr = prob.jacobians(p)
+    return prob.covariance(Jg, Jr)
+
+
+def test_a_chance_misfit_does_not_widen_the_parameter_covariance():
+    """The same clean N = 10 run: J'/dof = 1.66 and the compass's share 5.45 (the former
+    max(1, chi2_s / dof_s) rule widened its variances up to 5.3x, and the heading bound with
+    them), but J' is not beyond chance (p = 0.10 > INFLATE_P = 1 %): param_cov is the inverse
+    Fisher information at the sample covariances."""
+    d = _paper(10, 5)
+    cal = mavcal.calibrate(d.accel_sets, d.mag_sets, seed=5)
+    a, m = C._stats(d.accel_sets, d.mag_sets, None)
+    spec, p = MODELS[cal.model], _params(cal)
+    assert cal.cost / cal.dof > 1.5 and C.misfit_p(cal.cost, cal.dof, a, m) > INFLATE_P == MISFIT_ALPHA
+    fisher = _fisher(spec, a, m, a.sigma_hat, m.sigma_hat, p)
+    np.testing.assert_allclose(cal.param_cov, fisher, rtol=1e-9, atol=1e-12 * np.abs(fisher).max())
+    fa, fm = misfit_factors(spec, a, m, a.sigma_hat, m.sigma_hat, p)
+    former = _fisher(spec, a, m, a.sigma_hat * fa, m.sigma_hat * fm, p)
+    assert np.max(np.diag(former) / np.diag(fisher)) > 4.0  # what the former rule did
+
+
+def test_a_misfit_beyond_one_percent_still_widens_the_parameter_covariance():
+    """A compass whose means are offset between poses by a quarter of a sample's noise sigma:
+    J' has p = 3e-4 (below INFLATE_P, above REWEIGHT_P: not reweighted), so the compass's Sigma
+    is inflated by its misfit share before the Fisher information is formed, widening its
+    variances about 4x over the sample covariances'."""
+    s = sim.simulate(15, seed=5, samples=(100, 150))
+    rng = np.random.default_rng(105)
+    sd = float(np.sqrt(np.diag(s.truth.sensors.Sigma_m)).max())
+    mag = [x + 0.25 * sd * rng.standard_normal(3) for x in s.mag_sets]
+    cal = mavcal.calibrate(s.accel_sets, mag, seed=0, model="full")
+    a, m = C._stats(s.accel_sets, mag, None)
+    spec, p = MODELS[cal.model], _params(cal)
+    assert C.REWEIGHT_P < C.misfit_p(cal.cost, cal.dof, a, m) <= INFLATE_P and cal.noise_inflation == (1.0, 1.0)
+    fa, fm = misfit_factors(spec, a, m, a.sigma_hat, m.sigma_hat, p)
+    assert fm > 3.0
+    inflated = _fisher(spec, a, m, a.sigma_hat * fa, m.sigma_hat * fm, p)
+    np.testing.assert_allclose(cal.param_cov, inflated, rtol=1e-9, atol=1e-12 * np.abs(inflated).max())
+    fisher = _fisher(spec, a, m, a.sigma_hat, m.sigma_hat, p)
+    assert np.max(np.diag(cal.param_cov) / np.diag(fisher)) > 3.0

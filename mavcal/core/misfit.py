@@ -17,20 +17,34 @@ compass's share is 2 dof and about 1 clean run in 10 crossed it; at N = 15 it is
 test of the total at 1e-6 fires on clean data in at most 1 fit in 10^6 (one test per fit, both
 sensors together); once it has fired, the heuristic shares only *apportion* a misfit shown to
 be real, and a sensor that fits its noise keeps f_s = 1.
+
+When to widen the uncertainty (:func:`inflated_covariance`, ``INFLATE_P``). The parameter
+covariance (and so the heading bound) is the inverse Fisher information at the noise
+covariances the fit used (Eq. ``covariance_initial_estimation``, with the quantisation floor):
+the covariance of a correct model. It is inflated by the misfit only when the same test
+rejects the model at p <= 1 % (``INFLATE_P`` = :data:`mavcal.core.accel_fit.MISFIT_ALPHA`, the
+accelerometer's own fit's rule), not on any J'/dof > 1: with the few spare equations of a
+short capture J'/dof is itself very uncertain (chi2_dof / dof exceeds 3 one time in 20 with
+2 dof on perfect data), and a bound widened by that chance makes the guided capture wait for
+it. On clean data the bound is then widened in 1 fit in 100 (the stated false-alarm rate); a
+real misfit (motion, a disturbed compass) is rejected far below 1 %, and widens the bound as
+before.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from mavcal.core.accel_fit import MISFIT_ALPHA
 from mavcal.core.certify import SAMPLE_COST
 from mavcal.core.models import FORMS, ModelSpec
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term
 from mavcal.core.stats import IntervalStats, f_sf
 
 __all__ = ["joint_terms", "misfit_factors", "inflated_covariance", "misfit_p", "cost_name", "inflation",
-           "REWEIGHT_P"]
+           "REWEIGHT_P", "INFLATE_P"]
 
 REWEIGHT_P = 1e-6  # the noise model is rejected (and the fit reweighted) only when J' has p below this
+INFLATE_P = MISFIT_ALPHA  # the covariance widened by the misfit only when J' has p <= this (1 %)
 
 
 def misfit_p(cost: float, dof: int, a: IntervalStats, m: IntervalStats) -> float:
@@ -90,13 +104,16 @@ def inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa,
                          res: RefineResult) -> np.ndarray | None:
     """Parameter covariance honest about misfit, sensor by sensor.
 
-    When a sensor's weighted residuals exceed what its noise covariance explains
-    (chi2_s / dof_s > 1, e.g. magnetic disturbance that differs between poses, or a
-    vehicle not quite still), its covariance is inflated by that factor before the Fisher
+    Only when J' at the point rejects the noise model, ``misfit_p(J', dof) <= INFLATE_P``
+    (the F(dof, nu) reference of :func:`misfit_p`; 1 % false alarms on clean data, see the
+    module's notes), each sensor whose weighted residuals exceed what its noise covariance
+    explains (chi2_s / dof_s > 1, e.g. magnetic disturbance that differs between poses, or a
+    vehicle not quite still) has its covariance inflated by that factor before the Fisher
     information is formed, so one sensor's misfit does not inflate (or hide in) the
     other's uncertainty. dof_s is the sensor's share 3N - P_s - 3N/2 of the degrees of freedom.
+    Otherwise ``res.cov``, the inverse Fisher information at (Sa, Sm), as is.
     """
-    if res.cov is None or res.dof <= 0:
+    if res.cov is None or res.dof <= 0 or misfit_p(res.cost, res.dof, a, m) > INFLATE_P:
         return res.cov
     fa, fm = misfit_factors(spec, a, m, Sa, Sm, p)
     if fa == 1.0 and fm == 1.0:

@@ -1,10 +1,10 @@
 """Parameter uncertainty: draws from the Gaussian approximation of the estimate.
 
 ``Calibration.param_cov`` is the Gauss-Newton inverse Fisher information of the global
-parameters (orientations marginalised), inflated by max(1, J'/dof) when the data scatter
-more than the noise model explains. Drawing parameter sets from N(theta_hat, param_cov)
-and pushing them through any derived quantity (ArduPilot parameters, heading and tilt
-errors over a grid of attitudes) gives that quantity's confidence interval.
+parameters (orientations marginalised), inflated per sensor by its misfit only when J' rejects
+the noise model at p <= 1 % (:func:`mavcal.core.misfit.inflated_covariance`). Drawing
+parameter sets from N(theta_hat, param_cov) and pushing them through any derived quantity
+(ArduPilot parameters, heading and tilt errors over a grid of attitudes) gives that quantity's confidence interval.
 
 Also the Wald tests :mod:`mavcal.core.calibrate`'s model selection runs on the full fit
 (:func:`wald`, ``REDUCTIONS``) and the covariance after a discrete gauge change
