@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["GOLDEN_RTOL", "GOLDEN_ATOL", "REFACTOR_RTOL", "numbers_close", "text_differences",
-           "assert_text_close", "json_differences", "assert_json_close", "assert_close"]
+           "assert_text_close", "json_differences", "assert_json_close", "array_differences", "assert_close"]
 
 #: Relative tolerance of golden outputs (text and JSON).
 GOLDEN_RTOL = 1e-6
@@ -149,13 +149,52 @@ def assert_json_close(actual: Any, expected: Any, rtol: float = GOLDEN_RTOL, ato
         raise AssertionError(f"JSON differs (numbers at rtol={rtol:g}, atol={atol:g}):\n" + "\n".join(diff[:20]))
 
 
+def array_differences(actual: Any, expected: Any, rtol: float = REFACTOR_RTOL, atol: float | None = None,
+                      axis: int | None = None) -> str | None:
+    """Why two numeric arrays differ under the refactor rule, or None when they agree.
+
+    Same dtype kind (float, complex, integer/bool) and shape; NaN exactly where NaN and each
+    infinity where it is; the finite elements ``|a - e| <= rtol * |e| + floor`` with ``floor``
+    = ``atol`` or, by default, ``rtol`` times the largest finite ``|e|`` (along ``axis`` when
+    given, e.g. ``axis=-1``: each row's own scale, where rows differ by orders of magnitude).
+    Integer and boolean arrays must be equal.
+    """
+    a, e = np.asarray(actual), np.asarray(expected)
+    if a.shape != e.shape:
+        return f"shape {a.shape}, expected {e.shape}"
+    kinds = {"f": "f", "c": "c", "i": "i", "u": "i", "b": "i"}
+    if kinds.get(a.dtype.kind) != kinds.get(e.dtype.kind):
+        return f"dtype {a.dtype}, expected {e.dtype}"
+    if e.dtype.kind in "iub":
+        bad = np.flatnonzero(a != e)
+        return None if not bad.size else f"{bad.size} of {e.size} elements differ (first at flat index {bad[0]})"
+    nan_a, nan_e = np.isnan(a), np.isnan(e)
+    if np.any(nan_a != nan_e) or np.any(np.isinf(a) != np.isinf(e)) or np.any(a[np.isinf(e)] != e[np.isinf(e)]):
+        return "NaN or infinity where the other has not"
+    fin = np.isfinite(e)
+    mag = np.where(fin, np.abs(e), 0.0)
+    if atol is not None:
+        floor: Any = atol
+    elif axis is None:
+        floor = rtol * (float(mag.max()) if mag.size else 0.0)
+    else:
+        floor = rtol * np.max(mag, axis=axis, keepdims=True) if mag.size else 0.0
+    ok = ~fin | (np.abs(np.where(fin, a, 0.0) - np.where(fin, e, 0.0)) <= rtol * mag + floor)
+    if np.all(ok):
+        return None
+    bad = np.flatnonzero(~ok)
+    i = bad[0]
+    return (f"{bad.size} of {e.size} elements differ beyond rtol={rtol:g} (first at flat index {i}: "
+            f"{a.flat[i]!r} vs {e.flat[i]!r})")
+
+
 def assert_close(actual: Any, expected: Any, rtol: float = REFACTOR_RTOL, atol: float | None = None) -> None:
     """``actual`` equals ``expected`` within ``rtol`` (default: a refactor's 1e-9).
 
-    Arrays (anything numpy takes as a numeric array) must have the same shape; their absolute
-    floor is ``atol`` or, by default, ``rtol`` times the largest finite ``|expected|``. Mappings
-    and sequences of other things are compared element by element; scalars as in
-    :func:`numbers_close` (absolute floor ``atol or 0``); strings as golden text.
+    Numeric arrays (and numbers, and sequences numpy takes as numeric arrays) as in
+    :func:`array_differences` (the absolute floor, unless ``atol``, is ``rtol`` times the
+    largest ``|expected|``); mappings and other sequences element by element; strings as
+    golden text; other values equal.
     """
     if isinstance(expected, Mapping) or isinstance(expected, str) or expected is None:
         assert_json_close(actual, expected, rtol, 0.0 if atol is None else atol)
@@ -166,10 +205,8 @@ def assert_close(actual: Any, expected: Any, rtol: float = REFACTOR_RTOL, atol: 
     except ValueError:  # ragged: element by element
         e = a = np.empty(0, dtype=object)
     if e.dtype.kind in "fciub" and a.dtype.kind in "fciub":
-        assert a.shape == e.shape, f"shape {a.shape}, expected {e.shape}"
-        finite = np.abs(e[np.isfinite(e)]) if e.size else np.zeros(0)
-        floor = atol if atol is not None else rtol * (float(finite.max()) if finite.size and e.ndim else 0.0)
-        np.testing.assert_allclose(a, e, rtol=rtol, atol=floor, equal_nan=True)
+        why = array_differences(a, e, rtol, atol)
+        assert why is None, why
         return
     if isinstance(expected, Sequence) and isinstance(actual, Sequence) and len(actual) == len(expected):
         for x, y in zip(actual, expected):
