@@ -9,6 +9,8 @@
   .tlog / DataFlash .bin logs, with their truth.
 * :mod:`mavcal.testing.logwriters` -- .tlog and DataFlash writers.
 * :mod:`mavcal.testing.sitl_truth` -- the truth files of the SITL logs in ``sitl_logs/``.
+* :mod:`mavcal.testing.numbers` -- comparing computed numbers at a stated tolerance: golden
+  text, JSON and arrays (never bit for bit: the last bits differ between BLAS kernels and CPUs).
 
 Two conventions for a sensor's truth exist, and the class names say which:
 :class:`~mavcal.testing.vehicle_sensors.AccelCalTruth` states the truth as the ideal
