@@ -247,3 +247,37 @@ def test_a_fleet_worker_that_dies_fails_its_log_alone(monkeypatch):
     assert [r.source for r in rows] == ["a.tlog", "dies.tlog", "b.tlog"]
     assert rows[0].ok and rows[2].ok and not rows[1].ok and rows[1].exit_code == 70
     assert "killed by signal 9" in (rows[1].error or "") and "\n" not in (rows[1].error or "")
+
+
+_TEST_PID = os.getpid()
+
+
+def _dying_pair(real, mag_instance):
+    def fit(prep, o, stats):
+        if os.getpid() != _TEST_PID and o.mag_instance == mag_instance:
+            os.kill(os.getpid(), signal.SIGKILL)  # as the out-of-memory killer would
+        return real(prep, o, stats)
+    return fit
+
+
+def test_a_fit_worker_that_dies_rejects_its_sensor(monkeypatch, sitl_dir):
+    from mavcal import fits
+    from mavcal.pipeline import calibrate_prepared, prepare
+
+    monkeypatch.setattr(fits, "_fit_pair", _dying_pair(fits._fit_pair, 1))
+    run = calibrate_prepared(prepare(str(sitl_dir / "sitl02.tlog")), Options(workers=2))
+    verdicts = {v.sensor: v for v in run.verdicts}
+    assert run.exit_code == 7 and not verdicts["compass1"].accepted
+    assert verdicts["compass0"].accepted and verdicts["compass2"].accepted and verdicts["accel1"].accepted
+    assert "killed by signal 9 (SIGKILL) (out of memory?)" in verdicts["compass1"].reasons[0]
+    assert not any(n.startswith("COMPASS_OFS2") for n in run.params_to_write())
+
+
+def test_the_primary_fit_worker_dying_is_one_line_and_exit_70(monkeypatch, capsys, sitl_dir):
+    from mavcal import fits
+    from mavcal.cli import main
+
+    monkeypatch.setattr(fits, "_fit_pair", _dying_pair(fits._fit_pair, 0))
+    assert main(["calibrate", str(sitl_dir / "sitl02.tlog"), "--jobs", "2"]) == 70
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "killed by signal 9" in err and err.startswith("mavcal: error:")
