@@ -134,6 +134,8 @@ def _die_with_parent(parent: int) -> None:
 
 
 def _worker_main(conn: Connection, inherited: list[Connection], parent: int, max_tasks: int | None) -> None:
+    global _SHARED
+    shared, _SHARED = _SHARED, None  # the jobs' own; a job may start a pool of its own
     for c in inherited:  # this process's copies of the parent's ends: the pipes close when the parent dies
         c.close()
     _die_with_parent(parent)
@@ -150,7 +152,7 @@ def _worker_main(conn: Connection, inherited: list[Connection], parent: int, max
             break
         fn, item = msg
         try:
-            reply: tuple = ("done", _run(fn, _SHARED, item))
+            reply: tuple = ("done", _run(fn, shared, item))
         except BaseException as exc:  # a bug: raised again in the parent
             reply = ("raise", exc, traceback.format_exc())
         try:

@@ -281,3 +281,22 @@ def test_the_primary_fit_worker_dying_is_one_line_and_exit_70(monkeypatch, capsy
     assert main(["calibrate", str(sitl_dir / "sitl02.tlog"), "--jobs", "2"]) == 70
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "killed by signal 9" in err and err.startswith("mavcal: error:")
+
+
+def _nested_job(shared, item):
+    """A job that runs a pool of its own (a fleet worker fitting its log's sensors in workers)."""
+    got = []
+    with W.ForkPool(shared * 10, 2) as pool:
+        pool.run(_times_shared, [item, item + 1], lambda i, outcome: got.append(outcome[1]) or [])
+    return sorted(got)
+
+
+def _times_shared(shared, item):
+    return shared * item
+
+
+def test_a_job_may_run_a_pool_of_its_own():
+    got = {}
+    with W.ForkPool(3, 2) as pool:
+        pool.run(_nested_job, [1, 5], lambda item, outcome: got.update({item: outcome}) or [])
+    assert got == {1: (True, [30, 60]), 5: (True, [150, 180])}
