@@ -165,17 +165,34 @@ def _worker_main(conn: Connection, inherited: list[Connection], parent: int, max
 # --------------------------------------------------------------------------- in the parent
 
 class _Worker:
-    """One forked worker: its process, the parent's end of its pipe, the job it runs."""
+    """One forked worker: its process id, the parent's end of its pipe, the job it runs.
+
+    Forked with :func:`os.fork` rather than :class:`multiprocessing.Process`, whose exit
+    handler joins every child it started: a parent interrupted between forking a worker and
+    recording it would wait there for ever. Here nothing waits for a worker at exit; an
+    unrecorded one reads EOF (or gets its death signal) when the parent goes."""
 
     def __init__(self, inherited: list[Connection], max_tasks: int | None) -> None:
-        ctx = multiprocessing.get_context("fork")
-        self.conn, child = ctx.Pipe(duplex=True)
-        self.proc = ctx.Process(target=_worker_main, name="mavcal-worker",
-                                args=(child, inherited + [self.conn], os.getpid(), max_tasks))
-        self.proc.start()
-        child.close()
         self.job: tuple[int, Any] | None = None  # (order, item) while busy
         self.left = max_tasks  # jobs it takes before it ends (None: no limit)
+        self.status: int | None = None  # exit code once reaped (-N: killed by signal N)
+        self.conn, child = multiprocessing.Pipe(duplex=True)
+        parent = os.getpid()
+        for f in (sys.stdout, sys.stderr):  # nothing buffered here is written twice
+            try:
+                f.flush()
+            except (AttributeError, ValueError, OSError):
+                pass
+        pid = os.fork()
+        if pid == 0:  # the worker: it never returns from here
+            code = 1
+            try:
+                _worker_main(child, inherited + [self.conn], parent, max_tasks)
+                code = 0
+            finally:
+                os._exit(code)
+        self.pid = pid
+        child.close()
 
     def send(self, fn: Callable, order: int, item: Any) -> None:
         self.conn.send((fn, item))
@@ -183,9 +200,32 @@ class _Worker:
         if self.left is not None:
             self.left -= 1
 
+    def _reap(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for the process to end; True once it has (and is reaped)."""
+        end = time.monotonic() + timeout_s
+        while self.status is None:
+            try:
+                pid, status = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped elsewhere
+                self.status = 0
+                break
+            if pid:
+                self.status = os.waitstatus_to_exitcode(status)
+                break
+            if time.monotonic() >= end:
+                return False
+            time.sleep(0.005)
+        return True
+
+    def _kill(self) -> None:
+        try:
+            os.kill(self.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
     def died(self) -> WorkerDiedError:
-        self.proc.join(5.0)
-        code = self.proc.exitcode
+        self._reap(5.0)
+        code = self.status
         if code is not None and code < 0:
             try:
                 how = f"was killed by signal {-code} ({signal.Signals(-code).name})"
@@ -197,14 +237,12 @@ class _Worker:
         return WorkerDiedError(f"a worker process {how}{hint} during its job; run with --jobs 1 to run it here")
 
     def stop(self, now: bool) -> None:
-        if now and self.proc.is_alive():
-            self.proc.kill()
+        if now:
+            self._kill()
         self.conn.close()  # an idle worker reads EOF and ends
-        self.proc.join(10.0)
-        if self.proc.is_alive():
-            self.proc.kill()
-            self.proc.join()
-        self.proc.close()
+        if not self._reap(10.0):
+            self._kill()
+            self._reap(60.0)
 
 
 class ForkPool(Generic[S]):
@@ -233,7 +271,7 @@ class ForkPool(Generic[S]):
     @property
     def pids(self) -> list[int]:
         """The worker processes alive now."""
-        return [w.proc.pid for w in self._procs if w.proc.pid is not None]
+        return [w.pid for w in self._procs]
 
     def _close(self) -> None:
         global _SHARED
@@ -317,21 +355,15 @@ class ForkPool(Generic[S]):
         """Wait for at least one busy worker to finish or die; the finished jobs' (item,
         outcome) in the order they were started (follow-ups then queue in a fixed order)."""
         busy = {w.conn: w for w in self._procs if w.job is not None}
-        sentinels = {w.proc.sentinel: w for w in busy.values()}
-        ready = wait(list(busy) + list(sentinels))
-        hit = {busy[r] if r in busy else sentinels[r] for r in ready}
+        ready = wait(list(busy))  # an answer, or EOF: the worker's end closed as it died
         out: list[tuple[int, Any, Outcome]] = []
-        for w in hit:
+        for w in (busy[r] for r in ready):
             assert w.job is not None
             order, item = w.job
-            reply = None
-            if w.conn.poll():
-                try:
-                    reply = w.conn.recv()
-                except (EOFError, OSError):  # its end of the pipe closed with no answer
-                    reply = None
-            elif w.proc.sentinel not in ready:
-                continue
+            try:
+                reply = w.conn.recv()
+            except (EOFError, OSError):  # its end of the pipe closed with no answer
+                reply = None
             if reply is None:  # the process died during its job
                 out.append((order, item, (False, w.died())))
                 self._procs.remove(w)
