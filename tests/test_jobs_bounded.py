@@ -138,8 +138,12 @@ def test_a_worker_is_replaced_after_max_tasks():
 
 
 _PARENT_SCRIPT = textwrap.dedent("""
-    import sys, time
+    import signal, sys, time
     from mavcal.workers import ForkPool
+
+    # Ctrl-C as in a terminal: a pytest-xdist worker ignores SIGINT, and a child started with
+    # SIGINT ignored gets no KeyboardInterrupt handler from Python
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     if sys.argv[1] == "no-prctl":
         sys.platform = "darwin"  # the workers watch the parent's pid instead
