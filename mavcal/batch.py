@@ -1,11 +1,13 @@
 """Many logs at once: calibrate a fleet's logs in parallel and show which vehicles drifted.
 
 :func:`calibrate_many` runs :func:`mavcal.pipeline.calibrate_source` on every log, in
-worker **processes** when ``jobs > 1``. A worker handles one log at a time and sends back
-only a small :class:`BatchRow` (numbers and strings, never the sample arrays), and is
-replaced after :data:`MAX_TASKS_PER_CHILD` logs, so the memory of each worker stays that
-of one log. A log that cannot be calibrated gives a row with the error message and the
-exit code the CLI would return for it alone; it never stops the batch.
+forked worker **processes** when ``jobs > 1`` (:class:`mavcal.workers.ForkPool`: never more
+than the logs nor :func:`mavcal.workers.worker_limit`, and gone when this process is). A
+worker handles one log at a time and sends back only a small :class:`BatchRow` (numbers and
+strings, never the sample arrays), and is replaced after :data:`MAX_TASKS_PER_CHILD` logs, so
+the memory of each worker stays that of one log. A log that cannot be calibrated gives a row
+with the error message and the exit code the CLI would return for it alone (70 when its
+worker process died, e.g. out of memory); it never stops the batch.
 
 :func:`format_fleet_table` prints one line per log, grouped per vehicle (system id,
 firmware and sensor device ids, as far as the log tells) and ordered by how much the
@@ -14,12 +16,8 @@ calibration changes (biggest first), with the lines above the drift thresholds f
 from __future__ import annotations
 
 import logging
-import multiprocessing
-import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -28,6 +26,7 @@ import numpy as np
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.errors import MavcalError, UsageError
+from mavcal.workers import ForkPool, Outcome
 
 log = logging.getLogger(__name__)
 
@@ -228,11 +227,9 @@ def _calibrate_one(source: str, options) -> BatchRow:
                         accel_instance=ai, compass_instance=mi, elapsed_s=time.perf_counter() - t0, **ident)
 
 
-def _worker_init() -> None:
-    # the parent's logging configuration is not inherited by spawned workers; without a
-    # handler every warning would go to stderr through logging.lastResort (the warnings
-    # travel back in BatchRow.warnings instead)
-    logging.getLogger("mavcal").addHandler(logging.NullHandler())
+def _calibrate_indexed(options, item: tuple[int, str]) -> BatchRow:
+    """:func:`_calibrate_one` as a :class:`~mavcal.workers.ForkPool` job (``item``: index, source)."""
+    return _calibrate_one(item[1], options)
 
 
 # --------------------------------------------------------------------------- batch
@@ -248,7 +245,8 @@ def calibrate_many(sources: list[str], options, jobs: int = 1, *,
     options : mavcal.pipeline.Options
         The same options for every log.
     jobs : int
-        Worker processes (1: in this process, one log after the other).
+        Worker processes (1: in this process, one log after the other); never more than the
+        logs nor :func:`mavcal.workers.worker_limit`.
     progress : callable ``(done, total, row)``, optional
         Called in this process after each log, in completion order.
 
@@ -277,32 +275,17 @@ def calibrate_many(sources: list[str], options, jobs: int = 1, *,
         if progress is not None:
             progress(done, total, row)
 
-    workers = min(int(jobs), total)
-    if workers <= 1:
-        for i, s in enumerate(sources):
-            finish(i, _calibrate_one(s, options))
-        return [r for r in rows if r is not None]
+    def then(item: tuple[int, str], outcome: Outcome) -> list:
+        i, source = item
+        ok, row = outcome
+        if not ok:  # its worker process died (out of memory?): this log alone fails
+            row = BatchRow(source=source, ok=False, error=str(row), exit_code=int(row.exit_code),
+                           accel_instance=options.accel_instance, compass_instance=options.mag_instance)
+        finish(i, row)
+        return []
 
-    kw = {"max_workers": workers, "mp_context": multiprocessing.get_context("spawn"), "initializer": _worker_init}
-    if sys.version_info >= (3, 11):
-        kw["max_tasks_per_child"] = MAX_TASKS_PER_CHILD
-    with ProcessPoolExecutor(**kw) as pool:
-        futures = {pool.submit(_calibrate_one, s, options): i for i, s in enumerate(sources)}
-        try:
-            for fut in as_completed(futures):
-                i = futures[fut]
-                try:
-                    row = fut.result()
-                except BrokenProcessPool:
-                    row = BatchRow(source=sources[i], ok=False, exit_code=1,
-                                   error="the worker process died (out of memory?); run this log alone")
-                except Exception as exc:  # e.g. options that do not pickle
-                    row = BatchRow(source=sources[i], ok=False, exit_code=1,
-                                   error=f"unexpected {type(exc).__name__}: {exc}")
-                finish(i, row)
-        except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
+    with ForkPool(options, min(int(jobs), total), max_tasks=MAX_TASKS_PER_CHILD) as pool:
+        pool.run(_calibrate_indexed, list(enumerate(sources)), then)
     return [r for r in rows if r is not None]
 
 

@@ -30,7 +30,7 @@ from mavcal.quality import Quality, accel_tilt_bounds, holdout_part, holdout_rms
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.segment import Segmentation
 from mavcal.sources.progress import report
-from mavcal.workers import ForkPool, Outcome
+from mavcal.workers import ForkPool, Outcome, WorkerDiedError
 
 log = logging.getLogger(__name__)
 
@@ -93,14 +93,16 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
         raise runs[0]
     primary = runs[0]
     warnings += list(primary.warnings)
-    others = []
+    others, died = [], []
     for (a, m), r in zip(pairs[1:], runs[1:]):
         if isinstance(r, MavcalError):
             warnings.append(f"accelerometer {a} / compass {m} not calibrated: {r}")
+            if isinstance(r, WorkerDiedError) and a == ai:
+                died.append(_died_gate(f"compass{m}", r))
         else:
             others.append(r)
     compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
-    gates = [g for r in compass_runs for g in r.gates.gates]
+    gates = [g for r in compass_runs for g in r.gates.gates] + died
     compasses = [r.mapping.compass[0] for r in compass_runs]
     accels, fits, accel_gates = _judge_accels(prep, opts, [primary] + others,
                                               [(a, got["accel", j]) for j, a in enumerate(insts)], warnings)
@@ -109,6 +111,11 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+
+
+def _died_gate(sensor: str, exc: WorkerDiedError) -> gates_mod.Gate:
+    """A sensor whose fit's worker process died (out of memory?): rejected, with the reason."""
+    return gates_mod.Gate(sensor, "fit", False, 0.0, "yes", f"no result: {exc}")
 
 
 def _holdout_slices(workers: int) -> int:
@@ -140,6 +147,8 @@ def _judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own
                                              else None, res, warnings)
         except MavcalError as exc:
             warnings.append(f"accelerometer {a} not calibrated: {exc}")
+            if isinstance(exc, WorkerDiedError):
+                gates.append(_died_gate(f"accel{a}", exc))
             continue
         accels.append(am)
         fits.append((a, fit))

@@ -1,6 +1,8 @@
 """Issue 11, the stages around the joint fit on long logs: the interval statistics, the
 interval means, the held-out checks' statistics and the uncertainty draws computed with less
-work, to the last bit of what they gave before (the reference forms are spelled out here)."""
+work, equal to what they gave before (the reference forms are spelled out here) within a
+refactor's tolerance, 1e-9 relative (issue 23: not bit for bit, which depends on the BLAS
+kernel and the CPU; mavcal.testing.numbers.assert_close)."""
 from __future__ import annotations
 
 import numpy as np
@@ -13,6 +15,7 @@ from mavcal.core.stats import interval_means, interval_stats, stats_subset
 from mavcal.errors import EstimationError
 from mavcal.quality import holdout_errors
 from mavcal.sim.paper import simulate
+from mavcal.testing.numbers import assert_close
 
 
 def _reference_moments(sets):
@@ -41,22 +44,22 @@ def _random_sets(rng, n_sets, max_len, scale, offset, quantum=None):
     (0, 2, 50, 1.0, 0.0, None), (1, 7, 9, 0.01, 9.8, None), (2, 40, 900, 0.3, 400.0, None),
     (3, 25, 600, 2.0, 300.0, 0.15), (4, 3, 20000, 0.05, 9.8, None),  # past numpy's 8192-element buffer
     (5, 300, 120, 1e-3, 1e4, 1e-3)])
-def test_interval_stats_equal_the_straightforward_sums_to_the_bit(seed, n_sets, max_len, scale, offset, quantum):
+def test_interval_stats_equal_the_straightforward_sums(seed, n_sets, max_len, scale, offset, quantum):
     rng = np.random.default_rng(seed)
     sets = _random_sets(rng, n_sets, max_len, scale, offset, quantum)
     mu, n, scatter, each = _reference_moments(sets)
     for per_interval in (True, False):
         st = interval_stats(sets, "accel_sets", per_interval=per_interval)
-        np.testing.assert_array_equal(st.mu, mu)
-        np.testing.assert_array_equal(st.n, n)
-        np.testing.assert_array_equal(st.scatter, scatter)
+        assert_close(st.mu, mu)
+        np.testing.assert_array_equal(st.n, n)  # counts
+        assert_close(st.scatter, scatter)
         assert st.mu.flags["C_CONTIGUOUS"]  # the layout the fits' BLAS calls had (their rounding)
         if per_interval:
-            np.testing.assert_array_equal(st.interval_scatter, each)
+            assert_close(st.interval_scatter, each)
         else:
             assert st.interval_scatter is None
     # and the strided / integer inputs a caller may pass
-    np.testing.assert_array_equal(interval_stats([np.asfortranarray(s) for s in sets], "a").mu, mu)
+    assert_close(interval_stats([np.asfortranarray(s) for s in sets], "a").mu, mu)
 
 
 def test_interval_stats_still_name_the_interval_with_non_finite_readings():
@@ -69,16 +72,16 @@ def test_interval_stats_still_name_the_interval_with_non_finite_readings():
         interval_stats(sets, "accel_sets")
 
 
-def test_interval_means_equal_numpy_mean_to_the_bit():
+def test_interval_means_equal_numpy_mean():
     rng = np.random.default_rng(7)
     sets = _random_sets(rng, 200, 700, 0.5, 50.0)
-    np.testing.assert_array_equal(interval_means(sets), np.array([s.mean(axis=0) for s in sets]))
+    assert_close(interval_means(sets), np.array([s.mean(axis=0) for s in sets]))
     f32 = [s.astype(np.float32) for s in sets[:5]]
-    np.testing.assert_array_equal(interval_means(f32), np.array([s.mean(axis=0) for s in f32]))
+    assert_close(interval_means(f32), np.array([s.mean(axis=0) for s in f32]), rtol=1e-6)  # float32
     assert interval_means([]).shape == (0, 3)
 
 
-def test_orientations_from_means_equal_estimate_orientations_to_the_bit():
+def test_orientations_from_means_equal_estimate_orientations():
     sim = simulate(12, seed=4, samples=(50, 90))
     cal = C.calibrate(sim.accel_sets, sim.mag_sets, seed=0)
     test = simulate(8, seed=5, samples=(40, 70))
@@ -86,7 +89,7 @@ def test_orientations_from_means_equal_estimate_orientations_to_the_bit():
     na = np.array([len(a) for a in test.accel_sets], dtype=float)
     nm = np.array([len(m) for m in test.mag_sets], dtype=float)
     R2 = orientations_from_means(cal, interval_means(test.accel_sets), na, interval_means(test.mag_sets), nm)
-    np.testing.assert_array_equal(R, R2)
+    assert_close(R2, R)
     with pytest.raises(EstimationError):
         orientations_from_means(cal, np.zeros((2, 3)), np.ones(2), np.zeros((3, 3)), np.ones(3))
 
@@ -114,12 +117,13 @@ def test_grid_errors_equal_attitude_errors_batch_after_batch():
         h2, t2 = max_errors_deg(raw_a, raw_m, acal, ccal, B_ned, grid)
         raw_u = np.array([evaluate.f_unique @ Ka[k].T + ba[k] for k in range(D)])  # at the distinct forces only
         h3, t3 = evaluate.at_unique(raw_u, raw_m)
-        np.testing.assert_array_equal(h3, h)
-        np.testing.assert_array_equal(t3, t)
+        assert_close(h3, h)
+        assert_close(t3, t)
         for k in range(D):
             e = attitude_errors(lambda f, K=Ka[k], b=ba[k]: f @ K.T + b,
                                 lambda B, K=Km[k], b=bm[k]: B @ K.T + b, acal, ccal, B_ned, grid)
-            assert h[k] == e.max_heading_deg == h2[k] and t[k] == e.max_tilt_deg == t2[k]
+            assert_close([h[k], h2[k], t[k], t2[k]], [e.max_heading_deg, e.max_heading_deg, e.max_tilt_deg,
+                                                   e.max_tilt_deg])
 
 
 def _sim(n: int, seed: int):
@@ -129,12 +133,12 @@ def _sim(n: int, seed: int):
 
 def test_k_fold_holdout_from_the_fit_statistics_equals_the_readings_when_the_pool_is_all():
     """N <= HOLDOUT_POOL_MAX: the refits' statistics taken from the fit's own (per interval) are
-    the numbers computed from the readings, so the held-out errors are the same to the bit."""
+    the numbers computed from the readings, so the held-out errors are the same (within 1e-9)."""
     acc, mag = _sim(90, 3)
     cal = C.calibrate(acc, mag, seed=0)
     stats = (interval_stats(acc, "accel_sets", per_interval=True), interval_stats(mag, "mag_sets", per_interval=True))
-    assert holdout_errors(acc, mag, cal, stats=stats) == holdout_errors(acc, mag, cal)
-    assert holdout_accel_mps2(acc, stats=stats[0]) == holdout_accel_mps2(acc)
+    assert_close(holdout_errors(acc, mag, cal, stats=stats), holdout_errors(acc, mag, cal))
+    assert_close(holdout_accel_mps2(acc, stats=stats[0]), holdout_accel_mps2(acc))
 
 
 def test_k_fold_holdout_above_the_pool_takes_subsets_of_the_fit_statistics(monkeypatch):
@@ -206,13 +210,13 @@ def test_sample_parameters_equal_the_draw_by_draw_assignment(model):
     for g, r in zip(got, ref):
         assert g.keys() == r.keys()
         for k in r:
-            np.testing.assert_array_equal(g[k], r[k])
+            assert_close(g[k], r[k])
     assert sample_parameters(cal, 0, np.random.default_rng(9)) == []
 
 
 def test_accel_tilt_bounds_equal_the_draw_by_draw_form():
-    """The accelerometer's tilt bound from all its draws at once equals, to the bit, the former
-    per-draw evaluation (spelled out here)."""
+    """The accelerometer's tilt bound from all its draws at once equals the former per-draw
+    evaluation (spelled out here), within 1e-9."""
     from mavcal.ardupilot import firmware as fw
     from mavcal.ardupilot.evaluate import attitude_grid
     from mavcal.ardupilot.mapping import accel_frame, map_accel
@@ -233,5 +237,5 @@ def test_accel_tilt_bounds_equal_the_draw_by_draw_form():
         return float(np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0))).max())
 
     ts = [one(K, b) for K, b in sample_accel(fit, 57, np.random.default_rng(4))]
-    assert accel_tilt_bounds(fit, am, 57, 4) == (float(np.percentile(ts, 95)), one(fit.gain, fit.bias))
-    assert accel_tilt_bounds(fit, am, 0, 4) == (one(fit.gain, fit.bias),) * 2
+    assert_close(accel_tilt_bounds(fit, am, 57, 4), (float(np.percentile(ts, 95)), one(fit.gain, fit.bias)))
+    assert_close(accel_tilt_bounds(fit, am, 0, 4), (one(fit.gain, fit.bias),) * 2)

@@ -83,12 +83,16 @@ def test_fit_accel_schur_matches_dense_solution(n):
 def test_fit_accel_is_linear_in_intervals():
     small, big = _accel_sets(500, samples=5), _accel_sets(5000, samples=5)
     fit_accel(small)  # warm up
-    t0 = time.perf_counter()
-    fit_accel(small)
-    t1 = time.perf_counter()
-    fit_accel(big)
-    t2 = time.perf_counter()
-    assert (t2 - t1) < 25 * (t1 - t0) + 0.5  # 10x the intervals: about 10x the time, never 100x
+
+    def fastest_s(sets) -> float:  # of three: a stall of a loaded machine is not the fit's
+        out = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            fit_accel(sets)
+            out.append(time.perf_counter() - t0)
+        return min(out)
+
+    assert fastest_s(big) < 25 * fastest_s(small) + 0.5  # 10x the intervals: about 10x the time, never 100x
 
 
 def test_holdout_folds_loo_then_k_fold_over_a_bounded_pool():

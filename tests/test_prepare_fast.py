@@ -1,11 +1,14 @@
-"""Issue 11: the faster kernels of ``prepare`` give the library's values bit for bit.
+"""Issue 11: the faster kernels of ``prepare`` give the library's values.
 
 The inverse models skip LAPACK/BLAS for a diagonal soft-iron matrix and a signed-permutation
 board rotation, and the segmentation computes its sums, norms and products in other layouts
-and blocks. Every shortcut is compared here, byte for byte, with the straightforward
-expression it replaces (``np.linalg.solve``, ``a @ R``, one ``cumsum``, ``np.linalg.norm``,
-``ndarray.mean``), including the values where a shortcut could differ: zeros of either sign,
-NaN and infinities, one-row calls.
+and blocks. Every shortcut is compared here with the straightforward expression it replaces
+(``np.linalg.solve``, ``a @ R``, one ``cumsum``, ``np.linalg.norm``, ``ndarray.mean``),
+including the values where a shortcut could differ: zeros, NaN and infinities, one-row calls.
+The values agree within 1e-9 relative at each row's scale, NaN and infinities exactly where
+the reference has them (issue 23: not byte for byte, since what LAPACK/BLAS give in the last
+bit depends on the kernel OpenBLAS picks for the CPU); boolean results (which windows are
+still) exactly.
 """
 from __future__ import annotations
 
@@ -20,14 +23,15 @@ from mavcal.ardupilot.recover import recover_raw
 from mavcal.segment import find_still_intervals
 from mavcal.sources.reader import read_log
 from mavcal.sources.types import SensorSeries
+from mavcal.testing.numbers import array_differences, assert_close
 
 SITL = Path(__file__).resolve().parents[1] / "sitl_logs"
 SPECIAL = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 5e-324, -5e-324, 1e308])
 
 
 def _same(a, b) -> bool:
-    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
-    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype == b.dtype and array_differences(a, b, axis=-1 if a.ndim else None) is None
 
 
 def _ref_undo_compass(cal: fw.CompassCal, c, motor=None) -> np.ndarray:
@@ -59,7 +63,7 @@ def _readings(rng: np.random.Generator, n: int, p_special: float) -> np.ndarray:
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
-def test_compass_inverse_is_the_library_solve_bit_for_bit():
+def test_compass_inverse_is_the_library_solve():
     rng = np.random.default_rng(7)
     for trial in range(400):
         n = int(rng.choice([1, 2, 3, 7, 16, 17, 100, 5000]))
@@ -87,7 +91,7 @@ def test_singular_soft_iron_matrix_still_raises():
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
 @pytest.mark.parametrize("orient", [0, 2, 4, 8, 12, 16, 24, 101])
-def test_accel_inverse_is_the_matrix_product_bit_for_bit(orient):
+def test_accel_inverse_is_the_matrix_product(orient):
     rng = np.random.default_rng(orient)
     custom = (10.0, -20.0, 30.0) if orient == 101 else None
     for trial in range(120):
@@ -162,7 +166,7 @@ def test_prefix_sums_norms_and_cap_equal_the_full_length_expressions(monkeypatch
         for k in range(0, n, 128):  # the former products: every grid point at once
             np.maximum(best, np.max(segment_mod._SPHERE @ g[k:k + 128].T, axis=1), out=best)
         ref = float(np.degrees(np.arccos(np.clip(best, -1, 1))).max())
-        assert segment_mod._largest_empty_cap_deg(g) == ref
+        assert_close(segment_mod._largest_empty_cap_deg(g), ref)
 
 
 def test_interval_directions_are_the_mean_and_norm_of_their_samples():

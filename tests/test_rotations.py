@@ -65,4 +65,5 @@ def test_nearest_rotation():
     # duplicates resolve to the canonical value; near-identity to NONE not PITCH_7
     assert rot.nearest_rotation(rot.rotation_matrix(26))[0] == 14
     assert rot.nearest_rotation(rot.euler_to_matrix(0, np.radians(3), 0))[0] == 0
-    assert rot.nearest_rotation(rot.rotation_matrix(41), include_skipped=True) == (41, 0.0)
+    best, angle_deg = rot.nearest_rotation(rot.rotation_matrix(41), include_skipped=True)
+    assert best == 41 and angle_deg == pytest.approx(0.0, abs=1e-5)  # arccos near 1: 1 ulp is ~1e-6 deg

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 
 import numpy as np
 import pytest
@@ -64,17 +65,22 @@ _PARENT = os.getpid()
 
 
 def _dies_in_worker(shared, item):
-    if os.getpid() != _PARENT:
-        os._exit(3)  # as the kernel's out-of-memory killer would end it
-    return shared * item
+    if os.getpid() != _PARENT and item % 2:
+        os.kill(os.getpid(), signal.SIGKILL)  # as the kernel's out-of-memory killer would end it
+    return shared * item, os.getpid()
 
 
-def test_a_killed_worker_costs_time_not_results(caplog):
+def test_a_worker_that_dies_fails_its_job_alone_with_one_line():
+    """Issue 23: the job whose worker was killed fails with WorkerDiedError (exit code 70 at
+    the CLI), the others give their results, and the next jobs get a new worker."""
     with W.ForkPool(10, 2) as pool:
-        out = _outcomes(pool, _dies_in_worker, [1, 2, 3])
-        assert pool.workers == 1 and W._SHARED is None
-    assert out == [(True, 10), (True, 20), (True, 30)]
-    assert "worker process died" in caplog.text
+        out = _outcomes(pool, _dies_in_worker, [1, 2, 4])
+        again = _outcomes(pool, _dies_in_worker, [6])
+        assert len(pool.pids) <= 2
+    assert not out[0][0] and isinstance(out[0][1], W.WorkerDiedError) and out[0][1].exit_code == 70
+    assert "killed by signal 9 (SIGKILL) (out of memory?)" in str(out[0][1]) and "\n" not in str(out[0][1])
+    assert [v[0] for _, v in out[1:]] == [20, 40] and again[0][0] and again[0][1][0] == 60
+    assert W._SHARED is None
 
 
 def _tens(shared, item):
@@ -116,17 +122,17 @@ def test_an_exception_in_then_stops_the_run():
         assert seen == [1, 2]  # 3 never ran
 
 
-def test_follow_up_jobs_run_here_after_a_worker_dies(caplog):
+def test_follow_up_jobs_run_after_a_worker_dies():
     got = {}
 
     def then(item, outcome):
         got[item] = outcome
-        return [item + 2] if item < 3 else []
+        return [item + 1] if item in (1, 2) else []
 
     with W.ForkPool(10, 2) as pool:
-        pool.run(_dies_in_worker, [1, 2], then)
-        assert pool.workers == 1
-    assert got == {k: (True, 10 * k) for k in (1, 2, 3, 4)} and "worker process died" in caplog.text
+        pool.run(_dies_in_worker, [1, 2], then)  # 1 and 3 kill their workers; 2 follows 1 anyway
+    assert sorted(got) == [1, 2, 3] and got[2] == (True, (20, got[2][1][1]))
+    assert not got[1][0] and not got[3][0]
 
 
 def test_other_exceptions_propagate():

@@ -78,7 +78,8 @@ class SensorVerdict:
 
 
 #: gates that are a yes/no question (value 1 yes, 0 no): their reason alone says it all
-YES_NO_GATES = ("converged",)
+#: ("fit": the sensor's fit gave a result; no when its worker process died)
+YES_NO_GATES = ("converged", "fit")
 
 
 def reason_text(g: Gate) -> str:

@@ -69,7 +69,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
     out.add_argument("--jobs", type=int, default=None, metavar="N",
                      help="parallel processes: with several logs, logs at once (default 1); with one log, its "
-                          "sensor fits at once (default: the CPUs, at most 4)")
+                          "sensor fits at once (default: the CPUs, at most 4); more than the CPUs (or than 15) "
+                          "is capped, with a note")
     fit = p.add_argument_group("calibration")
     fit.add_argument("--method", default="ncar", choices=["ncar", "ncdr", "fcar", "dcar"], help="paper variant")
     fit.add_argument("--model", default="auto", choices=["auto", "full", "diag-accel", "ardupilot", "offsets-scales"])
@@ -209,6 +210,24 @@ def _single(args, source: str) -> int:
     return code
 
 
+def _cap_jobs(args) -> None:
+    """``--jobs`` at most :func:`mavcal.workers.worker_limit` (the CPUs, at most 15), with one
+    line on stderr when it was more: processes beyond the CPUs only compete for them, and
+    each holds memory (a process per number typed once forked 5,738 and ran out of memory)."""
+    if args.jobs is None:
+        return
+    if args.jobs < 1:
+        raise UsageError("--jobs must be at least 1")
+    from mavcal.workers import worker_limit
+
+    limit = worker_limit()
+    if args.jobs > limit:
+        if not getattr(args, "quiet", False):
+            print(f"mavcal: --jobs {args.jobs} is more than the {limit} processes worth running here "
+                  f"(the CPUs this process may use, at most 15): using {limit}", file=sys.stderr)
+        args.jobs = limit
+
+
 def _check_numbers(args) -> None:
     """Numbers no run could use (a zero field strength, a negative timeout, sensor -1): refused."""
     import math
@@ -237,8 +256,6 @@ def check_flags(args) -> None:
     source is read: nothing is done and the message names the options the user gave."""
     from mavcal.sources.reader import is_device
 
-    if args.jobs is not None and args.jobs < 1:
-        raise UsageError("--jobs must be at least 1")
     several = len(args.sources) > 1
     if several and (args.write or args.dry_run or args.param_out or args.report):
         raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE")
@@ -267,6 +284,7 @@ def check_flags(args) -> None:
 
 def run(args) -> int:
     check_flags(args)
+    _cap_jobs(args)
     check_optional_dependencies(args)
     if len(args.sources) == 1:
         return _single(args, args.sources[0])

@@ -15,6 +15,8 @@
   SITL (``../shared/sitl``) in a private network namespace: known injected errors, poses,
   the truth, processes in its namespace; :mod:`mavcal.testing.sitl_hand` -- a scripted hand
   that holds the poses a guided capture advises.
+* :mod:`mavcal.testing.numbers` -- comparing computed numbers at a stated tolerance: golden
+  text, JSON and arrays (never bit for bit: the last bits differ between BLAS kernels and CPUs).
 
 Two conventions for a sensor's truth exist, and the class names say which:
 :class:`~mavcal.testing.vehicle_sensors.AccelCalTruth` states the truth as the ideal
