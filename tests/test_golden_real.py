@@ -19,29 +19,20 @@ import pytest
 
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.cli import main
+from mavcal.testing.numbers import text_differences
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 REPO = Path(__file__).resolve().parents[1]
 LOGS = {"2023-05-17 12-18-48.tlog": 7, "2024-04-05 09-36-27.tlog": 4}
-NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 
 
 def same_at_tolerance(out: str, golden: str, rel: float = 1e-3) -> str:
-    """"" when ``out`` is ``golden`` with every number within ``rel`` or, for a decimal, its
-    last printed digit; else the first difference, in words."""
-    a_lines, b_lines = out.splitlines(), golden.splitlines()
-    if len(a_lines) != len(b_lines):
-        return f"{len(a_lines)} lines, golden has {len(b_lines)}"
-    for k, (a, b) in enumerate(zip(a_lines, b_lines)):
-        if NUMBER.sub("#", a) != NUMBER.sub("#", b):
-            return f"line {k + 1} text differs:\n  {a}\n  {b}"
-        for x, y in zip(NUMBER.findall(a), NUMBER.findall(b)):
-            # a decimal: its last printed digit; an integer (a count) exactly, unless large
-            step = 1.01 * 10.0 ** -len(y.split(".")[1].split("e")[0].split("E")[0]) if "." in y else 0.0
-            tol = max(rel * abs(float(y)), step)
-            if abs(float(x) - float(y)) > tol:
-                return f"line {k + 1}: {x} vs golden {y}:\n  {a}\n  {b}"
-    return ""
+    """"" when ``out`` is ``golden`` under the project's golden rule
+    (:func:`mavcal.testing.numbers.text_differences`: the text exactly, integers exactly, every
+    decimal within ``rel`` or its last printed digit); else the differences, in words. These
+    logs' fits are disturbed or do not converge, so their bounds move more with the BLAS kernel
+    than a clean fit's: 1e-3 here, still far below anything a reader would act on."""
+    return "\n".join(text_differences(out, golden, rtol=rel)[:5])
 
 
 def _golden_name(log: str) -> Path:
@@ -121,6 +112,6 @@ def test_tolerance_comparison_catches_what_matters():
     assert same_at_tolerance(g, g) == ""
     assert same_at_tolerance(g.replace("172.830", "172.831"), g) == ""  # the last printed digit
     assert same_at_tolerance(g.replace("0.070614256", "0.0706142561"), g) == ""  # far below the noise
-    assert "vs golden" in same_at_tolerance(g.replace("172.830", "174.0"), g)
-    assert "vs golden" in same_at_tolerance(g.replace("379", "380"), g)
+    assert "numbers differ" in same_at_tolerance(g.replace("172.830", "174.0"), g)
+    assert "numbers differ" in same_at_tolerance(g.replace("379", "380"), g)
     assert "text differs" in same_at_tolerance(g.replace("*", ""), g)
