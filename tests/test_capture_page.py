@@ -397,18 +397,7 @@ def test_finish_without_a_sensor_that_cannot_get_there(page):
     offered, and the session is told on the capture's thread (PageFeed.status)."""
     from dataclasses import dataclass, replace
 
-    @dataclass(frozen=True)
-    class Progress:  # the shape of the stop rule's SensorProgress
-        sensor: str
-        kind: str
-        bound_deg: float | None
-        target_deg: float
-        blocked: str = ""
-        dropped: bool = False
-
-        @property
-        def met(self) -> bool:
-            return self.bound_deg is not None and self.bound_deg <= self.target_deg
+    from mavcal.capture.progress import SensorProgress as Progress
 
     @dataclass(frozen=True)
     class Status:
