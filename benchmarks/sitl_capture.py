@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -26,7 +25,7 @@ import numpy as np
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.testing.sitl import CALIBRATION_NAMES, InjectedErrors, SitlVehicle, unavailable_reason
-from mavcal.testing.sitl_hand import AdviceHand, StatusLines
+from mavcal.testing.sitl_hand import run_guided_capture
 
 OUT = Path(__file__).resolve().parent / "results"
 SEEDS = (101, 102, 103)
@@ -36,24 +35,8 @@ BARS = dict(heading_deg=0.2, tilt_deg=0.05, offsets_mgauss=1.0)
 def run_seed(seed: int, return_prob: float = 0.5, timeout_s: float = 400.0) -> dict:
     errors = InjectedErrors.random(seed, mag_orient=6)
     with SitlVehicle(errors) as sitl, tempfile.TemporaryDirectory(prefix="sitl-capture-") as tmp:
-        status = StatusLines()
-        out = open(Path(tmp) / "stdout.txt", "w+")
-        mark = len(sitl.param_values)
-        t0 = time.monotonic()
-        p = sitl.popen([sys.executable, "-m", "mavcal", "capture", "--connect", sitl.tool_device, "--write", "--yes",
-                        "--json", str(Path(tmp) / "run.json"), "--backup", str(Path(tmp) / "backup.param")],
-                       stdout=out, stderr=subprocess.PIPE, text=True)
-        reader = status.follow(p.stderr)
-        hand = AdviceHand(sitl, status, return_prob=return_prob, seed=seed)
-        hand.start()
-        try:
-            rc = p.wait(timeout=timeout_s)
-        finally:
-            hand.stop()
-            reader.join(timeout=10)
-        took = time.monotonic() - t0
-        out.seek(0)
-        stdout = out.read()
+        g = run_guided_capture(sitl, Path(tmp), return_prob=return_prob, seed=seed, timeout_s=timeout_s)
+        rc, stdout, status, hand, took, mark = g.rc, g.stdout, g.status, g.hand, g.took_s, g.mark
         rep = json.loads((Path(tmp) / "run.json").read_text()) if (Path(tmp) / "run.json").exists() else {}
         params = sitl.get_params(sorted(set(CALIBRATION_NAMES) | set(rep.get("parameters", {}))))
         s = sitl.score(params)

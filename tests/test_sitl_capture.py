@@ -12,14 +12,12 @@ COMPASS_ORIENT 6.
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
-import time
 
 import pytest
 
 from mavcal.testing.sitl import InjectedErrors, SitlVehicle
-from mavcal.testing.sitl_hand import AdviceHand, ScheduleHand, StatusLines
+from mavcal.testing.sitl_hand import ScheduleHand, run_guided_capture
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(420)]
 
@@ -37,24 +35,8 @@ def check_score(sitl: SitlVehicle) -> None:
 
 def test_capture_write_follows_the_advice_and_writes_the_truth(start_sitl, tmp_path):
     sitl = start_sitl(InjectedErrors.random(11, mag_orient=6))
-    status = StatusLines()
-    out = open(tmp_path / "stdout.txt", "w+")
-    mark = len(sitl.param_values)
-    t0 = time.monotonic()
-    p = sitl.popen([sys.executable, "-m", "mavcal", "capture", "--connect", sitl.tool_device, "--write", "--yes",
-                    "--json", str(tmp_path / "run.json"), "--backup", str(tmp_path / "backup.param")],
-                   stdout=out, stderr=subprocess.PIPE, text=True)
-    reader = status.follow(p.stderr)
-    hand = AdviceHand(sitl, status, return_prob=0.5, seed=11)
-    hand.start()
-    try:
-        rc = p.wait(timeout=300)
-    finally:
-        hand.stop()
-        reader.join(timeout=10)
-    took = time.monotonic() - t0
-    out.seek(0)
-    stdout = out.read()
+    g = run_guided_capture(sitl, tmp_path, return_prob=0.5, seed=11, timeout_s=300)
+    rc, stdout, status, hand, took, mark = g.rc, g.stdout, g.status, g.hand, g.took_s, g.mark
     print(f"capture: {len(hand.poses)} poses held, {hand.returns} quick returns, {took:.0f} s, rc {rc}")
     assert hand.error is None, hand.error
     report = json.loads((tmp_path / "run.json").read_text())

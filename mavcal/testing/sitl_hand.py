@@ -18,9 +18,13 @@ down, at different headings), for a recording without advice (``mavcal calibrate
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -204,3 +208,42 @@ class ScheduleHand(threading.Thread):
         self.halt.set()
         if self.is_alive():
             self.join(timeout=30)
+
+
+@dataclass(frozen=True)
+class GuidedCapture:
+    """What :func:`run_guided_capture` saw: the CLI's exit code, stdout and status lines, the
+    hand, the wall time, and how many PARAM_VALUEs the fixture had seen before the capture."""
+
+    rc: int
+    stdout: str
+    status: StatusLines
+    hand: AdviceHand
+    took_s: float
+    mark: int
+
+
+def run_guided_capture(sitl: Any, workdir: Path, *, return_prob: float = 0.5, seed: int = 0,
+                       timeout_s: float = 300.0) -> GuidedCapture:
+    """``mavcal capture --connect SITL --write --yes`` in ``sitl``'s namespace with an
+    :class:`AdviceHand` holding each advised pose (returning to the last one with probability
+    ``return_prob``); the JSON report goes to ``workdir/run.json``, the backup to
+    ``workdir/backup.param``. The CLI is killed after ``timeout_s`` (subprocess.TimeoutExpired)."""
+    status = StatusLines()
+    mark = len(sitl.param_values)
+    t0 = time.monotonic()
+    with open(workdir / "stdout.txt", "w+") as out:
+        p = sitl.popen([sys.executable, "-m", "mavcal", "capture", "--connect", sitl.tool_device, "--write", "--yes",
+                        "--json", str(workdir / "run.json"), "--backup", str(workdir / "backup.param")],
+                       stdout=out, stderr=subprocess.PIPE, text=True)
+        reader = status.follow(p.stderr)
+        hand = AdviceHand(sitl, status, return_prob=return_prob, seed=seed)
+        hand.start()
+        try:
+            rc = p.wait(timeout=timeout_s)
+        finally:
+            hand.stop()
+            reader.join(timeout=10)
+        out.seek(0)
+        stdout = out.read()
+    return GuidedCapture(rc, stdout, status, hand, time.monotonic() - t0, mark)
