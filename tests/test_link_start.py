@@ -153,7 +153,10 @@ def test_capture_start_survives_30_percent_loss(start_vehicle, seed):
             pos = rec.read_position()  # the first of the three to get through
             assert pos is not None and pos.source.startswith("vehicle ")
             assert pos.location == pytest.approx(CMAC, abs=1e-6)
-            assert rec.start_streams(25, message_ids=needed_stream_ids(params)) == "interval"
+            # data comes either way: each SET_MESSAGE_INTERVAL needs its own ack back through the
+            # loss (p = 0.49 a try) within a third of the budget, else REQUEST_DATA_STREAM takes
+            # over (CI saw seed 2 fall back once): which one is a matter of timing, not of the seed
+            assert rec.start_streams(25, message_ids=needed_stream_ids(params)) in ("interval", "data_stream")
 
 
 def _free_port() -> int:
