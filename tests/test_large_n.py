@@ -31,14 +31,14 @@ def _sim(n: int, seed: int, disturbance: float):
 def test_large_n_path_reaches_the_exhaustive_optimum(monkeypatch, n, seed, disturbance):
     acc, mag = _sim(n, seed, disturbance)
     fast_s = []
-    for _ in range(2 if disturbance > 0 else 1):  # the faster of two: a stall of the machine is not the path's
-        t0 = time.perf_counter()
+    for _ in range(2 if disturbance > 0 else 1):  # CPU time, the faster of two (other processes are not the path's)
+        t0 = time.process_time()
         fast = C.calibrate(acc, mag, seed=0)
-        fast_s.append(time.perf_counter() - t0)
+        fast_s.append(time.process_time() - t0)
     monkeypatch.setattr(C, "LARGE_N", 10 ** 9)  # the exhaustive path on all N
-    t1 = time.perf_counter()
+    t1 = time.process_time()
     slow = C.calibrate(acc, mag, seed=0)
-    t2 = time.perf_counter()
+    t2 = time.process_time()
     assert f"ran on {C.SUBSET_N} of the {n} intervals" in fast.model_reason
     assert "subset" not in slow.model_reason and "ran on" not in slow.model_reason
     assert fast.model == slow.model and fast.converged and slow.converged
@@ -137,11 +137,11 @@ def test_leave_one_out_holdout_of_a_non_converging_fit_is_bounded():
     with the 2000-iteration extension; the number is still a finite prediction error."""
     acc, mag = _sim(30, 9, 40.0)
     cal = C.calibrate(acc, mag, seed=0)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     ho = holdout_errors(acc, mag, cal)
-    t1 = time.perf_counter()
+    t1 = time.process_time()
     C.calibrate(acc, mag, seed=0)
-    t2 = time.perf_counter()
+    t2 = time.process_time()
     assert np.all(np.isfinite(ho)) and ho[1] > 0
     assert t1 - t0 < 10 * (t2 - t1) + 0.5  # 30 refits cost a few full fits, not 30
 
@@ -150,9 +150,9 @@ def test_non_converging_large_n_fit_has_bounded_lm_work():
     """A magnetometer disturbed far beyond its noise in every pose: whatever the fit does,
     each LM run over all N is bounded to LM_WORK interval-iterations."""
     acc, mag = _sim(1000, 7, 40.0)
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     cal = C.calibrate(acc, mag, seed=0)
-    assert time.perf_counter() - t0 < 20.0
+    assert time.process_time() - t0 < 20.0
     assert C._lm_budget(1000, C.LM_MORE_ITER) * 1000 <= max(C.LM_WORK, C.BRANCH_PROBE_ITER * 1000)
     assert C._lm_budget(C.LARGE_N, C.LM_MORE_ITER) == C.LM_MORE_ITER  # small fits unchanged
     assert np.isfinite(cal.cost)
