@@ -14,6 +14,7 @@ import logging
 from dataclasses import replace
 
 from mavcal.ardupilot.recover import RawImu, recover_raw
+from mavcal.errors import UsageError
 from mavcal.fits import coverage_rule, fit_recording, refusal_verdicts
 from mavcal.memory import release_free_memory
 from mavcal.quality import Quality
@@ -32,7 +33,7 @@ __all__ = ["Options", "Prepared", "CalibrationRun", "Quality", "open_source", "p
 
 def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbeat_timeout_s: float = 5.0,
                 param_timeout_s: float = 30.0, rate_hz: float = 50.0,
-                progress: ProgressFn | None = None) -> ImuLog:
+                progress: ProgressFn | None = None, tlog=None) -> ImuLog:
     """Read a log file, or record from a live vehicle.
 
     Parameters
@@ -47,6 +48,9 @@ def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbe
         heartbeat and for the parameters, and the IMU stream rate requested.
     progress : callable(done, total), optional
         Called as the file is read.
+    tlog : path, optional
+        Only for a device: also save everything received in this telemetry log, which this
+        function reads back to the same readings (a recording to keep, share or calibrate again).
 
     Returns
     -------
@@ -67,7 +71,9 @@ def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbe
         from mavcal.link.live import record_device  # type: ignore[import-not-found,unused-ignore]
 
         return record_device(src, baud=baud, duration_s=duration_s, heartbeat_timeout_s=heartbeat_timeout_s,
-                             param_timeout_s=param_timeout_s, rate_hz=rate_hz, progress=progress)
+                             param_timeout_s=param_timeout_s, rate_hz=rate_hz, progress=progress, tlog=tlog)
+    if tlog is not None:
+        raise UsageError("tlog saves a live recording: the source is a log file already")
     return read_log(src, progress=progress)
 
 

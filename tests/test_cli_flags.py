@@ -31,11 +31,28 @@ def no_reading(monkeypatch):
     (["--accel", "-1"], "count from 0"),
     (["--timeout", "-1"], "--timeout must be"),
     (["--orient-tol", "-1"], "--orient-tol"),
+    (["--save-tlog", "x.tlog"], "--save-tlog keeps a live recording"),
 ])
 def test_impossible_combinations_are_refused_before_reading(extra, words, sitl_dir, capsys, no_reading):
     code = main(["calibrate", str(sitl_dir / SITL02), *extra])
     err = capsys.readouterr().err
     assert code == 2 and words in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("cmd", [["calibrate", "udpin:127.0.0.1:9"], ["capture", "--connect", "udpin:127.0.0.1:9"]])
+def test_save_tlog_never_overwrites_and_needs_its_folder_before_connecting(cmd, tmp_path, capsys, monkeypatch):
+    import mavcal.link.live as live
+
+    def boom(*a, **k):
+        raise AssertionError("connected before --save-tlog was checked")
+    monkeypatch.setattr(live, "open_link", boom)  # what calibrate's and capture's recorders open
+    old = tmp_path / "old.tlog"
+    old.write_bytes(b"a recording")
+    for path, words in ((old, "already exists; not overwriting it"), (tmp_path / "no" / "x.tlog", "does not exist")):
+        code = main([*cmd, "--save-tlog", str(path), "--timeout", "0.2"])
+        err = capsys.readouterr().err
+        assert code == 2 and words in err and err.count("\n") == 1, err
+    assert old.read_bytes() == b"a recording"
 
 
 def test_global_options_work_after_the_subcommand(sitl_dir, capsys):

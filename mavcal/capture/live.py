@@ -17,6 +17,7 @@ The library logs and never prints.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -218,7 +219,7 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
                  max_duration_s: float = 600.0, update_every_s: float = 0.5, batch_s: float = 0.1,
                  heartbeat_timeout_s: float = 5.0, param_timeout_s: float = 30.0,
                  on_info: Callable[[LiveCaptureInfo], None] | None = None, budget_s: float = 15.0,
-                 signing_key: SigningKey | None = None) -> CaptureSession:
+                 signing_key: SigningKey | None = None, tlog: str | os.PathLike[str] | None = None) -> CaptureSession:
     """Run a guided capture on a live vehicle and return the session.
 
     Parameters
@@ -249,6 +250,9 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         the start (heartbeat once the device is heard, stream requests) retries on a lossy link.
     signing_key : SigningKey, optional
         Sign the link (:mod:`mavcal.link.signing`).
+    tlog : path, optional
+        Save everything received during the capture in this telemetry log (``mavcal calibrate``
+        reads it back; :func:`mavcal.link.connection.open_link`).
     on_info : callable, optional
         Called once at the end with a :class:`LiveCaptureInfo`.
 
@@ -268,7 +272,7 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
         (exit code 3).
     """
     rec = open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s, budget_s=budget_s,
-                        signing_key=signing_key)
+                        signing_key=signing_key, tlog=tlog)
     loop = _CaptureLoop(on_status, should_stop, max_duration_s, update_every_s)
     if on_batch is not None:  # the live page: batches handed over as they come, refits on a helper thread
         loop = _WatchedLoop(on_batch, on_status, should_stop, max_duration_s, update_every_s)

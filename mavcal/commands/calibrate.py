@@ -18,13 +18,16 @@ from mavcal.commands.common import (
     BACKUP_HELP,
     add_device_map_arguments,
     add_json_argument,
+    add_save_tlog_argument,
     add_signing_arguments,
     add_still_arguments,
     add_write_budget_argument,
     check_new_backup,
     check_optional_dependencies,
+    check_save_tlog,
     json_output,
     parse_location,
+    say_tlog_saved,
     signing_key,
     slot_maps,
     start_budget_s,
@@ -99,6 +102,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="internal compass: write COMPASS_EXTERNAL (COMPASS_EXTERNn for compass n) = 2 so its "
                           "misalignment goes into COMPASS_ORIENT")
     fit.add_argument("--duration", type=float, default=60.0, metavar="S", help="live source: seconds to record")
+    add_save_tlog_argument(fit)
     add_still_arguments(p)
     add_csv_rate_argument(p)
     w = p.add_argument_group("writing to the vehicle")
@@ -184,8 +188,9 @@ def _single(args, source: str) -> int:
             from mavcal.link.live import record_device
 
             log_ = record_device(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout,
-                                 budget_s=start_budget_s(args), signing_key=signing_key(args),
+                                 budget_s=start_budget_s(args), signing_key=signing_key(args), tlog=args.save_tlog,
                                  on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))
+            say_tlog_saved(args)
         else:
             log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))
         prep = prepare(log_, opts, progress=progress, owned=True)
@@ -274,7 +279,10 @@ def check_flags(args) -> None:
     if unused and not writes:
         raise UsageError(f"{', '.join(unused)} only appl{'ies' if len(unused) == 1 else 'y'} with --write or "
                          "--dry-run; nothing was done")
+    if args.save_tlog and not is_device(args.sources[0]):
+        raise UsageError("--save-tlog keeps a live recording: SOURCE is a log file already; nothing was done")
     _check_numbers(args)
+    check_save_tlog(args.save_tlog)
     if args.write:
         check_new_backup(args.backup)
     slot_maps(args)  # --map-compass / --map-imu spelled right

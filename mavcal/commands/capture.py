@@ -33,9 +33,12 @@ from mavcal.commands.common import (
     BACKUP_HELP,
     add_json_argument,
     add_link_arguments,
+    add_save_tlog_argument,
     check_new_backup,
     check_optional_dependencies,
+    check_save_tlog,
     parse_location,
+    say_tlog_saved,
     signing_key,
     start_budget_s,
     write_outputs,
@@ -71,6 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     out.add_argument("--param-out", metavar="F", help="write the new parameters as a .param file")
     add_json_argument(out, "the full JSON report")
     out.add_argument("--report", metavar="F", help="write a self-contained HTML report (needs mavcal[plots])")
+    add_save_tlog_argument(out)
     w = p.add_argument_group("writing to the vehicle")
     w.add_argument("--write", action="store_true", help="write the parameters (asks first unless --yes)")
     w.add_argument("--force", action="store_true",
@@ -124,6 +128,7 @@ def _check(args: argparse.Namespace) -> None:
     if not args.duration > 0 or not args.hold > 0 or not args.rate > 0:
         raise UsageError("--duration, --hold and --rate must be > 0")
     check_new_backup(args.backup)
+    check_save_tlog(args.save_tlog)
     if (args.no_browser or args.ui_host or args.ui_port) and not args.ui:
         raise UsageError("--no-browser, --ui-host and --ui-port go with --ui")
     if not 0 <= args.ui_port <= 65535 or not args.ui_wait > 0:
@@ -172,7 +177,8 @@ def _run(args: argparse.Namespace, page=None) -> int:
     session = live_capture.capture_live(args.connect, config=config, options=options, on_status=printer, **hooks,
                                         baud=args.baud, rate_hz=args.rate, max_duration_s=args.duration,
                                         heartbeat_timeout_s=args.timeout, budget_s=start_budget_s(args),
-                                        signing_key=signing_key(args))
+                                        signing_key=signing_key(args), tlog=args.save_tlog)
+    say_tlog_saved(args)
     st = session.status
     if st is not None and st.aborted:
         raise live_capture.CaptureAbortedError(f"capture aborted: {st.reason}")

@@ -17,7 +17,8 @@ from mavcal.errors import GateError, UsageError
 __all__ = ["add_json_argument", "json_output", "BACKUP_HELP",
            "parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
            "write_outputs", "confirm", "write_with_report", "check_new_backup", "add_device_map_arguments", "slot_maps",
-           "add_write_budget_argument", "add_signing_arguments", "signing_key", "start_budget_s"]
+           "add_write_budget_argument", "add_signing_arguments", "signing_key", "start_budget_s",
+           "add_save_tlog_argument", "check_save_tlog", "say_tlog_saved"]
 
 
 # --------------------------------------------------------------------------- arguments
@@ -243,6 +244,35 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
 
 
 # --------------------------------------------------------------------------- the write flow
+
+def add_save_tlog_argument(parser: Any) -> None:
+    """``--save-tlog F``: keep what a live session received, as a telemetry log."""
+    parser.add_argument("--save-tlog", metavar="F", default=None,
+                        help="live source: also save everything the vehicle sends (parameters, position, IMU "
+                             "streams) as the telemetry log F, to keep, share, or calibrate again with "
+                             "'mavcal calibrate F'")
+
+
+def say_tlog_saved(args: argparse.Namespace) -> None:
+    """One line on stderr once ``--save-tlog``'s recording is complete (whatever the fit then says)."""
+    path = getattr(args, "save_tlog", None)
+    if path and Path(path).exists() and not getattr(args, "quiet", False):
+        print(f"recording saved to {path} (calibrate it again: mavcal calibrate {path})", file=sys.stderr)
+
+
+def check_save_tlog(path: str | None) -> None:
+    """UsageError unless ``--save-tlog``'s file can be created: a new name in a folder that exists
+    (a recording is never overwritten, as a backup)."""
+    if path is None:
+        return
+    p = Path(path)
+    if p.exists():
+        raise UsageError(f"--save-tlog: {path!r} already exists; not overwriting it")
+    if not p.parent.is_dir():
+        raise UsageError(f"--save-tlog: the folder of {path!r} does not exist")
+    if not os.access(p.parent, os.W_OK):
+        raise UsageError(f"--save-tlog: cannot create files in the folder of {path!r}")
+
 
 def check_new_backup(path: str | None) -> None:
     """UsageError when a backup file was named and already exists (never overwrite one)."""

@@ -28,12 +28,13 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+import struct
 import time
-from typing import Any, Callable
+from typing import Any, BinaryIO, Callable
 
 from pymavlink import mavutil
 
-from mavcal.errors import LinkError, SigningError
+from mavcal.errors import LinkError, SigningError, SourceError
 from mavcal.link.signing import NEEDS_KEY, SigningKey, is_signed, setup_signing, signing_problem
 
 __all__ = ["Link", "open_link", "as_link", "GCS_SYSTEM_ID", "GCS_COMPONENT_ID"]
@@ -84,6 +85,7 @@ class Link:
         self.signing_key: SigningKey | None = None
         #: messages from the vehicle that arrived signed
         self.signed_received = 0
+        self._tlog: BinaryIO | None = None
 
     # -- ids ---------------------------------------------------------------------------------
     @property
@@ -113,10 +115,23 @@ class Link:
         """Unregister a handler added with :meth:`add_handler` (unknown tokens are ignored)."""
         self._handlers.get(token[0], {}).pop(token[1], None)
 
+    def save_tlog(self, path: str | os.PathLike[str]) -> None:
+        """Save every message received from now on in ``path``, as a telemetry log: each message's
+        bytes as received (signature included) after its receive time, an 8-byte big-endian count of
+        microseconds since 1970: the format MAVProxy and Mission Planner write, which
+        :func:`mavcal.sources.read_log` reads back (pymavlink's own ``setup_logfile`` is skipped by
+        its UDP connections). Closed with the link; ``SourceError`` when the file cannot be created."""
+        try:
+            self._tlog = open(path, "wb")  # noqa: SIM115 (closed in close())
+        except OSError as exc:
+            raise SourceError(f"cannot save the telemetry log {os.fspath(path)!r}: {exc.strerror or exc}") from None
+
     def _dispatch(self, m: Any) -> None:
         mtype = m.get_type()
         if mtype == "BAD_DATA":
             return
+        if self._tlog is not None:
+            self._write_tlog(m)
         self.messages_received += 1
         if self.is_from_vehicle(m):
             self.last_rx_s = time.monotonic()
@@ -128,6 +143,22 @@ class Link:
             if table:
                 for fn in list(table.values()):
                     fn(m)
+
+    def _write_tlog(self, m: Any) -> None:
+        try:
+            assert self._tlog is not None
+            self._tlog.write(struct.pack(">Q", int(time.time() * 1e6)) + bytes(m.get_msgbuf()))
+        except OSError as exc:  # a full disk: the session goes on, the file stops here
+            log.warning("the telemetry log %s stops here: %s", self._tlog.name if self._tlog else "?", exc)
+            self._close_tlog()
+
+    def _close_tlog(self) -> None:
+        f, self._tlog = self._tlog, None
+        if f is not None:
+            try:
+                f.close()
+            except OSError as exc:  # a full disk shows at the last flush
+                log.warning("the telemetry log %s may be incomplete: %s", f.name, exc)
 
     # -- the receive loop --------------------------------------------------------------------
     def _keepalive(self) -> None:
@@ -192,11 +223,12 @@ class Link:
             raise LinkError(f"{self.device}: cannot send: {exc}") from None
 
     def close(self) -> None:
-        """Close the underlying connection."""
+        """Close the underlying connection (and the telemetry log it saves, if any)."""
         try:
             self.conn.close()
         except Exception:  # pragma: no cover - closing a broken socket
             pass
+        self._close_tlog()
 
     def __enter__(self) -> Link:
         return self
@@ -282,7 +314,7 @@ def _answers_unsigned(link: Link, budget_s: float, retry_s: float = 0.5) -> bool
 def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
               source_system: int = GCS_SYSTEM_ID, source_component: int = GCS_COMPONENT_ID,
               target_system: int | None = None, budget_s: float = 15.0,
-              signing_key: SigningKey | None = None) -> Link:
+              signing_key: SigningKey | None = None, tlog: str | os.PathLike[str] | None = None) -> Link:
     """Open ``device`` and wait for a vehicle HEARTBEAT.
 
     Parameters
@@ -302,6 +334,8 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
         for an answer to an unsigned request when the vehicle signs and no key was given.
     signing_key : SigningKey, optional
         Sign every message and accept only validly signed ones (:mod:`mavcal.link.signing`).
+    tlog : path, optional
+        Save every message received from now on in this file (:meth:`Link.save_tlog`).
 
     Returns
     -------
@@ -320,6 +354,12 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
         raise LinkError("no device given")
     conn = _connect(device, baud, source_system, source_component, signing_key)
     link = Link(conn, target_system=target_system or 0, target_component=0, device=device)
+    if tlog is not None:
+        try:
+            link.save_tlog(tlog)
+        except SourceError:
+            link.close()
+            raise
     link.signing_key = signing_key
     try:
         hb = _wait_heartbeat(link, target_system, timeout_s, budget_s)

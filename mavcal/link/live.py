@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -253,11 +254,12 @@ class LiveRecorder:
 
 
 def open_recorder(device: str, *, baud: int = 115200, heartbeat_timeout_s: float = 5.0, budget_s: float = 15.0,
-                  signing_key: SigningKey | None = None) -> LiveRecorder:
+                  signing_key: SigningKey | None = None, tlog: str | os.PathLike[str] | None = None) -> LiveRecorder:
     """Open ``device`` (:func:`~mavcal.link.connection.open_link`) and record from it.
 
     ``budget_s``: how long the start (heartbeat once the device is heard, stream requests)
-    keeps retrying on a lossy link; ``signing_key``: sign the link (:mod:`mavcal.link.signing`).
+    keeps retrying on a lossy link; ``signing_key``: sign the link (:mod:`mavcal.link.signing`);
+    ``tlog``: save everything received in this telemetry log (:func:`~mavcal.link.connection.open_link`).
 
     Raises
     ------
@@ -267,7 +269,7 @@ def open_recorder(device: str, *, baud: int = 115200, heartbeat_timeout_s: float
         The device cannot be opened or no vehicle heartbeat arrives within ``heartbeat_timeout_s``.
     """
     rec = LiveRecorder(open_link(device, baud=baud, timeout_s=heartbeat_timeout_s, budget_s=budget_s,
-                                 signing_key=signing_key), owns_link=True)
+                                 signing_key=signing_key, tlog=tlog), owns_link=True)
     rec.budget_s = budget_s
     return rec
 
@@ -276,7 +278,7 @@ def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, 
                   param_timeout_s: float = 30.0, rate_hz: float = 50.0,
                   progress: Callable[[int, int], None] | None = None,
                   on_progress: Callable[[RecordingProgress], None] | None = None, budget_s: float = 15.0,
-                  signing_key: SigningKey | None = None) -> ImuLog:
+                  signing_key: SigningKey | None = None, tlog: str | os.PathLike[str] | None = None) -> ImuLog:
     """Record ``duration_s`` seconds of IMU data from a live vehicle as an ImuLog of kind ``"live"``.
 
     Connect (``LinkError`` when no heartbeat within ``heartbeat_timeout_s``; ``SigningError``
@@ -285,7 +287,9 @@ def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, 
     ask where the vehicle is (its GPS / position estimate / home, for the World Magnetic Model:
     the log's ``position`` and ``position_source``), stream the IMU messages the vehicle has
     (:func:`mavcal.link.streams.needed_stream_ids`) at ``rate_hz`` and record. ``budget_s``
-    bounds the retries of the start on a lossy link.
+    bounds the retries of the start on a lossy link. ``tlog``: save everything received
+    (parameters, position, IMU streams) in this telemetry log, which ``mavcal calibrate``
+    reads back to the same calibration.
 
     Parameters
     ----------
@@ -307,7 +311,7 @@ def record_device(device: str, *, baud: int = 115200, duration_s: float = 10.0, 
             on_progress(p)
 
     with open_recorder(device, baud=baud, heartbeat_timeout_s=heartbeat_timeout_s, budget_s=budget_s,
-                       signing_key=signing_key) as rec:
+                       signing_key=signing_key, tlog=tlog) as rec:
         params = rec.fetch_params(timeout_s=param_timeout_s)
         rec.read_position()
         rec.start_streams(rate_hz=rate_hz, message_ids=needed_stream_ids(params))
