@@ -12,6 +12,7 @@ COMPASS_ORIENT 6.
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 
 import pytest
@@ -63,7 +64,8 @@ def test_calibrate_device_write_from_a_recording(start_sitl, tmp_path):
     try:
         r = sitl.run([sys.executable, "-m", "mavcal", "calibrate", sitl.tool_device, "--duration", f"{duration:.0f}",
                       "--write", "--yes", "--json", str(tmp_path / "run.json"),
-                      "--backup", str(tmp_path / "backup.param")], timeout=duration + 120)
+                      "--backup", str(tmp_path / "backup.param"), "--save-tlog", str(tmp_path / "session.tlog")],
+                     timeout=duration + 120)
     finally:
         hand.stop()
     assert hand.error is None, hand.error
@@ -78,3 +80,12 @@ def test_calibrate_device_write_from_a_recording(start_sitl, tmp_path):
     assert {"COMPASS_OFS_X", "COMPASS_OFS2_X", "COMPASS_OFS3_X", "INS_ACCOFFS_X", "INS_ACC2OFFS_X",
             "COMPASS_ORIENT"} <= written, written
     check_score(sitl)
+    # the session as SITL sent it, saved and calibrated again offline: the same values
+    assert f"recording saved to {tmp_path / 'session.tlog'}" in r.stderr
+    again = subprocess.run([sys.executable, "-m", "mavcal", "calibrate", str(tmp_path / "session.tlog"), "-q",
+                            "--json", str(tmp_path / "again.json")], capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr
+    offline = json.loads((tmp_path / "again.json").read_text())["parameters"]
+    assert offline.keys() == report["parameters"].keys()
+    for name, p in report["parameters"].items():
+        assert offline[name]["new"] == pytest.approx(p["new"], rel=1e-6, abs=1e-9), name
