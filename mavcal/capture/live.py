@@ -248,11 +248,8 @@ def capture_live(device: str, *, config: CaptureConfig | None = None, options: O
     heartbeat_timeout_s, param_timeout_s, budget_s : float
         Bounds on waiting for the vehicle's heartbeat and for its parameter table; how long
         the start (heartbeat once the device is heard, stream requests) retries on a lossy link.
-    signing_key : SigningKey, optional
-        Sign the link (:mod:`mavcal.link.signing`).
-    tlog : path, optional
-        Save everything received during the capture in this telemetry log (``mavcal calibrate``
-        reads it back; :func:`mavcal.link.connection.open_link`).
+    signing_key, tlog : SigningKey, path, optional
+        Sign the link (:mod:`mavcal.link.signing`); save all it receives in this telemetry log.
     on_info : callable, optional
         Called once at the end with a :class:`LiveCaptureInfo`.
 
