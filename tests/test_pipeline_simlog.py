@@ -5,6 +5,7 @@ import pytest
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import attitude_errors
+from mavcal.errors import UsageError
 from mavcal.pipeline import Options, calibrate_source
 from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
 
@@ -90,4 +91,9 @@ def test_open_source_sends_devices_to_link_live(monkeypatch):
     monkeypatch.setitem(sys.modules, "mavcal.link.live", fake)
     assert open_source("udpin:127.0.0.1:14550", baud=57600, duration_s=3.0) == "log"
     assert calls == [("udpin:127.0.0.1:14550", {"baud": 57600, "duration_s": 3.0, "heartbeat_timeout_s": 5.0,
-                                                "param_timeout_s": 30.0, "rate_hz": 50.0, "progress": None})]
+                                                "param_timeout_s": 30.0, "rate_hz": 50.0, "progress": None,
+                                                "tlog": None})]
+    open_source("udpin:127.0.0.1:14550", tlog="s.tlog")  # the recording kept, for a device only
+    assert calls[-1][1]["tlog"] == "s.tlog"
+    with pytest.raises(UsageError, match="log file already"):
+        open_source("x.tlog", tlog="s.tlog")

@@ -37,8 +37,8 @@ accel2 rejected at 2.23 deg; simulated, 4 in 200 at 10 poses). At 1e-4: 0 in 200
 poses. The price is power against small real cross-axis terms, which ArduPilot cannot hold
 anyway (INS_ACCSCAL is diagonal): simulated with 10 and 14 poses, cross-axis terms of 0.06,
 0.11 and 0.23 deg left the written values' true tilt error at most 0.12, 0.17 and 0.28 deg
-whichever alpha chose the form, all under the 0.3 deg target (the run: the note of issue 22's
-second round).
+whichever alpha chose the form, all under the 0.3 deg target (``benchmarks/accel_form.py``,
+``benchmarks/results/accel_form.md``).
 
 The covariance is the inverse Fisher information of the reduced cost J' (Cramer-Rao) with the
 noise covariance measured from the scatter within the intervals (paper Eq.
