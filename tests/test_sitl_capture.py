@@ -17,6 +17,7 @@ import sys
 
 import pytest
 
+from mavcal.testing.numbers import assert_json_close
 from mavcal.testing.sitl import InjectedErrors, SitlVehicle
 from mavcal.testing.sitl_hand import ScheduleHand, run_guided_capture
 
@@ -86,6 +87,5 @@ def test_calibrate_device_write_from_a_recording(start_sitl, tmp_path):
                             "--json", str(tmp_path / "again.json")], capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stderr
     offline = json.loads((tmp_path / "again.json").read_text())["parameters"]
-    assert offline.keys() == report["parameters"].keys()
-    for name, p in report["parameters"].items():
-        assert offline[name]["new"] == pytest.approx(p["new"], rel=1e-6, abs=1e-9), name
+    assert_json_close({n: p["new"] for n, p in offline.items()},  # the golden rule: 1e-6 relative
+                      {n: p["new"] for n, p in report["parameters"].items()})

@@ -266,8 +266,7 @@ def check_save_tlog(path: str | None) -> None:
     if path is None:
         return
     p = Path(path)
-    if p.exists():
-        raise UsageError(f"--save-tlog: {path!r} already exists; not overwriting it")
+    _refuse_existing(path, "--save-tlog:")
     if not p.parent.is_dir():
         raise UsageError(f"--save-tlog: the folder of {path!r} does not exist")
     if not os.access(p.parent, os.W_OK):
@@ -276,8 +275,14 @@ def check_save_tlog(path: str | None) -> None:
 
 def check_new_backup(path: str | None) -> None:
     """UsageError when a backup file was named and already exists (never overwrite one)."""
-    if path is not None and Path(path).exists():
-        raise UsageError(f"backup file {path!r} already exists; not overwriting it")
+    if path is not None:
+        _refuse_existing(path, "backup file")
+
+
+def _refuse_existing(path: str, what: str) -> None:
+    """UsageError when ``path`` exists: a file mavcal keeps for the user is never overwritten."""
+    if Path(path).exists():
+        raise UsageError(f"{what} {path!r} already exists; not overwriting it")
 
 
 def _open_tty() -> TextIO:
