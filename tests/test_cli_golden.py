@@ -19,6 +19,8 @@ import pytest
 from mavcal.cli import main
 from mavcal.testing.numbers import assert_text_close
 
+pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
+
 GOLDEN = Path(__file__).resolve().parent / "golden"
 REPO = Path(__file__).resolve().parents[1]
 
