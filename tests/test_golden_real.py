@@ -41,6 +41,13 @@ def _golden_name(log: str) -> Path:
     return GOLDEN / f"calibrate_real_{log.replace(' ', '_').removesuffix('.tlog')}.txt"
 
 
+#: the golden files of this module and the command that makes each (``new.param`` and
+#: ``run.json`` become the test's own files; the docs' samples of them start with this command:
+#: tests/test_docs.py checks it)
+GOLDEN_COMMANDS = {_golden_name(log).name: ["calibrate", f"../shared/data/real/{log}", "--param-out", "new.param",
+                                            "--json", "run.json"] for log in LOGS}
+
+
 def _table_names(summary: str) -> tuple[set[str], set[str], str]:
     """(names with values, names marked not written, the closing count line) of a summary's table."""
     lines = summary.splitlines()
@@ -64,7 +71,8 @@ def _table_names(summary: str) -> tuple[set[str], set[str], str]:
 def test_real_log_summary_shows_exactly_what_is_written(log, real_dir, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(REPO)  # the summary names the log as given
     pf, js = tmp_path / "new.param", tmp_path / "run.json"
-    code = main(["calibrate", f"../shared/data/real/{log}", "--param-out", str(pf), "--json", str(js)])
+    files = {"new.param": str(pf), "run.json": str(js)}
+    code = main([files.get(a, a) for a in GOLDEN_COMMANDS[_golden_name(log).name]])
     out = capsys.readouterr().out
     assert code == LOGS[log]
     summary = out.split("\nJSON report written to ")[0] + "\n"  # the lines after it name tmp files
