@@ -8,6 +8,8 @@ field strength taken from the vehicle's position.
   own lossless channel (SERIAL0): exit 0 must mean every new value is held, exit 5 every old one,
   any other exit nothing changed; anything else is a silent mismatch. Two vehicles with two
   relays each (SERIAL1 and SERIAL2, different parameters) run four sessions at a time.
+* one such session whose relay blacks out completely for 4 s right after the write's second
+  PARAM_SET: exit 0 or 5, never 6 (issue 31).
 * ``mavcal calibrate DEVICE --write`` while a hand holds a spread of poses: the compass is scaled
   to the World Magnetic Model at the position the vehicle reports (its simulated GPS at CMAC),
   the report names that source, and the calibrated field the vehicle then reports is within 2 %
@@ -96,6 +98,24 @@ def test_twenty_apply_sessions_through_a_30_percent_loss_relay(tmp_path):
     assert len(complete) + len(restored) == N_SESSIONS, others
     dropped = sum(st["dropped_out"] + st["dropped_in"] for st in stats)
     assert 0.26 < dropped / sum(st["out"] + st["in"] for st in stats) < 0.34  # the relays really dropped 30 %
+
+
+def test_a_4_s_blackout_in_the_middle_of_a_write_against_sitl(tmp_path):
+    """One ``mavcal apply`` with the defaults through a relay that goes dark both ways for 4 s
+    right after the write's second PARAM_SET, then carries on at 30 % loss: the write waits for
+    the vehicle and resumes (exit 0) or restores everything (exit 5), never exit 6; the values
+    the vehicle holds are what the exit code says."""
+    require_sitl()
+    with SitlVehicle(wrong_calibration=False, measure_field=False) as sitl:
+        with sitl.netns():
+            relay = LossRelay(TOOL_PORTS[0], vehicle_port=TOOL_PORT, loss=0.3, dup=0.05, seed=31)
+        with relay:
+            relay.blackout_at(mavutil.mavlink.MAVLINK_MSG_ID_PARAM_SET, 2, 4.0)
+            o = _session(sitl, relay.tool_device, CHANNEL_NAMES[0], 0, tmp_path)
+    print(f"\nSITL, 4 s blackout mid-write then 30 % loss: exit {o['rc']} in {o['s']:.1f} s {o['err']}; "
+          f"relay {relay.stats}")
+    assert len(relay.blackouts) == 1 and relay.stats["blacked_out"] > 0  # the blackout happened
+    assert o["rc"] in (0, 5) and o["ok"], o
 
 
 def _calibrated_field(sitl: SitlVehicle, poses) -> list[float]:
