@@ -22,14 +22,13 @@ import contextlib
 import json
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from mavcal.testing.relay import LossRelay
-from mavcal.testing.sitl import RELAY_PORT, TOOL_PORT, SitlVehicle, unavailable_reason
+from mavcal.testing.sitl import SitlVehicle, unavailable_reason
+from mavcal.testing.sitl_sessions import relayed_channels, run_sessions
 
 OUT = Path(__file__).resolve().parent / "results"
 #: each channel's parameters: a session writes its channel's three
@@ -39,57 +38,18 @@ TOOL_PORTS = (14571, 14572)  # where the tool listens, behind each relay
 LOSS, DUP = 0.3, 0.05
 
 
-def _same(a: dict, b: dict) -> bool:
-    return all(abs(a[n] - b[n]) <= 1e-6 * max(1.0, abs(b[n])) for n in b)
-
-
-def session(sitl: SitlVehicle, tool_device: str, names: tuple[str, ...], i: int, tmp: Path) -> dict:
-    """One apply session; its exit code checked against the values the vehicle holds after it."""
-    before = sitl.get_params(names)
-    want = {n: float(np.float32(before[n] + (15.0 if i % 2 == 0 else -15.0) + k)) for k, n in enumerate(names)}
-    cal = tmp / f"s{i}.param"
-    cal.write_text("".join(f"{n} {v!r}\n" for n, v in want.items()))
-    t0 = time.monotonic()
-    r = sitl.run([sys.executable, "-m", "mavcal", "apply", str(cal), "--connect", tool_device, "--yes",
-                  "--backup", str(tmp / f"b{i}.param")], timeout=600)
-    took = time.monotonic() - t0
-    after = sitl.get_params(names)
-    ok = _same(after, want) if r.returncode == 0 else _same(after, before)
-    return {"i": i, "rc": r.returncode, "ok": ok, "s": round(took, 2), "names": names[0][:-2],
-            "err": r.stderr.strip().splitlines()[-1:], "after": after, "meant": want if r.returncode == 0 else before}
-
-
 def run(n_sessions: int, seed: int) -> tuple[list[dict], list[dict], float]:
     """``n_sessions`` sessions over four relayed channels of two vehicles; (outcomes, relay stats, wall s)."""
     with contextlib.ExitStack() as stack, tempfile.TemporaryDirectory(prefix="apply-loss-") as tmpdir:
-        tmp = Path(tmpdir)
         vehicles = [stack.enter_context(SitlVehicle(wrong_calibration=False, relay=True, measure_field=False))
                     for _ in range(2)]
-        channels = []  # (vehicle, relay, names)
-        for v_idx, sitl in enumerate(vehicles):
-            with sitl.netns():  # the relays' sockets live in the vehicle's namespace
-                for k, port in enumerate((TOOL_PORT, RELAY_PORT)):
-                    relay = LossRelay(TOOL_PORTS[k], vehicle_port=port, loss=LOSS, dup=DUP, seed=seed + 2 * v_idx + k)
-                    channels.append((sitl, stack.enter_context(relay), CHANNEL_NAMES[k]))
-        outcomes: list[dict] = []
-        t0 = time.monotonic()
-
-        def channel(c: int) -> None:
-            sitl, relay, names = channels[c]
-            for i in range(c, n_sessions, len(channels)):
-                o = session(sitl, relay.tool_device, names, i, tmp)
-                outcomes.append(o)
-                print(f"session {i}: exit {o['rc']} {'ok' if o['ok'] else 'MISMATCH'} {o['s']:.1f} s {o['err']}",
-                      flush=True)
-
-        threads = [threading.Thread(target=channel, args=(c,)) for c in range(len(channels))]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        wall = time.monotonic() - t0
+        channels = relayed_channels(stack, vehicles, CHANNEL_NAMES, TOOL_PORTS, seed=seed, loss=LOSS, dup=DUP)
+        outcomes, wall = run_sessions(channels, n_sessions, Path(tmpdir), on_outcome=lambda o: print(
+            f"session {o['i']}: exit {o['rc']} {'ok' if o['ok'] else 'MISMATCH'} {o['s']:.1f} s {o['err']}", flush=True))
         stats = [dict(relay.stats) for _, relay, _ in channels]
-    return sorted(outcomes, key=lambda o: o["i"]), stats, wall
+    for o in outcomes:
+        o["names"] = next(iter(o["meant"]))[:-2]  # COMPASS_OFS or COMPASS_OFS2
+    return outcomes, stats, wall
 
 
 def summary(outcomes: list[dict], stats: list[dict], wall: float) -> dict:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import json
 import sys
-import threading
 import time
 
 import numpy as np
@@ -29,8 +28,9 @@ from pymavlink import mavutil
 
 from mavcal.sources.wmm import field_at
 from mavcal.testing.relay import LossRelay
-from mavcal.testing.sitl import DEFAULT_HOME, RELAY_PORT, TOOL_PORT, InjectedErrors, SitlVehicle, require_sitl
+from mavcal.testing.sitl import DEFAULT_HOME, TOOL_PORT, InjectedErrors, SitlVehicle, require_sitl
 from mavcal.testing.sitl_hand import ScheduleHand
+from mavcal.testing.sitl_sessions import apply_session, relayed_channels, run_sessions
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
@@ -41,20 +41,6 @@ CHANNEL_NAMES = (("COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z"),
 TOOL_PORTS = (14561, 14562)  # where the tool listens, behind each relay
 
 
-def _session(sitl: SitlVehicle, tool_device: str, names: tuple[str, ...], i: int, tmp_path) -> dict:
-    before = sitl.get_params(names)
-    want = {n: float(np.float32(before[n] + (15.0 if i % 2 == 0 else -15.0) + k)) for k, n in enumerate(names)}
-    cal = tmp_path / f"s{i}.param"
-    cal.write_text("".join(f"{n} {v!r}\n" for n, v in want.items()))
-    t0 = time.monotonic()
-    r = sitl.run([sys.executable, "-m", "mavcal", "apply", str(cal), "--connect", tool_device, "--yes",
-                  "--backup", str(tmp_path / f"b{i}.param")], timeout=300)
-    took = time.monotonic() - t0
-    after = sitl.get_params(names)
-    ok = (after == pytest.approx(want, rel=1e-6)) if r.returncode == 0 else (after == pytest.approx(before, rel=1e-6))
-    return {"i": i, "rc": r.returncode, "ok": ok, "s": took, "err": r.stderr.strip().splitlines()[-1:]}
-
-
 def test_twenty_apply_sessions_through_a_30_percent_loss_relay(tmp_path):
     require_sitl()
     with contextlib.ExitStack() as stack:
@@ -62,26 +48,8 @@ def test_twenty_apply_sessions_through_a_30_percent_loss_relay(tmp_path):
         # mostly wait on the lossy link, so this costs little CPU)
         vehicles = [stack.enter_context(SitlVehicle(wrong_calibration=False, relay=True, measure_field=False))
                     for _ in range(2)]
-        channels = []  # (vehicle, relay, names)
-        for v_idx, sitl in enumerate(vehicles):
-            with sitl.netns():  # the relays' sockets live in the vehicle's namespace
-                for k, port in enumerate((TOOL_PORT, RELAY_PORT)):
-                    relay = LossRelay(TOOL_PORTS[k], vehicle_port=port, loss=0.3, dup=0.05, seed=21 + 2 * v_idx + k)
-                    channels.append((sitl, stack.enter_context(relay), CHANNEL_NAMES[k]))
-        outcomes: list[dict] = []
-        t0 = time.monotonic()
-
-        def channel(c: int) -> None:
-            sitl, relay, names = channels[c]
-            for i in range(c, N_SESSIONS, len(channels)):
-                outcomes.append(_session(sitl, relay.tool_device, names, i, tmp_path))
-
-        threads = [threading.Thread(target=channel, args=(c,)) for c in range(len(channels))]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        wall = time.monotonic() - t0
+        channels = relayed_channels(stack, vehicles, CHANNEL_NAMES, TOOL_PORTS, seed=21)
+        outcomes, wall = run_sessions(channels, N_SESSIONS, tmp_path)
         stats = [dict(relay.stats) for _, relay, _ in channels]
     complete = [o for o in outcomes if o["rc"] == 0 and o["ok"]]
     restored = [o for o in outcomes if o["rc"] == 5 and o["ok"]]
@@ -111,7 +79,7 @@ def test_a_4_s_blackout_in_the_middle_of_a_write_against_sitl(tmp_path):
             relay = LossRelay(TOOL_PORTS[0], vehicle_port=TOOL_PORT, loss=0.3, dup=0.05, seed=31)
         with relay:
             relay.blackout_at(mavutil.mavlink.MAVLINK_MSG_ID_PARAM_SET, 2, 4.0)
-            o = _session(sitl, relay.tool_device, CHANNEL_NAMES[0], 0, tmp_path)
+            o = apply_session(sitl, relay.tool_device, CHANNEL_NAMES[0], 0, tmp_path)
     print(f"\nSITL, 4 s blackout mid-write then 30 % loss: exit {o['rc']} in {o['s']:.1f} s {o['err']}; "
           f"relay {relay.stats}")
     assert len(relay.blackouts) == 1 and relay.stats["blacked_out"] > 0  # the blackout happened
