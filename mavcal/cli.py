@@ -18,7 +18,7 @@ import logging
 import os
 import sys
 
-from mavcal import __version__
+import mavcal
 from mavcal.errors import MavcalError
 
 log = logging.getLogger("mavcal.cli")
@@ -66,7 +66,7 @@ def _global_options(parser: argparse.ArgumentParser, default) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot.")
-    parser.add_argument("--version", action="version", version=f"mavcal {__version__}")
+    parser.add_argument("--version", action=_Version, help="show mavcal's version and exit")
     _global_options(parser, None)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
@@ -78,6 +78,18 @@ def build_parser() -> argparse.ArgumentParser:
         _global_options(p, argparse.SUPPRESS)
         p.set_defaults(_run=mod.run)
     return parser
+
+
+class _Version(argparse.Action):
+    """``--version``: argparse's, with the version read (from the package's metadata) only when
+    asked for, not by every command's start."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"mavcal {mavcal.__version__}")
+        parser.exit()
 
 
 def main(argv: list[str] | None = None) -> int:
