@@ -97,12 +97,6 @@ def main(argv: list[str] | None = None) -> int:
     # worker processes (calibrate --jobs) they would compete for the same cores; one each,
     # unless the user chose otherwise (read when numpy is first imported, i.e. after this)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    # numpy asks for transparent huge pages for every array of 4 MB and more; where the kernel
-    # compacts memory to find them (the usual "madvise" setting), a long log's raw readings
-    # took ~0.1 s longer to fill (100 MB tlog: prepare 0.30-0.36 s -> 0.24 s); they are written
-    # once and read a few times, so 4 kB pages lose nothing (numpy's documented switch, read
-    # when numpy is imported; the user's own setting wins)
-    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
