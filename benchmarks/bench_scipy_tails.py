@@ -11,6 +11,10 @@ workers: ``os.wait4``'s rusage; on a machine shared with other jobs the wall tim
 measures the others) and the median wall time, and each variant's difference to the first.
 ``python -X importtime`` of the two imports alone is given too (cumulative microseconds, one run).
 
+Measured for issue 29 at commit 235d87a (``benchmarks/results/scipy_tails.md``); since 8740813
+``core.stats`` calls scipy.special's tails itself, so the first variant includes that import and
+the second equals it: check out 235d87a to compare with the hand-written tails again.
+
     python benchmarks/bench_scipy_tails.py [--runs 15] [--log sitl_logs/sitl02.tlog] [--save | --out DIR]
 """
 from __future__ import annotations
