@@ -130,16 +130,17 @@ def check_page(timeout_s: float) -> list[str]:
         cmd = _mavcal_command() + ["capture", "--connect", vehicle.gcs_device, "--ui", "--no-browser",
                                    "--duration", str(timeout_s)]
         env = dict(os.environ, PYTHONFAULTHANDLER="1")  # a hang is shown with its stacks (SIGABRT below)
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
         lines: list[str] = []
         seen = threading.Event()
         reader = threading.Thread(target=_read_lines, args=(proc.stderr, lines, seen), daemon=True)
         reader.start()
         try:
-            if not seen.wait(timeout_s) or proc.poll() is not None:
-                raise CheckFailed(f"mavcal capture --ui printed no page address in {timeout_s:.0f} s "
+            seen.wait(timeout_s)
+            m = next((m for m in map(_URL.search, lines) if m), None)
+            if m is None or proc.poll() is not None:
+                raise CheckFailed(f"mavcal capture --ui printed no page address in {timeout_s:.0f} s, or ended "
                                   f"(exit {proc.poll()}): {' | '.join(lines[-5:])}")
-            m = next(m for m in map(_URL.search, lines) if m)
             port, token = int(m.group(1)), m.group(2)
             for path, name in ASSETS.items():
                 status, body = _get(port, token, path)
@@ -171,7 +172,6 @@ def check_page(timeout_s: float) -> list[str]:
                                   f"its last output:\n{stacks}") from None
             finally:
                 reader.join(5)
-                proc.stdout.close()  # type: ignore[union-attr]
         if proc.returncode < 0 or proc.returncode == 70:  # killed, or an internal error (a traceback)
             raise CheckFailed(f"mavcal capture ended with {proc.returncode} on Ctrl-C: {' | '.join(lines[-5:])}")
         done.append(f"mavcal capture stopped by Ctrl-C: exit {proc.returncode}")
