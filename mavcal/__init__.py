@@ -8,7 +8,8 @@ reconstruction_error(...) -> (delta_a, delta_m)
 calibrate_multi(accel_sensors, mag_sensors, ...) -> MultiCalibration
 
 The engine (numpy/scipy) is imported on first use, so that ``mavcal --help`` and the
-commands that do not fit anything start at once.
+commands that do not fit anything start at once. ``__version__`` is the installed
+distribution's version (its metadata, set in ``pyproject.toml``), read on first use too.
 """
 from __future__ import annotations
 
@@ -16,8 +17,6 @@ import importlib
 from typing import Any
 
 from mavcal.errors import CalibrationWarning, EstimationError, MavcalError
-
-__version__ = "0.1.0"
 
 _LAZY = {
     "Calibration": "mavcal.core.types",
@@ -30,7 +29,21 @@ _LAZY = {
 }
 
 
+def _installed_version() -> str:
+    """The version of the installed ``mavcal`` distribution (its metadata: one number, set in
+    ``pyproject.toml``); ``0+unknown`` when the package runs from a tree that was never installed."""
+    from importlib.metadata import PackageNotFoundError, version  # ~10 ms: not for `mavcal --help`
+
+    try:
+        return version("mavcal")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
 def __getattr__(name: str) -> Any:
+    if name == "__version__":
+        globals()[name] = value = _installed_version()
+        return value
     if name in _LAZY:
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value  # later look-ups skip this hook
@@ -39,7 +52,7 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list:
-    return sorted(set(globals()) | set(_LAZY))
+    return sorted(set(globals()) | set(_LAZY) | {"__version__"})
 
 
 __all__ = [

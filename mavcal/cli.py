@@ -18,7 +18,7 @@ import logging
 import os
 import sys
 
-from mavcal import __version__
+import mavcal
 from mavcal.errors import MavcalError
 
 log = logging.getLogger("mavcal.cli")
@@ -66,7 +66,7 @@ def _global_options(parser: argparse.ArgumentParser, default) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot.")
-    parser.add_argument("--version", action="version", version=f"mavcal {__version__}")
+    parser.add_argument("--version", action=_Version, help="show mavcal's version and exit")
     _global_options(parser, None)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
@@ -80,17 +80,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Version(argparse.Action):
+    """``--version``: argparse's, with the version read (from the package's metadata) only when
+    asked for, not by every command's start."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"mavcal {mavcal.__version__}")
+        parser.exit()
+
+
 def main(argv: list[str] | None = None) -> int:
     # every matrix here is small (3N x P at most): BLAS threads only spin up, and with the fit
     # worker processes (calibrate --jobs) they would compete for the same cores; one each,
     # unless the user chose otherwise (read when numpy is first imported, i.e. after this)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    # numpy asks for transparent huge pages for every array of 4 MB and more; where the kernel
-    # compacts memory to find them (the usual "madvise" setting), a long log's raw readings
-    # took ~0.1 s longer to fill (100 MB tlog: prepare 0.30-0.36 s -> 0.24 s); they are written
-    # once and read a few times, so 4 kB pages lose nothing (numpy's documented switch, read
-    # when numpy is imported; the user's own setting wins)
-    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):

@@ -2,8 +2,9 @@
 
 Every compass is fitted jointly with the primary accelerometer (:func:`mavcal.core.calibrate.calibrate`),
 mapped onto ArduPilot's parameters, checked (held-out error, heading/tilt bounds) and
-gated; every accelerometer is judged on its own fit (:mod:`mavcal.core.accel_fit`). The
-fits are independent of each other, so :func:`fit_recording` hands them to worker
+gated; every accelerometer is judged on its own fit (:mod:`mavcal.accel_judging`). What the
+fits take from the recording (readings, noise floors, the interval statistics computed once)
+is :mod:`mavcal.fit_inputs`. The fits are independent of each other, so :func:`fit_recording` hands them to worker
 processes (:class:`mavcal.workers.ForkPool`, ``Options.workers``); with one worker they run
 here, in the same order, with the same results to the bit.
 """
@@ -15,18 +16,29 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
-from mavcal.ardupilot import firmware as fw
+from mavcal.accel_judging import accel_only, accel_own, died_gate, judge_accels
 from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_accel, map_calibration
-from mavcal.core.accel_fit import HOLDOUT_FOLDS, AccelFit, fit_accel, holdout_accel_mps2
+from mavcal.ardupilot.mapping import ParamMapping, combine, map_calibration
+from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
-from mavcal.core.stats import IntervalStats, interval_means, interval_stats
+from mavcal.core.stats import interval_means
 from mavcal.core.types import Calibration
-from mavcal.coverage import CoverageRule, sensor_coverages
+from mavcal.coverage import sensor_coverages
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
+from mavcal.fit_inputs import (
+    StatsCache,
+    accel_sets,
+    blind_cal,
+    coverage_rule,
+    noise_floor,
+    sets,
+    stats_of,
+    wanted_instances,
+    with_blind_cal,
+)
 from mavcal.memory import release_free_memory
-from mavcal.quality import Quality, accel_tilt_bounds, holdout_part, holdout_rms, quality_of
+from mavcal.quality import holdout_part, holdout_rms, quality_of
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.segment import Segmentation
 from mavcal.sources.progress import report
@@ -34,7 +46,7 @@ from mavcal.workers import ForkPool, Outcome, WorkerDiedError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["fit_recording", "refusal_verdicts", "coverage_rule"]
+__all__ = ["fit_recording", "refusal_verdicts"]
 
 
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
@@ -48,13 +60,13 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     """
     opts, warnings = _resolve(prep, options)
     if opts.sensors == "accel":
-        return _accel_only(prep, opts, warnings, progress)
+        return accel_only(prep, opts, warnings, progress)
     ai = opts.accel_instance
     pairs = [(ai, opts.mag_instance)] + _other_pairs(prep, opts)
     jobs = [opts] + [replace(options, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
                      for a, m in pairs[1:]]
     insts = prep.raw.accel_instances() if opts.sensors == "both" else []
-    stats: _StatsCache = {}
+    stats: StatsCache = {}
     first = [("pair", j, o) for j, o in enumerate(jobs)] + [("accel", j, (opts, a)) for j, a in enumerate(insts)]
     got: dict[tuple[str, int], Outcome] = {}  # ("pair" | "accel" | "quality", j) -> outcome
     slices: dict[int, list[tuple[int, Outcome]]] = {j: [] for j in range(len(jobs))}  # pair j's held-out slices
@@ -98,24 +110,19 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
         if isinstance(r, MavcalError):
             warnings.append(f"accelerometer {a} / compass {m} not calibrated: {r}")
             if isinstance(r, WorkerDiedError) and a == ai:
-                died.append(_died_gate(f"compass{m}", r))
+                died.append(died_gate(f"compass{m}", r))
         else:
             others.append(r)
     compass_runs = [primary] + [r for r in others if r.mapping.accel[0].instance == ai]
     gates = [g for r in compass_runs for g in r.gates.gates] + died
     compasses = [r.mapping.compass[0] for r in compass_runs]
-    accels, fits, accel_gates = _judge_accels(prep, opts, [primary] + others,
+    accels, fits, accel_gates = judge_accels(prep, opts, [primary] + others,
                                               [(a, got["accel", j]) for j, a in enumerate(insts)], warnings)
     report(progress, STAGE_FIT, n, n)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
-
-
-def _died_gate(sensor: str, exc: WorkerDiedError) -> gates_mod.Gate:
-    """A sensor whose fit's worker process died (out of memory?): rejected, with the reason."""
-    return gates_mod.Gate(sensor, "fit", False, 0.0, "yes", f"no result: {exc}")
 
 
 def _holdout_slices(workers: int) -> int:
@@ -128,38 +135,7 @@ def _holdout_slices(workers: int) -> int:
     return next((s for s in range(2 * workers, HOLDOUT_FOLDS + 1) if HOLDOUT_FOLDS % s == 0), 2 * workers)
 
 
-def _judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own: list[tuple[int, Outcome]],
-                  warnings: list[str]) -> tuple[list[AccelMapping], list[tuple[int, AccelFit]], list[gates_mod.Gate]]:
-    """Every accelerometer judged on its own fit (``own``: each one's :func:`_accel_own`
-    outcome), written from its joint fit with compass ``opts.mag_instance`` (in ``runs``, the
-    primary first) when that compass is accepted."""
-    mi = opts.mag_instance
-    mi_ok = all(g.ok for g in runs[0].gates.gates)
-    joint = {r.mapping.accel[0].instance: r for r in runs if r.mapping.compass[0].instance == mi}
-    accels: list[AccelMapping] = []
-    fits: list[tuple[int, AccelFit]] = []
-    gates: list[gates_mod.Gate] = []
-    for a, (ok, res) in own:
-        try:
-            if not ok:
-                raise res
-            am, ag, fit, _, _ = _judge_accel(prep, opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok
-                                             else None, res, warnings)
-        except MavcalError as exc:
-            warnings.append(f"accelerometer {a} not calibrated: {exc}")
-            if isinstance(exc, WorkerDiedError):
-                gates.append(_died_gate(f"accel{a}", exc))
-            continue
-        accels.append(am)
-        fits.append((a, fit))
-        gates += ag
-        if a in joint and not mi_ok and all(g.ok for g in ag):  # (a rejected one is not written at all)
-            warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
-                            "was rejected")
-    return accels, fits, gates
-
-
-def _prefill_stats(prep: Prepared, jobs: list[Options], stats: _StatsCache, accels: bool) -> None:
+def _prefill_stats(prep: Prepared, jobs: list[Options], stats: StatsCache, accels: bool) -> None:
     """Every interval statistic the fit jobs will ask for, computed here before the workers
     fork: each is computed once (not once per worker) and its full-length working arrays
     are this process's, not one more copy per worker. A job whose data are refused raises
@@ -174,23 +150,23 @@ def _prefill_stats(prep: Prepared, jobs: list[Options], stats: _StatsCache, acce
     if accels:
         for a in prep.raw.accel_instances():
             try:
-                wanted.append(("accel", a, _accel_sets(prep, a)[0]))
+                wanted.append(("accel", a, accel_sets(prep, a)[0]))
             except MavcalError:
                 continue
     for kind, inst, used in wanted:
         try:
-            _stats_of(prep, stats, kind, inst, used)
+            stats_of(prep, stats, kind, inst, used)
         except MavcalError:
             continue
 
 
-_Shared = tuple[Prepared, "_StatsCache"]  # what the fit jobs share (inherited by forked workers)
+_Shared = tuple[Prepared, StatsCache]  # what the fit jobs share (inherited by forked workers)
 
 
 def _job(shared: _Shared, item: tuple[str, int, tuple]):
     """One fit job of :func:`fit_recording` (``item``: kind, pair or accelerometer index, arguments):
     a pair's joint fit and mapping (:func:`_fit_pair`), an accelerometer's own fit
-    (:func:`_accel_own`), a slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`)
+    (:func:`mavcal.accel_judging.accel_own`), a slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`)
     or a pair's uncertainty bounds (:func:`mavcal.quality.quality_of`, the held-out numbers left NaN)."""
     prep, stats = shared
     kind, _, arg = item
@@ -198,15 +174,15 @@ def _job(shared: _Shared, item: tuple[str, int, tuple]):
         return _fit_pair(prep, arg, stats)  # type: ignore[arg-type]
     if kind == "accel":
         opts, a = arg
-        return _accel_own(prep, opts, a, stats)
+        return accel_own(prep, opts, a, stats)
     if kind == "holdout":
         o, f, part = arg
         ai, mi = o.accel_instance, o.mag_instance
-        return holdout_part(_sets(prep, "accel", ai, f.used), _sets(prep, "mag", mi, f.used), f.cal, part=part,
+        return holdout_part(sets(prep, "accel", ai, f.used), sets(prep, "mag", mi, f.used), f.cal, part=part,
                             method=o.method, tol=o.tol, seed=o.seed,
-                            noise_floor=(_noise_floor(prep, "accel", ai), _noise_floor(prep, "mag", mi)),
-                            stats=(_stats_of(prep, stats, "accel", ai, f.used),
-                                   _stats_of(prep, stats, "mag", mi, f.used)))
+                            noise_floor=(noise_floor(prep, "accel", ai), noise_floor(prep, "mag", mi)),
+                            stats=(stats_of(prep, stats, "accel", ai, f.used),
+                                   stats_of(prep, stats, "mag", mi, f.used)))
     o, f = arg
     am, cm = f.mapping.accel[0], f.mapping.compass[0]
     return quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")))
@@ -219,15 +195,8 @@ def _other_pairs(prep: Prepared, opts: Options) -> list[tuple[int, int]]:
     if opts.all_instances:
         if opts.sensors == "both":
             pairs += [(a, mi) for a in prep.raw.accel_instances() if a != ai]
-        pairs += [(ai, m) for m in _wanted(prep.raw.mag_instances(), opts, "compass") if m != mi]
+        pairs += [(ai, m) for m in wanted_instances(prep.raw.mag_instances(), opts, "compass") if m != mi]
     return pairs
-
-
-def _wanted(instances, opts: Options, kind: str) -> list[int]:
-    inst = list(instances)
-    if opts.sensors == kind and opts.only_instances is not None:
-        inst = [i for i in inst if i in opts.only_instances]
-    return inst
 
 
 def _resolve(prep: Prepared, options: Options) -> tuple[Options, list[str]]:
@@ -260,7 +229,7 @@ def refusal_verdicts(prep: Prepared, error: Exception, options: Options = Option
                                                                            raw.mag_instances())):
         if options.sensors not in ("both", kind):
             continue
-        for i in _wanted(insts, options, kind):
+        for i in wanted_instances(insts, options, kind):
             if kind == "accel":
                 used = [iv for iv in seg.intervals if iv.accel_mps2.get(i, none).shape[0] >= 2]
                 what = f"accelerometer {i} data"
@@ -275,109 +244,6 @@ def refusal_verdicts(prep: Prepared, error: Exception, options: Options = Option
     return tuple(out)
 
 
-def _blind_cal(prep: Prepared) -> list[str]:
-    """The refusal's reason when the log holds calibration prompts but no IMU data during them."""
-    return [f"the log holds ArduPilot's accelerometer calibration ({a:.1f}..{b:.1f} s: 'Place vehicle' prompts) "
-            "but no IMU data during it (the ground station stopped streaming RAW_IMU?), so its poses are lost; "
-            "record the IMU stream while calibrating" for a, b in prep.raw.accel_cal_without_imu]
-
-
-def _with_blind_cal(prep: Prepared, exc: MavcalError) -> MavcalError:
-    """``exc``, or (when the log holds calibration prompts without IMU data) an
-    InsufficientDataError that gives that reason as well."""
-    return InsufficientDataError("; ".join([str(exc)] + _blind_cal(prep))) if _blind_cal(prep) else exc
-
-
-def _accel_sets(prep: Prepared, a: int) -> tuple[list[int], list[np.ndarray]]:
-    none = np.empty((0, 3))
-    used = [k for k, iv in enumerate(prep.segmentation.intervals) if iv.accel_mps2.get(a, none).shape[0] >= 2]
-    if prep.raw.get("accel", a) is None:
-        raise SourceError(f"{prep.log.source}: no accelerometer {a} data")
-    if not used:
-        raise InsufficientDataError(f"{prep.log.source}: no still interval with accelerometer {a} data; "
-                                    + "; ".join(list(prep.segmentation.coverage.messages) + _blind_cal(prep)))
-    return used, _sets(prep, "accel", a, used)
-
-
-def _sets(prep: Prepared, kind: str, inst: int, used: list[int]) -> list[np.ndarray]:
-    """The readings of sensor ``kind`` ``inst`` in each still interval ``used``."""
-    ivs = prep.segmentation.intervals
-    return [ivs[k].accel_mps2[inst] if kind == "accel" else ivs[k].mag_mgauss[inst] for k in used]
-
-
-def _noise_floor(prep: Prepared, kind: str, inst: int) -> float | None:
-    """The noise of the sensor's telemetry quantisation, step / sqrt(12) (None when not quantised)."""
-    q = prep.quantization.get((kind, inst), 0.0)
-    return q / np.sqrt(12) if q else None
-
-
-_StatsCache = dict[tuple[str, int, tuple[int, ...]], IntervalStats]
-
-
-def _stats_of(prep: Prepared, cache: _StatsCache, kind: str, inst: int, used: list[int]) -> IntervalStats:
-    """The interval statistics (:func:`mavcal.core.stats.interval_stats`, per interval too) of
-    sensor ``kind`` ``inst`` over the intervals ``used``, computed once per run: the pairs of
-    one accelerometer or compass, its own fit and the held-out checks share them (the same
-    numbers, to the bit, as each computing them from the readings)."""
-    key = (kind, inst, tuple(used))
-    if key not in cache:
-        cache[key] = interval_stats(_sets(prep, kind, inst, used), f"{kind}_sets",
-                                    noise_floor=_noise_floor(prep, kind, inst), per_interval=True)
-    return cache[key]
-
-
-def _accel_own(prep: Prepared, opts: Options, a: int, stats: _StatsCache) -> tuple[list[int], AccelFit, float]:
-    """Accelerometer ``a``'s own fit: (intervals used, fit, held-out error)."""
-    used, acc = _accel_sets(prep, a)
-    try:
-        st = _stats_of(prep, stats, "accel", a, used)
-        fit = fit_accel(st)
-    except (InsufficientDataError, EstimationError) as exc:
-        raise _with_blind_cal(prep, exc) from None
-    ho = (holdout_accel_mps2(acc, noise_floor=_noise_floor(prep, "accel", a), start=fit, stats=st) if opts.holdout
-          else float("nan"))
-    return used, fit, ho
-
-
-def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | None,
-                 own: tuple[list[int], AccelFit, float], warnings: list[str] | None = None):
-    """Accelerometer ``a`` on its own fit (``own``, :func:`_accel_own`): written values
-    (``joint``'s when given, else its own), gates, (tilt 95 %, nominal) and held-out error.
-
-    The joint fit's values are written only when they agree with the accelerometer's own
-    data: their nominal tilt error against the own fit within the own fit's 95 % tilt bound
-    of its own values. A joint fit with few spare equations can reach a point its
-    accelerometer's data do not support (seen at 8 intervals: scales 0.79-0.90 from a full
-    model with 2 spare equations, own fit 0.99-1.03); then the own values are written and
-    ``warnings`` says why (issue 22)."""
-    used, fit, ho = own
-    mine = (map_accel(fit.gain, fit.bias, fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
-            if joint is None or warnings is not None else None)
-    am = joint if joint is not None else mine
-    assert am is not None
-    tilt = accel_tilt_bounds(fit, am, opts.uncertainty_draws, opts.seed)
-    if joint is not None and mine is not None:
-        own_tilt = accel_tilt_bounds(fit, mine, opts.uncertainty_draws, opts.seed)
-        if tilt[1] > own_tilt[0]:
-            assert warnings is not None
-            warnings.append(f"accelerometer {a} written from its own fit: its joint fit's values are "
-                            f"{tilt[1]:.3g} deg of tilt off its own data, beyond their 95 % bound of "
-                            f"{own_tilt[0]:.3g} deg")
-            am, tilt = mine, own_tilt
-    cov = sensor_coverages(prep.segmentation, opts.accel_instance, coverage_rule(opts, prep.segmentation),
-                           accels=[a], compasses=[])[0]
-    gates = gates_mod.accel_gates(am, tilt_95_deg=tilt[0], holdout_mps2=ho, config=opts.gates, coverage=cov)
-    return am, gates, fit, tilt, ho
-
-
-def coverage_rule(opts: Options, seg: Segmentation) -> CoverageRule:
-    """The coverage rule (:mod:`mavcal.coverage`) of ``opts``' gates, with the segmentation's
-    orientation clusters: what ``calibrate`` applies and ``segments`` reports."""
-    c = opts.gates
-    return CoverageRule(min_intervals=c.min_intervals, min_orientations=min(c.min_intervals, 6),
-                        min_field_directions=c.min_field_directions, cluster_deg=seg.config.cluster_deg)
-
-
 def _n_orientations(dirs: np.ndarray, seg: Segmentation) -> int:
     """Distinct gravity directions among ``dirs`` (greedy clusters of the segmentation's size)."""
     if len(dirs) == len(seg.intervals):
@@ -388,44 +254,6 @@ def _n_orientations(dirs: np.ndarray, seg: Segmentation) -> int:
         if not any(float(d @ c) > cos_c for c in centres):
             centres.append(d)
     return len(centres)
-
-
-def _accel_only(prep: Prepared, opts: Options, warnings: list[str], progress=None) -> CalibrationRun:
-    """Every wanted accelerometer calibrated from its own intervals alone."""
-    params_now = prep.log.params.snapshot()
-    accels, gates, fits = [], [], []
-    quality = None
-    first_used: tuple[int, ...] = ()
-    wanted = _wanted(prep.raw.accel_instances(), opts, "accel")
-    if not wanted:
-        raise SourceError(f"{prep.log.source}: no accelerometer data")
-    errors = []
-    for k, a in enumerate(wanted):
-        report(progress, STAGE_FIT, k, len(wanted))
-        try:
-            am, ag, fit, tilt, ho = _judge_accel(prep, opts, a, None, _accel_own(prep, opts, a, {}))
-        except MavcalError as exc:
-            errors.append(exc)
-            warnings.append(f"accelerometer {a} not calibrated: {exc}")
-            continue
-        accels.append(am)
-        gates += ag
-        fits.append((a, fit))
-        if quality is None:
-            quality = Quality(float("nan"), tilt[0], float("nan"), tilt[1], ho, float("nan"),
-                              fit.cost / fit.dof if fit.dof > 0 else float("nan"))
-            first_used = tuple(_accel_sets(prep, a)[0])
-    report(progress, STAGE_FIT, len(wanted), len(wanted))
-    if quality is None:
-        raise errors[0]
-    if not params_now:
-        warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
-    mapping = combine(accels, [], params_now, [f"accelerometer {am.instance} calibrated alone (no compass)"
-                                               for am in accels])
-    return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=prep.segmentation,
-                          intervals_used=first_used, calibration=None, mapping=mapping, quality=quality,
-                          gates=gates_mod.GateReport(tuple(gates)), params_before=params_now,
-                          warnings=tuple(dict.fromkeys(list(prep.warnings) + warnings)), accel_fits=tuple(fits))
 
 
 def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
@@ -441,10 +269,10 @@ def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
         if raw.get("mag", mi) is None:
             raise SourceError(f"{log_.source}: no compass {mi} data")
         raise InsufficientDataError(f"{log_.source}: no still intervals found ({len(seg.intervals)} detected, none "
-                                    "with both sensors); " + "; ".join(list(seg.coverage.messages) + _blind_cal(prep)))
+                                    "with both sensors); " + "; ".join(list(seg.coverage.messages) + blind_cal(prep)))
     n_min = MODELS[MODEL_CHAIN[-1]].min_intervals
     if len(used) < n_min:
-        why = "; ".join(_blind_cal(prep) + list(seg.coverage.messages)) \
+        why = "; ".join(blind_cal(prep) + list(seg.coverage.messages)) \
             or f"{seg.coverage.n_orientations} distinct orientation(s)"
         raise InsufficientDataError(
             f"{log_.source}: {len(used)} still interval(s) with accelerometer {ai} and compass {mi} data; at least "
@@ -463,22 +291,22 @@ class _PairFit:
     warnings: list[str]
 
 
-def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
+def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
     """calibrate -> map for one accelerometer/compass pair (``stats``: the run's interval
-    statistics, :func:`_stats_of`)."""
+    statistics, :func:`mavcal.fit_inputs.stats_of`)."""
     log_ = prep.log
     warnings: list[str] = list(prep.warnings)
     ai, mi = opts.accel_instance, opts.mag_instance
     used = _intervals_of_pair(prep, ai, mi)
     try:
-        sa, sm = _stats_of(prep, stats, "accel", ai, used), _stats_of(prep, stats, "mag", mi, used)
+        sa, sm = stats_of(prep, stats, "accel", ai, used), stats_of(prep, stats, "mag", mi, used)
         cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
     except (InsufficientDataError, EstimationError) as exc:
-        raise _with_blind_cal(prep, exc) from None
+        raise with_blind_cal(prep, exc) from None
     params_now = log_.params.snapshot()
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
-    mapping = map_calibration(cal, params_now, interval_means(_sets(prep, "mag", mi, used)), accel_instance=ai,
+    mapping = map_calibration(cal, params_now, interval_means(sets(prep, "mag", mi, used)), accel_instance=ai,
                               mag_instance=mi, location=opts.location or log_.position,
                               location_source="" if opts.location else log_.position_source,
                               field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,

@@ -15,7 +15,8 @@ from dataclasses import replace
 
 from mavcal.ardupilot.recover import RawImu, recover_raw
 from mavcal.errors import UsageError
-from mavcal.fits import coverage_rule, fit_recording, refusal_verdicts
+from mavcal.fit_inputs import coverage_rule
+from mavcal.fits import fit_recording, refusal_verdicts
 from mavcal.memory import release_free_memory
 from mavcal.quality import Quality
 from mavcal.run import STAGE_FIT, STAGE_RECOVER, STAGE_SEGMENT, CalibrationRun, Options, Prepared

@@ -40,7 +40,6 @@ which counts the shared pages in each process, is the parent's peak plus about t
 from __future__ import annotations
 
 import ctypes
-import gc
 import itertools
 import logging
 import multiprocessing
@@ -56,7 +55,6 @@ from multiprocessing.connection import Connection, wait
 from typing import Any, Generic, TypeVar
 
 from mavcal.errors import MavcalError
-from mavcal.memory import return_large_blocks
 
 __all__ = ["ForkPool", "can_fork", "default_workers", "worker_limit", "MAX_WORKERS", "Outcome", "WorkerDiedError"]
 
@@ -140,9 +138,6 @@ def _worker_main(conn: Connection, inherited: list[Connection], parent: int, max
         c.close()
     _die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-    # a worker's large arrays are given back when freed, not kept by its allocator: its own
-    # memory is what its job needs, not its high-water mark (see mavcal.memory)
-    return_large_blocks()
     for _ in itertools.count() if max_tasks is None else range(max_tasks):
         try:
             msg = conn.recv()
@@ -281,7 +276,6 @@ class ForkPool(Generic[S]):
         if self._forking:
             self._forking = False
             _SHARED = None
-            gc.unfreeze()
 
     def run(self, fn: Callable[[S, Any], Any], items: Sequence[Any],
             then: Callable[[Any, Outcome], Sequence[Any]], done: Callable[[int], None] | None = None) -> None:
@@ -345,7 +339,6 @@ class ForkPool(Generic[S]):
             if _SHARED is not None:
                 raise RuntimeError("one ForkPool with workers at a time")
             _SHARED = self.shared
-            gc.freeze()  # the objects so far stay out of the workers' collections: their pages are not copied
             self._forking = True
         w = _Worker([p.conn for p in self._procs], self.max_tasks)
         self._procs.append(w)

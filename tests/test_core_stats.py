@@ -1,4 +1,5 @@
-"""core.stats.chi2_sf (no scipy.stats at import) and the numpy neighbour test of holdout_folds."""
+"""core.stats: the chi-square/F tails (scipy.special's), the interval statistics and the numpy
+neighbour test of holdout_folds."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,33 +11,25 @@ from mavcal.core.accel_fit import holdout_folds
 from mavcal.core.stats import chi2_sf
 from mavcal.testing.numbers import assert_close, numbers_close
 
-DOFS = [1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 15, 20, 21, 22, 50, 99, 100, 101, 1000, 2769, 10000, 123457, 1e6]
 
+def test_tails_are_scipys_with_their_edges():
+    """chi2_sf / f_sf are scipy.special's chdtrc / fdtrc (the argument order checked against
+    scipy.stats), with the conventions the callers rely on: 1 at x <= 0, NaN without degrees of
+    freedom or for a NaN statistic, 0 at infinity."""
+    from scipy.stats import f as f_dist
 
-@pytest.mark.parametrize("k", DOFS)
-def test_chi2_sf_matches_scipy(k):
-    xs = np.concatenate([k * np.linspace(0.01, 3.0, 120), k + np.sqrt(2 * k) * np.linspace(-8, 40, 120),
-                         [1e-300, 1e-10, 1e-3, 0.5, 1.0, 2.0, 10.0, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8]])
-    for x in xs[xs > 0]:
-        ref = float(chi2.sf(x, k))
-        got = chi2_sf(x, k)
-        if ref > 1e-20:
-            assert got == pytest.approx(ref, rel=1e-12), (k, x)
-        elif ref > 1e-300:
-            assert got == pytest.approx(ref, rel=2e-11), (k, x)  # the exponent's rounding: |ln p| * 1e-14
-        else:
-            assert 0.0 <= got < 1e-290, (k, x)
+    from mavcal.core.stats import f_sf
 
-
-def test_chi2_sf_edges_and_printed_digits():
-    assert chi2_sf(0.0, 3) == 1.0 and chi2_sf(-1.0, 3) == 1.0
-    assert chi2_sf(np.inf, 3) == 0.0 and chi2_sf(1e8, 5) == 0.0
-    assert np.isnan(chi2_sf(np.nan, 3))
     rng = np.random.default_rng(0)
-    for _ in range(2000):  # the Wald p-values: scipy's to 1e-9 relative (printed with 3 digits)
-        k = int(rng.integers(1, 10))
-        W = float(rng.gamma(1.0, 3.0 * k))
-        assert numbers_close(chi2_sf(W, k), chi2.sf(W, k), rtol=1e-9, atol=0.0), (W, k)
+    for _ in range(200):
+        k, d2 = int(rng.integers(1, 30)), float(rng.integers(3, 10**6))
+        x = float(rng.gamma(1.0, 3.0 * k))
+        assert numbers_close(chi2_sf(x, k), chi2.sf(x, k), rtol=1e-12, atol=0.0), (x, k)
+        assert numbers_close(f_sf(x / k, k, d2), f_dist.sf(x / k, k, d2), rtol=1e-12, atol=0.0), (x, k, d2)
+    for sf in (lambda x: chi2_sf(x, 3), lambda x: f_sf(x, 3, 10)):
+        assert sf(0.0) == 1.0 and sf(-1.0) == 1.0 and sf(np.inf) == 0.0 and np.isnan(sf(np.nan))
+    assert np.isnan(chi2_sf(1.0, 0)) and np.isnan(chi2_sf(1.0, -1)) and np.isnan(f_sf(1.0, 0, 10))
+    assert chi2_sf(1e8, 5) == 0.0
 
 
 def test_holdout_folds_neighbour_test_matches_kdtree():
@@ -96,16 +89,3 @@ def test_pooled_scatter_is_the_deviations_product():
                        for k, n in enumerate(sizes)])
         D = np.concatenate([s - center - m for s, m in zip(sets, mu)])
         assert_close(st.scatter, D.T @ D)
-
-
-@pytest.mark.parametrize("d1", [1, 2, 3, 8, 23, 41, 128, 1000, 60000])
-def test_f_sf_matches_scipy(d1):
-    from scipy.stats import f as f_dist
-
-    from mavcal.core.stats import f_sf
-    for d2 in (3, 10, 50, 298, 4000, 1e5, 1e6, 1e7):
-        for x in np.concatenate([np.linspace(0.02, 3.0, 25), np.linspace(1.0, 60.0, 40)]):
-            ref = float(f_dist.sf(x, d1, d2))
-            if ref > 1e-250:
-                assert f_sf(x, d1, d2) == pytest.approx(ref, rel=1e-8 if d2 <= 1e5 else 1e-6), (x, d2)
-    assert f_sf(0.0, d1, 10) == 1.0 and f_sf(np.inf, d1, 10) == 0.0 and np.isnan(f_sf(np.nan, d1, 10))

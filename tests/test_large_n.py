@@ -208,12 +208,12 @@ def test_subset_weights_make_the_subset_weigh_poses_as_the_log():
 def test_fit_stage_computes_each_sensors_interval_statistics_once(monkeypatch, sitl_dir):
     """The pairs of one accelerometer or compass, its own fit and the held-out checks share
     its interval statistics (computed once per run), and the result is what it was."""
-    from mavcal import fits, pipeline
+    from mavcal import fit_inputs, pipeline
     from mavcal.core import calibrate as core_cal
 
     prep = pipeline.prepare(str(sitl_dir / "sitl01.tlog"))
     ref = pipeline.calibrate_prepared(prep)
-    real = fits.interval_stats
+    real = fit_inputs.interval_stats
     calls: list[str] = []
 
     def spy(sets, name, **kw):
@@ -223,7 +223,7 @@ def test_fit_stage_computes_each_sensors_interval_statistics_once(monkeypatch, s
     def refuse(*args, **kw):
         raise AssertionError("the pair fits recomputed interval statistics")
 
-    monkeypatch.setattr(fits, "interval_stats", spy)
+    monkeypatch.setattr(fit_inputs, "interval_stats", spy)
     monkeypatch.setattr(core_cal, "interval_stats", refuse)
     run = pipeline.calibrate_prepared(prep)
     n_sensors = len(prep.raw.accel_instances()) + len(prep.raw.mag_instances())

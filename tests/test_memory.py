@@ -27,22 +27,21 @@ def test_release_free_memory_gives_the_freed_heap_back():
     assert keep.sum() == 8_000
 
 
-def test_return_large_blocks_and_release_are_safe_to_call_anywhere():
-    assert isinstance(memory.return_large_blocks(), bool)
+def test_release_is_safe_to_call_anywhere():
     assert isinstance(memory.release_free_memory(), bool)
 
 
 def test_without_glibc_nothing_is_done(monkeypatch):
-    class NoGlibc:  # e.g. macOS's libc: neither malloc_trim nor mallopt
+    class NoGlibc:  # e.g. macOS's libc: no malloc_trim
         pass
 
     monkeypatch.setattr(memory, "_TRIM", None)
     monkeypatch.setattr(memory, "_libc", lambda: NoGlibc())
-    assert memory.release_free_memory() is False and memory.return_large_blocks() is False
+    assert memory.release_free_memory() is False
 
     def missing():
         raise OSError("no C library")
 
     monkeypatch.setattr(memory, "_TRIM", None)
     monkeypatch.setattr(memory, "_libc", missing)
-    assert memory.release_free_memory() is False and memory.return_large_blocks() is False
+    assert memory.release_free_memory() is False

@@ -20,6 +20,9 @@
   (drops, duplicates, blackouts) between a vehicle and a tool.
 * :mod:`mavcal.testing.numbers` -- comparing computed numbers at a stated tolerance: golden
   text, JSON and arrays (never bit for bit: the last bits differ between BLAS kernels and CPUs).
+* :mod:`mavcal.testing.installed` -- CI's check of an installed wheel (``.ci/wheel``): mavcal
+  imported from site-packages, and ``mavcal capture --ui`` against the loopback vehicle serving
+  the installed package's page, script and style.
 
 Two conventions for a sensor's truth exist, and the class names say which:
 :class:`~mavcal.testing.vehicle_sensors.AccelCalTruth` states the truth as the ideal
