@@ -15,9 +15,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
-from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, map_accel, map_calibration
+from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine
+from mavcal.autopilot import model_for
 from mavcal.core.accel_fit import HOLDOUT_FOLDS, AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
@@ -351,7 +351,7 @@ def _judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | No
     model with 2 spare equations, own fit 0.99-1.03); then the own values are written and
     ``warnings`` says why (issue 22)."""
     used, fit, ho = own
-    mine = (map_accel(fit.gain, fit.bias, fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
+    mine = (model_for(prep.log).map_accel(fit.gain, fit.bias, prep.log.params.snapshot(), a)
             if joint is None or warnings is not None else None)
     am = joint if joint is not None else mine
     assert am is not None
@@ -478,11 +478,11 @@ def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
     params_now = log_.params.snapshot()
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
-    mapping = map_calibration(cal, params_now, interval_means(_sets(prep, "mag", mi, used)), accel_instance=ai,
-                              mag_instance=mi, location=opts.location or log_.position,
-                              location_source="" if opts.location else log_.position_source,
-                              field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,
-                              allow_custom=opts.allow_custom, force_external=opts.force_external)
+    mapping = model_for(log_).map_calibration(
+        cal, params_now, interval_means(_sets(prep, "mag", mi, used)), accel_instance=ai, mag_instance=mi,
+        location=opts.location or log_.position, location_source="" if opts.location else log_.position_source,
+        field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg, allow_custom=opts.allow_custom,
+        force_external=opts.force_external)
     return _PairFit(used, cal, mapping, params_now, warnings)
 
 
