@@ -64,7 +64,7 @@ from mavcal.errors import (
     UnknownParameterError,
     UsageError,
 )
-from mavcal.link.connection import Link, as_link
+from mavcal.link.connection import Link, as_link, param_to_wire
 from mavcal.link.params import (
     ParamTable,
     download_params,
@@ -300,8 +300,9 @@ class _EchoWatch:
             return
         name = m.param_id.decode("ascii", "replace") if isinstance(m.param_id, bytes) else m.param_id
         name = name.rstrip("\x00")
-        self.last[name] = float(m.param_value)
-        self.seen.setdefault(name, []).append(float(m.param_value))
+        value = self.link.param_value(m)
+        self.last[name] = value
+        self.seen.setdefault(name, []).append(value)
 
     def _on_error(self, m: Any) -> None:
         hit = vehicle_param_error(self.link, m)
@@ -328,14 +329,17 @@ class _SetOutcome:
 
 
 def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, expected: float,
-                     retries: int, timeout_s: float, budget_s: float, link_timeout_s: float) -> _SetOutcome:
+                     retries: int, timeout_s: float, budget_s: float, link_timeout_s: float,
+                     param_type: int = _A.MAV_PARAM_TYPE_REAL32) -> _SetOutcome:
     """PARAM_SET ``name`` until an echo equal to ``expected`` arrives, the vehicle refuses it, or
-    at least ``retries`` attempts were sent and ``budget_s`` has passed.
+    at least ``retries`` attempts were sent and ``budget_s`` has passed. ArduPilot takes every
+    value as a REAL32; a bytewise vehicle (PX4) gets an integer's bytes with its ``param_type``.
 
     Raises LinkError when the vehicle has sent nothing at all for ``link_timeout_s``.
     """
     attempts = 0
-    wire_value = float(np.float32(value))
+    wire_type = param_type if link.bytewise_params else _A.MAV_PARAM_TYPE_REAL32
+    wire_value = param_to_wire(value, wire_type, link.bytewise_params)
     mark = len(watch.seen.get(name, []))
     rmark = len(watch.refused.get(name, []))
     start = time.monotonic()
@@ -351,7 +355,7 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
             raise LinkError(f"{link.device}: vehicle silent for {link.silent_for():.1f} s")
         attempts += 1
         link.mav.param_set_send(link.target_system, link.target_component, name.encode("ascii"),
-                                wire_value, _A.MAV_PARAM_TYPE_REAL32)
+                                wire_value, wire_type)
         if link.wait(lambda: confirmed() or refused(), timeout_s) and confirmed():
             return _SetOutcome(True, expected, attempts)
         seen = watch.seen.get(name, [])[mark:]
@@ -460,7 +464,8 @@ class _WriteRun:
             failure = None
             try:
                 out = _set_and_confirm(self.link, self.watch, r.name, r.requested, r.expected,
-                                       self.retries, self.timeout_s, self.budget_s, self.link_timeout_s)
+                                       self.retries, self.timeout_s, self.budget_s, self.link_timeout_s,
+                                       self.table[r.name][1])
             except LinkError as exc:
                 out = _SetOutcome(False, self.watch.last.get(r.name), max(1, self.retries))
                 failure = str(exc)
@@ -529,7 +534,7 @@ class _WriteRun:
             try:
                 out = _set_and_confirm(
                     self.link, self.watch, name, r.old, expected_stored_value(r.old, self.table[name][1]),
-                    self.restore_retries, self.timeout_s, self.budget_s, self.link_timeout_s)
+                    self.restore_retries, self.timeout_s, self.budget_s, self.link_timeout_s, self.table[name][1])
                 ok, echoed, attempts = out.ok, out.echoed, out.attempts
             except LinkError:
                 ok, echoed, attempts, link_ok = False, None, 1, False
