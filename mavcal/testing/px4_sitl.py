@@ -7,9 +7,10 @@ fixture :mod:`mavcal.testing.sitl`). In it, PX4 sends its GCS link to ``udpin:12
 
 One PX4 per machine at a time (it locks ``/tmp/px4_lock-0``): :meth:`Px4Sitl.start` takes a file lock
 first, so two test processes wait for each other instead of failing. ``sim_model`` "sihsim_quadx"
-(default) is PX4's in-process simulator (a quadrotor standing still on the ground); ``params`` are set at
-boot (``PX4_PARAM_<NAME>``). :meth:`Px4Sitl.stop` stops PX4 by PID (SIGINT, then SIGTERM/SIGKILL) and
-removes its working folder.
+(default) is PX4's in-process simulator (a quadrotor standing still on the ground), "none_iris" the external
+simulator (:class:`mavcal.testing.px4_poser.Poser`, whose socket ``before_boot`` opens in the namespace);
+``params`` are set at boot (``PX4_PARAM_<NAME>``). :meth:`Px4Sitl.stop` stops PX4 by PID (SIGINT, then
+SIGTERM/SIGKILL) and removes its working folder.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ import signal
 import subprocess
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -73,7 +74,8 @@ class Px4Sitl:
     """PX4 SITL in a private network namespace (see the module docstring)."""
 
     def __init__(self, *, sim_model: str = "sihsim_quadx", params: Mapping[str, float] | None = None,
-                 boot_timeout_s: float = 60.0, lock_timeout_s: float = 600.0) -> None:
+                 boot_timeout_s: float = 60.0, lock_timeout_s: float = 600.0,
+                 before_boot: Callable[[], Any] | None = None) -> None:
         self.sim_model = sim_model
         self.params = dict(params or {})
         self.boot_timeout_s = boot_timeout_s
@@ -84,6 +86,8 @@ class Px4Sitl:
         self._lock: IO[str] | None = None
         self._log: IO[bytes] | None = None
         self.device = GCS_DEVICE
+        #: called in the namespace before PX4 starts (the external simulator's listening socket)
+        self.before_boot = before_boot
 
     def netns(self):
         """``with px4.netns():`` the current thread in PX4's network namespace."""
@@ -105,6 +109,9 @@ class Px4Sitl:
         try:
             self._take_lock()
             self.net.start()
+            if self.before_boot is not None:
+                with self.netns():
+                    self.before_boot()
             self.workdir = Path(tempfile.mkdtemp(prefix=f"mavcal-px4-{os.getpid()}-"))
             env = dict(os.environ, PX4_SIM_MODEL=self.sim_model)
             env["PATH"] = f"{self._module_links()}{os.pathsep}{env.get('PATH', '')}"
