@@ -157,3 +157,23 @@ class Poser:
         with self._lock:
             att = self.attitude
         return (att.inv().apply(np.array([0.0, 0.0, -GRAVITY_MPS2])), att.inv().apply(np.asarray(FIELD_NED_MGAUSS)))
+
+
+class PosedPx4:
+    """A PX4 SITL and its poser in the shape the scripted hands of :mod:`mavcal.testing.sitl_hand` take
+    (``set_pose``, ``declination_deg``, ``popen``, ``tool_device``, ``param_values``), so that
+    :func:`mavcal.testing.sitl_hand.run_guided_capture` drives a guided ``mavcal capture`` against PX4."""
+
+    def __init__(self, px4, poser: Poser, *, move_s: float = 1.0) -> None:
+        self.px4, self.poser, self.move_s = px4, poser, move_s
+        self.tool_device = px4.device
+        self.param_values: list[tuple[str, float]] = []  # no control link: nothing seen
+        B = np.asarray(FIELD_NED_MGAUSS)
+        self.declination_deg = float(np.degrees(np.arctan2(B[1], B[0])))
+
+    def set_pose(self, roll: float, pitch: float, yaw: float, settle: bool = True) -> None:
+        """Turn to the pose (true yaw) at a hand's pace; ``settle`` False: a quick turn."""
+        self.poser.turn_to(roll, pitch, yaw, self.move_s if settle else 0.3)
+
+    def popen(self, argv, **kw):
+        return self.px4.net.popen(argv, **kw)
