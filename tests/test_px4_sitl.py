@@ -108,7 +108,8 @@ def test_px4_applies_the_calibration_as_mavcal_models_it(link, tmp_path):
     up to 4-6 mGauss with no calibration at all); the offsets added (ArduPilot's sign), the level
     adjustment after the rotation, or no level adjustment miss by more than 15 mGauss (seen: 17-55).
     Accelerometer (no raw reading live): SCALED_IMU after = model(new) of model(old)^-1 of SCALED_IMU before (within
-    0.02 m/s^2: whole mG steps, 4 s averages of a still vehicle); the other rotation order misses by 0.5."""
+    0.04 m/s^2: whole mG steps, 4 s averages 5 s apart of a vehicle standing on the simulated ground, seen
+    0.003-0.026); the other rotation order misses by more than 0.3 (seen 0.5-0.6)."""
     from mavcal.link.params import fetch_all_params
     from mavcal.link.streams import PX4_STREAM_MESSAGES, needed_stream_ids, start_streams
     from mavcal.link.writer import write_params
@@ -137,7 +138,38 @@ def test_px4_applies_the_calibration_as_mavcal_models_it(link, tmp_path):
         assert np.abs(wrong.correct(after["raw_mag"]) - after["cal_mag"]).max() > 15
     acc_old, acc_new = accel_cal_from_params(params, 1310988), accel_cal_from_params(new, 1310988)
     predicted_acc = acc_new.correct(acc_old.undo(before["acc"]))
-    assert np.abs(predicted_acc - after["acc"]).max() < 0.02, (predicted_acc, after["acc"])
+    assert np.abs(predicted_acc - after["acc"]).max() < 0.04, (predicted_acc, after["acc"])
     other_order = dataclasses.replace(acc_new, rotation=R @ L)
     assert np.abs(other_order.correct(acc_old.undo(before["acc"])) - after["acc"]).max() > 0.3
     assert np.abs(before["acc"] - after["acc"]).max() > 0.25  # the calibration changed PX4's output
+
+
+def test_apply_and_restore_commands_against_px4(px4, tmp_path):
+    """``mavcal apply F --connect`` writes a .param file of CAL_* values (floats and an INT32) to PX4 with a
+    backup; ``mavcal restore BACKUP --connect`` puts the old values back; ids stay intact."""
+    from mavcal.cli import main
+    from mavcal.link.connection import open_link
+    from mavcal.link.params import fetch_all_params
+
+    f = tmp_path / "cal.param"
+    f.write_text("CAL_ACC0_XOFF,0.125\nCAL_ACC0_YSCALE,1.015625\nCAL_MAG0_PRIO,25\n")
+    backup = tmp_path / "backup.param"
+    with px4.netns():
+        assert main(["apply", str(f), "--connect", px4.device, "--yes", "--backup", str(backup)]) == 0
+        link = open_link(px4.device)
+    try:
+        t = fetch_all_params(link, timeout_s=20)
+    finally:
+        link.close()
+    assert t["CAL_ACC0_XOFF"][0] == pytest.approx(0.125) and t["CAL_ACC0_YSCALE"][0] == pytest.approx(1.015625)
+    assert t["CAL_MAG0_PRIO"] == (25, 6) and t["CAL_ACC0_ID"] == (1310988, 6)
+    with px4.netns():
+        assert main(["restore", str(backup), "--connect", px4.device, "--yes",
+                     "--backup", str(tmp_path / "b2.param")]) == 0
+        link = open_link(px4.device)
+    try:
+        t2 = fetch_all_params(link, timeout_s=20)
+    finally:
+        link.close()
+    assert t2["CAL_MAG0_PRIO"] == (50, 6) and t2["CAL_ACC0_XOFF"][0] != pytest.approx(0.125)
+    assert t2["CAL_ACC0_ID"] == (1310988, 6) and t2["CAL_MAG0_ID"] == (197388, 6)
