@@ -32,6 +32,7 @@ from mavcal.ardupilot.mapping import (
     CompassMapping,
     ParamMapping,
     combine,
+    field_correction,
     field_magnitude,
     map_accel,
 )
@@ -159,18 +160,9 @@ def map_compass_px4(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation
                     inclination_model_deg: float | None = None, notes: list[str] | None = None) -> Px4CompassMapping:
     """``CAL_MAG<slot>_*`` for an estimated K_m, b_m (see the module docstring)."""
     slot, new_slot = _slot(params, "mag", old, notes if notes is not None else [])
-    h_norm = float(np.sqrt(1.0 + h_z * h_z))
     checked = field_mgauss is not None
     B = field_mgauss if field_mgauss is not None else 1.0
-    T = (B / h_norm) * np.asarray(board_rotation) @ np.asarray(frame_rotation) @ np.linalg.inv(K_m)
-    if np.linalg.det(T) < 0:
-        raise ParameterMappingError("the magnetometer axes are mirrored relative to the accelerometer (det < 0): "
-                                    "two axes swapped or one inverted in the wiring or the driver")
-    incl = float(np.degrees(np.arctan2(h_z, 1.0)))
-    if inclination_model_deg is not None and abs(inclination_model_deg) > 10 and incl * inclination_model_deg < 0:
-        raise ParameterMappingError(
-            f"the estimated field dip is {incl:.1f} deg but the World Magnetic Model gives {inclination_model_deg:.1f} "
-            "deg here: the magnetometer axes appear mirrored, which still poses cannot correct")
+    T, incl = field_correction(K_m, h_z, frame_rotation, board_rotation, field_mgauss, inclination_model_deg)
     R_old = old.rotation
     X = T @ R_old  # = R_new S
     U = _polar_rotation(X)

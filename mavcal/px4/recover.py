@@ -30,12 +30,17 @@ from mavcal.px4 import params as pn
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal, accel_cal_from_params, mag_cal_from_params
 from mavcal.sources.types import ImuLog, SensorSeries
 
-__all__ = ["recover_raw", "device_id_of", "cal_of", "CALIBRATED_ACCEL", "CALIBRATED_MAG", "ACCEL_FRAME", "MAG_FRAME"]
+__all__ = ["recover_raw", "device_id_of", "cal_of", "NO_RAW_ACCEL_LIVE", "CALIBRATED_ACCEL", "CALIBRATED_MAG",
+           "ACCEL_FRAME", "MAG_FRAME"]
 
 log = logging.getLogger(__name__)
 
 ACCEL_FRAME = "sensor frame (before PX4's rotation)"
 MAG_FRAME = "sensor frame turned by the rotation in force (before offsets and soft iron)"
+#: the one line a live PX4 recording carries
+NO_RAW_ACCEL_LIVE = ("PX4 sends no raw accelerometer over MAVLink (it refuses RAW_IMU): its calibrated SCALED_IMU "
+                     "readings were undone with the CAL_ACC* in force (whole milli-g); for raw readings log "
+                     "sensor_accel in a ULog (SDLOG_PROFILE high rate) and calibrate the .ulg")
 #: messages whose accelerometer / magnetometer PX4 sends corrected (undone here)
 CALIBRATED_ACCEL = frozenset({"SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "HIGHRES_IMU"})
 CALIBRATED_MAG = frozenset({"HIGHRES_IMU"})
@@ -85,6 +90,8 @@ def recover_raw(log_: ImuLog) -> RawImu:
         cal = cal_of(s, params)
         if isinstance(cal, Px4AccelCal):
             raw = cal.undo(s.values) if s.message in CALIBRATED_ACCEL else s.values
+            if s.message in CALIBRATED_ACCEL:
+                warnings.append(NO_RAW_ACCEL_LIVE)
             accel.append(SensorSeries("accel", s.instance, s.message, s.time_s, raw, extra=dict(s.extra)))
             continue
         if old_mag_driver_cal and s.message == "sensor_mag":

@@ -22,7 +22,7 @@ import threading
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-__all__ = ["CLONE_NEWNET", "LAUNCHER", "KEEPER", "NamespaceError", "start_keeper", "stop_pid", "enter",
+__all__ = ["require", "CLONE_NEWNET", "LAUNCHER", "KEEPER", "NamespaceError", "start_keeper", "stop_pid", "enter",
            "launch_argv", "PrivateNetwork"]
 
 CLONE_NEWNET = 0x40000000
@@ -152,3 +152,15 @@ class PrivateNetwork:
         if self._keeper is not None:
             stop_pid(self._keeper)
             self._keeper = None
+
+
+def require(reason: str | None, what: str) -> None:
+    """In a pytest test or fixture: skip with ``reason`` (why ``what`` cannot run here), or fail under
+    ``CI=true`` (CI must run the SITL tests, never skip them); nothing when ``reason`` is None."""
+    import pytest
+
+    if reason is None:
+        return
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(f"CI=true but {what} cannot run: {reason}", pytrace=False)
+    pytest.skip(reason)

@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import IO, Any
 
-from mavcal.testing.netns import NamespaceError, PrivateNetwork, start_keeper, stop_pid
+from mavcal.testing.netns import NamespaceError, PrivateNetwork, require, start_keeper, stop_pid
 
 __all__ = ["Px4Sitl", "Px4SitlError", "px4_dir", "px4_unavailable_reason", "require_px4", "GCS_DEVICE"]
 
@@ -60,14 +60,7 @@ def px4_unavailable_reason() -> str | None:
 
 def require_px4() -> None:
     """In a test: skip without PX4 SITL (fail instead under ``CI=true``)."""
-    import pytest
-
-    reason = px4_unavailable_reason()
-    if reason is None:
-        return
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(f"CI=true but PX4 SITL cannot run: {reason}", pytrace=False)
-    pytest.skip(reason)
+    require(px4_unavailable_reason(), "PX4 SITL")
 
 
 class Px4Sitl:

@@ -110,7 +110,7 @@ from pymavlink import mavutil
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.rotations import euler_to_matrix
-from mavcal.testing.netns import NamespaceError, enter, launch_argv, start_keeper
+from mavcal.testing.netns import NamespaceError, enter, launch_argv, require, start_keeper
 from mavcal.testing.netns import stop_pid as _stop_pid
 from mavcal.testing.sitl_truth import InjectedErrors, Score, SitlTruth, score
 
@@ -195,14 +195,7 @@ def unavailable_reason() -> str | None:
 def require_sitl() -> None:
     """In a pytest test or fixture: skip when SITL cannot run here, with the reason; under
     ``CI=true`` fail instead (CI must run the SITL tests, never skip them)."""
-    import pytest
-
-    reason = unavailable_reason()
-    if reason is None:
-        return
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(f"CI=true but SITL cannot run: {reason}", pytrace=False)
-    pytest.skip(reason)
+    require(unavailable_reason(), "SITL")
 
 
 # ------------------------------------------------------------------------------------------
