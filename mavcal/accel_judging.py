@@ -6,9 +6,9 @@ pairs' and calls :func:`judge_accels` once the primary pair's verdict is known.
 """
 from __future__ import annotations
 
-from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import AccelMapping, combine, map_accel
+from mavcal.ardupilot.mapping import AccelMapping, combine
+from mavcal.autopilot import model_for
 from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.coverage import sensor_coverages
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
@@ -90,7 +90,7 @@ def judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | Non
     model with 2 spare equations, own fit 0.99-1.03); then the own values are written and
     ``warnings`` says why (issue 22)."""
     used, fit, ho = own
-    mine = (map_accel(fit.gain, fit.bias, fw.accel_cal_from_params(prep.log.params.snapshot(), a), a)
+    mine = (model_for(prep.log).map_accel(fit.gain, fit.bias, prep.log.params.snapshot(), a)
             if joint is None or warnings is not None else None)
     am = joint if joint is not None else mine
     assert am is not None

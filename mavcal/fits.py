@@ -18,7 +18,8 @@ import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, no
 
 from mavcal.accel_judging import accel_only, accel_own, died_gate, judge_accels
 from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import ParamMapping, combine, map_calibration
+from mavcal.ardupilot.mapping import ParamMapping, combine
+from mavcal.autopilot import model_for
 from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
 from mavcal.core.models import MODEL_CHAIN, MODELS
@@ -306,11 +307,11 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
     params_now = log_.params.snapshot()
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
-    mapping = map_calibration(cal, params_now, interval_means(sets(prep, "mag", mi, used)), accel_instance=ai,
-                              mag_instance=mi, location=opts.location or log_.position,
-                              location_source="" if opts.location else log_.position_source,
-                              field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg,
-                              allow_custom=opts.allow_custom, force_external=opts.force_external)
+    mapping = model_for(log_).map_calibration(
+        cal, params_now, interval_means(sets(prep, "mag", mi, used)), accel_instance=ai, mag_instance=mi,
+        location=opts.location or log_.position, location_source="" if opts.location else log_.position_source,
+        field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg, allow_custom=opts.allow_custom,
+        force_external=opts.force_external)
     return _PairFit(used, cal, mapping, params_now, warnings)
 
 

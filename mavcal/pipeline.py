@@ -13,7 +13,8 @@ from __future__ import annotations
 import logging
 from dataclasses import replace
 
-from mavcal.ardupilot.recover import RawImu, recover_raw
+from mavcal.ardupilot.recover import RawImu
+from mavcal.autopilot import model_for
 from mavcal.errors import UsageError
 from mavcal.fit_inputs import coverage_rule
 from mavcal.fits import fit_recording, refusal_verdicts
@@ -81,8 +82,9 @@ def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbe
 def prepare(source, options: Options = Options(), *, progress=None, owned: bool = False) -> Prepared:
     """Read a source and make it ready for the fit (everything before the estimation).
 
-    Undoes the integer truncation of the telemetry, undoes ArduPilot's correction with the
-    parameters in force at each sample (raw readings) and finds the still intervals.
+    Undoes the integer truncation of the telemetry, undoes the autopilot's correction with the
+    parameters in force at each sample (raw readings; ArduPilot's or PX4's model,
+    :func:`mavcal.autopilot.model_for`) and finds the still intervals.
 
     Parameters
     ----------
@@ -125,7 +127,7 @@ def prepare(source, options: Options = Options(), *, progress=None, owned: bool 
     if opts.untruncate:
         log_, _ = untruncate_log(log_, in_place=own)
     release_free_memory()  # what reading freed (decoding buffers): before the raw readings are made
-    raw = recover_raw(log_)
+    raw = model_for(log_).recover_raw(log_)  # ArduPilot's or PX4's correction undone
     if own:
         log_, raw = _without_receive_times(log_, raw)
     report(progress, STAGE_RECOVER, 1, 1)

@@ -207,6 +207,29 @@ def _custom_slot(params: Mapping[str, float], current: int) -> int | None:
     return None
 
 
+def field_correction(K_m: np.ndarray, h_z: float, frame_rotation: np.ndarray, board_rotation: np.ndarray,
+                     field_mgauss: float | None,
+                     inclination_model_deg: float | None = None) -> tuple[np.ndarray, float]:
+    """``T = (|B| / |h|) R_A P K_m^-1``, the correction of the fitted compass readings onto the body
+    field (``|B|`` 1 when ``field_mgauss`` is None), and the estimated inclination (deg).
+
+    Raises ParameterMappingError for mirrored compass axes: det T < 0, or a field dip of the other
+    sign than the World Magnetic Model's (``inclination_model_deg``, when beyond 10 deg)."""
+    h_norm = float(np.sqrt(1.0 + h_z * h_z))
+    B = field_mgauss if field_mgauss is not None else 1.0
+    T = (B / h_norm) * np.asarray(board_rotation) @ np.asarray(frame_rotation) @ np.linalg.inv(K_m)
+    if np.linalg.det(T) < 0:
+        raise ParameterMappingError("the compass axes are mirrored relative to the accelerometer (det < 0): "
+                                    "two axes swapped or one inverted in the wiring or the driver")
+    incl = float(np.degrees(np.arctan2(h_z, 1.0)))
+    if inclination_model_deg is not None and abs(inclination_model_deg) > 10 and incl * inclination_model_deg < 0:
+        raise ParameterMappingError(
+            f"the estimated field dip is {incl:.1f} deg but the World Magnetic Model gives "
+            f"{inclination_model_deg:.1f} deg here: the compass axes appear mirrored (two axes swapped or "
+            "one inverted in the wiring or the driver), which still poses cannot correct")
+    return T, incl
+
+
 def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np.ndarray, old: fw.CompassCal,
                 params: Mapping[str, float], *, instance: int = 0,
                 field_mgauss: float | None, field_source: str, board_rotation: np.ndarray, orient_tol_deg: float = 1.0,
@@ -216,21 +239,10 @@ def map_compass(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation: np
     ``field_mgauss`` None keeps the sensor's own scale (COMPASS_SCALE unchanged, DIA with
     geometric mean 1)."""
     names = fw.compass_param_names(instance)
-    h_norm = float(np.sqrt(1.0 + h_z * h_z))
     checked = field_mgauss is not None
-    B = field_mgauss if field_mgauss is not None else 1.0
-    T = (B / h_norm) * np.asarray(board_rotation) @ np.asarray(frame_rotation) @ np.linalg.inv(K_m)
-    if np.linalg.det(T) < 0:
-        raise ParameterMappingError("the compass axes are mirrored relative to the accelerometer (det < 0): "
-                                    "two axes swapped or one inverted in the wiring or the driver")
+    T, incl = field_correction(K_m, h_z, frame_rotation, board_rotation, field_mgauss, inclination_model_deg)
     S, U = _polar_left(T)
     R_old = old.mount_matrix
-    incl = float(np.degrees(np.arctan2(h_z, 1.0)))
-    if inclination_model_deg is not None and abs(inclination_model_deg) > 10 and incl * inclination_model_deg < 0:
-        raise ParameterMappingError(
-            f"the estimated field dip is {incl:.1f} deg but the World Magnetic Model gives "
-            f"{inclination_model_deg:.1f} deg here: the compass axes appear mirrored (two axes swapped or "
-            "one inverted in the wiring or the driver), which still poses cannot correct")
     ext_param = params.get(names["external"])
     external = bool(ext_param) if ext_param is not None else old.orient != int(round(
         params.get(fw.board_param_names()["orientation"], 0) or 0))

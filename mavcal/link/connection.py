@@ -38,7 +38,8 @@ from pymavlink import mavutil
 from mavcal.errors import LinkError, SigningError, SourceError
 from mavcal.link.signing import NEEDS_KEY, SigningKey, is_signed, setup_signing, signing_problem
 
-__all__ = ["Link", "open_link", "as_link", "GCS_SYSTEM_ID", "GCS_COMPONENT_ID"]
+__all__ = ["Link", "open_link", "as_link", "GCS_SYSTEM_ID", "GCS_COMPONENT_ID", "MAV_AUTOPILOT_PX4",
+           "param_from_wire", "param_to_wire"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,32 @@ GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = 190
 
 Handler = Callable[[Any], None]
+
+#: HEARTBEAT.autopilot of PX4, whose integer parameters travel bytewise
+MAV_AUTOPILOT_PX4 = 12
+#: MAV_PARAM_TYPE of the integer types -> (struct format, bytes)
+_INT_TYPES = {1: ("<B", 1), 2: ("<b", 1), 3: ("<H", 2), 4: ("<h", 2), 5: ("<I", 4), 6: ("<i", 4)}
+
+
+def param_from_wire(value: float, param_type: int, bytewise: bool) -> float:
+    """A PARAM_VALUE's value: on a bytewise vehicle (PX4) an integer type's value is the integer in
+    the low bytes of the float field (reinterpreted, never cast); else the float as sent."""
+    fmt = _INT_TYPES.get(int(param_type)) if bytewise else None
+    if fmt is None:
+        return float(value)
+    raw = struct.pack("<f", value)
+    return float(struct.unpack(fmt[0], raw[:fmt[1]])[0])
+
+
+def param_to_wire(value: float, param_type: int, bytewise: bool) -> float:
+    """The float field a PARAM_SET of ``value`` carries: on a bytewise vehicle an integer type's bytes
+    (reinterpreted as a float32), else the value itself (float32)."""
+    fmt = _INT_TYPES.get(int(param_type)) if bytewise else None
+    if fmt is None:
+        return float(struct.unpack("<f", struct.pack("<f", value))[0])
+    raw = struct.pack(fmt[0], int(round(value))).ljust(4, b"\0")
+    return float(struct.unpack("<f", raw)[0])
+
 
 #: the vehicle's messages sent at a steady rate whatever is asked (HEARTBEAT), or while a write
 #: asks for them (ATTITUDE, :mod:`mavcal.link.silence`); their arrivals measure the rate
@@ -99,6 +126,17 @@ class Link:
         #: messages from the vehicle that arrived signed
         self.signed_received = 0
         self._tlog: BinaryIO | None = None
+        #: HEARTBEAT.autopilot of the vehicle (None: not known); PX4 sends integers bytewise
+        self.autopilot: int | None = None
+
+    @property
+    def bytewise_params(self) -> bool:
+        """Whether integer parameters travel bytewise in the float field (PX4)."""
+        return self.autopilot == MAV_AUTOPILOT_PX4
+
+    def param_value(self, m: Any) -> float:
+        """The value of a PARAM_VALUE from this vehicle (:func:`param_from_wire`)."""
+        return param_from_wire(m.param_value, m.param_type, self.bytewise_params)
 
     # -- ids ---------------------------------------------------------------------------------
     @property
@@ -398,6 +436,7 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
             raise LinkError(f"no heartbeat from a vehicle on {device} within {waited:g} s")
         link.target_system = hb.get_srcSystem()
         link.target_component = hb.get_srcComponent()
+        link.autopilot = int(hb.autopilot)
         conn.target_system = link.target_system
         conn.target_component = link.target_component
         if signing_key is None and is_signed(hb) and not _answers_unsigned(link, max(timeout_s, budget_s)):

@@ -19,7 +19,8 @@
 
 Values are returned as ``(value, param_type)`` with ``param_type`` a ``MAV_PARAM_TYPE``
 (ArduPilot: INT8=2, INT16=4, INT32=6, REAL32=9). ArduPilot sends integers as plain float
-values (``MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT``), never byte-wise.
+values (``MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT``), never byte-wise; PX4 sends them bytewise (the
+integer's bytes in the float field), decoded by :meth:`mavcal.link.connection.Link.param_value`.
 """
 from __future__ import annotations
 
@@ -118,7 +119,7 @@ class _Download:
             return
         name = _param_name(m)
         self.last_rx = time.monotonic()
-        self.values[name] = (float(m.param_value), int(m.param_type))
+        self.values[name] = (self.link.param_value(m), int(m.param_type))
         idx, count = int(m.param_index), int(m.param_count)
         if idx != _NO_INDEX and count > 0 and idx < count:
             self.count = count
@@ -331,7 +332,7 @@ def read_params_by_name(conn: Any, names: Iterable[str], *, timeout_s: float = 1
         if link.is_from_vehicle(m):
             name = _param_name(m)
             if name in wanted_set and name in sent_at:  # only answers to our requests
-                got[name] = (float(m.param_value), int(m.param_type))
+                got[name] = (link.param_value(m), int(m.param_type))
 
     def on_error(m: Any) -> None:
         hit = vehicle_param_error(link, m)

@@ -24,8 +24,8 @@ from mavcal.ardupilot import firmware as fw
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link
 
-__all__ = ["STREAM_MESSAGES", "STREAM_MESSAGE_IDS", "MIN_STREAM_RATE_HZ", "send_message_intervals",
-           "start_streams", "reset_streams", "needed_stream_ids"]
+__all__ = ["STREAM_MESSAGES", "STREAM_MESSAGE_IDS", "PX4_STREAM_MESSAGES", "MIN_STREAM_RATE_HZ",
+           "send_message_intervals", "start_streams", "reset_streams", "needed_stream_ids"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,12 @@ STREAM_MESSAGES: dict[str, int] = {"RAW_IMU": _A.MAVLINK_MSG_ID_RAW_IMU,
                                    "SCALED_IMU2": _A.MAVLINK_MSG_ID_SCALED_IMU2,
                                    "SCALED_IMU3": _A.MAVLINK_MSG_ID_SCALED_IMU3}
 STREAM_MESSAGE_IDS: tuple[int, ...] = tuple(STREAM_MESSAGES.values())
+#: what a PX4 streams for a capture (it refuses RAW_IMU): SCALED_IMU* carry the calibrated, rotated
+#: accelerometer and the raw magnetometer, HIGHRES_IMU the calibrated magnetometer
+PX4_STREAM_MESSAGES: dict[str, int] = {"SCALED_IMU": _A.MAVLINK_MSG_ID_SCALED_IMU,
+                                       "SCALED_IMU2": _A.MAVLINK_MSG_ID_SCALED_IMU2,
+                                       "SCALED_IMU3": _A.MAVLINK_MSG_ID_SCALED_IMU3,
+                                       "HIGHRES_IMU": _A.MAVLINK_MSG_ID_HIGHRES_IMU}
 #: :func:`start_streams` never asks for less (the still-interval detector needs the samples)
 MIN_STREAM_RATE_HZ = 25.0
 
@@ -51,6 +57,10 @@ def needed_stream_ids(params: Mapping[str, float] | None) -> tuple[int, ...]:
     """
     if params is None:
         return STREAM_MESSAGE_IDS
+    from mavcal.px4.params import is_px4_params
+
+    if is_px4_params(params):  # a PX4: no RAW_IMU (refused), SCALED_IMU* and HIGHRES_IMU
+        return tuple(PX4_STREAM_MESSAGES.values())
     out = []
     for k, mid in enumerate(STREAM_MESSAGE_IDS):
         ids = [params.get(fw.accel_param_names(k)["id"]), params.get(fw.compass_param_names(k)["dev_id"])]
@@ -72,13 +82,15 @@ def send_message_intervals(mav: Any, target_system: int, target_component: int, 
 
 
 class _StreamWatch:
-    """Counts SET_MESSAGE_INTERVAL acks and RAW_IMU messages from the vehicle while registered."""
+    """Counts SET_MESSAGE_INTERVAL acks and RAW_IMU messages (a PX4's SCALED_IMU) from the vehicle
+    while registered."""
 
     def __init__(self, link: Link) -> None:
         self.link = link
         self.acks: list[int] = []
         self.raw_imu = 0
-        self._tokens = [link.add_handler("COMMAND_ACK", self._on_ack), link.add_handler("RAW_IMU", self._on_imu)]
+        data = "SCALED_IMU" if link.bytewise_params else "RAW_IMU"
+        self._tokens = [link.add_handler("COMMAND_ACK", self._on_ack), link.add_handler(data, self._on_imu)]
 
     def _on_ack(self, m: Any) -> None:
         if m.get_srcSystem() == self.link.target_system and m.command == _A.MAV_CMD_SET_MESSAGE_INTERVAL:

@@ -70,7 +70,7 @@ from mavcal.errors import (
     UnknownParameterError,
     UsageError,
 )
-from mavcal.link.connection import Link, as_link
+from mavcal.link.connection import Link, as_link, param_to_wire
 from mavcal.link.params import (
     ParamTable,
     fetch_all_params,
@@ -311,8 +311,9 @@ class _EchoWatch:
             return
         name = m.param_id.decode("ascii", "replace") if isinstance(m.param_id, bytes) else m.param_id
         name = name.rstrip("\x00")
-        self.last[name] = float(m.param_value)
-        self.seen.setdefault(name, []).append(float(m.param_value))
+        value = self.link.param_value(m)
+        self.last[name] = value
+        self.seen.setdefault(name, []).append(value)
 
     def _on_error(self, m: Any) -> None:
         hit = vehicle_param_error(self.link, m)
@@ -340,16 +341,20 @@ class _SetOutcome:
 
 
 def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, expected: float,
-                     retries: int, timeout_s: float, budget_s: float, wait: Patience) -> _SetOutcome:
+                     retries: int, timeout_s: float, budget_s: float, wait: Patience,
+                     param_type: int = _A.MAV_PARAM_TYPE_REAL32) -> _SetOutcome:
     """PARAM_SET ``name`` until an echo equal to ``expected`` arrives, the vehicle refuses it, or
     at least ``retries`` attempts were sent and ``budget_s`` has passed while the vehicle was heard.
+    ArduPilot takes every value as a REAL32; a bytewise vehicle (PX4) gets an integer's bytes with its
+    ``param_type``.
 
     While the vehicle is silent (``wait``) no PARAM_SET is sent and the budget does not run: the
     attempts resume when it is heard again, and stop when it stays unheard past the allowance
     of ``wait`` (the outcome's ``unheard`` says so). Raises LinkError when the connection fails.
     """
     attempts = 0
-    wire_value = float(np.float32(value))
+    wire_type = param_type if link.bytewise_params else _A.MAV_PARAM_TYPE_REAL32
+    wire_value = param_to_wire(value, wire_type, link.bytewise_params)
     mark = len(watch.seen.get(name, []))
     rmark = len(watch.refused.get(name, []))
     start, unheard0 = time.monotonic(), wait.silence.unheard_s()
@@ -371,7 +376,7 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
             return _SetOutcome(False, seen[-1] if seen else None, attempts, unheard=str(exc))
         attempts += 1
         link.mav.param_set_send(link.target_system, link.target_component, name.encode("ascii"),
-                                wire_value, _A.MAV_PARAM_TYPE_REAL32)
+                                wire_value, wire_type)
         if link.wait(lambda: confirmed() or refused(), timeout_s) and confirmed():
             return _SetOutcome(True, expected, attempts)
         seen = watch.seen.get(name, [])[mark:]
@@ -519,7 +524,8 @@ class _WriteRun:
             failure = None
             try:
                 out = _set_and_confirm(self.link, self.watch, r.name, r.requested, r.expected,
-                                       self.retries, self.timeout_s, self.budget_s, self._patience())
+                                       self.retries, self.timeout_s, self.budget_s, self._patience(),
+                                       self.table[r.name][1])
             except LinkError as exc:
                 out = _SetOutcome(False, self.watch.last.get(r.name), max(1, self.retries))
                 failure = str(exc)
@@ -589,7 +595,7 @@ class _WriteRun:
             try:
                 out = _set_and_confirm(
                     self.link, self.watch, name, r.old, expected_stored_value(r.old, self.table[name][1]),
-                    self.restore_retries, self.timeout_s, self.budget_s, wait)
+                    self.restore_retries, self.timeout_s, self.budget_s, wait, self.table[name][1])
                 ok, echoed, attempts = out.ok, out.echoed, out.attempts
                 if out.unheard is not None:
                     link_ok, self.restore_problem = False, out.unheard

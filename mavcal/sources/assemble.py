@@ -407,8 +407,36 @@ def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _Series
             out.add(sensor, inst, "HIGHRES_IMU", t[mm], v[mm], lt[mm])
 
 
+#: MAV_PARAM_TYPE of the integer types -> (numpy type of its bytes, bytes)
+_INT_PARAM_TYPES = {1: (np.uint8, 1), 2: (np.int8, 1), 3: (np.uint16, 2), 4: (np.int16, 2), 5: (np.uint32, 4),
+                    6: (np.int32, 4)}
+MAV_AUTOPILOT_PX4 = 12
+
+
+def bytewise_param_values(values_f32: np.ndarray, param_types: np.ndarray) -> np.ndarray:
+    """PARAM_VALUE values of a vehicle that sends integers bytewise (PX4): an integer type's value is
+    the integer in the low bytes of the float field, reinterpreted; the others are the floats."""
+    f = np.ascontiguousarray(values_f32, dtype="<f4")
+    out = f.astype(float)
+    bits = f.view("<u4")
+    types = np.asarray(param_types).astype(int)
+    for t, (dtype, n) in _INT_PARAM_TYPES.items():
+        m = types == t
+        if m.any():
+            low = bits[m] & np.uint32((1 << (8 * n)) - 1)
+            out[m] = low.astype({1: np.uint8, 2: np.uint16, 4: np.uint32}[n]).view(dtype).astype(float)
+    return out
+
+
+def _is_px4(cols: Columns, sysid: int) -> bool:
+    hb = cols.get("HEARTBEAT") or {}
+    return bool(_n(hb)) and bool(((np.asarray(hb["_sysid"]) == sysid)
+                                  & (np.asarray(hb["autopilot"]) == MAV_AUTOPILOT_PX4)).any())
+
+
 def _tlog_params(cols: Columns, sysid: int, tb: _TimeBase, warns: list[str]) -> ParamTimeline:
-    """PARAM_VALUE of the vehicle (autopilot or companion component) as a timeline."""
+    """PARAM_VALUE of the vehicle (autopilot or companion component) as a timeline (a PX4's
+    integers decoded bytewise, :func:`bytewise_param_values`)."""
     pv = cols.get("PARAM_VALUE") or {}
     if not _n(pv):
         return ParamTimeline()
@@ -420,7 +448,10 @@ def _tlog_params(cols: Columns, sysid: int, tb: _TimeBase, warns: list[str]) -> 
         return ParamTimeline()
     codes, labels = text_codes(pv["param_id"])
     times = tb.from_log(np.asarray(pv["_index"], np.int64), pv["_log_time_s"])
-    return timeline_from_codes(codes, labels, times, np.asarray(pv["param_value"], dtype=np.float32).astype(float))
+    values = np.asarray(pv["param_value"], dtype=np.float32)
+    if _is_px4(cols, sysid) and "param_type" in pv:
+        return timeline_from_codes(codes, labels, times, bytewise_param_values(values, pv["param_type"]))
+    return timeline_from_codes(codes, labels, times, values.astype(float))
 
 
 def _tlog_events(cols: Columns, sysid: int, tb: _TimeBase) -> tuple[list[LogEvent], str | None]:

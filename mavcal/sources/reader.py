@@ -206,7 +206,10 @@ def _kind_of(path: Path) -> str:
         return "dataflash" if head == b"\xa3\x95" else "dataflash_text"
     if ext == ".csv":
         return "csv"
-    raise SourceError(f"unknown log type '{path.suffix or path.name}' of {path}: expected .tlog, .bin, .log or .csv")
+    if ext == ".ulg":
+        return "ulog"
+    raise SourceError(f"unknown log type '{path.suffix or path.name}' of {path}: expected .tlog, .bin, .log, .ulg "
+                      "or .csv")
 
 
 def _check_tlog(src: str, stats) -> None:
@@ -223,7 +226,8 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
     Parameters
     ----------
     path : str or Path
-        ``.tlog``, ``.bin``/``.BIN``, ``.log`` (binary or text DataFlash) or ``.csv``.
+        ``.tlog``, ``.bin``/``.BIN``, ``.log`` (binary or text DataFlash), ``.ulg`` (PX4 ULog,
+        :mod:`mavcal.sources.ulog`) or ``.csv``.
     progress : callable(done_bytes, total_bytes) or None
         Progress callback for long reads (see :func:`mavcal.sources.progress.auto_progress`).
     fast : bool
@@ -254,6 +258,10 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
     try:
         if kind == "csv":
             return read_csv(src, rate_hz=csv_rate_hz)
+        if kind == "ulog":
+            from mavcal.sources.ulog import read_ulog
+
+            return read_ulog(src)
         if kind == "tlog":
             if fast:
                 from mavcal.sources.fast_tlog import decode_tlog

@@ -91,18 +91,16 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import ctypes
 import logging
 import math
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -112,6 +110,8 @@ from pymavlink import mavutil
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.testing.netns import NamespaceError, enter, launch_argv, require, start_keeper
+from mavcal.testing.netns import stop_pid as _stop_pid
 from mavcal.testing.sitl_truth import InjectedErrors, Score, SitlTruth, score
 
 __all__ = ["SitlVehicle", "InjectedErrors", "SimState", "Home", "Score", "SitlError", "WRONG_CALIBRATION",
@@ -120,7 +120,6 @@ __all__ = ["SitlVehicle", "InjectedErrors", "SimState", "Home", "Score", "SitlEr
 log = logging.getLogger(__name__)
 
 ENV_BINARY = "MAVCAL_SITL"
-CLONE_NEWNET = 0x40000000
 PR_SET_PDEATHSIG = 1
 DEFAULT_HOME = (-35.363261, 149.165230, 584.0, 353.0)  # CMAC, Canberra: lat, lon, alt (m), heading (deg)
 CONTROL_PORT, TOOL_PORT, RELAY_PORT = 14550, 14551, 14552
@@ -145,42 +144,16 @@ CALIBRATION_NAMES: tuple[str, ...] = tuple(
     + [n for i in range(2) for key in ("ofs", "scale") for n in fw.accel_param_names(i)[key]]  # type: ignore[literal-required]
     + [fw.board_param_names()["orientation"]])
 
-# The launcher every process of the vehicle starts through: enter the namespace, die with the
-# parent, exec. argv: NS_PATH PARENT_PID PROGRAM ARGS...
-_LAUNCHER = r"""
-import ctypes, os, signal, sys
-libc = ctypes.CDLL(None, use_errno=True)
-if libc.prctl(1, signal.SIGKILL, 0, 0, 0) != 0:
-    sys.exit("sitl launcher: prctl(PR_SET_PDEATHSIG) failed")
-if os.getppid() != int(sys.argv[2]):
-    sys.exit("sitl launcher: parent gone")
-fd = os.open(sys.argv[1], os.O_RDONLY)
-if libc.setns(fd, 0x40000000) != 0:
-    sys.exit("sitl launcher: setns: " + os.strerror(ctypes.get_errno()))
-os.close(fd)
-os.execvp(sys.argv[3], sys.argv[3:])
-"""
-
-# The keeper: a new network namespace with lo up, alive until its stdin closes or its parent dies.
-_KEEPER = r"""
-import ctypes, fcntl, os, signal, socket, struct, sys
-libc = ctypes.CDLL(None, use_errno=True)
-libc.prctl(1, signal.SIGKILL, 0, 0, 0)
-if os.getppid() != int(sys.argv[1]):
-    sys.exit(1)
-if libc.unshare(0x40000000) != 0:
-    print("unshare(CLONE_NEWNET): " + os.strerror(ctypes.get_errno()), flush=True)
-    sys.exit(1)
-s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-fcntl.ioctl(s, 0x8914, struct.pack("16sH14x", b"lo", 0x1 | 0x8 | 0x40))  # SIOCSIFFLAGS: UP|LOOPBACK|RUNNING
-s.close()
-print("ready", flush=True)
-sys.stdin.read()
-"""
-
-
 class SitlError(RuntimeError):
     """SITL could not be started or did not do what it was asked in time."""
+
+
+def _start_keeper():
+    """The namespace's keeper (:func:`mavcal.testing.netns.start_keeper`), its failure a SitlError."""
+    try:
+        return start_keeper()
+    except NamespaceError as exc:
+        raise SitlError(str(exc)) from None
 
 
 # ------------------------------------------------------------------------------------------
@@ -222,47 +195,12 @@ def unavailable_reason() -> str | None:
 def require_sitl() -> None:
     """In a pytest test or fixture: skip when SITL cannot run here, with the reason; under
     ``CI=true`` fail instead (CI must run the SITL tests, never skip them)."""
-    import pytest
-
-    reason = unavailable_reason()
-    if reason is None:
-        return
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(f"CI=true but SITL cannot run: {reason}", pytrace=False)
-    pytest.skip(reason)
+    require(unavailable_reason(), "SITL")
 
 
 # ------------------------------------------------------------------------------------------
 # processes
 # ------------------------------------------------------------------------------------------
-def _start_keeper() -> subprocess.Popen:
-    p = subprocess.Popen([sys.executable, "-I", "-c", _KEEPER, str(os.getpid())], stdin=subprocess.PIPE,
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    assert p.stdout is not None
-    line = p.stdout.readline().strip()
-    if line != "ready":
-        _stop_pid(p)
-        raise SitlError(line or f"namespace keeper exited with {p.poll()}")
-    return p
-
-
-def _stop_pid(p: subprocess.Popen, term_s: float = 3.0) -> None:
-    """SIGTERM, then SIGKILL after ``term_s``; reap it."""
-    if p.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(timeout=term_s)
-        except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                p.kill()
-            p.wait(timeout=10)
-    for f in (p.stdin, p.stdout, p.stderr):
-        if f is not None:
-            with contextlib.suppress(OSError):
-                f.close()
-
-
 _instances = iter(range(1 << 30))
 _instance_lock = threading.Lock()
 
@@ -449,27 +387,13 @@ class SitlVehicle:
         return float(math.degrees(math.atan2(B[1], B[0])))
 
     # ---------------------------------------------------------------- namespace
-    @contextlib.contextmanager
-    def netns(self) -> Iterator[None]:
-        """Run the current thread in the vehicle's network namespace (and back after)."""
-        libc = ctypes.CDLL(None, use_errno=True)
-        own = os.open(f"/proc/self/task/{threading.get_native_id()}/ns/net", os.O_RDONLY)
-        target = os.open(self.netns_path, os.O_RDONLY)
-        try:
-            if libc.setns(target, CLONE_NEWNET) != 0:
-                raise SitlError(f"setns: {os.strerror(ctypes.get_errno())}")
-            try:
-                yield
-            finally:
-                if libc.setns(own, CLONE_NEWNET) != 0:  # never leave a thread in the wrong namespace
-                    raise SitlError(f"setns back: {os.strerror(ctypes.get_errno())}")
-        finally:
-            os.close(target)
-            os.close(own)
+    def netns(self):
+        """``with sitl.netns():`` run the current thread in the vehicle's network namespace (and back after)."""
+        return enter(self.netns_path)
 
     def launch_argv(self, argv: Sequence[str]) -> list[str]:
         """``argv`` wrapped to run in the namespace and die with this process."""
-        return [sys.executable, "-I", "-c", _LAUNCHER, self.netns_path, str(os.getpid()), *map(str, argv)]
+        return launch_argv(self.netns_path, argv)
 
     def popen(self, argv: Sequence[str], **kw: Any) -> subprocess.Popen:
         """Start ``argv`` in the namespace (``subprocess.Popen`` keywords); stopped by :meth:`stop`

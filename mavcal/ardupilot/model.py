@@ -1,0 +1,31 @@
+"""ArduPilot as the pipeline sees it: raw recovery and parameter mapping (:mod:`mavcal.autopilot`),
+the functions of :mod:`mavcal.ardupilot.recover` and :mod:`mavcal.ardupilot.mapping` unchanged."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from mavcal.ardupilot import firmware as fw
+from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, map_accel, map_calibration
+from mavcal.ardupilot.recover import RawImu, recover_raw
+from mavcal.sources.types import ImuLog
+
+__all__ = ["ArduPilotModel", "NAME"]
+
+NAME = "ArduPilot"
+
+
+class ArduPilotModel:
+    """The ArduPilot model (the same for every recording)."""
+
+    name = NAME
+
+    def recover_raw(self, log_: ImuLog) -> RawImu:
+        return recover_raw(log_)
+
+    def map_calibration(self, cal, params: Mapping[str, float], raw_mag_means, **kw) -> ParamMapping:
+        return map_calibration(cal, params, raw_mag_means, **kw)
+
+    def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
+        return map_accel(K_a, b_a, fw.accel_cal_from_params(params, instance), instance)

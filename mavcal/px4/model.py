@@ -1,0 +1,53 @@
+"""PX4 as the pipeline sees it: raw recovery and parameter mapping (:mod:`mavcal.autopilot`).
+
+The pipeline is the same for every autopilot; what differs is how the readings are undone
+(:mod:`mavcal.px4.recover`) and what the calibration is written as (:mod:`mavcal.px4.mapping`).
+The calibration of each sensor is found by its device id (``CAL_ACC<n>_ID``, ``CAL_MAG<n>_ID``).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from mavcal.ardupilot.mapping import AccelMapping, ParamMapping
+from mavcal.ardupilot.recover import RawImu
+from mavcal.px4.firmware import Px4AccelCal, Px4MagCal
+from mavcal.px4.mapping import map_accel_px4, map_calibration_px4
+from mavcal.px4.recover import cal_of, recover_raw
+from mavcal.sources.types import ImuLog, SensorSeries
+
+__all__ = ["Px4Model", "NAME"]
+
+NAME = "PX4"
+
+
+class Px4Model:
+    """The PX4 model of one recording (it knows the recording's device ids)."""
+
+    name = NAME
+
+    def __init__(self, log_: ImuLog) -> None:
+        self._series: dict[tuple[str, int], SensorSeries] = {(s.sensor, s.instance): s for s in log_.series
+                                                            if s.sensor != "gyro"}
+
+    def recover_raw(self, log_: ImuLog) -> RawImu:
+        return recover_raw(log_)
+
+    def _cal(self, sensor: str, instance: int, params: Mapping[str, float]) -> Px4AccelCal | Px4MagCal:
+        s = self._series.get((sensor, instance))
+        if s is None:
+            s = SensorSeries(sensor, instance, "", np.zeros(0), np.zeros((0, 3)))
+        return cal_of(s, params)
+
+    def map_calibration(self, cal, params: Mapping[str, float], raw_mag_means, *, accel_instance: int = 0,
+                        mag_instance: int = 0, **kw) -> ParamMapping:
+        old_a, old_m = self._cal("accel", accel_instance, params), self._cal("mag", mag_instance, params)
+        assert isinstance(old_a, Px4AccelCal) and isinstance(old_m, Px4MagCal)
+        return map_calibration_px4(cal, params, old_a, old_m, accel_instance=accel_instance,
+                                   mag_instance=mag_instance, **kw)
+
+    def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
+        old = self._cal("accel", instance, params)
+        assert isinstance(old, Px4AccelCal)
+        return map_accel_px4(K_a, b_a, old, params, instance)

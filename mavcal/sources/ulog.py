@@ -1,0 +1,215 @@
+"""Read a PX4 flight log (ULog, ``.ulg``) into an :class:`~mavcal.sources.types.ImuLog` with pyulog.
+
+What is read
+------------
+* ``sensor_accel`` / ``sensor_gyro`` / ``sensor_mag``: one series per topic instance (``multi_id``),
+  the readings as the drivers published them, **before** PX4's calibration (offsets, scales,
+  rotation): accel m/s^2, gyro rad/s, mag gauss (converted to mGauss here). Each series carries the
+  sensor's device id per sample in ``extra["device_id"]`` (the key of PX4's calibration slots) and,
+  for a magnetometer logged with it, ``extra["is_external"]``. Times: ``timestamp_sample`` (else
+  ``timestamp``), microseconds since boot -> seconds.
+* the parameters: those at the start (time of the first logged sample) and every change
+  logged later, as a :class:`~mavcal.sources.types.ParamTimeline` (INT32 parameters as the
+  integers pyulog decodes, never through float32).
+* the position: the first 3-D GPS fix (``vehicle_gps_position`` / ``sensor_gps``), else the
+  home position or the global position estimate.
+
+PX4 logs its raw sensor topics at a low rate by default (about 1 Hz, ``SDLOG_PROFILE`` bit 2 "high
+rate" or 3 "debug" raises it); a log without them (older PX4: only ``sensor_combined``, which is
+calibrated and averaged) is refused with that advice. :func:`calibrated_topics` gives PX4's own
+calibrated output beside them (``vehicle_acceleration``, ``vehicle_magnetometer``, the
+``vehicle_imu`` velocity increments), for checking the conventions of :mod:`mavcal.px4`.
+
+Only this module (and :mod:`mavcal.link`) imports pyulog.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from mavcal.errors import SourceError
+from mavcal.sources.types import ImuLog, ParamTimeline, SensorSeries
+
+__all__ = ["read_ulog", "calibrated_topics", "CalibratedTopic", "MAV_AUTOPILOT_PX4", "NO_RAW_TOPICS"]
+
+log = logging.getLogger(__name__)
+
+MAV_AUTOPILOT_PX4 = 12
+#: how the refusal of a log without raw sensor topics begins
+NO_RAW_TOPICS = "no raw sensor_accel/sensor_mag topics"
+
+_RAW = (("sensor_accel", "accel", 1.0), ("sensor_gyro", "gyro", 1.0), ("sensor_mag", "mag", 1000.0))
+_GPS = ("vehicle_gps_position", "sensor_gps")
+
+
+def _load(path: str, topics: list[str]):
+    try:
+        from pyulog import ULog
+    except ImportError:  # pragma: no cover - a core dependency
+        raise SourceError("reading a PX4 .ulg log needs pyulog (pip install pyulog)") from None
+    try:
+        return ULog(path, message_name_filter_list=topics, disable_str_exceptions=True)
+    except (ValueError, IndexError, KeyError, TypeError, AssertionError, UnicodeDecodeError) as exc:
+        raise SourceError(f"cannot read {path}: not a ULog, or corrupt ({type(exc).__name__}: {exc})") from None
+
+
+def _times_s(d) -> np.ndarray:
+    t = d.data.get("timestamp_sample", d.data["timestamp"])
+    return np.asarray(t, dtype=np.float64) / 1e6
+
+
+def _vec(d, names: tuple[str, str, str]) -> np.ndarray:
+    return np.stack([np.asarray(d.data[n], dtype=np.float64) for n in names], axis=1)
+
+
+def _raw_series(ulog) -> list[SensorSeries]:
+    out = []
+    for topic, sensor, unit in _RAW:
+        for d in sorted((d for d in ulog.data_list if d.name == topic), key=lambda d: d.multi_id):
+            if not {"x", "y", "z", "timestamp"} <= set(d.data):
+                continue
+            t = _times_s(d)
+            order = np.argsort(t, kind="stable")
+            extra = {"device_id": np.asarray(d.data.get("device_id", np.zeros(len(t))), dtype=np.float64)[order]}
+            if "is_external" in d.data:
+                extra["is_external"] = np.asarray(d.data["is_external"], dtype=np.float64)[order]
+            vals = _vec(d, ("x", "y", "z"))[order] * unit
+            out.append(SensorSeries(sensor, int(d.multi_id), topic, t[order], vals, extra=extra))
+    return out
+
+
+def _params(ulog, t0: float) -> ParamTimeline:
+    changes: dict[str, tuple[list[float], list[float]]] = {}
+    for name, value in ulog.initial_parameters.items():
+        changes[name] = ([t0], [float(value)])
+    for ts, name, value in ulog.changed_parameters:
+        tl, vl = changes.setdefault(name, ([], []))
+        t = float(ts) / 1e6
+        if tl and t < tl[-1]:
+            t = tl[-1]
+        tl.append(t)
+        vl.append(float(value))
+    return ParamTimeline({n: (np.array(t, dtype=float), np.array(v, dtype=float)) for n, (t, v) in changes.items()})
+
+
+def _first_fix(d) -> tuple[float, float, float] | None:
+    data = d.data
+    if "latitude_deg" in data:
+        lat, lon = np.asarray(data["latitude_deg"], float), np.asarray(data["longitude_deg"], float)
+        alt = np.asarray(data.get("altitude_msl_m", np.zeros(len(lat))), float)
+    elif "lat" in data and np.asarray(data["lat"]).dtype.kind in "iu":  # older GPS topics: 1e-7 deg, mm
+        lat, lon = np.asarray(data["lat"], float) / 1e7, np.asarray(data["lon"], float) / 1e7
+        alt = np.asarray(data.get("alt", np.zeros(len(lat))), float) / 1e3
+    elif "lat" in data:  # home_position, vehicle_global_position: degrees, metres
+        lat, lon = np.asarray(data["lat"], float), np.asarray(data["lon"], float)
+        alt = np.asarray(data.get("alt", np.zeros(len(lat))), float)
+    else:
+        return None
+    ok = np.isfinite(lat) & np.isfinite(lon) & ((lat != 0) | (lon != 0)) & (np.abs(lat) <= 90)
+    if "fix_type" in data:
+        ok &= np.asarray(data["fix_type"]) >= 3
+    if "valid_hpos" in data:
+        ok &= np.asarray(data["valid_hpos"]) != 0
+    k = np.flatnonzero(ok)
+    if not len(k):
+        return None
+    i = int(k[0])
+    return (float(lat[i]), float(lon[i]), float(alt[i]))
+
+
+def _position(ulog) -> tuple[float, float, float] | None:
+    by_name: dict[str, list] = {}
+    for d in ulog.data_list:
+        by_name.setdefault(d.name, []).append(d)
+    for name in (*_GPS, "home_position", "vehicle_global_position"):
+        for d in by_name.get(name, []):
+            p = _first_fix(d)
+            if p is not None:
+                return p
+    return None
+
+
+def _vehicle(ulog) -> dict[str, object]:
+    info = ulog.msg_info_dict
+    v: dict[str, object] = {"autopilot": MAV_AUTOPILOT_PX4, "firmware": "PX4"}
+    for key, name in (("ver_hw", "hardware"), ("ver_sw", "git_hash"), ("sys_name", "system")):
+        if key in info:
+            v[name] = str(info[key])
+    return v
+
+
+def read_ulog(path: str) -> ImuLog:
+    """Read the raw sensor topics, the parameters and the position of a PX4 ULog.
+
+    Raises
+    ------
+    SourceError
+        Not a ULog or corrupt, or no raw ``sensor_accel`` topic (the one-line message says what
+        the log holds and what to change on the vehicle).
+    """
+    topics = [t for t, _, _ in _RAW] + list(_GPS) + ["home_position", "vehicle_global_position", "sensor_combined"]
+    ulog = _load(path, topics)
+    series = _raw_series(ulog)
+    if not any(s.sensor == "accel" and len(s) for s in series):
+        held = "only the calibrated, averaged sensor_combined" if any(
+            d.name == "sensor_combined" for d in ulog.data_list) else "no IMU topic"
+        raise SourceError(f"{path}: {NO_RAW_TOPICS} (this PX4 log holds {held}); log them with SDLOG_PROFILE "
+                          "bit 2 (high rate) or 3 (debug) set, and hold the still poses while armed or with "
+                          "SDLOG_MODE logging from boot")
+    t0 = min(float(s.time_s[0]) for s in series if len(s))
+    warnings = []
+    for s in series:
+        rate = len(s) / max(float(s.time_s[-1] - s.time_s[0]), 1e-9) if len(s) > 1 else 0.0
+        if rate < 5.0:
+            warnings.append(f"{s.message} {s.instance} logged at {rate:.2g} Hz (PX4's default profile): too slow "
+                            "for still intervals; raise SDLOG_PROFILE")
+            break
+    ignored = getattr(ulog, "dropouts", None)
+    if ignored:
+        warnings.append(f"the log has {len(ignored)} dropouts (messages lost while logging)")
+    return ImuLog(source=str(path), kind="ulog", series=tuple(series), params=_params(ulog, t0),
+                  position=_position(ulog), vehicle=_vehicle(ulog), warnings=tuple(warnings))
+
+
+@dataclass(frozen=True, eq=False)
+class CalibratedTopic:
+    """PX4's own calibrated output (body frame): ``values`` m/s^2 or mGauss, ``time_s``,
+    ``device_id`` (per sample, 0 when the topic does not carry it), ``window_s`` (per sample: the
+    span the value averages, 0 when it is one filtered sample)."""
+
+    topic: str
+    instance: int
+    sensor: str
+    time_s: np.ndarray
+    values: np.ndarray
+    device_id: np.ndarray
+    window_s: np.ndarray
+
+
+def calibrated_topics(path: str) -> list[CalibratedTopic]:
+    """``vehicle_acceleration`` (filtered accel), ``vehicle_magnetometer`` (averaged mag) and the
+    ``vehicle_imu`` velocity increments as mean accelerations (Delta v / dt over ``window_s``) of a
+    ULog: PX4's calibrated, rotated readings."""
+    ulog = _load(path, ["vehicle_acceleration", "vehicle_magnetometer", "vehicle_imu"])
+    out = []
+    for d in ulog.data_list:
+        data: Mapping[str, np.ndarray] = d.data
+        t = _times_s(d)
+        n = len(t)
+        if d.name == "vehicle_acceleration" and "xyz[0]" in data:
+            out.append(CalibratedTopic(d.name, d.multi_id, "accel", t, _vec(d, ("xyz[0]", "xyz[1]", "xyz[2]")),
+                                       np.zeros(n), np.zeros(n)))
+        elif d.name == "vehicle_magnetometer" and "magnetometer_ga[0]" in data:
+            dev = np.asarray(data.get("device_id", np.zeros(n)), dtype=np.float64)
+            v = _vec(d, ("magnetometer_ga[0]", "magnetometer_ga[1]", "magnetometer_ga[2]")) * 1000.0
+            out.append(CalibratedTopic(d.name, d.multi_id, "mag", t, v, dev, np.zeros(n)))
+        elif d.name == "vehicle_imu" and "delta_velocity_dt" in data:
+            dt = np.asarray(data["delta_velocity_dt"], dtype=np.float64) / 1e6
+            ok = dt > 0
+            dv = _vec(d, ("delta_velocity[0]", "delta_velocity[1]", "delta_velocity[2]"))
+            dev = np.asarray(data["accel_device_id"], dtype=np.float64)
+            out.append(CalibratedTopic(d.name, d.multi_id, "accel", t[ok], dv[ok] / dt[ok, None], dev[ok], dt[ok]))
+    return out

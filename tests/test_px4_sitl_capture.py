@@ -1,0 +1,144 @@
+"""End to end against PX4's own flight code: PX4 SITL in external-simulator mode (none_iris), posed by
+mavcal's poser (mavcal/testing/px4_poser.py) with random sensor errors and a wrong calibration in force.
+A guided ``mavcal capture --connect --write`` (a scripted hand follows its advice), and a plain
+``mavcal calibrate DEVICE --write``, record live, calibrate, write CAL_* through the safe writer; the values
+are read back from PX4, the INT32 device ids are intact, the written calibration is scored against the
+truth, and PX4's own calibrated output after the write (SCALED_IMU accelerometer, HIGHRES_IMU
+magnetometer) agrees with the poser's truth.
+
+In CI: one guided capture (seed 1, ~55 s: the poses are held in real time) and one live calibration
+(seed 2, ~65 s); ``MAVCAL_PX4_SEEDS=1,2,3`` runs more guided captures."""
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from mavcal.testing.px4_sim import random_truth, truth_errors
+from mavcal.testing.simlog import DEFAULT_POSES_DEG
+
+pytestmark = [pytest.mark.sitl, pytest.mark.slow]
+
+SEEDS = [int(s) for s in os.environ.get("MAVCAL_PX4_SEEDS", "1").split(",")]
+#: PX4 must not learn compass biases of its own during the test (see test_px4_sitl.py)
+QUIET = {"EKF2_MAG_TYPE": 5, "MBE_ENABLE": 0, "SENS_MAG_AUTOCAL": 0}
+HOLD_S, MOVE_S = 2.5, 1.0
+
+
+def _pose_forever(poser, stop: threading.Event) -> None:
+    while not stop.is_set():
+        for p in DEFAULT_POSES_DEG:
+            if stop.is_set():
+                return
+            poser.turn_to(*p, MOVE_S)
+            stop.wait(HOLD_S)
+
+
+def _px4_output(link, poser, poses) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """(SCALED_IMU accel m/s^2, HIGHRES_IMU mag mGauss, true f_body, true B_body) per pose, 2 s means."""
+    from mavcal.link.streams import PX4_STREAM_MESSAGES, start_streams
+
+    start_streams(link, 50.0, message_ids=tuple(PX4_STREAM_MESSAGES.values()))
+    out = []
+    for p in poses:
+        poser.turn_to(*p, MOVE_S)
+        link.pump(0.5)
+        acc: list = []
+        mag: list = []
+        tokens = [link.add_handler("SCALED_IMU", lambda m, acc=acc: acc.append([m.xacc, m.yacc, m.zacc])),
+                  link.add_handler("HIGHRES_IMU", lambda m, mag=mag: mag.append([m.xmag, m.ymag, m.zmag]))]
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end:
+            link.pump(0.05)
+        for t in tokens:
+            link.remove_handler(t)
+        f, B = poser.truth_body()
+        out.append((np.mean(acc, axis=0) * 9.80665 / 1000, np.mean(mag, axis=0) * 1000, f, B))
+    return out
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+def _calibrate_device(px4, poser, tmp_path) -> tuple[int, dict]:
+    """``mavcal calibrate DEVICE --write`` (in-process, in the namespace) while a hand turns the vehicle
+    through the poses again and again."""
+    from mavcal.cli import main
+
+    stop = threading.Event()
+    hand = threading.Thread(target=_pose_forever, args=(poser, stop), daemon=True)
+    hand.start()
+    report = tmp_path / "run.json"
+    try:
+        with px4.netns():
+            rc = main(["calibrate", px4.device, "--duration", "46", "--write", "--yes",
+                       "--backup", str(tmp_path / "backup.param"), "--json", str(report)])
+    finally:
+        stop.set()
+        hand.join(timeout=10)
+    return rc, json.loads(report.read_text()) if report.exists() else {}
+
+
+def _guided_capture(px4, poser, tmp_path, seed: int) -> tuple[int, dict]:
+    """``mavcal capture --connect DEVICE --write --yes`` with a scripted hand following its advice."""
+    from mavcal.testing.px4_poser import PosedPx4
+    from mavcal.testing.sitl_hand import run_guided_capture
+
+    g = run_guided_capture(PosedPx4(px4, poser), tmp_path, return_prob=0.0, seed=seed, timeout_s=150)
+    report = tmp_path / "run.json"
+    return g.rc, json.loads(report.read_text()) if report.exists() else {}
+
+
+#: (how, seed): a guided capture (the page's advice followed by a hand) and a plain live calibration
+CASES = [("capture", s) for s in SEEDS] + [("calibrate", SEEDS[0] + 1)]
+
+
+@pytest.mark.parametrize("how, seed", CASES)
+def test_live_calibration_of_px4_is_written_and_px4_agrees_with_the_truth(how, seed, tmp_path):
+    from mavcal.link.connection import open_link
+    from mavcal.link.params import fetch_all_params
+    from mavcal.px4.params import accel_names, mag_names
+    from mavcal.testing.px4_poser import Poser
+    from mavcal.testing.px4_sitl import Px4Sitl, require_px4
+
+    require_px4()
+    truth = random_truth(seed)
+    boot = {k: v for k, v in truth.params.items() if k not in mag_names(0)["custom"]}
+    holder: dict = {}
+    with Px4Sitl(sim_model="none_iris", params={**boot, **QUIET},
+                 before_boot=lambda: holder.setdefault("poser", Poser(truth, seed=seed).start())) as px4:
+        poser = holder["poser"]
+        try:
+            rc, run = (_guided_capture(px4, poser, tmp_path, seed) if how == "capture"
+                       else _calibrate_device(px4, poser, tmp_path))
+            assert rc == 0, (rc, run.get("sensors"), run.get("warnings"), px4.log_tail(400))
+            assert {s["sensor"] for s in run["sensors"] if s["accepted"]} == {"accel0", "compass0"}
+            written = {n: v["new"] for n, v in run["parameters"].items()}
+            assert all(v["written"] for v in run["parameters"].values() if v["changed"])
+            err = truth_errors(truth, written)
+            assert err["heading_deg"] <= 0.2 and err["tilt_deg"] <= 0.05, err
+            assert err["mag_offset_gauss"] <= 0.001, err
+            with px4.netns():
+                link = open_link(px4.device)
+            try:
+                table = fetch_all_params(link, timeout_s=20)
+                for n, v in written.items():  # read back from the vehicle (float32 on the wire)
+                    assert table[n][0] == pytest.approx(v, rel=1e-6, abs=1e-7), n
+                assert table[accel_names(0)["id"]] == (truth.accel_id, 6)  # INT32 device ids intact
+                assert table[mag_names(0)["id"]] == (truth.mag_id, 6)
+                # PX4's own calibrated output after the write, against the poser's truth
+                for acc, mag, f, B in _px4_output(link, poser, [(0, 0, 0), (30, -20, 120), (-60, 40, 250)]):
+                    print(f"{how} seed {seed}: PX4 after the write: accel {_angle_deg(acc, f):.4f} deg, "
+                          f"{np.linalg.norm(acc) - np.linalg.norm(f):+.4f} m/s^2; mag {_angle_deg(mag, B):.4f} deg; "
+                          f"written: {err}")
+                    assert _angle_deg(acc, f) <= 0.05 and abs(np.linalg.norm(acc) - np.linalg.norm(f)) <= 0.02
+                    assert _angle_deg(mag, B) <= 0.2, (mag, B)
+            finally:
+                link.close()
+        finally:
+            poser.stop()
