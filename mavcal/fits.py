@@ -132,12 +132,22 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     accels, fits, accel_gates = _judge_accels(prep, opts, [primary] + others,
                                               [(a, got["accel", j]) for j, a in enumerate(insts)], warnings)
     report(progress, STAGE_FIT, n, n)
+    accels, kept = _within_reach_parts(reach, primary, compass_runs, accels)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
-    kept = () if reach is None else tuple(k for r in compass_runs for k in r.kept if k.sensor.startswith("compass")) \
-        + tuple(k for k in primary.kept if k.sensor.startswith("accel"))
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits), kept=kept)
+
+
+def _within_reach_parts(reach: ReachCoverage | None, primary: CalibrationRun, compass_runs: list[CalibrationRun],
+                        accels: list[AccelMapping]):
+    """(accelerometer mappings, kept parameters) of a run: for poses within reach, the kept
+    accelerometer (no parameter to write) and every compass's and accelerometer's kept parameters."""
+    if reach is None:
+        return accels, ()
+    kept = tuple(k for r in compass_runs for k in r.kept if k.sensor.startswith("compass")) \
+        + tuple(k for k in primary.kept if k.sensor.startswith("accel"))
+    return [primary.mapping.accel[0]], kept
 
 
 def _died_gate(sensor: str, exc: WorkerDiedError) -> gates_mod.Gate:
@@ -518,8 +528,9 @@ def _fit_pair(prep: Prepared, opts: Options, stats: _StatsCache) -> _PairFit:
                               allow_custom=opts.allow_custom, force_external=opts.force_external)
     if reach is not None:  # the accelerometer keeps its values, exactly (the fit held them)
         am = mapping.accel[0]
-        mapping = replace(mapping, accel=(replace(am, new=am.old, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)),
-                                                  dropped_tilt_deg=0.0, dropped_magnitude_mps2=0.0),))
+        am = replace(am, new=am.old, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
+                     dropped_magnitude_mps2=0.0, kept=True)
+        mapping = combine([am], mapping.compass, params_now, mapping.notes)
     return _PairFit(used, cal, mapping, params_now, warnings, reach)
 
 

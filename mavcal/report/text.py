@@ -145,7 +145,7 @@ def kept_lines(run) -> list[str]:
     for k in kept:
         by.setdefault(k.sensor, []).append(k)
     for sensor, ks in by.items():
-        whole = not any(sensor in s for s in run.mapping.by_sensor())
+        whole = not run.mapping.by_sensor().get(sensor)
         out.append(f"{sensor}: kept at its current calibration, nothing written" if whole else f"{sensor}: kept:")
         out += [f"    {k.what} kept: {k.why}; would need {k.pose}" for k in ks]
     return out
