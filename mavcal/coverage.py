@@ -199,8 +199,10 @@ REACH_MIN_TILT_DEG = 3.0
 #: the attitudes a vehicle that cannot be turned over flies (a heavy multirotor or VTOL, a rover, a boat):
 #: roll and pitch up to this, every heading; its heading and tilt bounds are over these
 REACH_FLOWN_TILT_DEG = 15.0
-#: distinct field directions (20 deg clusters) the headings must give: about 6 headings 60 deg apart
+#: distinct headings (clusters :data:`REACH_HEADING_DEG` apart on the circle the compass means
+#: trace as the vehicle turns) the poses must hold: about 6 headings 60 deg apart
 REACH_MIN_FIELD_DIRECTIONS = 5
+REACH_HEADING_DEG = 40.0
 
 _BEYOND = "the vehicle on its side (gravity along X or Y) or upside down: the full capture without --max-tilt"
 
@@ -241,8 +243,8 @@ class ReachCoverage:
         """The verdict in words, one line per fact (empty when the rule does not apply)."""
         if not self.applies:
             return []
-        head = (f"poses within reach: tilts up to {self.max_tilt_deg:.1f} deg, {self.n_field_directions} field "
-                "direction(s): ")
+        head = (f"poses within reach: tilts up to {self.max_tilt_deg:.1f} deg, {self.n_field_directions} distinct "
+                "heading(s): ")
         if self.compass_identified:
             out = [head + "the compass's offsets and soft-iron terms are identified (fitted with the "
                    "accelerometer held)"]
@@ -265,6 +267,27 @@ def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
     ]
 
 
+def _headings(mag_means: np.ndarray) -> int:
+    """Distinct headings among (N, 3) raw compass means of poses near level: the means lie near
+    a circle (the field turning with the heading); their angles about its centre (an algebraic
+    circle fit in the plane of their two largest spreads) in clusters :data:`REACH_HEADING_DEG`
+    apart. (The sphere of :func:`field_directions` is not determined by points near a circle.)"""
+    M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
+    M = M[np.isfinite(M).all(axis=1)]
+    if M.shape[0] < 3:
+        return min(M.shape[0], 1)
+    c = M - M.mean(axis=0)
+    _, sv, Vt = np.linalg.svd(c, full_matrices=False)
+    if sv[0] <= 1e-9 * max(float(np.abs(M).max()), 1.0):
+        return 1
+    xy = c @ Vt[:2].T
+    A = np.c_[2.0 * xy, np.ones(len(xy))]
+    centre = np.linalg.lstsq(A, (xy ** 2).sum(axis=1), rcond=None)[0][:2]
+    d = xy - centre
+    d = np.c_[d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None], np.zeros(len(d))]
+    return count_clusters(d, REACH_HEADING_DEG)
+
+
 def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequence[str] = ("accel0",),
                    compass: str = "compass0", rule: CoverageRule = CoverageRule()) -> ReachCoverage:
     """The rule for poses within reach: the (N, 3) unit gravity directions (body frame, level
@@ -275,12 +298,11 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
         return ReachCoverage(False, float("nan"), 0, False)
     tilt = float(np.degrees(np.arccos(np.clip(g[:, 2], -1.0, 1.0))).max())
     applies = tilt <= REACH_MAX_TILT_DEG and not accel_coverage("accel", g, rule).identifiable
-    f = field_directions(mag_means)
-    n_f = count_clusters(f, rule.cluster_deg) if f.shape[0] else 0
+    n_f = _headings(mag_means)
     missing = []
     add = ""
     if n_f < REACH_MIN_FIELD_DIRECTIONS:
-        missing.append(f"only {n_f} distinct field direction(s), at least {REACH_MIN_FIELD_DIRECTIONS} needed "
+        missing.append(f"only {n_f} distinct heading(s), at least {REACH_MIN_FIELD_DIRECTIONS} needed "
                        "(too few headings)")
         add = "turn the vehicle to more headings (about 60 deg apart, all the way round)"
     if tilt < REACH_MIN_TILT_DEG:

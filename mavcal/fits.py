@@ -589,8 +589,8 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     # b_a[z] is fitted, not held: only K_a[33] + b_a[z] (the level reading) is identified, and a held pair that
     # misses it by more than the noise would be a misfit of the whole cost; it is kept all the same (not written)
     held = [f"K_a[{j}{j}]" for j in (1, 2, 3)] + ["b_a[x]", "b_a[y]"]
-    why = (f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} field "
-           "directions): the accelerometer held at its current calibration, ")
+    why = (f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} distinct "
+           "headings): the accelerometer held at its current calibration, ")
     cal = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, calibrated, None),
                          reason=why + "the field dip estimated from the tilts")
     loc = opts.location or prep.log.position
