@@ -31,6 +31,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mavcal.core.held import relaxed_headings, tilts_of
+from mavcal.errors import MavcalError
 from mavcal.segment import Segmentation, axis_label, count_clusters
 
 __all__ = ["CoverageRule", "SensorCoverage", "accel_coverage", "compass_coverage", "sensor_coverages",
@@ -267,25 +269,23 @@ def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
     ]
 
 
-def _headings(mag_means: np.ndarray) -> int:
-    """Distinct headings among (N, 3) raw compass means of poses near level: the means lie near
-    a circle (the field turning with the heading); their angles about its centre (an algebraic
-    circle fit in the plane of their two largest spreads) in clusters :data:`REACH_HEADING_DEG`
-    apart. (The sphere of :func:`field_directions` is not determined by points near a circle.)"""
+def _headings(gravity_dirs: np.ndarray, mag_means: np.ndarray) -> int:
+    """Distinct headings among poses near level: each pose's heading from the compass means and
+    the tilts the gravity directions give (:func:`mavcal.core.held.relaxed_headings`, the linear
+    relaxation of the compass model), in clusters :data:`REACH_HEADING_DEG` apart. (The sphere of
+    :func:`field_directions` is not determined by means near a circle, and a tilt moves the
+    vertical field into the horizontal readings as much as a heading does.)"""
+    g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
     M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
-    M = M[np.isfinite(M).all(axis=1)]
-    if M.shape[0] < 3:
-        return min(M.shape[0], 1)
-    c = M - M.mean(axis=0)
-    _, sv, Vt = np.linalg.svd(c, full_matrices=False)
-    if sv[0] <= 1e-9 * max(float(np.abs(M).max()), 1.0):
+    ok = np.isfinite(g).all(axis=1) & np.isfinite(M).all(axis=1)
+    g, M = g[ok], M[ok]
+    if g.shape[0] < 4:
+        return min(g.shape[0], 1)
+    try:
+        psi = relaxed_headings(tilts_of(-g), M)[0]  # FRD gravity points down; the specific force up
+    except (MavcalError, np.linalg.LinAlgError):
         return 1
-    xy = c @ Vt[:2].T
-    A = np.c_[2.0 * xy, np.ones(len(xy))]
-    centre = np.linalg.lstsq(A, (xy ** 2).sum(axis=1), rcond=None)[0][:2]
-    d = xy - centre
-    d = np.c_[d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None], np.zeros(len(d))]
-    return count_clusters(d, REACH_HEADING_DEG)
+    return count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
 
 
 def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequence[str] = ("accel0",),
@@ -298,7 +298,7 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
         return ReachCoverage(False, float("nan"), 0, False)
     tilt = float(np.degrees(np.arccos(np.clip(g[:, 2], -1.0, 1.0))).max())
     applies = tilt <= REACH_MAX_TILT_DEG and not accel_coverage("accel", g, rule).identifiable
-    n_f = _headings(mag_means)
+    n_f = _headings(gravity_dirs, mag_means)
     missing = []
     add = ""
     if n_f < REACH_MIN_FIELD_DIRECTIONS:

@@ -200,7 +200,7 @@ def reach_plan(max_tilt_deg: float) -> list[tuple[float, float, float]]:
 
 #: poses within reach: a compass bound that fell by less than this fraction over this many new
 #: intervals is at the floor set by the kept accelerometer (CaptureSession._reach_floor)
-REACH_PLATEAU = 0.05
+REACH_PLATEAU = 0.10
 REACH_PLATEAU_POSES = 3
 
 # the plan before the first fit (and until PLAN_FIRST intervals): six faces, then two diagonals
@@ -688,6 +688,10 @@ class CaptureSession:
         pa, pm = predicted_means(self._run, poses)
         mu_a = np.array([r[0] for r in rec])
         mu_m = np.array([r[1] for r in rec])
+        if self.config.max_tilt_deg is not None:  # poses within reach: every accel mean is near level, and a
+            cal = self._run.calibration  # large hard iron makes raw compass means alike: compare the field itself
+            assert cal is not None
+            pm, mu_m = (np.linalg.solve(cal.mag.gain, (x - cal.mag.bias).T).T for x in (pm, mu_m))
         cos_r = np.cos(np.radians(self.config.repeat_deg))
 
         def cos(x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -36,9 +36,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from mavcal.core.certify import certificate
+from mavcal.core.certify import SAMPLE_COST, certificate
 from mavcal.core.initial import G_UNIT
-from mavcal.core.misfit import INFLATE_P, joint_terms, misfit_p
+from mavcal.core.misfit import INFLATE_P, REWEIGHT_P, cost_name, inflation, joint_terms, misfit_factors, misfit_p
 from mavcal.core.models import MODELS
 from mavcal.core.refine import (
     JointParams,
@@ -52,11 +52,12 @@ from mavcal.core.stats import IntervalStats, chi2_sf
 from mavcal.core.types import Calibration, SensorModel
 from mavcal.errors import EstimationError, InsufficientDataError
 
-__all__ = ["HeldProblem", "calibrate_held", "held_covariance", "HELD_MODEL", "WEAK_P"]
+__all__ = ["HeldProblem", "calibrate_held", "held_covariance", "relaxed_headings", "tilts_of", "HELD_MODEL", "WEAK_P"]
 
 HELD_MODEL = "ardupilot"  # diagonal K_a (ArduPilot's INS_ACC*), symmetric K_m (COMPASS_DIA/ODI)
 WEAK_P = 1e-3  # a single start with a chi2 p-value below this is not trusted (as the full fit's search)
 WEAK_DOF = 6  # ... nor one with fewer degrees of freedom
+REWEIGHT_ROUNDS = 6  # refits at most once the noise model is rejected (as mavcal.core.calibrate)
 
 
 class HeldProblem(JointProblem):
@@ -103,27 +104,29 @@ def _rotz(phi: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _tilts(a: IntervalStats, K_a: np.ndarray, b_a: np.ndarray) -> np.ndarray:
-    """T_i with T_i g = the gravity direction the held accelerometer model gives interval i."""
-    u = np.linalg.solve(K_a, (a.mu - b_a).T).T
-    u /= np.linalg.norm(u, axis=1)[:, None]
+def tilts_of(u: np.ndarray) -> np.ndarray:
+    """T_i with T_i g = u_i for unit specific-force directions ``u`` (N, 3) in the body frame
+    (g = [0, 0, -1]: level is (0, 0, -1)); InsufficientDataError when a pose is upside down."""
+    u = np.asarray(u, dtype=float).reshape(-1, 3)
+    u = u / np.linalg.norm(u, axis=1)[:, None]
     if np.any(u @ G_UNIT < 0.0):
         raise InsufficientDataError("a still interval is upside down for the held accelerometer model: "
                                     "the fit of poses within reach needs the vehicle upright")
     return np.array([_rotation_from_to(G_UNIT, ui) for ui in u])
 
 
-def _start(a: IntervalStats, m: IntervalStats, K_a, b_a, h_z: float | None) -> JointParams:
-    """A start in closed form: K_m = s I, the headings from the linear relaxation
-    mu_m[i] = T_i [c_i, d_i, u] + b (c_i = s cos psi_i, d_i = s sin psi_i, u = s h_z) of the
-    model with the tilts T_i of the held accelerometer (Eq. ``sensor_reading_model``)."""
-    T = _tilts(a, K_a, b_a)
+def relaxed_headings(T: np.ndarray, mag_means: np.ndarray, h_z: float | None = None
+                     ) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """The linear relaxation of the compass model (Eq. ``sensor_reading_model`` with K_m = s I)
+    given each pose's tilt T_i: mu_m[i] = T_i [c_i, d_i, u] + b (c_i = s cos psi_i, d_i = s sin
+    psi_i, u = s h_z), solved by least squares (u fixed at s h_z when ``h_z`` is given). Returns
+    (headings psi_i (N,), s, b (3,), h_z)."""
+    M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
     N = T.shape[0]
 
     def solve(u_known: float | None):
-        cols = 2 * N + 3 + (0 if u_known is not None else 1)
-        A = np.zeros((3 * N, cols))
-        y = m.mu.reshape(-1).copy()
+        A = np.zeros((3 * N, 2 * N + 3 + (0 if u_known is not None else 1)))
+        y = M.reshape(-1).copy()
         for i in range(N):
             A[3 * i:3 * i + 3, 2 * i] = T[i][:, 0]
             A[3 * i:3 * i + 3, 2 * i + 1] = T[i][:, 1]
@@ -144,8 +147,15 @@ def _start(a: IntervalStats, m: IntervalStats, K_a, b_a, h_z: float | None) -> J
     if h_z is not None:
         x = solve(s * hz)
         cd = x[:2 * N].reshape(N, 2)
-    b_m = x[2 * N:2 * N + 3]
-    R = np.array([T[i] @ _rotz(float(np.arctan2(cd[i, 1], cd[i, 0]))) for i in range(N)])
+    return np.arctan2(cd[:, 1], cd[:, 0]), s, x[2 * N:2 * N + 3], hz
+
+
+def _start(a: IntervalStats, m: IntervalStats, K_a, b_a, h_z: float | None) -> JointParams:
+    """A start in closed form: K_m = s I and the headings of :func:`relaxed_headings` with the
+    tilts of the held accelerometer."""
+    T = tilts_of(np.linalg.solve(K_a, (a.mu - b_a).T).T)
+    psi, s, b_m, hz = relaxed_headings(T, m.mu, h_z)
+    R = np.array([T[i] @ _rotz(float(psi[i])) for i in range(T.shape[0])])
     return JointParams((np.asarray(K_a, float), s * np.eye(3)), (np.asarray(b_a, float), b_m), hz, R)
 
 
@@ -198,38 +208,83 @@ def calibrate_held(a: IntervalStats, m: IntervalStats, K_a: np.ndarray, b_a: np.
         raise EstimationError(f"unknown parameter(s) to hold: {', '.join(unknown)}")
     p0 = _start(a, m, K_a, b_a, h_z if "h_z" in held else None)
     free = np.array([n not in held for n in full.names])
-    prob = HeldProblem(terms, free, full.pack(p0))
+    values = full.pack(p0)
+    prob = HeldProblem(terms, free, values)
     if 3 * a.mu.shape[0] < prob.P:
         raise InsufficientDataError(f"{a.mu.shape[0]} still intervals cannot identify the {prob.P} free parameters "
                                     f"(3N >= {prob.P} needed); add poses at new headings")
-    res = prob.solve(p0, max_iter=max_iter)
+    fits = [prob.solve(q, max_iter=max_iter) for q in _starts(p0)]
+    # the proper branch: with the accelerometer's frame held, det K_m < 0 is a mirrored compass (its twin
+    # (K_m D, -h_z), D = diag(1, 1, -1), predicts nearly the same readings when the tilts are small)
+    fits = [r for r in fits if np.linalg.det(r.params.gains[1]) > 0] or fits
+    res = min(fits, key=lambda r: r.cost)
+    costs = (float(res.cost),) + tuple(float(r.cost) for r in fits if r is not res)
     if res.cov is None:
         raise InsufficientDataError("the poses do not identify the compass parameters fitted (singular Fisher "
                                     "information); turn the vehicle to more headings and tilt it a little")
+    agree = sum(1 for c in costs if abs(c - costs[0]) <= 1e-7 * max(costs[0], 1e-300))
     note = ""
-    if res.dof < WEAK_DOF or (res.dof > 0 and chi2_sf(res.cost, res.dof) < WEAK_P):
-        note = (f"one start, chi2/dof = {res.cost / max(res.dof, 1):.3g} on {res.dof} degrees of freedom: "
-                "a wrong basin cannot be ruled out")
-    cert = certificate(prob, res.params, res.cost, (float(res.cost),), note)
+    if res.dof < WEAK_DOF or (chi2_sf(res.cost, res.dof) < WEAK_P and agree < 2):
+        note = (f"chi2/dof = {res.cost / max(res.dof, 1):.3g} on {res.dof} degrees of freedom, {agree} of "
+                f"{len(costs)} starts reached it: a wrong basin cannot be ruled out")
+    res, prob, Sa, Sm, evidence = _reweight(res, prob, spec, a, m, free, values)
+    name = cost_name(Sa, Sm, a, m)
+    cert = certificate(prob, res.params, res.cost, costs, note, cost_name=name, start_cost_name=SAMPLE_COST)
     scale = (max(1.0, res.cost / res.dof) if res.dof > 0 and misfit_p(res.cost, res.dof, a, m) <= INFLATE_P
              else 1.0)
     sd = np.array([float(prior_sd.get(n, 0.0)) for n in full.names])
     cov = held_covariance(prob, res.params, sd, scale)
-    return _calibration(res, full, cov, cert, a, m, tuple(held), reason)
+    if evidence:
+        reason += (f"; {evidence}: the readings scatter more than their noise (motion in the intervals or magnetic "
+                   f"disturbance?), so the returned point is the optimum of {name}")
+    return _calibration(res, full, cov, cert, (Sa, Sm), a, m, tuple(held), reason)
 
 
-def _calibration(res: RefineResult, full: JointProblem, cov, cert, a: IntervalStats, m: IntervalStats,
-                 held: tuple[str, ...], reason: str) -> Calibration:
+def _starts(p0: JointParams) -> list[JointParams]:
+    """The closed-form start and the same with every heading turned by 90, 180 and 270 deg: the
+    costs they reach tell the optimum's basin from another (the headings are the cost's
+    non-convex part once the held accelerometer fixes the tilts)."""
+    return [p0] + [JointParams(p0.gains, p0.biases, p0.h_z, p0.R @ _rotz(k * np.pi / 2.0)) for k in (1, 2, 3)]
+
+
+def _reweight(res: RefineResult, prob: HeldProblem, spec, a: IntervalStats, m: IntervalStats, free: np.ndarray,
+              values: np.ndarray):
+    """Each sensor's noise covariance inflated by its misfit and the fit repeated, only while J'
+    rejects the noise model at p < ``REWEIGHT_P`` (the rule and the factors of
+    :func:`mavcal.core.calibrate._reweight`, :mod:`mavcal.core.misfit`). Returns (result,
+    problem, Sigma_a, Sigma_m, the evidence in words or "")."""
+    Sa, Sm = a.sigma_hat, m.sigma_hat
+    evidence = ""
+    for _ in range(REWEIGHT_ROUNDS):
+        if res.dof <= 0:
+            break
+        p = misfit_p(res.cost, res.dof, a, m)
+        if p >= REWEIGHT_P:
+            break
+        fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
+        if fa == 1.0 and fm == 1.0:
+            break
+        evidence = evidence or f"J' was {res.cost:.6g} on {res.dof} dof, p={p:.3g} < {REWEIGHT_P:g}"
+        Sa, Sm = Sa * fa, Sm * fm
+        prob = HeldProblem(joint_terms(spec, a, m, Sa, Sm), free, values)
+        res = prob.solve(res.params, max_iter=200)
+    return res, prob, Sa, Sm, evidence
+
+
+def _calibration(res: RefineResult, full: JointProblem, cov, cert, S: tuple[np.ndarray, np.ndarray],
+                 a: IntervalStats, m: IntervalStats, held: tuple[str, ...], reason: str) -> Calibration:
     p = res.params
+    Sa, Sm = S
     converged = bool(res.converged and cert.certified)
     msg = (f"{HELD_MODEL} model with {', '.join(held)} held: J'={res.cost:.6g} after {res.iterations} "
            "refinement iterations" + ("" if res.converged else " (refinement did not reach its tolerance)"))
     if not cert.certified:
         msg += f"; not certified as the optimum: {cert.reason}"
     return Calibration(
-        accel=SensorModel(p.gains[0], p.biases[0], a.sigma_hat, "accel"),
-        mag=SensorModel(p.gains[1], p.biases[1], m.sigma_hat, "mag"),
+        accel=SensorModel(p.gains[0], p.biases[0], Sa, "accel"),
+        mag=SensorModel(p.gains[1], p.biases[1], Sm, "mag"),
         gravity=G_UNIT.copy(), field=np.array([1.0, 0.0, p.h_z]), orientations=p.R, cost=float(res.cost),
         iterations=int(res.iterations), converged=converged, message=msg, method="ncar", model=HELD_MODEL,
         model_reason=reason, param_names=full.names, param_cov=cov, n_accel=a.n, n_mag=m.n,
-        refine_iterations=int(res.iterations), dof=int(res.dof), certificate=cert, held=held)
+        refine_iterations=int(res.iterations), dof=int(res.dof), certificate=cert, held=held,
+        noise_inflation=(inflation(Sa, a), inflation(Sm, m)), cost_name=cost_name(Sa, Sm, a, m))
