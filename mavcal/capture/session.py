@@ -121,6 +121,10 @@ def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarra
     return euler_to_matrix(*np.radians([roll_deg, pitch_deg, yaw_deg]))
 
 
+#: tilts from this size on are said in words ("nose up 5 deg"): a pose within reach may be tilted only a few deg
+SMALL_TILT_DEG = 2.5
+SMALL_TILT_COS = float(np.cos(np.radians(SMALL_TILT_DEG)))
+
 _POINTS = ["north", "north-east", "east", "south-east", "south", "south-west", "west", "north-west"]
 
 
@@ -131,7 +135,7 @@ def describe_pose(roll_deg: float, pitch_deg: float, yaw_deg: float) -> str:
     parts: list[str] = []
     ax = int(np.argmax(np.abs(down_b)))
     if ax == 2 and down_b[2] > 0.7:
-        parts.append("level" if down_b[2] > 0.97 else "upright")
+        parts.append("level" if down_b[2] > SMALL_TILT_COS else "upright")
     elif ax == 2 and down_b[2] < -0.7:
         parts.append("upside down")
     elif ax == 0 and abs(down_b[0]) > 0.7:
@@ -142,9 +146,9 @@ def describe_pose(roll_deg: float, pitch_deg: float, yaw_deg: float) -> str:
     pitch = float(pitch_deg)
     roll = float((roll_deg + 180) % 360 - 180)
     if "nose" not in parts[0] if parts else True:
-        if 10 <= abs(pitch) < 80:
+        if SMALL_TILT_DEG <= abs(pitch) < 80:
             parts.append(f"nose {'up' if pitch > 0 else 'down'} {abs(pitch):.0f} deg")
-    if abs(pitch) < 80 and 10 <= abs(roll) <= 170 and "side" not in (parts[0] if parts else ""):
+    if abs(pitch) < 80 and SMALL_TILT_DEG <= abs(roll) <= 170 and "side" not in (parts[0] if parts else ""):
         parts.append(f"rolled {abs(roll):.0f} deg {'right' if roll > 0 else 'left'}")
     elif abs(pitch) >= 80 and 10 <= abs(roll) <= 170:
         parts.append(f"rolled {abs(roll):.0f} deg {'right' if roll > 0 else 'left'}")

@@ -137,17 +137,40 @@ def relaxed_headings(T: np.ndarray, mag_means: np.ndarray, h_z: float | None = N
                 y[3 * i:3 * i + 3] -= u_known * T[i][:, 2]
         return np.linalg.lstsq(A, y, rcond=None)[0]
 
-    x = solve(None)
+    def scale(x: np.ndarray) -> float:
+        v = float(np.median(np.linalg.norm(x[:2 * N].reshape(N, 2), axis=1)))
+        if not np.isfinite(v) or v <= 0:
+            raise EstimationError("the compass readings do not turn with the heading (constant data?); "
+                                  "turn the vehicle to new headings")
+        return v
+
+    if h_z is None:  # the dip: at small tilts u is nearly confounded with b_z, so it is scanned, not solved for
+        best: tuple[float, np.ndarray, float] | None = None
+        for incl in range(-80, 81, 10):
+            hz_k = float(np.tan(np.radians(incl)))
+            x = solve(None)
+            for _ in range(2):  # u = s h_z with the scale of the previous solve
+                x = solve(scale(x) * hz_k)
+            s_k = scale(x)
+            A_res = M.reshape(-1) - _relaxed_prediction(T, x, s_k * hz_k)
+            r = float(A_res @ A_res)
+            if best is None or r < best[0]:
+                best = (r, x, hz_k)
+        assert best is not None
+        _, x, hz = best
+    else:
+        hz = float(h_z)
+        x = solve(None)
+        x = solve(scale(x) * hz)
     cd = x[:2 * N].reshape(N, 2)
-    s = float(np.median(np.linalg.norm(cd, axis=1)))
-    if not np.isfinite(s) or s <= 0:
-        raise EstimationError("the compass readings do not turn with the heading (constant data?); "
-                              "turn the vehicle to new headings")
-    hz = float(x[-1] / s) if h_z is None else float(h_z)
-    if h_z is not None:
-        x = solve(s * hz)
-        cd = x[:2 * N].reshape(N, 2)
-    return np.arctan2(cd[:, 1], cd[:, 0]), s, x[2 * N:2 * N + 3], hz
+    return np.arctan2(cd[:, 1], cd[:, 0]), scale(x), x[2 * N:2 * N + 3], hz
+
+
+def _relaxed_prediction(T: np.ndarray, x: np.ndarray, u: float) -> np.ndarray:
+    """The readings (3N,) the relaxation's solution ``x`` (c_i, d_i, b) and ``u`` predict."""
+    N = T.shape[0]
+    cd = x[:2 * N].reshape(N, 2)
+    return (T[:, :, 0] * cd[:, :1] + T[:, :, 1] * cd[:, 1:] + T[:, :, 2] * u + x[2 * N:2 * N + 3]).reshape(-1)
 
 
 def _start(a: IntervalStats, m: IntervalStats, K_a, b_a, h_z: float | None) -> JointParams:
