@@ -283,9 +283,27 @@ def _headings(gravity_dirs: np.ndarray, mag_means: np.ndarray) -> int:
         return min(g.shape[0], 1)
     try:
         psi = relaxed_headings(tilts_of(-g), M)[0]  # FRD gravity points down; the specific force up
+        n_relaxed = count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
     except (MavcalError, np.linalg.LinAlgError):
+        n_relaxed = 1
+    return max(n_relaxed, _circle_headings(M))
+
+
+def _circle_headings(M: np.ndarray) -> int:
+    """Distinct headings of compass means near a circle: their angles about its centre (an algebraic
+    circle fit in the plane of their two largest spreads) in clusters :data:`REACH_HEADING_DEG`
+    apart. Right at the smallest tilts, where the relaxation of :func:`_headings` is least
+    determined; a tilt that moves the vertical field into the horizontal readings (15 deg and a
+    steep field) merges headings here, which the relaxation then separates."""
+    c = M - M.mean(axis=0)
+    _, sv, Vt = np.linalg.svd(c, full_matrices=False)
+    if sv[0] <= 1e-9 * max(float(np.abs(M).max()), 1.0):
         return 1
-    return count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
+    xy = c @ Vt[:2].T
+    centre = np.linalg.lstsq(np.c_[2.0 * xy, np.ones(len(xy))], (xy ** 2).sum(axis=1), rcond=None)[0][:2]
+    d = xy - centre
+    d = d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
+    return count_clusters(np.c_[d, np.zeros(len(d))], REACH_HEADING_DEG)
 
 
 def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequence[str] = ("accel0",),

@@ -132,3 +132,17 @@ def test_segments_says_per_parameter_what_the_poses_identify(small, capsys):
     assert {k["parameter"] for k in reach["kept"] if k["sensor"] == "accel0"} == {
         "Z scale", "Z offset", "X and Y offsets", "X and Y scales"}
     assert [s["identifiable"] for s in d["sensors"]] == [False, True]  # accel0 not, compass0 within reach
+
+
+def test_headings_counted_on_a_sitl_capture_at_5_deg():
+    """The 8 poses of a --max-tilt 5 capture on ArduPilot's SITL (its steep field, -65 deg): the
+    relaxation alone counted 3 headings there and the capture stalled; 6 headings of the 8 are
+    distinct at 40 deg (two pairs are 30 deg apart)."""
+    from mavcal.coverage import reach_coverage
+
+    g = [[-0.0344, 0.0157, 0.9993], [-0.124, 0.0152, 0.9922], [-0.035, 0.1059, 0.9938], [-0.0345, 0.0158, 0.9993],
+         [0.055, 0.0157, 0.9984], [-0.0344, -0.0752, 0.9966], [-0.0986, 0.0798, 0.9919], [0.0293, -0.0495, 0.9983]]
+    m = [[324.2, 11.9, -702.1], [255.8, -202.9, -693.3], [-18.2, -249.3, -677.9], [-135.8, 11.8, -686.4],
+         [-67.9, 227.8, -669.7], [206.3, 274.4, -670.3], [325.8, -146.3, -684.0], [-137.7, 172.6, -659.0]]
+    r = reach_coverage(np.array(g), np.array(m))
+    assert r.applies and r.compass_identified and r.n_field_directions == 6, r
