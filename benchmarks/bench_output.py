@@ -1,7 +1,7 @@
 """Where a benchmark writes its results: the convention every script in benchmarks/ follows.
 
 By default a run writes into ``benchmarks/out/`` (untracked: the directory carries its own
-``.gitignore``), so running a benchmark never rewrites the tracked numbers the README quotes.
+``.gitignore``), so running a benchmark never rewrites the tracked numbers the documentation quotes.
 ``--save`` writes into ``benchmarks/results/`` (tracked; commit the change on purpose);
 ``--out DIR`` writes anywhere else. See benchmarks/README.md.
 

@@ -47,6 +47,7 @@ from typing import Any
 from MAVProxy.modules.lib import mp_module, mp_settings
 
 from mavcal.capture.worker import FED_TYPES, IMU_TYPES, POSITION_TYPES, THREAD_PREFIX, CaptureWorker, WorkerSettings
+from mavcal.determined import bound_phrase
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ class MavcalModule(mp_module.MPModule):
         if run is not None:
             print("\n".join(verdict_lines(run) + [next_step(run, **MAVPROXY_HINTS)]))
             model = run.calibration.model if run.calibration is not None else "accelerometers alone"
-            print(f"fitted: model {model}, heading 95 % {run.quality.heading_95_deg:.2f} deg")
+            print(f"fitted: model {model}, {bound_phrase('heading', run.quality.heading_95_deg, '.2f')} (95 %)")
 
     def _open_page(self, browser: bool = True) -> None:
         """Serve the live page (a new one with a new token once the last one finished), start a

@@ -23,6 +23,8 @@ from mavcal.core.accel_fit import (
 from mavcal.core.stats import interval_stats
 from mavcal.quality import accel_tilt_bounds
 
+pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
+
 G = 9.80665
 FLOOR = 9.80665e-3 / np.sqrt(12)  # RAW_IMU's 1 mg step
 # 8 gravity directions (the six faces and two diagonals of the capture's plan), then the same

@@ -11,6 +11,8 @@ from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from capture_guidance import Hand  # noqa: E402  (the simulated hand of the benchmark)
 
+pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
+
 
 @pytest.mark.parametrize("pose, words", [
     ((0, 0, 0), "level, nose towards magnetic north"),

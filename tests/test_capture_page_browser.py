@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 import threading
 import time
 import urllib.request
@@ -35,13 +33,11 @@ from test_live_capture import AdviceHand
 from mavcal import cli
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.capture.web import THREAD_NAME
+from mavcal.testing.browser import headless_chromium, missing, page_text, wait_for
 from mavcal.testing.vehicle import VehicleTruth
 
 REPO = Path(__file__).resolve().parents[1]
 SHOTS = Path(os.environ.get("MAVCAL_PAGE_SHOTS") or REPO / "benchmarks" / "out" / "capture_page")
-CHROMIUM_FLAGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--disable-dev-shm-usage", "--window-size=1366,900", "--force-device-scale-factor=1"]
 
 
 def _in_ci() -> bool:
@@ -50,32 +46,14 @@ def _in_ci() -> bool:
 
 @pytest.fixture(scope="module")
 def browser():
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    driver_exe = shutil.which("chromedriver") or ("/usr/bin/chromedriver" if Path("/usr/bin/chromedriver").exists()
-                                                  else None)
-    try:
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-    except ImportError:
-        webdriver = None
-    missing = [name for name, ok in (("chromium", exe), ("chromium-driver", driver_exe), ("selenium", webdriver))
-               if not ok]
-    if missing:
-        msg = f"{', '.join(missing)} not installed (apt-get install chromium chromium-driver; pip install selenium)"
+    gone = missing()
+    if gone:
+        msg = f"{', '.join(gone)} not installed (apt-get install chromium chromium-driver; pip install selenium)"
         if _in_ci():
             pytest.fail("CI: the capture page's browser test must run: " + msg)
         pytest.skip(msg)
-    profile = tempfile.mkdtemp(prefix="mavcal-chromium-")
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = exe
-    for flag in CHROMIUM_FLAGS + [f"--user-data-dir={profile}"]:
-        opts.add_argument(flag)
-    drv = webdriver.Chrome(service=Service(driver_exe), options=opts)
-    drv.set_page_load_timeout(30)
-    drv.set_script_timeout(30)
-    yield drv
-    drv.quit()
-    shutil.rmtree(profile, ignore_errors=True)
+    with headless_chromium() as drv:
+        yield drv
 
 
 def shoot(drv, name: str) -> Path:
@@ -86,19 +64,6 @@ def shoot(drv, name: str) -> Path:
     drv.save_screenshot(str(path))
     assert path.stat().st_size > 10_000
     return path
-
-
-def wait_for(what: str, cond, timeout_s: float, poll_s: float = 0.1, show=None):
-    """``cond()`` once true; the timeouts are generous (a loaded 2-core CI machine), and a
-    failure says what ``show()`` returns (e.g. the page's state)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        got = cond()
-        if got:
-            return got
-        time.sleep(poll_s)
-    seen = f"; seen: {show()}" if show is not None else ""
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}{seen}")
 
 
 class PageClient:
@@ -200,10 +165,6 @@ def _focus_by_tab(drv, element_id: str, limit: int = 40) -> None:
     raise AssertionError(f"#{element_id} not reachable with Tab")
 
 
-def _page_text(drv, element_id: str) -> str:
-    return drv.execute_script(f"return document.getElementById('{element_id}').textContent")
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle, tmp_path, monkeypatch):
@@ -242,8 +203,8 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
         drv.get(url)
         wait_for("the first advice and the live attitude on the page",
                  lambda: drv.execute_script("return document.querySelectorAll('#scene-live polygon').length") > 3
-                 and "level" in _page_text(drv, "pose-words"), 180,
-                 show=lambda: (str(client.state())[:600], _page_text(drv, "instruction"), result))
+                 and "level" in page_text(drv, "pose-words"), 180,
+                 show=lambda: (str(client.state())[:600], page_text(drv, "instruction"), result))
         shoot(drv, "1-start")
         hand = AdviceHand(vehicle, client.advice)
         hand.start()
@@ -252,9 +213,9 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
         def mid():
             st = client.state().get("status") or {}
             n = st.get("n", 0)
-            words = _page_text(drv, "pose-words")
+            words = page_text(drv, "pose-words")
             matched = drv.execute_script("return document.getElementById('live-figure').classList.contains('match')")
-            holding = "Still" in _page_text(drv, "hold-text")  # the ring filling
+            holding = "Still" in page_text(drv, "hold-text")  # the ring filling
             assert client.state().get("phase") == "capturing", "the capture ended before a mid-capture view"
             bounds = any(s["bound_deg"] is not None for s in st.get("sensors", []))  # after the first fit
             return n >= 6 and bounds and st.get("next") and st["next"]["words"] in words and matched and holding
@@ -296,7 +257,7 @@ def test_guided_capture_on_the_page_to_a_confirmed_write(browser, start_vehicle,
         assert vehicle.param_sets == []  # asked, not written yet
         _focus_by_tab(drv, "confirm-yes", limit=5)
         ActionChains(drv).send_keys(Keys.ENTER).perform()
-        wait_for("the write's outcome on the page", lambda: "Written" in _page_text(drv, "write-outcome"), 90)
+        wait_for("the write's outcome on the page", lambda: "Written" in page_text(drv, "write-outcome"), 90)
         shoot(drv, "4-written")
         capture.join(timeout=60)
         assert not capture.is_alive()
@@ -353,7 +314,7 @@ def test_mavproxy_ui_page_capture_to_a_confirmed_write(browser, start_vehicle, t
         client = PageClient(url)
         mp.expect(r"mavcal: capture started", after=at, timeout=40)  # 'ui' started the capture
         drv.get(url)
-        wait_for("the advice on the page", lambda: "level" in _page_text(drv, "pose-words"), 30)
+        wait_for("the advice on the page", lambda: "level" in page_text(drv, "pose-words"), 30)
         _, threads_at = mp.expect(r"mavcal threads: (.*)$", after=mp.send("mavcal threads"))
         assert "mavcal-ui-feed" in mp.lines[threads_at - 1] and "mavcal-ui" in mp.lines[threads_at - 1]
         hand = AdviceHand(v, client.advice)
@@ -367,7 +328,7 @@ def test_mavproxy_ui_page_capture_to_a_confirmed_write(browser, start_vehicle, t
         ActionChains(drv).send_keys(Keys.ENTER).perform()
         _focus_by_tab(drv, "confirm-yes", limit=5)
         ActionChains(drv).send_keys(Keys.ENTER).perform()
-        wait_for("the write's outcome on the page", lambda: "Written" in _page_text(drv, "write-outcome"), 60)
+        wait_for("the write's outcome on the page", lambda: "Written" in page_text(drv, "write-outcome"), 60)
         mp.expect(r"mavcal: \d+ parameters written and verified", after=at, timeout=10)
         written = {r["name"] for r in res["params"] if r["write"] and r["changed"]}
         assert written and {n for n, *_ in v.param_sets} >= written

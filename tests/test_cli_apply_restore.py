@@ -1,10 +1,16 @@
 """``mavcal apply`` / ``mavcal restore`` through ``main([...])`` against the test vehicle."""
 from __future__ import annotations
 
+import math
+import socket
+import time
+
 import pytest
+from pymavlink import mavutil
 
 from mavcal.ardupilot.paramfile import read_param_file
 from mavcal.cli import main
+from mavcal.testing.relay import LossRelay
 
 FAST = ["--param-timeout", "0.2", "--timeout", "3"]
 
@@ -80,8 +86,8 @@ def test_killed_mid_write_exit_6_then_restore_recovers(vehicle, calfile, tmp_pat
     before = vehicle.params
     backup = tmp_path / "b.param"
     vehicle.die_after_n_sets = 2
-    assert main(["apply", str(calfile), "--connect", vehicle.gcs_device, "--yes", "--backup", str(backup)]
-                + FAST) == 6
+    assert main(["apply", str(calfile), "--connect", vehicle.gcs_device, "--yes", "--backup", str(backup),
+                 "--write-budget", "1"] + FAST) == 6
     cap = capsys.readouterr()
     assert "parameters in doubt" in cap.out and "COMPASS_OFS_Y" in cap.out and "mavcal restore" in cap.out
     assert backup.exists() and vehicle.get_param("COMPASS_OFS_Y") == -3.25
@@ -90,3 +96,29 @@ def test_killed_mid_write_exit_6_then_restore_recovers(vehicle, calfile, tmp_pat
     assert vehicle.params == before
     undo = list(tmp_path.glob("b-before-restore-*.param"))
     assert len(undo) == 1 and read_param_file(undo[0])["COMPASS_OFS_Y"] == -3.25
+
+
+@pytest.mark.timeout(60)
+def test_a_vehicle_gone_for_good_is_waited_for_then_exit_6_says_how_long(start_vehicle, calfile, tmp_path, capsys):
+    """The link goes dark for good right after the second PARAM_SET: the write waits the write
+    budget (1 s) for the vehicle, the restore its own budget (4 x 1 s) before its first PARAM_SET;
+    then exit 6, the parameters in doubt listed, the error saying how long the vehicle was unheard."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with LossRelay(port, loss=0.0, dup=0.0) as relay:
+        v = start_vehicle("udpout", port=relay.vehicle_port, heartbeat_hz=1)
+        before = v.params
+        relay.blackout_at(mavutil.mavlink.MAVLINK_MSG_ID_PARAM_SET, 2, math.inf)
+        t0 = time.monotonic()
+        rc = main(["apply", str(calfile), "--connect", relay.tool_device, "--yes", "--backup",
+                   str(tmp_path / "b.param"), "--write-budget", "1"] + FAST)
+        waited = time.monotonic() - relay.blackouts[0]
+        took = time.monotonic() - t0
+    cap = capsys.readouterr()
+    print(f"\ngone for good: exit {rc} {waited:.1f} s after the blackout ({took:.1f} s in all); {cap.err.strip()}")
+    assert rc == 6
+    assert waited >= 1.0 + 4.0  # the write's budget, then the restore's
+    assert "parameters in doubt" in cap.out and "COMPASS_OFS_X" in cap.out
+    assert "vehicle unheard for" in cap.err and "the restore waited 4." in cap.err and "its budget 4 s" in cap.err
+    assert v.params != before and v.get_param("COMPASS_OFS_X") == 12.5  # the first value was written: in doubt

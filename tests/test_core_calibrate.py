@@ -11,6 +11,8 @@ from mavcal.errors import EstimationError, InsufficientDataError, MavcalError
 from mavcal.sim.paper import Sensors, draw_intervals, draw_sensors
 from mavcal.testing.numbers import assert_close
 
+pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
+
 
 def _noise_free(n_intervals=12, seed=0, mirror=False):
     rng = np.random.default_rng(seed)

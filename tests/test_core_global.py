@@ -18,6 +18,8 @@ from mavcal.core.rotations import exp_so3, random_rotations
 from mavcal.core.types import OptimumCertificate
 from mavcal.sim.paper import draw_intervals, draw_sensors
 
+pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
+
 
 def _stress_run(cls: str, k: int, n: int, spread: float = 0.1):
     """Run k of case class ``cls`` of the stress benchmark (mirrored when k is odd)."""

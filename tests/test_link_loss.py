@@ -43,7 +43,7 @@ def test_every_write_is_verified_or_fully_restored_under_30_percent_loss(tmp_pat
                 before = v.params
                 try:
                     rep = write_params(link, changes, backup_path=tmp_path / f"b{i}.param", params=table,
-                                       force_save=(), timeout_s=0.05, link_timeout_s=1.0,
+                                       force_save=(), timeout_s=0.05,
                                        budget_s=0.1,  # a short budget: the restore path must be exercised
                                        allow_out_of_range=True)  # random values: this test is about loss
                     outcomes["complete"] += 1

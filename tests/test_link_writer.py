@@ -11,7 +11,7 @@ from mavcal.link.connection import as_link, open_link
 from mavcal.link.params import fetch_all_params
 from mavcal.link.writer import write_params
 
-FAST = dict(timeout_s=0.2, link_timeout_s=1.0)
+FAST = dict(timeout_s=0.2, restore_wait_s=1.0)
 
 
 @pytest.fixture
@@ -145,7 +145,7 @@ def test_link_killed_mid_write_leaves_backup_and_lists_params_in_doubt(vehicle, 
     before = vehicle.params
     changes = {"COMPASS_OFS_X": 1.0, "COMPASS_OFS_Y": 2.0, "COMPASS_OFS_Z": 3.0}
     with pytest.raises(RestoreFailedError) as exc:
-        write_params(link, changes, backup_path=tmp_path / "b.param", **FAST)
+        write_params(link, changes, backup_path=tmp_path / "b.param", budget_s=1.0, **FAST)
     assert exc.value.exit_code == 6
     assert set(exc.value.in_doubt) == {"COMPASS_OFS_X", "COMPASS_OFS_Y"}
     assert vehicle.get_param("COMPASS_OFS_Y") == 2.0  # applied, never echoed

@@ -161,9 +161,10 @@ def test_following_the_advice_reaches_the_target_and_write_yes_writes(vehicle, t
     assert st is feed.latest and st.done and not st.aborted
     assert st.heading_95_deg <= 0.5 and "target" in st.reason and st.n_intervals >= 8
     assert len(hand.poses) >= 8  # the hand moved to every advised pose
-    # the streams went back to their default rates at the end (SET_MESSAGE_INTERVAL param2 = 0)
+    # the streams went back to their default rates at the end (SET_MESSAGE_INTERVAL param2 = 0):
+    # the capture's IMU messages, and the ATTITUDE (30) the write asked for to keep the vehicle talking
     resets = [c for c in vehicle.commands if c[0] == 511 and c[1][1] == 0]
-    assert {int(c[1][0]) for c in resets} == {27, 116, 129}
+    assert {int(c[1][0]) for c in resets} == {27, 116, 129, 30}
     # piped: one status line per change, with the next pose in words
     assert "next: level, nose towards magnetic north" in err
     assert "done: heading error bound" in err

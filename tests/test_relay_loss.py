@@ -20,11 +20,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from pymavlink import mavutil
 
 from mavcal.testing.relay import LossRelay
 from mavcal.testing.vehicle import TestVehicle
 
 N_SESSIONS = 20
+PARAM_SET_ID = mavutil.mavlink.MAVLINK_MSG_ID_PARAM_SET
 NAMES = ("COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z")
 
 
@@ -38,13 +40,18 @@ def _f32(x: float) -> float:
     return float(np.float32(x))
 
 
-def _one_session(i: int, tmp_path) -> dict:
-    """One apply session through its own relay to its own vehicle; the outcome and the check."""
+def _one_session(i: int, tmp_path, blackout_s: float | None = None) -> dict:
+    """One apply session through its own relay to its own vehicle; the outcome and the check.
+
+    ``blackout_s``: the relay blacks out both ways for that long once the tool sent its second
+    PARAM_SET (the middle of the write), then carries on at 30 % loss."""
     values = {n: 10.0 * (i + 1) + k for k, n in enumerate(NAMES)}
     pfile = tmp_path / f"s{i}.param"
     pfile.write_text("".join(f"{n} {v}\n" for n, v in values.items()))
     tool_port = _free_udp_port()
     relay = LossRelay(tool_port, loss=0.3, dup=0.05, seed=1000 + i).start()
+    if blackout_s is not None:
+        relay.blackout_at(PARAM_SET_ID, 2, blackout_s)
     vehicle = TestVehicle("udpout", port=relay.vehicle_port, seed=i).start()
     try:
         before = vehicle.params
@@ -64,7 +71,7 @@ def _one_session(i: int, tmp_path) -> dict:
     else:
         ok = after == before  # exit 5: restored; any failure before a write: untouched
     return {"i": i, "rc": proc.returncode, "ok": ok, "s": elapsed, "err": proc.stderr.strip().splitlines()[-1:],
-            "stats": dict(relay.stats)}
+            "stats": dict(relay.stats), "blackouts": len(relay.blackouts), "sets": len(vehicle.param_sets)}
 
 
 @pytest.mark.slow
@@ -87,6 +94,22 @@ def test_twenty_apply_sessions_through_a_lossy_relay_start_included(tmp_path):
     dropped = sum(o["stats"]["dropped_out"] + o["stats"]["dropped_in"] for o in outcomes)
     sent = sum(o["stats"]["out"] + o["stats"]["in"] for o in outcomes)
     assert 0.25 < dropped / sent < 0.35  # the relay really dropped 30 %
+
+
+def test_a_4_s_blackout_in_the_middle_of_a_write_never_leaves_a_parameter_in_doubt(tmp_path):
+    """The relay goes dark both ways for 4 s right after the write's second PARAM_SET, then
+    carries on at 30 % loss: the write waits for the vehicle and resumes (exit 0) or restores
+    everything (exit 5); never exit 6 (in doubt), never a silent mismatch."""
+    with ThreadPoolExecutor(4) as pool:
+        outcomes = list(pool.map(lambda i: _one_session(i, tmp_path, blackout_s=4.0), range(4, 8)))
+    print("\n4 s blackout mid-write, then 30 % loss: " + "; ".join(
+        f"exit {o['rc']} in {o['s']:.1f} s ({o['sets']} PARAM_SETs, {o['stats']['blacked_out']} datagrams blacked out)"
+        + (f" {o['err']}" if o['rc'] else "")
+        for o in outcomes))
+    for o in outcomes:
+        assert o["blackouts"] == 1 and o["stats"]["blacked_out"] > 0, o  # the blackout happened
+        assert o["sets"] >= 2, o  # and the write (or the restore) went on after it
+        assert o["rc"] in (0, 5) and o["ok"], o
 
 
 def test_relay_drops_and_duplicates_as_asked():

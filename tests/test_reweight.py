@@ -15,6 +15,8 @@ from mavcal.core.misfit import INFLATE_P, joint_terms, misfit_factors
 from mavcal.core.models import MODELS
 from mavcal.core.refine import JointParams, JointProblem
 
+pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
+
 
 def _paper(n: int, k: int):
     rng = np.random.default_rng([k, 23])

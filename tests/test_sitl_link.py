@@ -8,6 +8,8 @@ field strength taken from the vehicle's position.
   own lossless channel (SERIAL0): exit 0 must mean every new value is held, exit 5 every old one,
   any other exit nothing changed; anything else is a silent mismatch. Two vehicles with two
   relays each (SERIAL1 and SERIAL2, different parameters) run four sessions at a time.
+* one such session whose relay blacks out completely for 4 s right after the write's second
+  PARAM_SET: exit 0 or 5, never 6 (issue 31).
 * ``mavcal calibrate DEVICE --write`` while a hand holds a spread of poses: the compass is scaled
   to the World Magnetic Model at the position the vehicle reports (its simulated GPS at CMAC),
   the report names that source, and the calibrated field the vehicle then reports is within 2 %
@@ -18,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import json
 import sys
-import threading
 import time
 
 import numpy as np
@@ -27,8 +28,9 @@ from pymavlink import mavutil
 
 from mavcal.sources.wmm import field_at
 from mavcal.testing.relay import LossRelay
-from mavcal.testing.sitl import DEFAULT_HOME, RELAY_PORT, TOOL_PORT, InjectedErrors, SitlVehicle, require_sitl
+from mavcal.testing.sitl import DEFAULT_HOME, TOOL_PORT, InjectedErrors, SitlVehicle, require_sitl
 from mavcal.testing.sitl_hand import ScheduleHand
+from mavcal.testing.sitl_sessions import apply_session, relayed_channels, run_sessions
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(900)]
 
@@ -39,20 +41,6 @@ CHANNEL_NAMES = (("COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z"),
 TOOL_PORTS = (14561, 14562)  # where the tool listens, behind each relay
 
 
-def _session(sitl: SitlVehicle, tool_device: str, names: tuple[str, ...], i: int, tmp_path) -> dict:
-    before = sitl.get_params(names)
-    want = {n: float(np.float32(before[n] + (15.0 if i % 2 == 0 else -15.0) + k)) for k, n in enumerate(names)}
-    cal = tmp_path / f"s{i}.param"
-    cal.write_text("".join(f"{n} {v!r}\n" for n, v in want.items()))
-    t0 = time.monotonic()
-    r = sitl.run([sys.executable, "-m", "mavcal", "apply", str(cal), "--connect", tool_device, "--yes",
-                  "--backup", str(tmp_path / f"b{i}.param")], timeout=300)
-    took = time.monotonic() - t0
-    after = sitl.get_params(names)
-    ok = (after == pytest.approx(want, rel=1e-6)) if r.returncode == 0 else (after == pytest.approx(before, rel=1e-6))
-    return {"i": i, "rc": r.returncode, "ok": ok, "s": took, "err": r.stderr.strip().splitlines()[-1:]}
-
-
 def test_twenty_apply_sessions_through_a_30_percent_loss_relay(tmp_path):
     require_sitl()
     with contextlib.ExitStack() as stack:
@@ -60,26 +48,8 @@ def test_twenty_apply_sessions_through_a_30_percent_loss_relay(tmp_path):
         # mostly wait on the lossy link, so this costs little CPU)
         vehicles = [stack.enter_context(SitlVehicle(wrong_calibration=False, relay=True, measure_field=False))
                     for _ in range(2)]
-        channels = []  # (vehicle, relay, names)
-        for v_idx, sitl in enumerate(vehicles):
-            with sitl.netns():  # the relays' sockets live in the vehicle's namespace
-                for k, port in enumerate((TOOL_PORT, RELAY_PORT)):
-                    relay = LossRelay(TOOL_PORTS[k], vehicle_port=port, loss=0.3, dup=0.05, seed=21 + 2 * v_idx + k)
-                    channels.append((sitl, stack.enter_context(relay), CHANNEL_NAMES[k]))
-        outcomes: list[dict] = []
-        t0 = time.monotonic()
-
-        def channel(c: int) -> None:
-            sitl, relay, names = channels[c]
-            for i in range(c, N_SESSIONS, len(channels)):
-                outcomes.append(_session(sitl, relay.tool_device, names, i, tmp_path))
-
-        threads = [threading.Thread(target=channel, args=(c,)) for c in range(len(channels))]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-        wall = time.monotonic() - t0
+        channels = relayed_channels(stack, vehicles, CHANNEL_NAMES, TOOL_PORTS, seed=21)
+        outcomes, wall = run_sessions(channels, N_SESSIONS, tmp_path)
         stats = [dict(relay.stats) for _, relay, _ in channels]
     complete = [o for o in outcomes if o["rc"] == 0 and o["ok"]]
     restored = [o for o in outcomes if o["rc"] == 5 and o["ok"]]
@@ -96,6 +66,24 @@ def test_twenty_apply_sessions_through_a_30_percent_loss_relay(tmp_path):
     assert len(complete) + len(restored) == N_SESSIONS, others
     dropped = sum(st["dropped_out"] + st["dropped_in"] for st in stats)
     assert 0.26 < dropped / sum(st["out"] + st["in"] for st in stats) < 0.34  # the relays really dropped 30 %
+
+
+def test_a_4_s_blackout_in_the_middle_of_a_write_against_sitl(tmp_path):
+    """One ``mavcal apply`` with the defaults through a relay that goes dark both ways for 4 s
+    right after the write's second PARAM_SET, then carries on at 30 % loss: the write waits for
+    the vehicle and resumes (exit 0) or restores everything (exit 5), never exit 6; the values
+    the vehicle holds are what the exit code says."""
+    require_sitl()
+    with SitlVehicle(wrong_calibration=False, measure_field=False) as sitl:
+        with sitl.netns():
+            relay = LossRelay(TOOL_PORTS[0], vehicle_port=TOOL_PORT, loss=0.3, dup=0.05, seed=31)
+        with relay:
+            relay.blackout_at(mavutil.mavlink.MAVLINK_MSG_ID_PARAM_SET, 2, 4.0)
+            o = apply_session(sitl, relay.tool_device, CHANNEL_NAMES[0], 0, tmp_path)
+    print(f"\nSITL, 4 s blackout mid-write then 30 % loss: exit {o['rc']} in {o['s']:.1f} s {o['err']}; "
+          f"relay {relay.stats}")
+    assert len(relay.blackouts) == 1 and relay.stats["blacked_out"] > 0  # the blackout happened
+    assert o["rc"] in (0, 5) and o["ok"], o
 
 
 def _calibrated_field(sitl: SitlVehicle, poses) -> list[float]:

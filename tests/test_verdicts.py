@@ -10,6 +10,8 @@ from mavcal.ardupilot.gates import Gate, GateReport, accel_gates
 from mavcal.ardupilot.paramfile import read_param_file, write_param_file
 from mavcal.cli import main
 
+pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
+
 TLOG = "2024-04-05 09-19-03.tlog"  # 6-pose accel calibration, 2 compasses (ArduPilot's result known)
 AP_OFS, AP_SCL = (0.0587, -0.0089, 0.1880), (0.9981, 0.9420, 0.9973)
 

@@ -110,7 +110,7 @@ def test_param_error_and_denial_are_reported_in_the_vehicles_words(start_vehicle
         assert exc.value.names == ["COMPASS_OFS9_X"] and time.monotonic() - t0 < 2.0
         with pytest.raises(ParamWriteError) as werr:
             write_params(link, {"COMPASS_OFS_X": 2.0, "COMPASS_OFS2_X": 3.0}, backup_path=tmp_path / "b.param",
-                         timeout_s=0.2, link_timeout_s=1.0)
+                         timeout_s=0.2)
         msg = str(werr.value)
         assert "COMPASS_OFS2_X: the vehicle refused 3" in msg and "no echo" not in msg
         assert "Param write denied (COMPASS_OFS2_X)" in msg or "PERMISSION_DENIED" in msg
@@ -124,7 +124,7 @@ def test_a_refused_force_save_is_reported_with_the_ack_result(vehicle, tmp_path)
     link = open_link(vehicle.gcs_device, timeout_s=5)
     try:
         rep = write_params(link, {"COMPASS_OFS_X": 2.0}, backup_path=tmp_path / "b.param", force_save=("compass",),
-                           timeout_s=0.2, link_timeout_s=1.0)
+                           timeout_s=0.2)
     finally:
         link.close()
     assert rep.complete and rep.force_save_failed == ("compass",) and "MAV_RESULT_DENIED" in rep.message
@@ -157,7 +157,7 @@ def test_at_30_percent_loss_95_percent_of_writes_complete(tmp_path, start_vehicl
                 before = v.params
                 try:
                     write_params(link, changes, backup_path=tmp_path / f"b{i}.param", params=table,
-                                 force_save=("compass",), timeout_s=0.05, link_timeout_s=1.0)
+                                 force_save=("compass",), timeout_s=0.05)
                 except RestoreFailedError:
                     raise
                 except ParamWriteError:

@@ -27,6 +27,7 @@ import numpy as np
 
 from mavcal.ardupilot import limits as L
 from mavcal.coverage import UNIDENTIFIED_HEADING_DEG, UNIDENTIFIED_TILT_DEG
+from mavcal.determined import LIMIT_DEG, bound_value_words, determined
 
 #: Earth's field strength anywhere (World Magnetic Model: about 220 mGauss in the South Atlantic
 #: anomaly to 670 near the magnetic poles), the plausibility check of a compass whose field
@@ -87,6 +88,9 @@ def reason_text(g: Gate) -> str:
     and the limit (a yes/no gate's value in words)."""
     if g.name in YES_NO_GATES:
         return f"{g.name}: {g.reason} (value: {'yes' if g.value else 'no'}, limit: {g.limit})"
+    kind = {"heading uncertainty": "heading", "tilt uncertainty": "tilt"}.get(g.name)
+    if kind is not None and not determined(kind, g.value):  # no digits the data do not hold
+        return f"{g.name}: {g.reason} (value above {LIMIT_DEG[kind]:g} deg, limit {g.limit})"
     return f"{g.name}: {g.reason} (value {g.value:.4g}, limit {g.limit})"
 
 
@@ -180,17 +184,24 @@ def accel_gates(am, *, n_intervals: int = 0, n_orientations: int = 0, tilt_95_de
     enough = _data_gates(add, s, n_intervals, n_orientations, c, coverage)
     if enough and tilt_95_deg >= UNIDENTIFIED_TILT_DEG:
         add(s, "tilt uncertainty", False, tilt_95_deg, f"<= {c.tilt_95_max_deg} deg (95 %)",
-            f"the poses do not identify {s}: the tilt error could reach {tilt_95_deg:.1f} deg (95 %); add poses "
-            "on every side, each held still for 3-5 s", "data")
+            f"the poses do not identify {s}: its tilt error is {bound_value_words('tilt', tilt_95_deg)}; add "
+            "poses on every side, each held still for 3-5 s", "data")
     else:
         add(s, "tilt uncertainty", tilt_95_deg <= c.tilt_95_max_deg, tilt_95_deg,
             f"<= {c.tilt_95_max_deg} deg (95 %)",
-            f"the tilt error could reach {tilt_95_deg:.2f} deg (95 %): add still poses, each held longer")
+            f"the tilt error {_could_reach('tilt', tilt_95_deg)}: add still poses, each held longer")
     add(s, "held-out error", holdout_mps2 <= c.holdout_accel_max_mps2, holdout_mps2,
         f"<= {c.holdout_accel_max_mps2} m/s^2",
         f"a pose left out of the accelerometer's own fit is predicted {holdout_mps2:.3f} m/s^2 off: the vehicle "
         "moved during the intervals; hold each pose still and record again")
     return gates
+
+
+def _could_reach(kind: str, bound_deg: float) -> str:
+    """"could reach 0.62 deg (95 %)", or "is not determined (95 % bound above 90 deg)"."""
+    if determined(kind, bound_deg):
+        return f"could reach {bound_deg:.2f} deg (95 %)"
+    return f"is {bound_value_words(kind, bound_deg)}"
 
 
 def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_orientations: int = 0,
@@ -243,13 +254,13 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_or
     enough = _data_gates(add, s, n_intervals, n_orientations, c, coverage)
     if enough and heading_95_deg >= UNIDENTIFIED_HEADING_DEG:
         add(s, "heading uncertainty", False, heading_95_deg, f"<= {c.heading_95_max_deg} deg (95 %)",
-            f"the poses do not identify {s}: the heading error could reach {heading_95_deg:.1f} deg (95 %); add "
-            "poses at new headings (the same sides again, the vehicle turned about 90 deg about the vertical)",
+            f"the poses do not identify {s}: its heading error is {bound_value_words('heading', heading_95_deg)}; "
+            "add poses at new headings (the same sides again, the vehicle turned about 90 deg about the vertical)",
             "data")
     else:
         add(s, "heading uncertainty", heading_95_deg <= c.heading_95_max_deg, heading_95_deg,
             f"<= {c.heading_95_max_deg} deg (95 %)",
-            f"the heading error could reach {heading_95_deg:.2f} deg (95 %): more poses at different headings "
+            f"the heading error {_could_reach('heading', heading_95_deg)}: more poses at different headings "
             "needed, or steel and magnets nearby disturbed the field")
     add(s, "held-out error", holdout_mgauss <= c.holdout_mag_max_mgauss, holdout_mgauss,
         f"<= {c.holdout_mag_max_mgauss} mGauss",

@@ -24,6 +24,7 @@ import numpy as np
 
 from mavcal.ardupilot.gates import GateConfig
 from mavcal.capture.session import CaptureConfig, CaptureStatus, euler_matrix
+from mavcal.determined import determined
 from mavcal.segment import StillConfig
 from mavcal.sources.types import SensorSeries
 
@@ -168,7 +169,7 @@ def sensor_bounds(run: Any, config: CaptureConfig) -> list[dict[str, Any]]:
                 continue
             bound = _finite(g.value)
             out.append({"sensor": sensor, "what": what, "bound_deg": bound, "target_deg": target,
-                        "met": bound is not None and bound <= target})
+                        "met": bound is not None and bound <= target, "determined": determined(what, bound)})
     return out
 
 
@@ -186,7 +187,9 @@ def _progress_view(st: CaptureStatus, config: CaptureConfig, run: Any) -> list[d
     if not progress:
         return sensor_bounds(run, config)
     return [{"sensor": p.sensor, "what": p.kind, "bound_deg": _finite(p.bound_deg), "target_deg": float(p.target_deg),
-             "met": bool(p.met), "blocked": p.blocked, "dropped": bool(p.dropped)} for p in progress]
+             "met": bool(p.met), "blocked": p.blocked, "dropped": bool(p.dropped),
+             "needs": getattr(p, "needs", ""), "determined": determined(p.kind, _finite(p.bound_deg))}
+            for p in progress]
 
 
 def status_view(st: CaptureStatus, config: CaptureConfig, run: Any = None) -> dict[str, Any]:
@@ -222,7 +225,9 @@ def result_view(run: Any, changes: dict[str, float], *, hints: dict[str, str] | 
     q = run.quality
     return {"verdicts": verdicts, "next_step": next_step(run, **(hints or {})), "params": rows,
             "n_write": sum(1 for r in rows if r["write"] and r["changed"]), "exit_code": run.exit_code,
-            "heading_deg": _finite(q.heading_95_deg), "tilt_deg": _finite(q.tilt_95_deg)}
+            "heading_deg": _finite(q.heading_95_deg), "tilt_deg": _finite(q.tilt_95_deg),
+            "heading_determined": determined("heading", _finite(q.heading_95_deg)),
+            "tilt_determined": determined("tilt", _finite(q.tilt_95_deg))}
 
 
 class PageFeed:

@@ -56,7 +56,10 @@ class SensorProgress:
     ``kind`` is ``"tilt"`` (an accelerometer, its own fit) or ``"heading"`` (a compass, with the
     primary accelerometer); ``bound_deg`` the 95 % bound now (None before it has a fit);
     ``blocked`` why it cannot reach its target ("" when it can); ``dropped`` True once the
-    person chose to finish without it."""
+    person chose to finish without it; ``needs`` what calibrate's coverage rule still asks of
+    its poses (a failed gate with cause "data", e.g. too few distinct field directions; "" when
+    the poses identify it): a bound under its target does not meet it while the poses do not
+    identify the sensor, as the stop rule and the final verdict agree."""
 
     sensor: str
     kind: str
@@ -64,10 +67,11 @@ class SensorProgress:
     target_deg: float
     blocked: str = ""
     dropped: bool = False
+    needs: str = ""
 
     @property
     def met(self) -> bool:
-        return self.bound_deg is not None and self.bound_deg <= self.target_deg
+        return self.bound_deg is not None and self.bound_deg <= self.target_deg and not self.needs
 
     @property
     def distance(self) -> float:
@@ -154,6 +158,10 @@ def measure(run: CalibrationRun | None, prep: Prepared, options: Options, *, tar
     (``targets``: ``{"tilt": deg, "heading": deg}``). ``history`` (sensor -> [(intervals,
     bound)]) is extended with this fit's bounds when ``n`` is new to it."""
     gates = {(g.sensor, g.name): g.value for g in run.gates.gates} if run is not None else {}
+    needs: dict[str, str] = {}
+    for g in run.gates.failures() if run is not None else ():
+        if g.cause == "data":
+            needs.setdefault(g.sensor, reason_text(g))
     out = []
     for s in expected_sensors(prep, options):
         kind = "tilt" if s.startswith("accel") else "heading"
@@ -169,7 +177,7 @@ def measure(run: CalibrationRun | None, prep: Prepared, options: Options, *, tar
             if why and bound is None:
                 said = [w for w in run.warnings if _names(w, s)]
                 why = f"{why} ({said[0]})" if said else why
-        out.append(SensorProgress(s, kind, bound, targets[kind], why, s in dropped))
+        out.append(SensorProgress(s, kind, bound, targets[kind], why, s in dropped, needs.get(s, "")))
     return tuple(out)
 
 

@@ -510,6 +510,9 @@ class CaptureSession:
             advice = self.next_pose()
             messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
                          "values if it is rejected) or keep holding poses" for p in progress if p.sensor in offer]
+            messages += [f"{p.sensor}'s bound is at its target but the poses do not identify it yet: {p.needs}"
+                         for p in progress if p.needs and not p.dropped and p.bound_deg is not None
+                         and p.bound_deg <= p.target_deg]
         if advice is not None:
             self.poses_advised.append(advice)
         st = CaptureStatus(time_s=t_last, still_now=still_now, n_intervals=n,

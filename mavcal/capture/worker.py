@@ -475,7 +475,7 @@ class CaptureWorker:
             try:
                 report = write_params(link, changes, backup_path=bpath, params=table,
                                       force_save=force_save_kinds(r.name for r in plan.changed),
-                                      link_timeout_s=max(3.0, 3 * cfg.param_timeout), **opts)
+                                      keepalive=False, **opts)  # ATTITUDE is not fed to this link
             except ParamWriteError as exc:
                 self.write_result = exc
                 self.say(write_failed_text(exc, what, bpath, prefix=self.prefix))

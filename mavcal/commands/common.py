@@ -416,7 +416,7 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
         try:
             report = write_params(link, changes, backup_path=bpath, params=table,
                                   force_save=force_save_kinds(r.name for r in plan.changed),
-                                  link_timeout_s=max(3.0, 3 * args.param_timeout), **opts)
+                                  **opts)
         except ParamWriteError as exc:
             out.write(write_failed_text(exc, what, bpath, args.connect))
             raise

@@ -603,6 +603,9 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
               start_orientations: np.ndarray | None = None) -> Calibration:
     """Joint maximum-likelihood calibration of an accelerometer and a magnetometer.
 
+    Above ``LARGE_N`` intervals the search runs on a subset of ``SUBSET_N`` (see the module
+    docstring), the refinement on all of them.
+
     Parameters
     ----------
     accel_sets, mag_sets : sequences of N arrays of shape (n_i, 3)
@@ -639,9 +642,6 @@ def calibrate(accel_sets, mag_sets, *, method: str = "ncar", tol: float = 1e-4, 
         begins at the start's point itself (next to this data's optimum) instead of
         computing each R_i from the start's parameters; the optimum reached is the same (to
         the refinement's tolerance, rtol 1e-13 on J').
-
-    Above ``LARGE_N`` intervals the search runs on a subset of ``SUBSET_N`` (see the module
-    docstring), the refinement on all of them.
 
     Returns
     -------

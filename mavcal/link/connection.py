@@ -30,6 +30,7 @@ import logging
 import os
 import struct
 import time
+from collections import deque
 from typing import Any, BinaryIO, Callable
 
 from pymavlink import mavutil
@@ -46,6 +47,11 @@ GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = 190
 
 Handler = Callable[[Any], None]
+
+#: the vehicle's messages sent at a steady rate whatever is asked (HEARTBEAT), or while a write
+#: asks for them (ATTITUDE, :mod:`mavcal.link.silence`); their arrivals measure the rate
+PERIODIC_TYPES = frozenset(("HEARTBEAT", "ATTITUDE"))
+_PERIODIC_WINDOW = 16
 
 _NETWORK_PREFIXES = ("udp:", "udpin:", "udpout:", "udpbcast:", "tcp:", "tcpin:")
 
@@ -77,6 +83,13 @@ class Link:
         #: time.monotonic() of the last message from the vehicle (starts "now")
         self.last_rx_s: float = time.monotonic()
         self.messages_received = 0
+        #: the vehicle's messages received and lost, from the gaps in their sequence numbers (a
+        #: duplicate or a late message is neither): the link's loss (:mod:`mavcal.link.silence`)
+        self.vehicle_received = 0
+        self.vehicle_lost = 0
+        self._last_seq: int | None = None
+        #: time.monotonic() of the vehicle's last few periodic messages, by type (their rates)
+        self.periodic_rx_s: dict[str, deque[float]] = {t: deque(maxlen=_PERIODIC_WINDOW) for t in PERIODIC_TYPES}
         #: send a GCS HEARTBEAT this often while pumping (None: never; :func:`open_link` sends
         #: them while it waits for the vehicle either way)
         self.heartbeat_period_s: float | None = None
@@ -135,6 +148,8 @@ class Link:
         self.messages_received += 1
         if self.is_from_vehicle(m):
             self.last_rx_s = time.monotonic()
+            if self._count_seq(m) and mtype in PERIODIC_TYPES:
+                self.periodic_rx_s[mtype].append(self.last_rx_s)
             if is_signed(m):
                 self.signed_received += 1
             if mtype == "HEARTBEAT":
@@ -143,6 +158,18 @@ class Link:
             if table:
                 for fn in list(table.values()):
                     fn(m)
+
+    def _count_seq(self, m: Any) -> bool:
+        """Count a message from the vehicle by its sequence number; False for a duplicate."""
+        seq = int(m.get_seq())
+        if self._last_seq is not None:
+            gap = (seq - self._last_seq - 1) % 256
+            if gap >= 128:  # a duplicate (gap 255) or a late message: not a new one
+                return False
+            self.vehicle_lost += gap
+        self._last_seq = seq
+        self.vehicle_received += 1
+        return True
 
     def _write_tlog(self, m: Any) -> None:
         try:

@@ -8,6 +8,8 @@
   lossy link gets time in proportion to the work, and a dead one (nothing heard for
   ``silent_s``) ends the download at once. Names in ``need`` still missing after the index pass
   are also asked for by name.
+* :func:`fetch_for_write`: the part of the table a write needs (by name, the whole table only
+  when some names do not answer).
 * :func:`read_params` / :func:`read_params_by_name`: PARAM_REQUEST_READ by name for a few
   parameters. ArduPilot answers a read by name with ``param_index = -1`` (65535 on the wire).
   For an unknown name ArduPilot up to 4.6 does not answer at all (a name that never answers is
@@ -23,17 +25,17 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from pymavlink import mavutil
 
-from mavcal.errors import LinkError
+from mavcal.errors import LinkError, UnknownParameterError
 from mavcal.link.connection import Link, as_link
 
 __all__ = ["fetch_all_params", "download_params", "ParamDownload", "read_params", "read_params_by_name",
-           "NameRead", "ParamTable", "param_error_words", "vehicle_param_error"]
+           "NameRead", "ParamTable", "param_error_words", "vehicle_param_error", "fetch_for_write"]
 
 log = logging.getLogger(__name__)
 
@@ -384,3 +386,45 @@ def read_params(conn: Any, names: Iterable[str], *, timeout_s: float = 1.0, atte
     """
     return read_params_by_name(conn, names, timeout_s=timeout_s, attempts=attempts, window=window,
                                budget_s=budget_s).values
+
+
+def fetch_for_write(conn: Any, names: Sequence[str], *, context: Sequence[str] = (), timeout_s: float = 1.0,
+                    attempts: int = 5, fetch_timeout_s: float = 30.0, budget_s: float = 0.0) -> ParamTable:
+    """The part of the vehicle's table a write of ``names`` needs, without a full download when
+    the names answer.
+
+    ``names`` (and ``context``, optional names such as device ids and limits) are read by name,
+    ``names`` for at least ``attempts`` requests and ``budget_s`` seconds each (a lossy link),
+    ``context`` for ``attempts`` requests (they may not exist);
+    a name the vehicle refuses with PARAM_ERROR is unknown at once. Only when some of ``names``
+    do not answer is the table downloaded (re-requesting the holes by index and the names by
+    name, with a budget that grows with the count), until they are known or the table is
+    complete (then the missing ones do not exist: :func:`write_params` refuses them).
+
+    Raises
+    ------
+    UnknownParameterError
+        The vehicle said (PARAM_ERROR) that some of ``names`` do not exist.
+    LinkError
+        Some of ``names`` could not be read and the download did not complete.
+    """
+    link = as_link(conn)
+    wanted = list(dict.fromkeys(names))
+    extra = [c for c in dict.fromkeys(context) if c not in wanted]
+    got = read_params_by_name(link, wanted + extra, timeout_s=timeout_s, attempts=attempts, budget_s=budget_s,
+                              optional=extra)
+    unknown = [n for n in wanted if n in got.errors]
+    if unknown:
+        raise UnknownParameterError(unknown)
+    table = dict(got.values)
+    missing = [n for n in wanted if n not in table]
+    if not missing:
+        return table
+    log.info("%d names did not answer by name; downloading the table", len(missing))
+    dl = download_params(link, fetch_timeout_s, retry_s=max(timeout_s / 2, 0.2), need=missing, until_needed=True)
+    table.update(dl.table)
+    still = [n for n in missing if n not in table]
+    if still and not dl.complete:
+        raise LinkError(f"{link.device}: no answer reading {', '.join(still)}; "
+                        + dl.describe(link.device, dl.elapsed_s).split(": ", 1)[1] + " (nothing was written)")
+    return table

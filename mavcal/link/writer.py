@@ -27,15 +27,21 @@ Sequence of :func:`write_params`:
    would not store exactly are refused before any write;
 2. a backup ``.param`` of every value about to change, written and fsync'ed before the first
    PARAM_SET (never overwriting an existing file);
-3. one parameter at a time: PARAM_SET, wait for the matching echo, retry;
+3. one parameter at a time: PARAM_SET, wait for the matching echo, retry. For steps 3-6 the
+   vehicle is kept talking (ATTITUDE at 5 Hz, put back to its default rate at the end) and a
+   silence is measured against a limit derived from the link's observed loss
+   (:mod:`mavcal.link.silence`); while the vehicle is silent nothing is sent and the budget
+   does not run, and the write resumes when it is heard again (within the write budget);
 4. force-save (``MAV_CMD_PREFLIGHT_CALIBRATION`` param2=76 compass, param5=76 accel) so the
    device ids are stored with the calibration; a missing ACK is reported, not fatal, and a
    refusal in the COMMAND_ACK's result words;
 5. read every written parameter back once more (PARAM_REQUEST_READ) and compare;
 6. on any failure in 3-5: restore every parameter a PARAM_SET was sent for (including the
-   one in flight) from the backup values, verify the restore by echo and read-back, then raise
+   one in flight) from the backup values - first waiting for a silent vehicle, up to the
+   restore's own allowance ``restore_wait_s`` - verify the restore by echo and read-back, then raise
    :class:`~mavcal.errors.ParamWriteError` (exit 5) - or
-   :class:`~mavcal.errors.RestoreFailedError` (exit 6) naming the parameters in doubt.
+   :class:`~mavcal.errors.RestoreFailedError` (exit 6) naming the parameters in doubt (and how
+   long the vehicle was unheard when that is why).
 
 The library logs and never prints; the :class:`WriteReport` is data.
 """
@@ -67,15 +73,16 @@ from mavcal.errors import (
 from mavcal.link.connection import Link, as_link
 from mavcal.link.params import (
     ParamTable,
-    download_params,
     fetch_all_params,
+    fetch_for_write,
     read_params,
-    read_params_by_name,
     vehicle_param_error,
 )
+from mavcal.link.silence import SETTLE_S, Patience, VehicleSilence
 
 __all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "UnknownParameterError",
            "OutOfRangeError", "expected_stored_value", "FORCE_SAVE_KINDS", "DEFAULT_BUDGET_FACTOR", "result_words",
+           "RESTORE_WAIT_FACTOR",
            "fetch_for_write"]
 
 log = logging.getLogger(__name__)
@@ -90,6 +97,10 @@ _TYPE_NAMES = {_A.MAV_PARAM_TYPE_INT8: "INT8", _A.MAV_PARAM_TYPE_INT16: "INT16",
 FORCE_SAVE_KINDS = {"compass": (76.0, 0.0), "accel": (0.0, 76.0)}
 #: default time budget per PARAM_SET / force-save, in units of the per-attempt timeout
 DEFAULT_BUDGET_FACTOR = 15.0
+#: default time the restore waits for a silent vehicle, in units of the write budget
+RESTORE_WAIT_FACTOR = 4.0
+#: read-back rounds at most (a round is repeated when the vehicle fell silent during it)
+_READ_ROUNDS = 10
 _DENIED_PREFIX = "Param write denied ("
 
 
@@ -325,20 +336,23 @@ class _SetOutcome:
     echoed: float | None
     attempts: int
     refusal: str | None = None  # the vehicle's own words when it refused the value
+    unheard: str | None = None  # why the attempts stopped: the vehicle stayed silent
 
 
 def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, expected: float,
-                     retries: int, timeout_s: float, budget_s: float, link_timeout_s: float) -> _SetOutcome:
+                     retries: int, timeout_s: float, budget_s: float, wait: Patience) -> _SetOutcome:
     """PARAM_SET ``name`` until an echo equal to ``expected`` arrives, the vehicle refuses it, or
-    at least ``retries`` attempts were sent and ``budget_s`` has passed.
+    at least ``retries`` attempts were sent and ``budget_s`` has passed while the vehicle was heard.
 
-    Raises LinkError when the vehicle has sent nothing at all for ``link_timeout_s``.
+    While the vehicle is silent (``wait``) no PARAM_SET is sent and the budget does not run: the
+    attempts resume when it is heard again, and stop when it stays unheard past the allowance
+    of ``wait`` (the outcome's ``unheard`` says so). Raises LinkError when the connection fails.
     """
     attempts = 0
     wire_value = float(np.float32(value))
     mark = len(watch.seen.get(name, []))
     rmark = len(watch.refused.get(name, []))
-    start = time.monotonic()
+    start, unheard0 = time.monotonic(), wait.silence.unheard_s()
 
     def confirmed() -> bool:
         return any(_same(v, expected) for v in watch.seen.get(name, [])[mark:])
@@ -346,9 +360,15 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
     def refused() -> bool:
         return len(watch.refused.get(name, [])) > rmark
 
-    while attempts < max(1, retries) or time.monotonic() - start < budget_s:
-        if link.silent_for() > link_timeout_s:
-            raise LinkError(f"{link.device}: vehicle silent for {link.silent_for():.1f} s")
+    def heard_s() -> float:  # time spent trying while the vehicle was not silent
+        return time.monotonic() - start - (wait.silence.unheard_s() - unheard0)
+
+    while attempts < max(1, retries) or heard_s() < budget_s:
+        try:
+            wait.until_heard()
+        except LinkError as exc:
+            seen = watch.seen.get(name, [])[mark:]
+            return _SetOutcome(False, seen[-1] if seen else None, attempts, unheard=str(exc))
         attempts += 1
         link.mav.param_set_send(link.target_system, link.target_component, name.encode("ascii"),
                                 wire_value, _A.MAV_PARAM_TYPE_REAL32)
@@ -365,8 +385,10 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
     return _SetOutcome(False, seen[-1] if seen else None, attempts)
 
 
-def _force_save(link: Link, kind: str, retries: int, timeout_s: float, budget_s: float) -> str | None:
-    """Send the force-save until the vehicle acknowledges it (or the budget runs out).
+def _force_save(link: Link, kind: str, retries: int, timeout_s: float, budget_s: float,
+                wait: Patience) -> str | None:
+    """Send the force-save until the vehicle acknowledges it (or the budget runs out; paused,
+    as a PARAM_SET's, while the vehicle is silent).
 
     Returns None when accepted, else the reason (the COMMAND_ACK result in MAVLink's words, or
     "no COMMAND_ACK ...").
@@ -380,9 +402,11 @@ def _force_save(link: Link, kind: str, retries: int, timeout_s: float, budget_s:
 
     token = link.add_handler("COMMAND_ACK", on_ack)
     sent = 0
-    start = time.monotonic()
+    start, unheard0 = time.monotonic(), wait.silence.unheard_s()
     try:
-        while not acks and (sent < max(1, retries) or time.monotonic() - start < budget_s):
+        while not acks and (sent < max(1, retries)
+                            or time.monotonic() - start - (wait.silence.unheard_s() - unheard0) < budget_s):
+            wait.until_heard()
             link.mav.command_long_send(link.target_system, link.target_component,
                                        _A.MAV_CMD_PREFLIGHT_CALIBRATION, min(sent, 255),
                                        0, p2, 0, 0, p5, 0, 0)
@@ -407,8 +431,20 @@ def _set_failure(r: ParamResult, out: _SetOutcome) -> str:
     return f"{r.name}: no echo of {r.expected!r} after {out.attempts} attempts (last heard {out.echoed!r})"
 
 
-def _read_back(link: Link, names: Sequence[str], retries: int, timeout_s: float) -> ParamTable:
-    return read_params(link, names, timeout_s=timeout_s, attempts=max(1, retries))
+def _read_back(link: Link, names: Sequence[str], retries: int, timeout_s: float, wait: Patience) -> ParamTable:
+    """Read ``names`` back; the round is repeated for the names that did not answer while the
+    vehicle fell silent during it (they were not refused: the link was down)."""
+    got: ParamTable = {}
+    for _ in range(_READ_ROUNDS):
+        missing = [n for n in names if n not in got]
+        if not missing:
+            break
+        wait.until_heard()
+        silences = wait.silence.silences
+        got.update(read_params(link, missing, timeout_s=timeout_s, attempts=max(1, retries)))
+        if wait.silence.silences == silences and not wait.silence.silent():
+            break
+    return got
 
 
 def _default_header(link: Link, what: str) -> list[str]:
@@ -420,13 +456,16 @@ def _default_header(link: Link, what: str) -> list[str]:
 class _WriteRun:
     """One write after the plan and the backup: steps 3-6 and their bookkeeping."""
 
-    def __init__(self, link: Link, table: ParamTable, plan: Sequence[ParamResult], backup: Path, *, retries: int,
-                 timeout_s: float, restore_retries: int, link_timeout_s: float, budget_s: float) -> None:
-        self.link, self.table, self.plan, self.backup = link, table, list(plan), backup
+    def __init__(self, link: Link, *, retries: int, timeout_s: float, restore_retries: int, restore_wait_s: float,
+                 budget_s: float) -> None:
+        self.link = link
         self.retries, self.timeout_s, self.budget_s = retries, timeout_s, budget_s
-        self.restore_retries, self.link_timeout_s = restore_retries, link_timeout_s
-        self.watch = _EchoWatch(link)
-        self.results: dict[str, ParamResult] = {r.name: r for r in plan}
+        self.restore_retries, self.restore_wait_s = restore_retries, restore_wait_s
+        self.restore_problem: str | None = None
+        self.table: ParamTable = {}
+        self.plan: list[ParamResult] = []
+        self.backup = Path()
+        self.results: dict[str, ParamResult] = {}
         self.attempted: list[str] = []
         self.force_saved: list[str] = []
         self.force_failed: list[str] = []
@@ -434,12 +473,32 @@ class _WriteRun:
         self.force_skipped: tuple[str, ...] = ()
         self.out_of_range: tuple[str, ...] = ()
 
-    def close(self) -> None:
-        self.watch.close()
+    def start(self, changes: Mapping[str, float], params: ParamTable | None, force_save: Sequence[str], *,
+              dry_run: bool, fetch_timeout_s: float, allow_out_of_range: bool, backup_path: str | None,
+              backup_header: Sequence[str] | None, keepalive: bool) -> WriteReport:
+        """Steps 1-2 (the table, the plan, the backup), then :meth:`execute` with the vehicle kept
+        talking (asked before the backup is written: that gives the stream time to start)."""
+        self.table = _vehicle_table(self.link, changes, params, fetch_timeout_s, self.timeout_s,
+                                    self.restore_retries, self.budget_s)
+        self.plan = plan_changes(changes, self.table)
+        self.results = {r.name: r for r in self.plan}
+        self.out_of_range, self.force_skipped = _limit_check(changes, self.table, force_save, allow_out_of_range)
+        to_write = [r for r in self.plan if not r.ok]
+        if dry_run or not to_write:
+            return _no_write_report(self.plan, to_write, dry_run)
+        with VehicleSilence(self.link, keepalive=keepalive, answer_s=self.timeout_s) as self.silence:
+            self.backup = _write_backup(self.link, str(backup_path), to_write, backup_header)
+            return self.execute(to_write, [k for k in force_save if k not in self.force_skipped])
+
+    def _patience(self) -> Patience:
+        """The write's wait for a silent vehicle: the write budget, per PARAM_SET / force-save / read."""
+        return Patience(self.silence, self.budget_s, "the write")
 
     def execute(self, to_write: Sequence[ParamResult], force_save: Sequence[str]) -> WriteReport:
         """Steps 3-6: the report of a complete write, or ParamWriteError / RestoreFailedError."""
+        self.watch = _EchoWatch(self.link)
         try:
+            self.silence.settle(min(self.budget_s, SETTLE_S))
             failure = self.write_each(to_write)
             if failure is None:
                 failure = self.save_and_verify(force_save)
@@ -447,7 +506,7 @@ class _WriteRun:
                 return self.success()
             self.restore(failure)
         finally:
-            self.close()
+            self.watch.close()
 
     def _final(self) -> tuple[ParamResult, ...]:
         return tuple(self.results[r.name] for r in self.plan)
@@ -460,14 +519,14 @@ class _WriteRun:
             failure = None
             try:
                 out = _set_and_confirm(self.link, self.watch, r.name, r.requested, r.expected,
-                                       self.retries, self.timeout_s, self.budget_s, self.link_timeout_s)
+                                       self.retries, self.timeout_s, self.budget_s, self._patience())
             except LinkError as exc:
                 out = _SetOutcome(False, self.watch.last.get(r.name), max(1, self.retries))
                 failure = str(exc)
             ok, echoed, attempts = out.ok, out.echoed, out.attempts
             self.results[r.name] = replace(r, ok=ok, echoed=echoed, attempts=attempts)
             if not ok:
-                return failure or _set_failure(r, out)
+                return failure or out.unheard or _set_failure(r, out)
             if vector_group(r.name):
                 log.debug("%s confirmed (vector echo of %s)", r.name, "/".join(vector_group(r.name) or ()))
         return None
@@ -477,7 +536,7 @@ class _WriteRun:
         """Force-save (a missing ACK is reported, not fatal), then read every written value back."""
         for kind in force_save:
             try:
-                reason = _force_save(self.link, kind, self.retries, self.timeout_s, self.budget_s)
+                reason = _force_save(self.link, kind, self.retries, self.timeout_s, self.budget_s, self._patience())
             except LinkError as exc:
                 reason = str(exc)
             (self.force_saved if reason is None else self.force_failed).append(kind)
@@ -485,7 +544,7 @@ class _WriteRun:
                 self.force_reasons.append(f"force-save of {kind} failed: {reason}")
         failure = None
         try:
-            back = _read_back(self.link, self.attempted, self.restore_retries, self.timeout_s)
+            back = _read_back(self.link, self.attempted, self.restore_retries, self.timeout_s, self._patience())
         except LinkError as exc:
             back, failure = {}, str(exc)
         for name in self.attempted:
@@ -514,8 +573,9 @@ class _WriteRun:
                            force_save_skipped=self.force_skipped, out_of_range=self.out_of_range)
 
     # 6. restore everything attempted (including the one in flight), newest first
-    def _restore_each(self) -> bool:
-        """PARAM_SET every attempted parameter back to its old value; False if the link was lost."""
+    def _restore_each(self, wait: Patience) -> bool:
+        """PARAM_SET every attempted parameter back to its old value, first waiting for a silent
+        vehicle (``wait``: the restore's own allowance); False if it stayed unheard past it."""
         link_ok = True
         try:
             self.link.pump(min(self.timeout_s, 0.5))  # let late echoes of the failed attempts arrive first
@@ -529,23 +589,26 @@ class _WriteRun:
             try:
                 out = _set_and_confirm(
                     self.link, self.watch, name, r.old, expected_stored_value(r.old, self.table[name][1]),
-                    self.restore_retries, self.timeout_s, self.budget_s, self.link_timeout_s)
+                    self.restore_retries, self.timeout_s, self.budget_s, wait)
                 ok, echoed, attempts = out.ok, out.echoed, out.attempts
-            except LinkError:
+                if out.unheard is not None:
+                    link_ok, self.restore_problem = False, out.unheard
+            except LinkError as exc:
                 ok, echoed, attempts, link_ok = False, None, 1, False
+                self.restore_problem = str(exc)
             self.results[name] = replace(r, restored=ok, restore_attempts=attempts,
                                          echoed=echoed if echoed is not None else r.echoed)
         return link_ok
 
-    def _verify_restore(self) -> None:
+    def _verify_restore(self, wait: Patience) -> None:
         """Read the restored parameters back; one that does not read back its old value is in doubt."""
         confirmed = [n for n in self.attempted if self.results[n].restored]
         if not confirmed:
             return
         try:
-            back = _read_back(self.link, confirmed, self.restore_retries, self.timeout_s)
-        except LinkError:
-            back = {}
+            back = _read_back(self.link, confirmed, self.restore_retries, self.timeout_s, wait)
+        except LinkError as exc:
+            back, self.restore_problem = {}, str(exc)
         for n in confirmed:
             r = self.results[n]
             good = n in back and _same(back[n][0], expected_stored_value(r.old, self.table[n][1]))
@@ -554,16 +617,18 @@ class _WriteRun:
     def restore(self, failure: str) -> NoReturn:
         """Undo the write, then raise ParamWriteError (restored) or RestoreFailedError (in doubt)."""
         log.warning("write failed (%s); restoring %d parameters from %s", failure, len(self.attempted), self.backup)
-        if self._restore_each():
-            self._verify_restore()
+        wait = Patience(self.silence, self.restore_wait_s, "the restore")
+        if self._restore_each(wait):
+            self._verify_restore(wait)
         in_doubt = tuple(n for n in self.attempted if not self.results[n].restored)
         saved, failed = tuple(self.force_saved), tuple(self.force_failed)
         if in_doubt:
             report = WriteReport(results=self._final(), backup_path=str(self.backup), complete=False,
                                  restored=False, in_doubt=in_doubt, force_saved=saved, force_save_failed=failed,
                                  message=f"write failed ({failure}) and the restore failed")
+            why = f" ({self.restore_problem})" if self.restore_problem else ""
             raise RestoreFailedError(
-                f"write failed ({failure}); restore not verified for {', '.join(in_doubt)}; "
+                f"write failed ({failure}); restore not verified for {', '.join(in_doubt)}{why}; "
                 f"backup in {self.backup}", in_doubt=in_doubt, report=report)
         report = WriteReport(results=self._final(), backup_path=str(self.backup), complete=False, restored=True,
                              force_saved=saved, force_save_failed=failed,
@@ -635,9 +700,9 @@ def _no_write_report(plan: Sequence[ParamResult], to_write: Sequence[ParamResult
 def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | None,
                  params: ParamTable | None = None, force_save: Sequence[str] = ("compass", "accel"),
                  retries: int = 3, timeout_s: float = 1.0, restore_retries: int | None = None,
-                 dry_run: bool = False, fetch_timeout_s: float = 30.0, link_timeout_s: float = 3.0,
+                 dry_run: bool = False, fetch_timeout_s: float = 30.0, restore_wait_s: float | None = None,
                  budget_s: float | None = None, allow_out_of_range: bool = False,
-                 backup_header: Sequence[str] | None = None) -> WriteReport:
+                 backup_header: Sequence[str] | None = None, keepalive: bool = True) -> WriteReport:
     """Write ``changes`` to the vehicle safely (see the module docstring for the sequence).
 
     Parameters
@@ -662,22 +727,27 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
     restore_retries : int, optional
         PARAM_SETs per parameter when restoring, and read requests per parameter when
         reading values (reads change nothing, so they may insist); default ``5 * retries``,
-        at least 20. A dead link is detected by ``link_timeout_s`` instead.
+        at least 20. A silent vehicle is waited for instead (``budget_s``, ``restore_wait_s``).
     dry_run : bool
         Only compute the diff; write nothing (no backup either).
     fetch_timeout_s : float
         Bound on the initial parameter download.
-    link_timeout_s : float
-        The link counts as lost when the vehicle sent nothing at all (not even a HEARTBEAT,
-        1 Hz on ArduPilot) for this long; writing and restoring stop at once.
+    restore_wait_s : float, optional
+        How long the restore waits in all for a silent vehicle (:mod:`mavcal.link.silence`) before
+        its parameters are in doubt. Default ``RESTORE_WAIT_FACTOR * budget_s`` (60 s in the CLI).
     backup_header : sequence of str, optional
         Comment lines for the backup file.
     budget_s : float, optional
         Time budget per PARAM_SET / force-save / read: keep retrying (after ``retries``
-        attempts) until it runs out. Default ``DEFAULT_BUDGET_FACTOR * timeout_s``.
+        attempts) until it runs out. It does not run while the vehicle is silent (see
+        :mod:`mavcal.link.silence`): the write waits up to ``budget_s`` more for it to be heard
+        again, then fails (and restores). Default ``DEFAULT_BUDGET_FACTOR * timeout_s``.
     allow_out_of_range : bool
         Write values outside ArduPilot's limits anyway (reported in ``out_of_range``); the
         sensor kinds whose values fail are still not force-saved.
+    keepalive : bool
+        Ask for ATTITUDE at a few Hz during the write, its default rate put back after (False:
+        a link that is not handed ATTITUDE; silences then measured on the heartbeat alone).
 
     Returns
     -------
@@ -697,63 +767,15 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
         A write failed and the restore could not be verified (exit 6); ``.in_doubt`` lists
         the parameters whose value is unknown and ``.report`` the report.
     """
-    link = as_link(conn)
     restore_retries = max(20, 5 * retries) if restore_retries is None else restore_retries
     budget_s = DEFAULT_BUDGET_FACTOR * timeout_s if budget_s is None else budget_s
+    run = _WriteRun(as_link(conn), retries=retries, timeout_s=timeout_s, restore_retries=restore_retries,
+                    budget_s=budget_s, restore_wait_s=RESTORE_WAIT_FACTOR * budget_s if restore_wait_s is None
+                    else restore_wait_s)
     changes = _checked_request(changes, force_save, backup_path, dry_run)
-    table = _vehicle_table(link, changes, params, fetch_timeout_s, timeout_s, restore_retries, budget_s)
-    plan = plan_changes(changes, table)
-    out_of_range, skipped = _limit_check(changes, table, force_save, allow_out_of_range)
-    to_write = [r for r in plan if not r.ok]
-    if dry_run or not to_write:
-        return _no_write_report(plan, to_write, dry_run)
-    bpath = _write_backup(link, str(backup_path), to_write, backup_header)
-    run = _WriteRun(link, table, plan, bpath, retries=retries, timeout_s=timeout_s,
-                    restore_retries=restore_retries, link_timeout_s=link_timeout_s, budget_s=budget_s)
-    run.force_skipped, run.out_of_range = skipped, out_of_range
-    return run.execute(to_write, [k for k in force_save if k not in skipped])
-
-
-def fetch_for_write(conn: Any, names: Sequence[str], *, context: Sequence[str] = (), timeout_s: float = 1.0,
-                    attempts: int = 5, fetch_timeout_s: float = 30.0, budget_s: float = 0.0) -> ParamTable:
-    """The part of the vehicle's table a write of ``names`` needs, without a full download when
-    the names answer.
-
-    ``names`` (and ``context``, optional names such as device ids and limits) are read by name,
-    ``names`` for at least ``attempts`` requests and ``budget_s`` seconds each (a lossy link),
-    ``context`` for ``attempts`` requests (they may not exist);
-    a name the vehicle refuses with PARAM_ERROR is unknown at once. Only when some of ``names``
-    do not answer is the table downloaded (re-requesting the holes by index and the names by
-    name, with a budget that grows with the count), until they are known or the table is
-    complete (then the missing ones do not exist: :func:`write_params` refuses them).
-
-    Raises
-    ------
-    UnknownParameterError
-        The vehicle said (PARAM_ERROR) that some of ``names`` do not exist.
-    LinkError
-        Some of ``names`` could not be read and the download did not complete.
-    """
-    link = as_link(conn)
-    wanted = list(dict.fromkeys(names))
-    extra = [c for c in dict.fromkeys(context) if c not in wanted]
-    got = read_params_by_name(link, wanted + extra, timeout_s=timeout_s, attempts=attempts, budget_s=budget_s,
-                              optional=extra)
-    unknown = [n for n in wanted if n in got.errors]
-    if unknown:
-        raise UnknownParameterError(unknown)
-    table = dict(got.values)
-    missing = [n for n in wanted if n not in table]
-    if not missing:
-        return table
-    log.info("%d names did not answer by name; downloading the table", len(missing))
-    dl = download_params(link, fetch_timeout_s, retry_s=max(timeout_s / 2, 0.2), need=missing, until_needed=True)
-    table.update(dl.table)
-    still = [n for n in missing if n not in table]
-    if still and not dl.complete:
-        raise LinkError(f"{link.device}: no answer reading {', '.join(still)}; "
-                        + dl.describe(link.device, dl.elapsed_s).split(": ", 1)[1] + " (nothing was written)")
-    return table
+    return run.start(changes, params, force_save, dry_run=dry_run, fetch_timeout_s=fetch_timeout_s,
+                     allow_out_of_range=allow_out_of_range, backup_path=backup_path, backup_header=backup_header,
+                     keepalive=keepalive)
 
 
 def default_backup_path(directory: str = ".", stem: str = "mavcal-backup") -> Path:

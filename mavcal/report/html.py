@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import mavcal
+from mavcal.determined import bound_value_words, determined, joint_unidentified
 from mavcal.errors import UsageError
 from mavcal.report.figures import (
     FIGURE_NAMES,
@@ -100,7 +101,7 @@ _OVERALL = {0: ("ACCEPTED", "ok"), 7: ("PARTLY ACCEPTED", "partial"), 4: ("REJEC
 
 
 def _top(run) -> list[str]:
-    q, seg = run.quality, run.segmentation
+    seg = run.segmentation
     n_int, n_used, accepted = len(seg.intervals), len(run.intervals_used), run.accepted
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     return ["<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
@@ -111,9 +112,22 @@ def _top(run) -> list[str]:
             f"{_e(mavcal.__version__)} &middot; generated {now}</p>",
             f"<p><span class='verdict {_OVERALL[run.exit_code][1]}'>{_OVERALL[run.exit_code][0]}</span> "
             f"<span id='interval-count'>{n_int} still intervals found, {n_used} used</span>, "
-            f"{seg.coverage.n_orientations} distinct orientations; heading error &le; "
-            f"<b>{_num(q.heading_95_deg, '.3f')}&deg;</b>, tilt error &le; <b>{_num(q.tilt_95_deg, '.3f')}&deg;</b> "
+            f"{seg.coverage.n_orientations} distinct orientations; {_bounds(run, '.3f')} "
             "(95 % confidence).</p>"] + _verdicts(run)
+
+
+def _bounds(run, fmt: str) -> str:
+    """'heading error &le; <b>0.123&deg;</b>, tilt error ...', or 'not determined (why)'
+    for a bound the data do not determine (:mod:`mavcal.determined`)."""
+    q = run.quality
+    why_a, why_m = joint_unidentified(run)
+    out = []
+    for kind, v, why in (("heading", q.heading_95_deg, why_a or why_m), ("tilt", q.tilt_95_deg, why_a)):
+        if why or not determined(kind, v):
+            out.append(f"{kind} error <b>{_e(bound_value_words(kind, v, fmt, why))}</b>")
+        else:
+            out.append(f"{kind} error &le; <b>{_num(v, fmt)}&deg;</b>")
+    return ", ".join(out)
 
 
 def _verdicts(run) -> list[str]:
@@ -149,8 +163,10 @@ def _kept(run) -> list[str]:
 def _quality(run) -> list[str]:
     cal, q = run.calibration, run.quality
     cm = run.mapping.compass[0] if run.mapping.compass else None
-    kv = [("heading error, 95 % bound (deg)", _num(q.heading_95_deg, ".4f")),
-          ("tilt error, 95 % bound (deg)", _num(q.tilt_95_deg, ".4f")),
+    why_a, why_m = joint_unidentified(run)
+    why = why_a or why_m
+    kv = [("heading error, 95 % bound (deg)", _bound_cell("heading", q.heading_95_deg, why)),
+          ("tilt error, 95 % bound (deg)", _bound_cell("tilt", q.tilt_95_deg, why_a)),
           ("heading / tilt error of the written parameters at the estimate (deg)",
            f"{_num(q.heading_nominal_deg, '.4f')} / {_num(q.tilt_nominal_deg, '.4f')}"),
           ("held-out error, accel (m/s^2) / compass (mGauss)",
@@ -158,11 +174,16 @@ def _quality(run) -> list[str]:
            if np.isfinite(q.holdout_accel_mps2) and np.isfinite(q.holdout_mag_mgauss)
            else _e(holdout_text(run).removeprefix("held-out error: "))),
           ("fit chi2 / dof", _num(q.chi2_dof, ".3f"))]
+    if why:  # the numbers of a fit the poses do not identify are not shown as if they were estimates
+        kv[2:] = [("errors at the estimate, held-out error, fit chi2 / dof", _e(f"not determined ({why})"))]
     if cal is not None:
-        kv += [("model", _e(cal.model)), ("why this model", _e(cal.model_reason or "-")),
+        kv += [("model", _e(cal.model)),
+               ("why this model", _e(f"not determined ({why})" if why else cal.model_reason or "-")),
                ("estimator",
                 f"{_e(cal.method)}, {'converged' if cal.converged else 'NOT converged'}: {_e(cal.message)}")]
-    if cm is not None:
+    if cm is not None and why:
+        kv += [("field magnitude, dip, compass orientation", _e(f"not determined ({why})"))]
+    elif cm is not None:
         dip = _num(cm.inclination_deg, ".2f") + ("" if cm.inclination_model_deg is None else
                                                  f" (World Magnetic Model {_num(cm.inclination_model_deg, '.2f')})")
         kv += [("field magnitude (mGauss)", f"{_num(cm.field_mgauss, '.1f')} ({_e(cm.field_source)})"),
@@ -170,6 +191,10 @@ def _quality(run) -> list[str]:
     return ["<h2>Quality and model</h2>",
             "<table class='kv'>" + "".join(f"<tr><td>{_e(k)}</td><td class='l'>{v}</td></tr>" for k, v in kv)
             + "</table>"]
+
+
+def _bound_cell(kind: str, v: float, why: str) -> str:
+    return _e(bound_value_words(kind, v, ".4f", why)) if why or not determined(kind, v) else _num(v, ".4f")
 
 
 def _parameters(run, force: bool = False) -> list[str]:

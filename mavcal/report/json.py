@@ -26,6 +26,7 @@ import mavcal
 from mavcal.ardupilot.gates import Gate, GateReport
 from mavcal.ardupilot.mapping import ParamMapping
 from mavcal.core.types import Calibration, SensorModel
+from mavcal.determined import determined, joint_unidentified
 from mavcal.errors import SourceError, UsageError
 from mavcal.quality import Quality
 
@@ -126,8 +127,19 @@ def _instances(run) -> dict[str, Any]:
                                    for c in run.mapping.compass],
             "pairs": [{"accel": r.mapping.accel[0].instance, "compass": r.mapping.compass[0].instance,
                        "model": r.calibration.model, "heading_95_deg": r.quality.heading_95_deg,
-                       "tilt_95_deg": r.quality.tilt_95_deg} for r in (run,) + tuple(run.others)
+                       "tilt_95_deg": r.quality.tilt_95_deg, **_determined(r)} for r in (run,) + tuple(run.others)
                       if r.mapping.accel and r.mapping.compass and r.calibration is not None]}
+
+
+def _determined(run) -> dict[str, Any]:
+    """The flags beside the bounds (:mod:`mavcal.determined`): ``heading_determined`` /
+    ``tilt_determined`` False when the bound is above 90 / 45 deg or the poses do not identify
+    the pair's sensors (``not_determined_why`` then says which; "" otherwise)."""
+    why_a, why_m = joint_unidentified(run)
+    q = run.quality
+    return {"heading_determined": not (why_a or why_m) and determined("heading", q.heading_95_deg),
+            "tilt_determined": not why_a and determined("tilt", q.tilt_95_deg),
+            "not_determined_why": why_a or why_m}
 
 
 def _changed(old: float | None, new: float) -> bool:
@@ -180,7 +192,7 @@ def to_json(run) -> dict[str, Any]:
         "exit_code": run.exit_code,
         "parameters": _parameters(run),
         "reboot_required": run.mapping.reboot_required,
-        "quality": {k: _f(v) for k, v in run.quality.__dict__.items()},
+        "quality": {**{k: _f(v) for k, v in run.quality.__dict__.items()}, **_determined(run)},
         "gates": [{"sensor": g.sensor, "name": g.name, "ok": g.ok, "value": _f(g.value), "limit": g.limit,
                    "reason": g.reason, "ran": g.ran, "cause": g.cause} for g in run.gates.gates],
         "dropped": _dropped(run),

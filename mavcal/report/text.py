@@ -11,6 +11,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from mavcal.ardupilot.paramfile import format_param_value
+from mavcal.determined import bound_phrase, joint_unidentified
 
 __all__ = ["summary_text", "holdout_text", "verdict_lines", "kept_lines", "next_step", "param_rows", "format_value",
            "gate_failures_by_sensor", "param_table", "written_rows",
@@ -228,28 +229,41 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
          *kept_lines(run), next_step(run, **(hints or {}))]
     L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
           f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
+    why_a, why_m = joint_unidentified(run)  # numbers of a sensor the poses do not identify: not printed
+    why = why_a or why_m
     if cal is None:
         L.append("model: accelerometers calibrated alone (no compass)")
     else:
-        L.append(f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}")
+        if why:  # the Wald statistics of a model the poses do not identify hold no digits
+            L.append(f"model: {cal.model} (the choice of model is not determined: {why})")
+        else:
+            L.append(f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}")
         if not cal.converged:
             L.append("the fit did NOT converge: treat the result with caution")
     if cal is not None and run.mapping.accel and run.mapping.compass:
         L.append(f"joint fit of accel{run.mapping.accel[0].instance} + compass{run.mapping.compass[0].instance} "
                  "(each sensor's own numbers are in its verdict):")
-    envelope = "over the flight envelope"
-    if run.kept:
-        from mavcal.coverage import REACH_FLOWN_TILT_DEG
+    if why_a:
+        L.append(f"heading and tilt errors not determined ({why_a})")
+    else:
+        envelope = "over the flight envelope"
+        if run.kept:
+            from mavcal.coverage import REACH_FLOWN_TILT_DEG
 
-        envelope = (f"over the attitudes flown, tilts up to {REACH_FLOWN_TILT_DEG:g} deg; the kept values' "
-                    "uncertainty counted")
-    L += [f"heading error <= {q.heading_95_deg:.3f} deg, tilt error <= {q.tilt_95_deg:.3f} deg "
-          f"(95 % confidence, {envelope})",
-          f"{holdout_text(run)}; fit chi2/dof {q.chi2_dof:.2f}"]
+            envelope = (f"over the attitudes flown, tilts up to {REACH_FLOWN_TILT_DEG:g} deg; the kept values' "
+                        "uncertainty counted")
+        L.append(f"{bound_phrase('heading', q.heading_95_deg, why=why_m)}, {bound_phrase('tilt', q.tilt_95_deg)} "
+                 f"(95 % confidence, {envelope})")
+    if why:
+        L.append("not determined either, for the same reason: the held-out error, fit chi2/dof"
+                 + "".join(f", accel {am.instance}'s cross-axis terms" for am in run.mapping.accel[:1] if why_a)
+                 + "".join(f", compass {cm.instance}'s misalignment and field" for cm in run.mapping.compass[:1]))
+    else:
+        L.append(f"{holdout_text(run)}; fit chi2/dof {q.chi2_dof:.2f}")
     L += [f"accel {am.instance}: cross-axis terms ArduPilot cannot hold cause up to {am.dropped_tilt_deg:.3f} deg tilt"
-          for am in run.mapping.accel[:1]]
+          for am in run.mapping.accel[:1] if not why_a]
     L += [f"compass {cm.instance}: {cm.orientation_note}; field {cm.field_mgauss:.0f} mGauss ({cm.field_source})"
-          + _field_flag(cm) for cm in run.mapping.compass[:1]]
+          + _field_flag(cm) for cm in run.mapping.compass[:1] if not why]
     rows = written_rows(run, force) if param_table else []
     if rows:
         L += _table_lines(rows)

@@ -14,7 +14,10 @@
 * :mod:`mavcal.testing.sitl` -- :class:`~mavcal.testing.sitl.SitlVehicle`, the real ArduPilot
   SITL (``../shared/sitl``) in a private network namespace: known injected errors, poses,
   the truth, processes in its namespace; :mod:`mavcal.testing.sitl_hand` -- a scripted hand
-  that holds the poses a guided capture advises.
+  that holds the poses a guided capture advises; :mod:`mavcal.testing.sitl_sessions` -- whole
+  ``mavcal apply`` sessions against it through lossy relays, checked over its own channel.
+* :mod:`mavcal.testing.relay` -- :class:`~mavcal.testing.relay.LossRelay`, a lossy UDP relay
+  (drops, duplicates, blackouts) between a vehicle and a tool.
 * :mod:`mavcal.testing.numbers` -- comparing computed numbers at a stated tolerance: golden
   text, JSON and arrays (never bit for bit: the last bits differ between BLAS kernels and CPUs).
 

@@ -43,7 +43,7 @@ __all__ = ["GOLDEN_RTOL", "GOLDEN_ATOL", "REFACTOR_RTOL", "numbers_close", "text
 GOLDEN_RTOL = 1e-6
 #: Absolute floor of golden outputs, for numbers near zero.
 GOLDEN_ATOL = 1e-9
-#: Relative tolerance of a refactor of the math (README, "Contributor rules").
+#: Relative tolerance of a refactor of the math (docs/development.md, "Contributor rules for numbers").
 REFACTOR_RTOL = 1e-9
 
 # a number as printed: optional sign, digits with an optional fraction (or a bare fraction),

@@ -10,15 +10,20 @@ and a ground station that listens (``udpin:127.0.0.1:TOOL_PORT``)::
 The vehicle side learns the vehicle's address from its first datagram; the tool side sends
 from its own socket, so the tool answers the relay. Each datagram is dropped with probability
 ``loss`` and sent twice with probability ``dup`` (per direction), decided by a
-``random.Random(seed)``; :attr:`LossRelay.stats` counts them. One thread, loopback only,
-stopped by :meth:`LossRelay.stop` (or the context manager).
+``random.Random(seed)``; :attr:`LossRelay.stats` counts them. A blackout drops everything
+both ways for a while: now (:meth:`LossRelay.blackout`) or scripted to start when the tool
+sends its n-th message of a MAVLink id (:meth:`LossRelay.blackout_at`: "in the middle of a
+write", the n-th PARAM_SET; that datagram itself is not blacked out). One thread, loopback only, stopped by
+:meth:`LossRelay.stop` (or the context manager).
 """
 from __future__ import annotations
 
+import math
 import random
 import select
 import socket
 import threading
+import time
 from typing import Any
 
 __all__ = ["LossRelay"]
@@ -60,7 +65,12 @@ class LossRelay:
             s.setblocking(False)
         self.vehicle_port: int = self._vehicle_sock.getsockname()[1]
         self._vehicle_addr: Any = None
-        self.stats = {"out": 0, "in": 0, "dropped_out": 0, "dropped_in": 0, "dup_out": 0, "dup_in": 0}
+        self.stats = {"out": 0, "in": 0, "dropped_out": 0, "dropped_in": 0, "dup_out": 0, "dup_in": 0,
+                      "blacked_out": 0}
+        self._blackout_until = float("-inf")
+        self._script: tuple[int, int, float] | None = None  # (msgid, datagrams still to pass, seconds)
+        #: time.monotonic() at which each blackout started
+        self.blackouts: list[float] = []
         self._running = False
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -110,11 +120,43 @@ class LossRelay:
             if dup is not None:
                 self.dup = float(dup)
 
+    def blackout(self, seconds: float) -> None:
+        """Drop every datagram both ways for ``seconds`` from now (``math.inf``: for good)."""
+        with self._lock:
+            self._start_blackout(seconds)
+
+    def blackout_at(self, msgid: int, nth: int, seconds: float) -> None:
+        """Black out for ``seconds`` once the tool has sent its ``nth`` message of MAVLink id
+        ``msgid`` from now on (that datagram itself is not blacked out)."""
+        with self._lock:
+            self._script = (int(msgid), max(1, int(nth)), float(seconds))
+
+    def _start_blackout(self, seconds: float) -> None:
+        now = time.monotonic()
+        self._blackout_until = math.inf if math.isinf(seconds) else now + float(seconds)
+        self.blackouts.append(now)
+
+    def _scripted(self, data: bytes) -> None:
+        """Count ``data`` (from the tool) against the blackout script; start it at the n-th."""
+        if self._script is None or _msgid(data) != self._script[0]:
+            return
+        msgid, left, seconds = self._script
+        if left > 1:
+            self._script = (msgid, left - 1, seconds)
+        else:
+            self._script = None
+            self._start_blackout(seconds)
+
     # ------------------------------------------------------------------ the loop
-    def _copies(self, direction: str) -> int:
+    def _copies(self, direction: str, data: bytes = b"") -> int:
         with self._lock:
             loss = self.loss_out if direction == "out" else self.loss_in
             self.stats[direction] += 1
+            if time.monotonic() < self._blackout_until:
+                self.stats["blacked_out"] += 1
+                return 0
+            if direction == "in":
+                self._scripted(data)
             if loss and self._rng.random() < loss:
                 self.stats["dropped_" + direction] += 1
                 return 0
@@ -138,7 +180,7 @@ class LossRelay:
                 if self._vehicle_addr is None:
                     continue  # the vehicle has not spoken yet: nowhere to send
                 dest, out, direction = self._vehicle_addr, self._vehicle_sock, "in"
-            for _ in range(self._copies(direction)):
+            for _ in range(self._copies(direction, data)):
                 try:
                     out.sendto(data, dest)
                 except OSError:  # a full buffer or nobody listening: lost, like a radio
@@ -153,3 +195,12 @@ class LossRelay:
                 return
             for s in readable:
                 self._forward(s)
+
+
+def _msgid(data: bytes) -> int | None:
+    """The MAVLink message id of the first frame of a datagram (None: not MAVLink)."""
+    if len(data) >= 10 and data[0] == 0xFD:
+        return data[7] | data[8] << 8 | data[9] << 16
+    if len(data) >= 6 and data[0] == 0xFE:
+        return data[5]
+    return None

@@ -448,13 +448,17 @@ class TestVehicle:
             self._send(self._enc.statustext_encode(mavlink2.MAV_SEVERITY_CRITICAL,
                                                    f"Internal Errors {self.internal_errors:#x}".encode()))
 
+    def _default_interval(self, mid: int) -> float | None:
+        """The interval of message ``mid`` at its stream's rate (None: not sent)."""
+        stream = {mavlink2.MAVLINK_MSG_ID_RAW_IMU: "RAW_SENS", mavlink2.MAVLINK_MSG_ID_SCALED_IMU2: "RAW_SENS",
+                  mavlink2.MAVLINK_MSG_ID_SCALED_IMU3: "RAW_SENS", mavlink2.MAVLINK_MSG_ID_ATTITUDE: "EXTRA1"}.get(mid)
+        hz = self._stream_hz[stream] if stream is not None else 0.0
+        return 1.0 / min(hz, 400.0) if hz > 0 else None
+
     def _apply_stream_rates(self) -> None:
-        def iv(hz: float) -> float | None:
-            return 1.0 / min(hz, 400.0) if hz > 0 else None
         for mid in (mavlink2.MAVLINK_MSG_ID_RAW_IMU, mavlink2.MAVLINK_MSG_ID_SCALED_IMU2,
-                    mavlink2.MAVLINK_MSG_ID_SCALED_IMU3):
-            self._intervals[mid] = iv(self._stream_hz["RAW_SENS"])
-        self._intervals[mavlink2.MAVLINK_MSG_ID_ATTITUDE] = iv(self._stream_hz["EXTRA1"])
+                    mavlink2.MAVLINK_MSG_ID_SCALED_IMU3, mavlink2.MAVLINK_MSG_ID_ATTITUDE):
+            self._intervals[mid] = self._default_interval(mid)
         self._intervals.setdefault(mavlink2.MAVLINK_MSG_ID_SCALED_IMU, None)
         self._next_due = {mid: time.monotonic() for mid in self._intervals}
 
@@ -780,8 +784,9 @@ class TestVehicle:
             us = m.param2
             if us < 0:
                 self._intervals[mid] = None
-            elif us == 0:
-                self._apply_stream_rates()
+            elif us == 0:  # that message's default rate (its stream's SR0_* rate), the others untouched
+                self._intervals[mid] = self._default_interval(mid)
+                self._next_due[mid] = time.monotonic()
             else:
                 self._intervals[mid] = max(us * 1e-6, 1.0 / 400.0)
                 self._next_due[mid] = time.monotonic()

@@ -279,7 +279,9 @@ function drawBars(sensors, st) {
     name.textContent = (s.met ? "\u2713 " : "") + sensorName(s.sensor);
     const num = document.createElement("span");
     num.className = "num";
-    num.textContent = s.bound_deg == null ? s.what : `${s.what} ${s.bound_deg.toFixed(2)}\u00b0 (aim ${s.target_deg}\u00b0)`;
+    num.textContent = s.bound_deg == null ? s.what : s.determined === false ?
+      `${s.what} not determined (95 % bound above ${s.what === "heading" ? 90 : 45}\u00b0)` :
+      `${s.what} ${s.bound_deg.toFixed(2)}\u00b0 (aim ${s.target_deg}\u00b0)`;
     lab.append(name, num);
     if (s.dropped) num.textContent = "left out";
     const bar = document.createElement("div");
@@ -292,6 +294,12 @@ function drawBars(sensors, st) {
     fill.style.width = (100 * frac).toFixed(0) + "%";
     bar.appendChild(fill);
     row.append(lab, bar);
+    if (s.needs && !s.blocked && !s.dropped) {
+      const more = document.createElement("p");
+      more.className = "needs-why";
+      more.textContent = "more poses needed: " + s.needs;
+      row.appendChild(more);
+    }
     if (s.blocked && !s.dropped) {
       const why = document.createElement("p");
       why.className = "blocked-why";
