@@ -78,3 +78,11 @@ def test_capture_within_reach_follows_skips_and_writes_the_compass_alone():
                             lambda b: b @ np.linalg.inv(M).T / ct.scale - np.array(ct.offsets),
                             accel_now, written, B, attitude_grid(max_tilt_deg=max_tilt))
         assert e.max_heading_deg <= bound, (max_tilt, e)
+
+
+@pytest.mark.parametrize("deg", ["60", "0.5", "-5"])
+def test_max_tilt_outside_what_counts_as_within_reach_is_a_usage_error(deg, capsys):
+    from mavcal import cli
+
+    assert cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--max-tilt", deg]) == 2
+    assert "--max-tilt must be 3-40 deg" in capsys.readouterr().err
