@@ -38,7 +38,7 @@ import numpy as np
 
 from mavcal.core.certify import SAMPLE_COST, certificate
 from mavcal.core.initial import G_UNIT
-from mavcal.core.misfit import INFLATE_P, REWEIGHT_P, cost_name, inflation, joint_terms, misfit_factors, misfit_p
+from mavcal.core.misfit import INFLATE_P, REWEIGHT_P, cost_name, inflation, joint_terms, misfit_p, reweight_factors
 from mavcal.core.models import MODELS
 from mavcal.core.refine import (
     JointParams,
@@ -279,14 +279,10 @@ def _reweight(res: RefineResult, prob: HeldProblem, spec, a: IntervalStats, m: I
     Sa, Sm = a.sigma_hat, m.sigma_hat
     evidence = ""
     for _ in range(REWEIGHT_ROUNDS):
-        if res.dof <= 0:
+        step = reweight_factors(spec, a, m, Sa, Sm, res)
+        if step is None:
             break
-        p = misfit_p(res.cost, res.dof, a, m)
-        if p >= REWEIGHT_P:
-            break
-        fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
-        if fa == 1.0 and fm == 1.0:
-            break
+        fa, fm, p = step
         evidence = evidence or f"J' was {res.cost:.6g} on {res.dof} dof, p={p:.3g} < {REWEIGHT_P:g}"
         Sa, Sm = Sa * fa, Sm * fm
         prob = HeldProblem(joint_terms(spec, a, m, Sa, Sm), free, values)
