@@ -27,14 +27,19 @@ iron, far closer than the 20 deg clusters need.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mavcal.core.held import relaxed_headings, tilts_of
+from mavcal.errors import MavcalError
 from mavcal.segment import Segmentation, axis_label, count_clusters
 
 __all__ = ["CoverageRule", "SensorCoverage", "accel_coverage", "compass_coverage", "sensor_coverages",
-           "field_directions", "UNIDENTIFIED_HEADING_DEG", "UNIDENTIFIED_TILT_DEG"]
+           "field_directions", "UNIDENTIFIED_HEADING_DEG", "UNIDENTIFIED_TILT_DEG", "KeptParameter",
+           "ReachCoverage", "reach_coverage", "segmentation_reach", "within_reach", "held_priors",
+           "REACH_MAX_TILT_DEG", "REACH_FLOWN_TILT_DEG", "REACH_MIN_TILT_DEG",
+           "REACH_MIN_FIELD_DIRECTIONS"]
 
 #: a 95 % heading bound this large says the poses did not identify the compass (a heading
 #: error that may be anywhere in a half turn is no estimate at all)
@@ -182,4 +187,203 @@ def sensor_coverages(seg: Segmentation, accel_instance: int = 0, rule: CoverageR
         g = np.array([iv.gravity_dir for iv in used]).reshape(-1, 3)
         means = np.array([iv.mag_mgauss[m].mean(axis=0) for iv in used]).reshape(-1, 3)
         out.append(compass_coverage(f"compass{m}", g, means, rule))
+    return out
+
+
+# --- poses within reach: a vehicle turned on the ground and tilted a little ---------------------
+
+#: poses all within this tilt of level are "within reach" of a vehicle that cannot be turned over:
+#: when they cannot identify the accelerometer, the compass is fitted with it held (mavcal.core.held)
+REACH_MAX_TILT_DEG = 40.0
+#: the compass's vertical soft-iron terms (and, without the World Magnetic Model's inclination, its
+#: vertical offset) are seen only through the tilts: below this largest tilt they are not separated
+REACH_MIN_TILT_DEG = 3.0
+#: the attitudes a vehicle that cannot be turned over flies (a heavy multirotor or VTOL, a rover, a boat):
+#: roll and pitch up to this, every heading; its heading and tilt bounds are over these
+REACH_FLOWN_TILT_DEG = 15.0
+#: distinct headings (clusters :data:`REACH_HEADING_DEG` apart on the circle the compass means
+#: trace as the vehicle turns) the poses must hold: about 6 headings 60 deg apart
+REACH_MIN_FIELD_DIRECTIONS = 5
+REACH_HEADING_DEG = 40.0
+
+_BEYOND = "the vehicle on its side (gravity along X or Y) or upside down: the full capture without --max-tilt"
+
+
+@dataclass(frozen=True)
+class KeptParameter:
+    """A parameter the poses cannot identify, kept at its current value and not written."""
+
+    sensor: str  # "accel0", "compass1"
+    what: str  # "Z scale", "X and Y offsets", ...
+    why: str  # the poses' limit, in words
+    pose: str  # which pose would identify it
+
+    def text(self) -> str:
+        return f"{self.sensor} {self.what} kept: {self.why} (would need {self.pose})"
+
+
+@dataclass(frozen=True)
+class ReachCoverage:
+    """What poses within reach identify (any heading, tilts up to ``max_tilt_deg``).
+
+    ``applies``: every pose is within :data:`REACH_MAX_TILT_DEG` of level and the gravity
+    directions do not identify the accelerometer, so the fit of :mod:`mavcal.core.held` is
+    the one to run; ``compass_identified``: enough headings and tilt for the compass's
+    offsets and symmetric soft-iron terms; ``kept``: every parameter kept, with why and what
+    pose would identify it; ``missing``/``add``: why the compass is not identified and what to add.
+    """
+
+    applies: bool
+    max_tilt_deg: float
+    n_field_directions: int
+    compass_identified: bool
+    kept: tuple[KeptParameter, ...] = ()
+    missing: tuple[str, ...] = ()
+    add: str = ""
+
+    def lines(self) -> list[str]:
+        """The verdict in words, one line per fact (empty when the rule does not apply)."""
+        if not self.applies:
+            return []
+        head = (f"poses within reach: tilts up to {self.max_tilt_deg:.1f} deg, {self.n_field_directions} distinct "
+                "heading(s): ")
+        if self.compass_identified:
+            out = [head + "the compass's offsets and soft-iron terms are identified (fitted with the "
+                   "accelerometer held)"]
+        else:
+            out = [head + "the compass is not identified: " + "; ".join(self.missing) + f"; {self.add}"]
+        return out + [k.text() for k in self.kept]
+
+
+def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
+    t = f"tilts up to {tilt:.0f} deg"
+    g_xy = 9.80665 * np.sin(np.radians(tilt))
+    return [
+        KeptParameter(sensor, "Z scale", f"{t} cannot separate it from the Z offset (gravity stays within "
+                      f"{100 * (1 - np.cos(np.radians(tilt))):.1f} % of its level value along Z)", _BEYOND),
+        KeptParameter(sensor, "Z offset", f"{t} cannot separate it from the Z scale", _BEYOND),
+        KeptParameter(sensor, "X and Y offsets", f"at {t} an X/Y offset cannot be told from a tilt of the whole "
+                      "frame (a level trim)", _BEYOND),
+        KeptParameter(sensor, "X and Y scales", f"{t} move X/Y by at most {g_xy:.2f} m/s^2, which a tilt of the "
+                      "frame explains as well", _BEYOND),
+    ]
+
+
+def _headings(gravity_dirs: np.ndarray, mag_means: np.ndarray) -> int:
+    """Distinct headings among poses near level: each pose's heading from the compass means and
+    the tilts the gravity directions give (:func:`mavcal.core.held.relaxed_headings`, the linear
+    relaxation of the compass model), in clusters :data:`REACH_HEADING_DEG` apart. (The sphere of
+    :func:`field_directions` is not determined by means near a circle, and a tilt moves the
+    vertical field into the horizontal readings as much as a heading does.)"""
+    g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
+    M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
+    ok = np.isfinite(g).all(axis=1) & np.isfinite(M).all(axis=1)
+    g, M = g[ok], M[ok]
+    if g.shape[0] < 4:
+        return min(g.shape[0], 1)
+    try:
+        psi = relaxed_headings(tilts_of(-g), M)[0]  # FRD gravity points down; the specific force up
+        n_relaxed = count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
+    except (MavcalError, np.linalg.LinAlgError):
+        n_relaxed = 1
+    return max(n_relaxed, _circle_headings(M))
+
+
+def _circle_headings(M: np.ndarray) -> int:
+    """Distinct headings of compass means near a circle: their angles about its centre (an algebraic
+    circle fit in the plane of their two largest spreads) in clusters :data:`REACH_HEADING_DEG`
+    apart. Right at the smallest tilts, where the relaxation of :func:`_headings` is least
+    determined; a tilt that moves the vertical field into the horizontal readings (15 deg and a
+    steep field) merges headings here, which the relaxation then separates."""
+    c = M - M.mean(axis=0)
+    _, sv, Vt = np.linalg.svd(c, full_matrices=False)
+    if sv[0] <= 1e-9 * max(float(np.abs(M).max()), 1.0):
+        return 1
+    xy = c @ Vt[:2].T
+    centre = np.linalg.lstsq(np.c_[2.0 * xy, np.ones(len(xy))], (xy ** 2).sum(axis=1), rcond=None)[0][:2]
+    d = xy - centre
+    d = d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
+    return count_clusters(np.c_[d, np.zeros(len(d))], REACH_HEADING_DEG)
+
+
+def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequence[str] = ("accel0",),
+                   compass: str = "compass0", rule: CoverageRule = CoverageRule()) -> ReachCoverage:
+    """The rule for poses within reach: the (N, 3) unit gravity directions (body frame, level
+    = +z) and raw compass means of a compass's intervals; ``accels``: the accelerometers whose
+    parameters are then kept (named in ``kept``)."""
+    g = _finite(gravity_dirs)
+    if g.shape[0] == 0:
+        return ReachCoverage(False, float("nan"), 0, False)
+    tilt = float(np.degrees(np.arccos(np.clip(g[:, 2], -1.0, 1.0))).max())
+    applies = tilt <= REACH_MAX_TILT_DEG and not accel_coverage("accel", g, rule).identifiable
+    n_f = _headings(gravity_dirs, mag_means)
+    missing = []
+    add = ""
+    if n_f < REACH_MIN_FIELD_DIRECTIONS:
+        missing.append(f"only {n_f} distinct heading(s), at least {REACH_MIN_FIELD_DIRECTIONS} needed "
+                       "(too few headings)")
+        add = "turn the vehicle to more headings (about 60 deg apart, all the way round)"
+    if tilt < REACH_MIN_TILT_DEG:
+        missing.append(f"tilts up to {tilt:.1f} deg cannot separate the compass's vertical terms from its "
+                       f"vertical offset (at least {REACH_MIN_TILT_DEG:g} deg needed)")
+        add = (add + "; " if add else "") + ("tilt the vehicle a few degrees at some headings (one side on a "
+                                             "block, a ramp)")
+    kept = [k for a in accels for k in _accel_kept(a, tilt)] if applies else []
+    if applies and not missing:
+        kept.append(KeptParameter(compass, "orientation", "turning about the vertical cannot tell a rotation of "
+                                  "the compass from the heading", _BEYOND))
+    return ReachCoverage(applies, tilt, n_f, applies and not missing, tuple(kept), tuple(missing), add)
+
+
+def segmentation_reach(seg: Segmentation, accel_instance: int = 0, mag_instance: int | None = None,
+                       rule: CoverageRule = CoverageRule(), accels: Sequence[int] | None = None
+                       ) -> ReachCoverage | None:
+    """:func:`reach_coverage` on the intervals a compass's fit uses (>= 2 samples of it and of
+    accelerometer ``accel_instance``; ``mag_instance`` None: the first compass), naming
+    ``accels`` (default: every accelerometer of the log) as kept; None when the rule does not
+    apply (the poses identify the accelerometer, go beyond a small tilt, or there is no compass)."""
+    mags = list(seg.mag_instances)
+    if mag_instance is None:
+        if not mags:
+            return None
+        mag_instance = mags[0]
+    used = [iv for iv in seg.intervals if _has(iv.mag_mgauss, mag_instance) and _has(iv.accel_mps2, accel_instance)]
+    if not used:
+        return None
+    g = np.array([iv.gravity_dir for iv in used]).reshape(-1, 3)
+    means = np.array([iv.mag_mgauss[mag_instance].mean(axis=0) for iv in used]).reshape(-1, 3)
+    names = [f"accel{a}" for a in (seg.accel_instances if accels is None else accels)]
+    r = reach_coverage(g, means, names, f"compass{mag_instance}", rule)
+    return r if r.applies else None
+
+
+def within_reach(cov: SensorCoverage, reach: ReachCoverage) -> SensorCoverage:
+    """A compass's coverage under the rule of poses within reach: identified when ``reach`` says
+    so (one gravity direction and :data:`REACH_MIN_FIELD_DIRECTIONS` field directions suffice),
+    else as ``cov`` says."""
+    if not reach.compass_identified or not cov.sensor.startswith("compass"):
+        return cov
+    rule = replace(cov.rule, min_orientations=1, min_field_directions=REACH_MIN_FIELD_DIRECTIONS)
+    return SensorCoverage(cov.sensor, True, cov.n_intervals, cov.n_orientations, reach.n_field_directions, rule)
+
+
+#: the held accelerometer values' assumed 1-sigma errors: (offset m/s^2, relative scale) when the
+#: accelerometer has been calibrated (INS_ACC offsets or scales not at their defaults) and when not
+HELD_ACCEL_SD_CALIBRATED = (0.05, 0.005)
+HELD_ACCEL_SD_DEFAULT = (0.3, 0.02)
+#: the World Magnetic Model's inclination error assumed, deg (1 sigma; its stated global error
+#: is about 0.2 deg, local crustal anomalies add to it)
+WMM_INCLINATION_SD_DEG = 0.5
+
+
+def held_priors(K_a: np.ndarray, calibrated: bool, inclination_deg: float | None) -> dict[str, float]:
+    """The prior standard deviations of the held parameters (engine names, :mod:`mavcal.core.held`):
+    the accelerometer's diagonal gain ``K_a`` and offsets (``calibrated``: its current values
+    came from a calibration) and the field dip h_z = tan(inclination) when held at the World
+    Magnetic Model's ``inclination_deg``."""
+    ofs, rel = HELD_ACCEL_SD_CALIBRATED if calibrated else HELD_ACCEL_SD_DEFAULT
+    out = {f"K_a[{j}{j}]": rel * abs(float(K_a[j - 1, j - 1])) for j in (1, 2, 3)}
+    out.update({f"b_a[{c}]": ofs for c in "xyz"})
+    if inclination_deg is not None:
+        out["h_z"] = float(np.radians(WMM_INCLINATION_SD_DEG) / np.cos(np.radians(inclination_deg)) ** 2)
     return out

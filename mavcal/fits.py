@@ -17,15 +17,25 @@ import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
 from mavcal.accel_judging import accel_only, accel_own, died_gate, judge_accels
+from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import ParamMapping, combine
+from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, field_magnitude
 from mavcal.autopilot import model_for
 from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
+from mavcal.core.held import calibrate_held
 from mavcal.core.models import MODEL_CHAIN, MODELS
-from mavcal.core.stats import interval_means
+from mavcal.core.stats import IntervalStats, interval_means
 from mavcal.core.types import Calibration
-from mavcal.coverage import sensor_coverages
+from mavcal.coverage import (
+    REACH_FLOWN_TILT_DEG,
+    WMM_INCLINATION_SD_DEG,
+    ReachCoverage,
+    held_priors,
+    segmentation_reach,
+    sensor_coverages,
+    within_reach,
+)
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
 from mavcal.fit_inputs import (
     StatsCache,
@@ -47,7 +57,11 @@ from mavcal.workers import ForkPool, Outcome, WorkerDiedError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["fit_recording", "refusal_verdicts"]
+__all__ = ["fit_recording", "refusal_verdicts", "reach_of"]
+
+
+_REACH_NOTE = ("poses within reach (tilts up to {:.1f} deg): the accelerometers keep their current calibration, "
+               "the compasses are fitted with it held; no held-out check")
 
 
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
@@ -63,10 +77,14 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     if opts.sensors == "accel":
         return accel_only(prep, opts, warnings, progress)
     ai = opts.accel_instance
-    pairs = [(ai, opts.mag_instance)] + _other_pairs(prep, opts)
-    jobs = [opts] + [replace(options, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
+    reach = reach_of(prep, opts)
+    if reach is not None:  # poses within reach: the accelerometers are kept, the compasses fitted with them held
+        opts = replace(opts, holdout=False)
+        warnings.append(_REACH_NOTE.format(reach.max_tilt_deg))
+    pairs = [(ai, opts.mag_instance)] + [(a, m) for a, m in _other_pairs(prep, opts) if reach is None or a == ai]
+    jobs = [opts] + [replace(opts, accel_instance=a, mag_instance=m, holdout=opts.holdout and a == ai)
                      for a, m in pairs[1:]]
-    insts = prep.raw.accel_instances() if opts.sensors == "both" else []
+    insts = prep.raw.accel_instances() if opts.sensors == "both" and reach is None else []
     stats: StatsCache = {}
     first = [("pair", j, o) for j, o in enumerate(jobs)] + [("accel", j, (opts, a)) for j, a in enumerate(insts)]
     got: dict[tuple[str, int], Outcome] = {}  # ("pair" | "accel" | "quality", j) -> outcome
@@ -120,10 +138,22 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     accels, fits, accel_gates = judge_accels(prep, opts, [primary] + others,
                                               [(a, got["accel", j]) for j, a in enumerate(insts)], warnings)
     report(progress, STAGE_FIT, n, n)
+    accels, kept = _within_reach_parts(reach, primary, compass_runs, accels)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
     return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
-                   others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits))
+                   others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits), kept=kept)
+
+
+def _within_reach_parts(reach: ReachCoverage | None, primary: CalibrationRun, compass_runs: list[CalibrationRun],
+                        accels: list[AccelMapping]):
+    """(accelerometer mappings, kept parameters) of a run: for poses within reach, the kept
+    accelerometer (no parameter to write) and every compass's and accelerometer's kept parameters."""
+    if reach is None:
+        return accels, ()
+    kept = tuple(k for r in compass_runs for k in r.kept if k.sensor.startswith("compass")) \
+        + tuple(k for k in primary.kept if k.sensor.startswith("accel"))
+    return [primary.mapping.accel[0]], kept
 
 
 def _holdout_slices(workers: int) -> int:
@@ -186,7 +216,8 @@ def _job(shared: _Shared, item: tuple[str, int, tuple]):
                                    stats_of(prep, stats, "mag", mi, f.used)))
     o, f = arg
     am, cm = f.mapping.accel[0], f.mapping.compass[0]
-    return quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")))
+    return quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")),
+                      **({} if f.reach is None else {"max_tilt_deg": REACH_FLOWN_TILT_DEG}))
 
 
 def _other_pairs(prep: Prepared, opts: Options) -> list[tuple[int, int]]:
@@ -290,6 +321,7 @@ class _PairFit:
     mapping: ParamMapping
     params_now: dict[str, float]
     warnings: list[str]
+    reach: ReachCoverage | None = None  # poses within reach: what they identify (the accelerometer held)
 
 
 def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
@@ -299,20 +331,29 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
     warnings: list[str] = list(prep.warnings)
     ai, mi = opts.accel_instance, opts.mag_instance
     used = _intervals_of_pair(prep, ai, mi)
+    params_now = log_.params.snapshot()
+    reach = reach_of(prep, opts)
     try:
         sa, sm = stats_of(prep, stats, "accel", ai, used), stats_of(prep, stats, "mag", mi, used)
-        cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
+        cal = (calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
+               if reach is None else _fit_within_reach(prep, opts, reach, sa, sm, params_now))
     except (InsufficientDataError, EstimationError) as exc:
         raise with_blind_cal(prep, exc) from None
-    params_now = log_.params.snapshot()
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
+    if reach is not None:  # the segmentation's "too few orientations" is what the reduced fit answers
+        warnings = [w for w in warnings if w not in prep.segmentation.coverage.messages]
     mapping = model_for(log_).map_calibration(
         cal, params_now, interval_means(sets(prep, "mag", mi, used)), accel_instance=ai, mag_instance=mi,
         location=opts.location or log_.position, location_source="" if opts.location else log_.position_source,
         field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg, allow_custom=opts.allow_custom,
         force_external=opts.force_external)
-    return _PairFit(used, cal, mapping, params_now, warnings)
+    if reach is not None:  # the accelerometer keeps its values, exactly (the fit held them)
+        am = mapping.accel[0]
+        am = replace(am, new=am.old, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
+                     dropped_magnitude_mps2=0.0, kept=True)
+        mapping = combine([am], mapping.compass, params_now, mapping.notes)
+    return _PairFit(used, cal, mapping, params_now, warnings, reach)
 
 
 def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outcome], quality_out: Outcome
@@ -327,6 +368,8 @@ def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outco
     cal, cm, seg = f.cal, f.mapping.compass[0], prep.segmentation
     cov = sensor_coverages(seg, opts.accel_instance, coverage_rule(opts, seg), accels=[],
                            compasses=[opts.mag_instance])[0]
+    if f.reach is not None:  # the rule of poses within reach identified it (else the fit was refused)
+        cov = within_reach(cov, f.reach)
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
         cm, f.params_now, coverage=cov,
         heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates,
@@ -334,4 +377,64 @@ def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outco
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message)))
     return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=seg,
                           intervals_used=tuple(f.used), calibration=cal, mapping=f.mapping, quality=quality,
-                          gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)))
+                          gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)),
+                          kept=f.reach.kept if f.reach is not None else ())
+
+
+def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
+    """What the poses identify when they are all within reach (:func:`mavcal.coverage.segmentation_reach`)
+    for the compass ``opts.mag_instance`` paired with accelerometer ``opts.accel_instance``; None
+    when the rule does not apply (the poses identify the accelerometer, or go beyond a small tilt; a
+    PX4 recording: the held accelerometer is read in ArduPilot's terms, so PX4 takes the full fit)."""
+    if opts.sensors == "accel" or model_for(prep.log).name != "ArduPilot":  # held values in ArduPilot's terms only
+        return None
+    seg = prep.segmentation
+    accels = prep.raw.accel_instances() if opts.sensors == "both" else []
+    return segmentation_reach(seg, opts.accel_instance, opts.mag_instance, coverage_rule(opts, seg), accels)
+
+
+def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: IntervalStats, sm: IntervalStats,
+                      params_now: dict[str, float]) -> Calibration:
+    """The compass fitted with the accelerometer held at its current calibration
+    (:func:`mavcal.core.held.calibrate_held`). The field dip is fitted; when the position is
+    known and the tilts determine the dip less well than the World Magnetic Model knows it
+    (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead."""
+    if not reach.compass_identified:
+        raise InsufficientDataError(f"{prep.log.source}: poses within reach (tilts up to {reach.max_tilt_deg:.1f} "
+                                    f"deg): {'; '.join(reach.missing)}; {reach.add}")
+    old = fw.accel_cal_from_params(params_now, opts.accel_instance)
+    if old.board_orient != 0:
+        raise InsufficientDataError(f"{prep.log.source}: poses within reach need AHRS_ORIENTATION 0 (the fit holds "
+                                    "the accelerometer in the board frame); capture the six sides instead")
+    scale = np.asarray(old.scale, float)
+    K_a, b_a = np.diag(fw.GRAVITY_MSS / scale), np.asarray(old.ofs_mps2, float)
+    calibrated = bool(np.any(b_a != 0.0) or np.any(scale != 1.0))
+    # b_a[z] is fitted, not held: only K_a[33] + b_a[z] (the level reading) is identified, and a held pair that
+    # misses it by more than the noise would be a misfit of the whole cost; it is kept all the same (not written)
+    held = [f"K_a[{j}{j}]" for j in (1, 2, 3)] + ["b_a[x]", "b_a[y]"]
+    why = (f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} distinct "
+           "headings): the accelerometer held at its current calibration, ")
+    cal = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, calibrated, None),
+                         reason=why + "the field dip estimated from the tilts")
+    loc = opts.location or prep.log.position
+    if loc is None:
+        return replace(cal, model_reason=cal.model_reason + " (no position known)")
+    incl = field_magnitude(np.empty((0, 3)), fw.compass_cal_from_params(params_now, opts.mag_instance),
+                           location=loc)[2]
+    sd_incl = _inclination_sd_deg(cal)
+    if incl is None or sd_incl <= WMM_INCLINATION_SD_DEG:
+        return replace(cal, model_reason=cal.model_reason + f" (to {sd_incl:.2f} deg, closer than the World "
+                       f"Magnetic Model's {WMM_INCLINATION_SD_DEG:g} deg)")
+    return calibrate_held(sa, sm, K_a, b_a, held=held + ["h_z"], prior_sd=held_priors(K_a, calibrated, incl),
+                          h_z=float(np.tan(np.radians(incl))),
+                          reason=why + f"the field dip at the World Magnetic Model's inclination {incl:.2f} deg (the "
+                          f"tilts determine it only to {sd_incl:.2f} deg)")
+
+
+def _inclination_sd_deg(cal: Calibration) -> float:
+    """The standard deviation of a fit's field dip, as an inclination in degrees (inf when unknown)."""
+    if cal.param_cov is None or "h_z" not in cal.param_names:
+        return float("inf")
+    k = cal.param_names.index("h_z")
+    sd_hz = float(np.sqrt(max(cal.param_cov[k, k], 0.0)))
+    return float(np.degrees(sd_hz / (1.0 + cal.h_z ** 2)))

@@ -6,12 +6,13 @@ Load it in MAVProxy with ``module load mavcal.mavproxy_mavcal`` (MAVProxy tries
     mavcal start            fetch the parameters, stream the IMU, advise poses as you go
     mavcal status           intervals kept, coverage map, heading error bound, next pose
     mavcal next             the next pose to hold, in words
+    mavcal skip             can't do this one: advise another pose instead
     mavcal stop             end the capture (what was captured is kept)
     mavcal finish           go on without the sensors that cannot reach their target (the status names them)
     mavcal fit              fit what was captured: the per-sensor verdicts, the next step, the summary
     mavcal write [yes]      show the parameter diff of the accepted sensors; with "yes" (or confirm=0) write it
     mavcal restore FILE [yes]   put back a backup .param (same safe writer)
-    mavcal set [NAME [VALUE]]   settings: target_deg accel compass rate_hz hold_s force write_budget ...
+    mavcal set [NAME [VALUE]]   settings: target_deg max_tilt_deg accel compass rate_hz hold_s force ...
     mavcal threads          the module's threads (debugging)
     mavcal ui [nobrowser]   the live page: the pose to hold drawn beside the vehicle now, the
                             verdict and a Write button (starts a capture if none ran; 127.0.0.1 only)
@@ -50,7 +51,7 @@ from mavcal.determined import bound_phrase
 
 log = logging.getLogger(__name__)
 
-SUBCOMMANDS = ("start", "stop", "finish", "status", "next", "fit", "write", "restore", "set", "threads")
+SUBCOMMANDS = ("start", "stop", "finish", "skip", "status", "next", "fit", "write", "restore", "set", "threads")
 _MAV_TYPE_GCS = 6
 _MAV_AUTOPILOT_INVALID = 8
 _PAUSED = -1  # MAVProxy's streamrate that stops its REQUEST_DATA_STREAM
@@ -77,7 +78,9 @@ def _settings_table() -> list[Any]:
             S("retries", int, d.retries, "PARAM_SET attempts per parameter at least", range=(1, 20)),
             S("write_budget", float, d.write_budget,
               "keep retrying each PARAM_SET/force-save/read this long (s; 0: 15 x param_timeout)", range=(0.0, 600.0)),
-            S("verbose", bool, d.verbose, "print a line whenever the capture state changes")]
+            S("verbose", bool, d.verbose, "print a line whenever the capture state changes"),
+            S("max_tilt_deg", float, d.max_tilt_deg, "a vehicle that cannot be turned over: advise poses within this "
+              "tilt only, any heading; the accelerometers keep their calibration (0: no limit)", range=(0.0, 40.0))]
 
 
 class MavcalModule(mp_module.MPModule):
@@ -93,14 +96,14 @@ class MavcalModule(mp_module.MPModule):
                                     host_restores_rates=lambda: self._saved_streamrate is not None)
         self.page: Any = None  # the live page (mavcal.capture.workerpage.WorkerPage) while it is open
         self.add_command("mavcal", self.cmd_mavcal, "guided IMU/compass calibration",
-                         ["<start|stop|finish|status|next|fit|write|threads>", "restore (FILENAME)",
+                         ["<start|stop|finish|skip|status|next|fit|write|threads>", "restore (FILENAME)",
                           "set (MAVCALSETTING)"])
         self.add_completion_function("(MAVCALSETTING)", self.mavcal_settings.completion)
 
     # ---------------------------------------------------------------- helpers
     def usage(self) -> str:
-        return ("usage: mavcal <start|stop|finish|status|next|fit|write [yes]|restore FILE [yes]|set [NAME [VALUE]]"
-                "|threads>")
+        return ("usage: mavcal <start|stop|finish|skip|status|next|fit|write [yes]|restore FILE [yes]"
+                "|set [NAME [VALUE]]|threads>")
 
     def _vehicle_ids(self) -> tuple[int, int] | None:
         """(sysid, compid) of the primary vehicle: from its heartbeats, else what MAVProxy's master saw."""
@@ -144,7 +147,7 @@ class MavcalModule(mp_module.MPModule):
             w.submit("start", self._snapshot())
         elif sub == "write":
             w.submit("write", self._snapshot(), rest[:1] == ["yes"])
-        elif sub in ("stop", "finish", "fit"):
+        elif sub in ("stop", "finish", "fit", "skip"):
             w.submit(sub)
         elif sub == "restore":
             if not rest:

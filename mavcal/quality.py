@@ -113,11 +113,12 @@ def accel_tilt_bounds(fit: AccelFit, am: AccelMapping, draws: int, seed: int) ->
 
 
 def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
-               draws: int, seed: int, holdout: tuple[float, float]) -> Quality:
+               draws: int, seed: int, holdout: tuple[float, float], max_tilt_deg: float = 45.0) -> Quality:
     """Heading/tilt error bounds of the written parameters ``am``/``cm`` against ``cal``
-    and ``draws`` samples of its parameter distribution; ``holdout`` is
-    :func:`holdout_errors`' (accel m/s^2, compass mGauss)."""
-    grid = attitude_grid()
+    and ``draws`` samples of its parameter distribution, over the attitudes flown (roll and
+    pitch up to ``max_tilt_deg``, every heading); ``holdout`` is :func:`holdout_errors`'
+    (accel m/s^2, compass mGauss)."""
+    grid = attitude_grid(max_tilt_deg=max_tilt_deg)
     incl = np.radians(cm.inclination_deg)
     B_ned = cm.field_mgauss * np.array([np.cos(incl), 0.0, np.sin(incl)])
     R_old = cm.old.mount_matrix

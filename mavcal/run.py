@@ -10,6 +10,7 @@ from mavcal.ardupilot.mapping import ParamMapping
 from mavcal.ardupilot.recover import RawImu
 from mavcal.core.accel_fit import AccelFit
 from mavcal.core.types import Calibration
+from mavcal.coverage import KeptParameter
 from mavcal.errors import EXIT_PARTIAL, GateError
 from mavcal.quality import Quality
 from mavcal.segment import Segmentation, StillConfig
@@ -141,6 +142,10 @@ class CalibrationRun:
         Every parameter in force at the end of the log, keyed by name.
     warnings : tuple of str
         What was skipped or assumed, in words.
+    kept : tuple of KeptParameter
+        What the poses could not identify when they were all within reach of a vehicle that
+        is not turned over (:func:`mavcal.coverage.reach_coverage`): each kept at its current
+        value and not written, with why and which pose would identify it (empty otherwise).
     others : tuple of CalibrationRun
         The fits of the other accelerometer/compass pairs (``Options.all_instances``);
         their parameters and gates are already merged into ``mapping`` and ``gates``.
@@ -159,6 +164,7 @@ class CalibrationRun:
     warnings: tuple[str, ...] = ()
     others: tuple[CalibrationRun, ...] = ()  # the fits of the other instances (all_instances)
     accel_fits: tuple[tuple[int, AccelFit], ...] = ()  # each accelerometer's own fit (its verdict)
+    kept: tuple[KeptParameter, ...] = ()  # what poses within reach cannot identify: kept, not written
 
     @property
     def accepted(self) -> bool:

@@ -91,6 +91,8 @@ class AccelMapping:
     frame_rotation : (3, 3) P, engine frame E -> board frame.
     cross_axis : (3, 3) N = P^T diag(S) K_a / g0 - I, the part ArduPilot cannot hold.
     dropped_tilt_deg, dropped_magnitude_mps2 : worst case over all directions of gravity
+    kept : the accelerometer keeps its current values (``new`` is ``old``) and has no parameter to
+        write: poses within reach cannot identify it (:mod:`mavcal.coverage`)
     """
 
     instance: int
@@ -100,9 +102,10 @@ class AccelMapping:
     cross_axis: np.ndarray
     dropped_tilt_deg: float
     dropped_magnitude_mps2: float
+    kept: bool = False
 
     def params(self) -> dict[str, float]:
-        return fw.accel_param_values(self.new, self.instance)
+        return {} if self.kept else fw.accel_param_values(self.new, self.instance)
 
 
 @dataclass(frozen=True, eq=False)

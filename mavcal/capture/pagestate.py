@@ -201,6 +201,7 @@ def status_view(st: CaptureStatus, config: CaptureConfig, run: Any = None) -> di
             "down_dirs": _r(st.gravity_dirs, 3), "next": _pose(st.next_pose), "heading_deg": _finite(st.heading_95_deg),
             "tilt_deg": _finite(st.tilt_95_deg), "target_deg": config.target_heading_deg,
             "min_poses": config.min_intervals, "max_poses": config.max_intervals,
+            "max_tilt": getattr(config, "max_tilt_deg", None),
             "sensors": _progress_view(st, config, run)}
 
 
@@ -256,15 +257,20 @@ class PageFeed:
             self._last_live = now
             self.set_state(live=self.live.view())
 
-    def status(self, st: CaptureStatus, run: Any = None, finish: bool = False) -> None:
+    def status(self, st: CaptureStatus, run: Any = None, finish: bool = False, skip: bool = False) -> None:
         """A capture status; ``run`` defaults to the session's latest fit. ``finish``: the page
         asked to finish without the sensors the status offers to leave out; the session is told
         (:meth:`~mavcal.capture.CaptureSession.finish_without`, when it has one) here, between
-        two updates, so call it from the thread that updates the session."""
+        two updates, so call it from the thread that updates the session. ``skip``: the page
+        cannot hold the advised pose: the session advises another
+        (:meth:`~mavcal.capture.CaptureSession.skip_pose`) and the status shows it."""
         if finish and getattr(st, "offer_finish_without", ()) and self.session is not None:
             finish_without = getattr(self.session, "finish_without", None)
             if finish_without is not None:
                 finish_without(list(st.offer_finish_without))
+        if skip and not st.done and self.session is not None and getattr(self.session, "skip_pose", None):
+            self.session.skip_pose()
+            st = self.session.status or st
         if run is None and self.session is not None:
             run = self.session.run
         if run is not None and run is not self._fit_used:

@@ -32,7 +32,7 @@ def status_line(st: CaptureStatus) -> str:
     if st.next_pose is None:
         return f"{head}: {st.reason}"
     a = st.next_pose
-    line = (f"{head}; next: {a.words} (roll {a.roll_deg:.0f} pitch {a.pitch_deg:.0f} yaw {a.yaw_deg:.0f} "
+    line = (f"{head}; next: {a.words} (roll {a.roll_deg:.4g} pitch {a.pitch_deg:.4g} yaw {a.yaw_deg:.4g} "
             f"deg magnetic)")
     if st.advice_for:
         line += f" for {st.advice_for}"

@@ -73,6 +73,9 @@ class CaptureConfig:
     # a sensor whose bound has not improved by 10 % over this many new intervals is said to be
     # unable to reach its target (the person may finish without it)
     stuck_poses: int = 6
+    # a vehicle that cannot be turned over: only poses tilted at most this far from level (any
+    # heading) are advised; the accelerometers then keep their calibration (None: no limit)
+    max_tilt_deg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -118,6 +121,10 @@ def euler_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarra
     return euler_to_matrix(*np.radians([roll_deg, pitch_deg, yaw_deg]))
 
 
+#: tilts from this size on are said in words ("nose up 5 deg"): a pose within reach may be tilted only a few deg
+SMALL_TILT_DEG = 2.5
+SMALL_TILT_COS = float(np.cos(np.radians(SMALL_TILT_DEG)))
+
 _POINTS = ["north", "north-east", "east", "south-east", "south", "south-west", "west", "north-west"]
 
 
@@ -128,7 +135,7 @@ def describe_pose(roll_deg: float, pitch_deg: float, yaw_deg: float) -> str:
     parts: list[str] = []
     ax = int(np.argmax(np.abs(down_b)))
     if ax == 2 and down_b[2] > 0.7:
-        parts.append("level" if down_b[2] > 0.97 else "upright")
+        parts.append("level" if down_b[2] > SMALL_TILT_COS else "upright")
     elif ax == 2 and down_b[2] < -0.7:
         parts.append("upside down")
     elif ax == 0 and abs(down_b[0]) > 0.7:
@@ -139,9 +146,9 @@ def describe_pose(roll_deg: float, pitch_deg: float, yaw_deg: float) -> str:
     pitch = float(pitch_deg)
     roll = float((roll_deg + 180) % 360 - 180)
     if "nose" not in parts[0] if parts else True:
-        if 10 <= abs(pitch) < 80:
+        if SMALL_TILT_DEG <= abs(pitch) < 80:
             parts.append(f"nose {'up' if pitch > 0 else 'down'} {abs(pitch):.0f} deg")
-    if abs(pitch) < 80 and 10 <= abs(roll) <= 170 and "side" not in (parts[0] if parts else ""):
+    if abs(pitch) < 80 and SMALL_TILT_DEG <= abs(roll) <= 170 and "side" not in (parts[0] if parts else ""):
         parts.append(f"rolled {abs(roll):.0f} deg {'right' if roll > 0 else 'left'}")
     elif abs(pitch) >= 80 and 10 <= abs(roll) <= 170:
         parts.append(f"rolled {abs(roll):.0f} deg {'right' if roll > 0 else 'left'}")
@@ -157,9 +164,16 @@ def describe_pose(roll_deg: float, pitch_deg: float, yaw_deg: float) -> str:
     return ", ".join(parts)
 
 
-def candidate_poses() -> list[tuple[float, float, float]]:
-    """Attitudes a person can hold and name: roll, pitch and heading in 45 deg steps."""
+def candidate_poses(max_tilt_deg: float | None = None) -> list[tuple[float, float, float]]:
+    """Attitudes a person can hold and name: roll, pitch and heading in 45 deg steps; with
+    ``max_tilt_deg`` (a vehicle that cannot be turned over) level and tilted by half and all of
+    it in 8 directions (one side or a corner on a block), every heading in 45 deg steps."""
     out = []
+    if max_tilt_deg is not None:
+        for roll, pitch in _reach_tilts(max_tilt_deg):
+            for yaw in range(0, 360, 45):
+                out.append((roll, pitch, float(yaw)))
+        return out
     for pitch in (-90, -45, 0, 45, 90):
         rolls = (0,) if abs(pitch) == 90 else (-135, -90, -45, 0, 45, 90, 135, 180)
         for roll in rolls:
@@ -167,6 +181,31 @@ def candidate_poses() -> list[tuple[float, float, float]]:
                 out.append((float(roll), float(pitch), float(yaw)))
     return out
 
+
+def _reach_tilts(max_tilt_deg: float) -> list[tuple[float, float]]:
+    """(roll, pitch) deg: level, and tilted by half and all of ``max_tilt_deg`` towards the 8
+    points (a corner: roll and pitch each t / sqrt(2), so the tilt stays within the limit)."""
+    out = [(0.0, 0.0)]
+    for t in (0.5 * max_tilt_deg, float(max_tilt_deg)):
+        for k in range(8):
+            a = np.radians(45.0 * k)
+            out.append((round(float(t * np.sin(a)), 1), round(float(t * np.cos(a)), 1)))
+    return out
+
+
+def reach_plan(max_tilt_deg: float) -> list[tuple[float, float, float]]:
+    """The plan before the first fit for a vehicle that cannot be turned over: turned to six
+    headings 60 deg apart, level and tilted by ``max_tilt_deg`` nose up, rolled right, nose down,
+    rolled left, then two corners."""
+    t, d = float(max_tilt_deg), round(float(max_tilt_deg) / np.sqrt(2.0), 1)
+    return [(0.0, 0.0, 0.0), (0.0, t, 60.0), (t, 0.0, 120.0), (0.0, 0.0, 180.0), (0.0, -t, 240.0),
+            (-t, 0.0, 300.0), (d, d, 30.0), (-d, -d, 210.0)]
+
+
+#: poses within reach: a compass bound that fell by less than this fraction over this many new
+#: intervals is at the floor set by the kept accelerometer (CaptureSession._reach_floor)
+REACH_PLATEAU = 0.10
+REACH_PLATEAU_POSES = 3
 
 # the plan before the first fit (and until PLAN_FIRST intervals): six faces, then two diagonals
 PLAN_FIRST = 6
@@ -214,7 +253,11 @@ def _information(run: CalibrationRun, poses: Sequence[tuple[float, float, float]
     pa, pm, R = _predicted(run, poses)
     nn = np.full(len(poses), float(n_samples))
     dS, _, _ = info(pa, pm, nn, nn, R)
-    return S_parts.sum(axis=0), dS, prob, p
+    S = S_parts.sum(axis=0)
+    if cal.held and cal.param_cov is not None:  # held parameters: their prior's information (mavcal.core.held)
+        k = [prob.names.index(n) for n in cal.held]
+        S[k, k] += 1.0 / np.maximum(np.diag(cal.param_cov)[k], 1e-300)
+    return S, dS, prob, p
 
 
 def _predicted(run: CalibrationRun, poses: Sequence[tuple[float, float, float]]
@@ -342,6 +385,7 @@ class CaptureSession:
         self._history: dict[str, list[tuple[int, float | None]]] = {}  # sensor -> [(intervals, bound)]
         self._dropped: dict[str, str] = {}  # sensor -> why the capture finishes without it
         self._progress: tuple[SensorProgress, ...] = ()
+        self._floors: dict[str, float] = {}  # poses within reach: compass -> the bound's floor reached
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -378,6 +422,22 @@ class CaptureSession:
             p = by_name.get(name)
             self._dropped[name] = p.blocked if p is not None else ""
         return tuple(names)
+
+    def skip_pose(self) -> PoseAdvice:
+        """"Can't do this one": the pose advised last is given up (never advised again) and
+        another is advised in its place (also added to ``poses_advised``)."""
+        last = self._status.next_pose if self._status is not None else None  # the pose shown
+        if last is None and self.poses_advised:
+            last = self.poses_advised[-1]
+        if last is not None:
+            self._given_up.append((last.roll_deg, last.pitch_deg, last.yaw_deg))
+            log.info("capture: the person cannot hold %s; advising another pose", last.words)
+        advice = self.next_pose(self._advice_target() if self._run is not None else None)
+        self.poses_advised.append(advice)
+        if self._status is not None:
+            from dataclasses import replace
+            self._status = replace(self._status, next_pose=advice)
+        return advice
 
     @property
     def run(self) -> CalibrationRun | None:
@@ -486,7 +546,10 @@ class CaptureSession:
                                             for g in run.gates.failures())
         if run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining) \
                 and not data_gate:
-            return True, stop_reason(self._progress), offer
+            floors = [f"{s} {b:.2f} deg" for s, b in self._floors.items() if s in kept]
+            return True, stop_reason(self._progress) + (
+                f"; poses within reach: the bound has reached its floor ({', '.join(floors)}: the kept "
+                "accelerometer's uncertainty, which more poses do not lower)" if floors else ""), offer
         if n >= cfg.max_intervals:
             return True, f"{n} intervals: the maximum", offer
         if offer and all(p.met or p.sensor in offer for p in remaining):
@@ -502,7 +565,26 @@ class CaptureSession:
                            history=self._history, n=n, min_intervals=cfg.min_intervals,
                            stuck_poses=cfg.stuck_poses, spread_max=cfg.max_field_spread, dropped=list(self._dropped))
         from dataclasses import replace
+        if cfg.max_tilt_deg is not None:  # poses within reach: the accelerometers keep their calibration
+            progress = tuple(self._reach_floor(p, n) for p in progress if p.kind != "tilt")
         return tuple(replace(p, blocked=p.blocked or self._dropped[p.sensor]) if p.dropped else p for p in progress)
+
+    def _reach_floor(self, p: SensorProgress, n: int) -> SensorProgress:
+        """Poses within reach: a compass's bound has a floor the poses cannot lower (the kept
+        accelerometer's uncertainty, :mod:`mavcal.core.held`). Once at least ``min_intervals``
+        are held, the bound is within the heading gate and it fell by less than
+        :data:`REACH_PLATEAU` over the last :data:`REACH_PLATEAU_POSES` new intervals, it has
+        reached that floor: its target becomes the bound (met), and the stop reason says so."""
+        from dataclasses import replace
+        h = [(k, b) for k, b in self._history.get(p.sensor, []) if b is not None]
+        gate = self.options.gates.heading_95_max_deg
+        if p.met or p.bound_deg is None or n < self.config.min_intervals or p.bound_deg > gate:
+            return p
+        before = [b for k, b in h if k <= n - REACH_PLATEAU_POSES]
+        if not before or p.bound_deg < (1.0 - REACH_PLATEAU) * min(before):
+            return p
+        self._floors[p.sensor] = p.bound_deg
+        return replace(p, target_deg=float(np.ceil(p.bound_deg * 100.0) / 100.0), blocked="")
 
     def _advice_target(self) -> str | None:
         """The sensor furthest from its target (bound / target) among those not met, not dropped
@@ -547,14 +629,18 @@ class CaptureSession:
         """
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
+        reach = self.config.max_tilt_deg
         if not _paired(self._run) or len(dirs) < PLAN_FIRST:  # no fit yet, or no sensor of the pair accepted
+            if reach is not None:  # every pose near level: the plan by the count of intervals
+                plan = [q for q in reach_plan(reach) if q not in self._given_up] or reach_plan(reach)
+                return _advice(plan[len(dirs) % len(plan)])
             plan = [q for q in INITIAL_PLAN if q not in self._given_up] or INITIAL_PLAN
             for pose in plan:
                 g = euler_matrix(*pose).T @ np.array([0.0, 0.0, 1.0])
                 if not len(dirs) or np.max(dirs @ g) < np.cos(np.radians(30)):
                     return _advice(pose)
             return _advice(plan[len(dirs) % len(plan)])
-        poses = candidate_poses()
+        poses = candidate_poses(reach)
         n_typ = float(np.median([len(self._run.segmentation.intervals[k].accel_mps2[self.options.accel_instance])
                                  for k in self._run.intervals_used]))
         out = self._excluded(poses)
@@ -609,6 +695,10 @@ class CaptureSession:
         pa, pm = predicted_means(self._run, poses)
         mu_a = np.array([r[0] for r in rec])
         mu_m = np.array([r[1] for r in rec])
+        if self.config.max_tilt_deg is not None:  # poses within reach: every accel mean is near level, and a
+            cal = self._run.calibration  # large hard iron makes raw compass means alike: compare the field itself
+            assert cal is not None
+            pm, mu_m = (np.linalg.solve(cal.mag.gain, (x - cal.mag.bias).T).T for x in (pm, mu_m))
         cos_r = np.cos(np.radians(self.config.repeat_deg))
 
         def cos(x: np.ndarray, y: np.ndarray) -> np.ndarray:

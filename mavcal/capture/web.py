@@ -221,7 +221,7 @@ class _Handler(BaseHTTPRequestHandler):
         if checked is None or not self._same_origin():
             return
         path, _ = checked
-        if path not in ("/write", "/decline", "/finish"):
+        if path not in ("/write", "/decline", "/finish", "/skip"):
             self._refuse(404, "not found")
             return
         ctype = (self.headers.get("Content-Type") or "").split(";")[0].strip().lower()
@@ -247,6 +247,8 @@ class _Handler(BaseHTTPRequestHandler):
             return
         if path == "/finish":
             ok, why = page.request_finish()
+        elif path == "/skip":
+            ok, why = page.request_skip()
         else:
             ok, why = page.decide("write" if path == "/write" else "decline")
         self._send(200 if ok else 409, json.dumps({"ok": ok, "message": why}).encode(), "application/json")
@@ -331,6 +333,7 @@ class CapturePage:
         self._decided = threading.Event()
         self._can_write = False
         self._finish = False
+        self._skip = False
         self._lock = threading.Lock()
         self._streams = 0
         self._delivered = 0
@@ -415,6 +418,21 @@ class CapturePage:
         thread calls it and tells the session)."""
         with self._lock:
             asked, self._finish = self._finish, False
+        return asked
+
+    def request_skip(self) -> tuple[bool, str]:
+        """"Can't do this one" (a server thread): recorded while capturing; :meth:`take_skip` hands it over."""
+        if self.state.get("phase") != "capturing":
+            return False, "no pose to skip now"
+        with self._lock:
+            self._skip = True
+        return True, "another pose is coming"
+
+    def take_skip(self) -> bool:
+        """True once after the page said it cannot hold the advised pose (the capture's thread
+        calls it and asks the session for another)."""
+        with self._lock:
+            asked, self._skip = self._skip, False
         return asked
 
     def poll_decision(self) -> str | None:

@@ -13,7 +13,7 @@ The host talks to the worker only through thread-safe hand-offs:
   the worker wants its own IMU rates, so the host stops asking for its own stream rates (which
   would lower them) before the worker's request goes out.
 
-Jobs (:meth:`CaptureWorker.submit` of ``start``, ``stop``, ``finish``, ``fit``, ``write``, ``restore``):
+Jobs (:meth:`CaptureWorker.submit` of ``start``, ``stop``, ``finish``, ``skip``, ``fit``, ``write``, ``restore``):
 
 * ``start``: the vehicle's parameters (the calibration in force on the readings), a
   :class:`~mavcal.capture.CaptureSession`, and SET_MESSAGE_INTERVAL for the IMU messages the
@@ -85,6 +85,7 @@ class WorkerSettings:
     retries: int = 3
     write_budget: float = 0.0  # s per PARAM_SET / force-save / read; 0: 15 x param_timeout
     verbose: bool = True
+    max_tilt_deg: float = 0.0  # a vehicle that cannot be turned over: poses within this tilt (0: no limit)
 
 
 class CaptureWorker:
@@ -150,7 +151,8 @@ class CaptureWorker:
         """Queue a job: ``start(settings)``, ``stop()``, ``finish()``, ``fit()``, ``write(settings, confirmed)``,
         ``restore(settings, path, confirmed)``."""
         jobs: dict[str, Callable[..., None]] = {"start": self._start, "stop": self._stop, "finish": self._finish,
-                                                "fit": self._fit, "write": self._write, "restore": self._restore}
+                                                "fit": self._fit, "write": self._write, "restore": self._restore,
+                                                "skip": self._skip}
         fn = jobs[job]
         self.jobs.put((fn, args))
 
@@ -317,7 +319,8 @@ class CaptureWorker:
         still = StillConfig(min_duration_s=cfg.hold_s)
         config = CaptureConfig(target_heading_deg=cfg.target_deg, target_tilt_deg=cfg.target_tilt_deg,
                                max_intervals=cfg.max_poses,
-                               min_intervals=min(cfg.min_poses, cfg.max_poses), still=still)
+                               min_intervals=min(cfg.min_poses, cfg.max_poses), still=still,
+                               max_tilt_deg=cfg.max_tilt_deg or None)
         position = self._vehicle_position()
         self.session = CaptureSession(values, config, Options(still=still, accel_instance=cfg.accel,
                                                               mag_instance=cfg.compass), source="mavproxy",
@@ -385,6 +388,15 @@ class CaptureWorker:
         self._say(f"going on without {', '.join(dropped)}: the capture ends when the other sensors meet their "
                   "targets")
         self._update()
+
+    def _skip(self) -> None:
+        """"Can't do this one": another pose instead of the one advised (never advised again)."""
+        if not self.capturing:
+            self._say("not capturing")
+            return
+        advice = self.session.skip_pose()
+        self.status = self.session.status
+        self._say(f"another pose instead: {advice.words}")
 
     def _fit(self) -> None:
         from mavcal.report.text import MAVPROXY_HINTS, summary_text

@@ -116,6 +116,8 @@ class WorkerPage:
                 w.submit("finish")
             except KeyError:
                 log.info("this worker cannot finish without a sensor")
+        if self.page.take_skip():  # "can't do this one": the worker's job asks the session, on its thread
+            w.submit("skip")
         if w.busy == "fit":
             self.page.state.set(phase="fitting")
         run = w.run

@@ -64,6 +64,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     cap.add_argument("--hold", type=float, default=1.0, metavar="S",
                      help="shortest still hold that counts as a pose (default 1)")
     cap.add_argument("--rate", type=float, default=25.0, metavar="HZ", help="IMU stream rate (default 25, at least 25)")
+    cap.add_argument("--max-tilt", type=float, default=None, metavar="DEG",
+                     help="a vehicle that cannot be turned over: advise only poses tilted at most DEG from level (any "
+                          "heading; e.g. one side on a block); the accelerometers then keep their calibration and the "
+                          "compasses are fitted with it held (default: no limit, the full capture)")
     fit = p.add_argument_group("calibration")
     fit.add_argument("--accel", type=int, default=0, metavar="I", help="IMU instance (0-based, default 0)")
     fit.add_argument("--compass", type=int, default=0, metavar="I", help="compass instance (priority, 0-based)")
@@ -120,6 +124,16 @@ class StatusPrinter:
         self.out.flush()
 
 
+def check_max_tilt(max_tilt: float | None) -> None:
+    """--max-tilt: None (no limit) or a tilt from 1 deg up to what counts as within reach."""
+    from mavcal.coverage import REACH_MAX_TILT_DEG, REACH_MIN_TILT_DEG
+
+    if max_tilt is not None and not REACH_MIN_TILT_DEG <= max_tilt <= REACH_MAX_TILT_DEG:
+        raise UsageError(f"--max-tilt must be {REACH_MIN_TILT_DEG:g}-{REACH_MAX_TILT_DEG:g} deg (the poses identify "
+                         f"the compass's vertical terms from {REACH_MIN_TILT_DEG:g} deg of tilt; beyond "
+                         f"{REACH_MAX_TILT_DEG:g} deg use the full capture); got {max_tilt:g}")
+
+
 def _check(args: argparse.Namespace) -> None:
     if not args.target_deg > 0 or not args.target_tilt_deg > 0:
         raise UsageError("--target-deg and --target-tilt-deg must be > 0")
@@ -127,6 +141,7 @@ def _check(args: argparse.Namespace) -> None:
         raise UsageError("--max-poses and --min-poses must be at least 1")
     if not args.duration > 0 or not args.hold > 0 or not args.rate > 0:
         raise UsageError("--duration, --hold and --rate must be > 0")
+    check_max_tilt(args.max_tilt)
     check_new_backup(args.backup)
     check_save_tlog(args.save_tlog)
     if (args.no_browser or args.ui_host or args.ui_port) and not args.ui:
@@ -167,7 +182,7 @@ def _run(args: argparse.Namespace, page=None) -> int:
         raise UsageError(str(exc)) from None
     config = CaptureConfig(target_heading_deg=args.target_deg, target_tilt_deg=args.target_tilt_deg,
                            max_intervals=args.max_poses,
-                           min_intervals=min(args.min_poses, args.max_poses), still=still)
+                           min_intervals=min(args.min_poses, args.max_poses), still=still, max_tilt_deg=args.max_tilt)
     options = Options(still=still, accel_instance=args.accel, mag_instance=args.compass,
                       field_mgauss=args.field_mgauss, location=args.location)
     printer = StatusPrinter(sys.stderr, args.target_deg)
@@ -249,7 +264,7 @@ def _page_hooks(page, printer, config, args: argparse.Namespace):
 
     def on_status(st) -> None:
         printer(st)
-        feed.status(st, finish=page.take_finish())
+        feed.status(st, finish=page.take_finish(), skip=page.take_skip())
 
     return on_status, {"on_batch": feed.batch}
 

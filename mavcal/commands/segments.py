@@ -91,7 +91,7 @@ def _num(x: float) -> Any:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _report(src: str, raw, seg, samples: bool, sensors) -> dict[str, Any]:
+def _report(src: str, raw, seg, samples: bool, sensors, reach=None) -> dict[str, Any]:
     from mavcal.segment import axis_label
 
     cov = seg.coverage
@@ -115,6 +115,11 @@ def _report(src: str, raw, seg, samples: bool, sensors) -> dict[str, Any]:
                      "n_orientations": c.n_orientations, "n_field_directions": c.n_field_directions,
                      "missing": list(c.missing), "add": c.add, "text": c.text()} for c in sensors],
         "warnings": list(seg.warnings),
+        "reach": None if reach is None else {
+            "max_tilt_deg": _num(reach.max_tilt_deg), "n_field_directions": reach.n_field_directions,
+            "compass_identified": reach.compass_identified, "missing": list(reach.missing), "add": reach.add,
+            "kept": [{"sensor": k.sensor, "parameter": k.what, "why": k.why, "pose": k.pose} for k in reach.kept],
+            "text": reach.lines()},
     }
     if raw is not None:
         out["recovery"] = {
@@ -174,6 +179,10 @@ def _print_text(rep: dict[str, Any], out: TextIO) -> None:
         print("per sensor (the data gates of calibrate apply the same rule):")
         for d in rep["sensors"]:
             print(f"  {d['text']}")
+    if rep["reach"]:
+        print("what the poses identify (a vehicle turned on the ground and tilted a little; calibrate fits this):")
+        for line in rep["reach"]["text"]:
+            print(f"  {line}")
 
 
 def _segment(args, cfg):
@@ -204,6 +213,15 @@ def sensor_coverages(seg):
     return coverages(seg, 0, coverage_rule(Options(), seg))
 
 
+def reach(seg):
+    """What poses within reach identify (:func:`mavcal.coverage.segmentation_reach`), with
+    ``calibrate``'s default gates and pairing; None when the rule does not apply."""
+    from mavcal.coverage import segmentation_reach
+    from mavcal.pipeline import Options, coverage_rule
+
+    return segmentation_reach(seg, 0, None, coverage_rule(Options(), seg))
+
+
 def _source(args) -> str:
     """SOURCE; ``segments --json LOG`` (the old switch before the log) still reads LOG."""
     if args.source is None:
@@ -219,8 +237,13 @@ def run(args) -> int:
     cfg = still_config(args)
     csv_rate(args)
     log_, raw, seg = _segment(args, cfg)
+    within = reach(seg) if seg.intervals else None
     sensors = sensor_coverages(seg) if seg.intervals else []
-    rep = _report(str(args.source), raw, seg, bool(args.samples), sensors)
+    if within is not None:
+        from mavcal.coverage import within_reach
+
+        sensors = [within_reach(c, within) for c in sensors]
+    rep = _report(str(args.source), raw, seg, bool(args.samples), sensors, within)
     _print_text(rep, sys.stderr if args.json == "-" else sys.stdout)
     if args.json:
         json_output(args.json, rep)
@@ -229,6 +252,8 @@ def run(args) -> int:
         raise SegmentationError(f"no still intervals in {args.source}"
                                 + (f": {'; '.join(why)}" if why else " (the vehicle never stayed still "
                                    "long enough, or the thresholds are too strict)") + csv_rate_hint(log_))
+    if within is not None and within.compass_identified:
+        return 0  # calibrate fits the compass with the accelerometer held
     if seg.coverage.status == "insufficient":
         raise SegmentationError(f"{args.source}: the still intervals cannot calibrate: "
                                 + "; ".join(seg.coverage.messages) + csv_rate_hint(log_))

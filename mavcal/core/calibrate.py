@@ -71,8 +71,8 @@ from mavcal.core.misfit import (
     inflated_covariance,
     inflation,
     joint_terms,
-    misfit_factors,
     misfit_p,
+    reweight_factors,
 )
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS, ModelSpec, choose_model
 from mavcal.core.reconstruct import estimate_orientations, reconstruction_error
@@ -409,14 +409,10 @@ def _reweight(spec: ModelSpec, a, m, method, tol, out):
     res, Sa, Sm, block_it, block_conv = out
     evidence = res.misfit
     for _ in range(REWEIGHT_ROUNDS):
-        if res.dof <= 0:
+        step = reweight_factors(spec, a, m, Sa, Sm, res)
+        if step is None:
             break
-        p = misfit_p(res.cost, res.dof, a, m)
-        if p >= REWEIGHT_P:
-            break
-        fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
-        if fa == 1.0 and fm == 1.0:  # no sensor's share is above its dof: nothing to apportion
-            break
+        fa, fm, p = step
         if evidence is None:
             evidence = (float(res.cost), int(res.dof), float(p), cost_name(Sa, Sm, a, m, method), spec.name)
         Sa, Sm = Sa * fa, Sm * fm

@@ -73,14 +73,20 @@ def exact_hessian_blocks(prob: JointProblem, p: JointParams):
     """Exact Hessian of J' in arrow form: 2 (J^T J + sum_k r_k d^2 r_k).
 
     Returns (Hgg (P, P), Hgr (N, P, 3), Hrr (N, 3, 3)): each orientation couples only with
-    itself and the global parameters.
+    itself and the global parameters. A problem with parameters held at given values
+    (``prob.columns``, :class:`mavcal.core.held.HeldProblem`) gets the blocks of its free
+    parameters: held coordinates are constants, so its Hessian is the full one's sub-block.
     """
-    r, Jg, Jr = prob.jacobians(p)
-    Sgg, Sgr, Srr = _second_order(prob, p, r)
-    Ggg, Ggr, Grr = gauss_newton_blocks(Jg, Jr, blas=prob.blas)
+    base = prob.base
+    r, Jg, Jr = base.jacobians(p)
+    Sgg, Sgr, Srr = _second_order(base, p, r)
+    Ggg, Ggr, Grr = gauss_newton_blocks(Jg, Jr, blas=base.blas)
     Hgg = 2.0 * (Ggg + Sgg)
     Hgr = 2.0 * (Ggr + Sgr)
     Hrr = 2.0 * (Grr + Srr)
+    c = prob.columns
+    if c is not None:
+        Hgg, Hgr = Hgg[np.ix_(c, c)], Hgr[:, c, :]
     return Hgg, Hgr, Hrr
 
 

@@ -40,7 +40,8 @@ from mavcal.core.models import FORMS, ModelSpec
 from mavcal.core.refine import JointParams, JointProblem, RefineResult, Term
 from mavcal.core.stats import IntervalStats, f_sf
 
-__all__ = ["joint_terms", "misfit_factors", "inflated_covariance", "misfit_p", "cost_name", "inflation",
+__all__ = ["joint_terms", "misfit_factors", "reweight_factors", "inflated_covariance", "misfit_p", "cost_name",
+           "inflation",
            "REWEIGHT_P", "INFLATE_P"]
 
 REWEIGHT_P = 1e-6  # the noise model is rejected (and the fit reweighted) only when J' has p below this
@@ -98,6 +99,22 @@ def misfit_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, 
     dof_a = max(3 * N - Pa - 1.5 * N, 1.0)
     dof_m = max(3 * N - Pm - 1.5 * N, 1.0)
     return max(1.0, chi_a / dof_a), max(1.0, chi_m / dof_m)
+
+
+def reweight_factors(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, res: RefineResult
+                     ) -> tuple[float, float, float] | None:
+    """One round of the misfit reweighting's rule: (f_a, f_m, p) when J' at ``res`` rejects the
+    noise model (``misfit_p`` < ``REWEIGHT_P``) and some sensor's share is above its dof
+    (:func:`misfit_factors`); None when the round does not run."""
+    if res.dof <= 0:
+        return None
+    p = misfit_p(res.cost, res.dof, a, m)
+    if p >= REWEIGHT_P:
+        return None
+    fa, fm = misfit_factors(spec, a, m, Sa, Sm, res.params)
+    if fa == 1.0 and fm == 1.0:  # no sensor's share is above its dof: nothing to apportion
+        return None
+    return fa, fm, p
 
 
 def inflated_covariance(spec: ModelSpec, a: IntervalStats, m: IntervalStats, Sa, Sm, p: JointParams,

@@ -117,6 +117,10 @@ class JointProblem:
         if self.has_mag:
             names.append("h_z")
         self.names = tuple(names)
+        # the problem whose full parameter vector this one's columns are taken from, and which
+        # (None: all); :class:`mavcal.core.held.HeldProblem` holds the others at given values
+        self.base: JointProblem = self
+        self.columns: np.ndarray | None = None
 
     # parameter vector <-> structured parameters
     def pack(self, p: JointParams) -> np.ndarray:

@@ -180,6 +180,10 @@ class Calibration:
         Which cost ``cost`` is and the returned point minimises: "J' with the sample
         covariances" (the ML optimum of the paper), or the reweighted cost, e.g. "J' with
         Sigma_m inflated x 12.5 (reweighted)"; ``message`` then says on what evidence.
+    held : tuple of str
+        Parameters held at given values (:func:`mavcal.core.held.calibrate_held`: what poses
+        within reach cannot identify); the fit is the optimum of J' over the others, and
+        ``param_cov`` covers all of ``param_names``, the held ones with their prior.
     """
 
     accel: SensorModel
@@ -204,11 +208,13 @@ class Calibration:
     certificate: OptimumCertificate | None = None
     noise_inflation: tuple[float, float] = (1.0, 1.0)
     cost_name: str = "J' with the sample covariances"
+    held: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("gravity", "field", "orientations", "param_cov", "n_accel", "n_mag"):
             object.__setattr__(self, name, frozen_array(getattr(self, name)))
         object.__setattr__(self, "param_names", tuple(self.param_names))
+        object.__setattr__(self, "held", tuple(self.held))
 
     @property
     def n_intervals(self) -> int:

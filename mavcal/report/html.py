@@ -141,8 +141,23 @@ def _verdicts(run) -> list[str]:
                      f"<span class='verdict {'ok' if v.accepted else 'bad'}'>"
                      f"{'accepted' if v.accepted else 'REJECTED'}</span> <b>{_e(v.sensor)}</b>"
                      + (f"<ul>{why}</ul>" if why else "") + "</li>")
-    return ["<h2>Verdict per sensor</h2><ul id='verdicts'>" + "".join(items) + "</ul>",
+    return ["<h2>Verdict per sensor</h2><ul id='verdicts'>" + "".join(items) + "</ul>"] + _kept(run) + [
             f"<p id='next-step'><b>{_e(next_step(run))}</b></p>"]
+
+
+def _kept(run) -> list[str]:
+    """What poses within reach left: the parameters written and those kept (not written), each
+    with why and which pose would identify it."""
+    if not run.kept:
+        return []
+    write = run.params_to_write()
+    rows = [[_e(s), "written", _e(", ".join(sorted(n for n in p if n in write))), ""]
+            for s, p in run.mapping.by_sensor().items() if any(n in write for n in p)]
+    rows += [[_e(k.sensor), f"{_e(k.what)} kept (not written)", _e(k.why), _e(k.pose)] for k in run.kept]
+    return ["<h2>Written and kept</h2><p>The poses were all within reach of a vehicle that is not turned over: "
+            "what they cannot identify keeps its current value and is not written.</p>",
+            "<div id='kept'>" + _table(["sensor", "parameter", "why", "what pose would identify it"], rows,
+                                    left=(0, 1, 2, 3)) + "</div>"]
 
 
 def _quality(run) -> list[str]:

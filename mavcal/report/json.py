@@ -188,6 +188,7 @@ def to_json(run) -> dict[str, Any]:
         "source": run.source,
         "accepted": run.accepted,
         "sensors": sensors_json(run.gates),
+        "kept": [{"sensor": k.sensor, "parameter": k.what, "why": k.why, "pose": k.pose} for k in run.kept],
         "exit_code": run.exit_code,
         "parameters": _parameters(run),
         "reboot_required": run.mapping.reboot_required,

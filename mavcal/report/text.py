@@ -13,7 +13,7 @@ import numpy as np
 from mavcal.ardupilot.paramfile import format_param_value
 from mavcal.determined import bound_phrase, joint_unidentified
 
-__all__ = ["summary_text", "holdout_text", "verdict_lines", "next_step", "param_rows", "format_value",
+__all__ = ["summary_text", "holdout_text", "verdict_lines", "kept_lines", "next_step", "param_rows", "format_value",
            "gate_failures_by_sensor", "param_table", "written_rows",
            "rejection_notes", "plan_text", "gate_refusal_text", "write_done_text",
            "write_failed_text", "in_doubt_text", "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS"]
@@ -129,6 +129,29 @@ def verdict_lines(run) -> list[str]:
     return out
 
 
+def kept_lines(run) -> list[str]:
+    """Per sensor, what poses within reach left: the parameters written, and every parameter kept
+    at its current value (not written) with why and which pose would identify it; empty when
+    nothing was kept (:attr:`mavcal.run.CalibrationRun.kept`)."""
+    kept = getattr(run, "kept", ())
+    if not kept:
+        return []
+    write = run.params_to_write()
+    out = []
+    for sensor, names in run.mapping.by_sensor().items():
+        written = sorted(n for n in names if n in write)
+        if written:
+            out.append(f"{sensor}: written: {', '.join(written)}")
+    by: dict[str, list] = {}
+    for k in kept:
+        by.setdefault(k.sensor, []).append(k)
+    for sensor, ks in by.items():
+        whole = not run.mapping.by_sensor().get(sensor)
+        out.append(f"{sensor}: kept at its current calibration, nothing written" if whole else f"{sensor}: kept:")
+        out += [f"    {k.what} kept: {k.why}; would need {k.pose}" for k in ks]
+    return out
+
+
 def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str = CLI_HINTS["write_hint"],
               only_hint: str = CLI_HINTS["only_hint"]) -> str:
     """What to do now, from the verdicts (the hints name the commands: :data:`CLI_HINTS`,
@@ -203,7 +226,7 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     n_ok = sum(v.accepted for v in run.verdicts)
     overall = {0: "ACCEPTED", 7: "PARTLY ACCEPTED"}.get(run.exit_code, "REJECTED")
     L = [f"{overall}: {run.source}: {n_ok} of {len(run.verdicts)} sensors accepted", *verdict_lines(run),
-         next_step(run, **(hints or {}))]
+         *kept_lines(run), next_step(run, **(hints or {}))]
     L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
           f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
     why_a, why_m = joint_unidentified(run)  # numbers of a sensor the poses do not identify: not printed
@@ -223,8 +246,14 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     if why_a:
         L.append(f"heading and tilt errors not determined ({why_a})")
     else:
+        envelope = "over the flight envelope"
+        if run.kept:
+            from mavcal.coverage import REACH_FLOWN_TILT_DEG
+
+            envelope = (f"over the attitudes flown, tilts up to {REACH_FLOWN_TILT_DEG:g} deg; the kept values' "
+                        "uncertainty counted")
         L.append(f"{bound_phrase('heading', q.heading_95_deg, why=why_m)}, {bound_phrase('tilt', q.tilt_95_deg)} "
-                 "(95 % confidence, over the flight envelope)")
+                 f"(95 % confidence, {envelope})")
     if why:
         L.append("not determined either, for the same reason: the held-out error, fit chi2/dof"
                  + "".join(f", accel {am.instance}'s cross-axis terms" for am in run.mapping.accel[:1] if why_a)

@@ -38,6 +38,7 @@ from mavcal.testing.logwriters import DataFlashWriter, TlogWriter
 log = logging.getLogger(__name__)
 
 __all__ = ["AccelErrorTruth", "MagTruth", "SimConfig", "SimLog", "simulate_session", "write_tlog", "write_bin",
+           "poses_within_reach",
            "DEFAULT_POSES_DEG"]
 
 G = GRAVITY_MPS2
@@ -49,6 +50,21 @@ DEFAULT_POSES_DEG: tuple[tuple[float, float, float], ...] = (
     (180, 0, 90), (45, 30, 150), (-45, 35, 240), (40, -40, 20), (-35, -45, 100),
     (135, 30, 330), (-130, -35, 45), (150, -40, 270),
 )
+
+
+def poses_within_reach(max_tilt_deg: float, n: int = 12, seed: int = 0, headings: int | None = None
+                       ) -> tuple[tuple[float, float, float], ...]:
+    """``n`` poses (roll, pitch, yaw deg) of a vehicle that cannot be turned over: turned to
+    ``headings`` (default ``n``) headings evenly all the way round, every third pose level, the
+    others tilted in a random direction by 40-100 % of ``max_tilt_deg`` (one side on a block)."""
+    rng = np.random.default_rng(seed)
+    k_h = headings or n
+    out = []
+    for k in range(n):
+        d = rng.uniform(0.0, 2.0 * np.pi)
+        t = 0.0 if k % 3 == 0 else max_tilt_deg * rng.uniform(0.4, 1.0)
+        out.append((float(t * np.cos(d)), float(t * np.sin(d)), float(360.0 * (k % k_h) / k_h)))
+    return tuple(out)
 
 
 @dataclass(frozen=True)

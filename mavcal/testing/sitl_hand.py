@@ -224,8 +224,8 @@ class GuidedCapture:
 
 
 def run_guided_capture(sitl: Any, workdir: Path, *, return_prob: float = 0.5, seed: int = 0,
-                       timeout_s: float = 300.0) -> GuidedCapture:
-    """``mavcal capture --connect SITL --write --yes`` in ``sitl``'s namespace with an
+                       timeout_s: float = 300.0, args: Iterable[str] = ()) -> GuidedCapture:
+    """``mavcal capture --connect SITL --write --yes [args]`` in ``sitl``'s namespace with an
     :class:`AdviceHand` holding each advised pose (returning to the last one with probability
     ``return_prob``); the JSON report goes to ``workdir/run.json``, the backup to
     ``workdir/backup.param``. The CLI is killed after ``timeout_s`` (subprocess.TimeoutExpired)."""
@@ -234,7 +234,7 @@ def run_guided_capture(sitl: Any, workdir: Path, *, return_prob: float = 0.5, se
     t0 = time.monotonic()
     with open(workdir / "stdout.txt", "w+") as out:
         p = sitl.popen([sys.executable, "-m", "mavcal", "capture", "--connect", sitl.tool_device, "--write", "--yes",
-                        "--json", str(workdir / "run.json"), "--backup", str(workdir / "backup.param")],
+                        "--json", str(workdir / "run.json"), "--backup", str(workdir / "backup.param"), *args],
                        stdout=out, stderr=subprocess.PIPE, text=True)
         reader = status.follow(p.stderr)
         hand = AdviceHand(sitl, status, return_prob=return_prob, seed=seed)

@@ -169,11 +169,43 @@ function drawVehicle(svg, cam, C, ghost) {
 
 const SCENE_CAM = () => camera(25, 55, 220, 134, 60, 11);
 
-function drawScene(id, C, waiting) {
+// a vehicle that cannot be turned over (--max-tilt): its raised edge rests on a block (a beam) on the ground
+function drawBlock(svg, cam, C) {
+  if (C[2][2] > Math.cos(2 * Math.PI / 180)) return;  // (nearly) level: no block
+  const bottom = V.filter((v) => v[2] > 0).map((v) => mul(C, v));  // the bottom face's corners (FRD: +z down)
+  bottom.sort((a, b) => a[2] - b[2]);
+  // the raised edge: its two highest corners, or the highest one alone when tilted towards a corner
+  const a = bottom[0], b = bottom[1][2] - bottom[0][2] < 0.25 ? bottom[1] : bottom[0];
+  const along = unit(sub([b[0], b[1], 0], [a[0], a[1], 0]));
+  const u = norm(sub(b, a)) > 1e-6 ? along : [1, 0, 0];
+  const out = unit(sub([a[0] + b[0], a[1] + b[1], 0], [0, 0, 0]));  // away from the centre, on the ground
+  const d = 0.3, top = Math.min(a[2], b[2]);
+  const e0 = add(add(a, scale(u, -0.15)), scale(out, -d)), e1 = add(add(b, scale(u, 0.15)), scale(out, -d));
+  const e2 = add(e1, scale(out, 2 * d)), e3 = add(e0, scale(out, 2 * d));
+  const tops = [e0, e1, e2, e3].map((x) => [x[0], x[1], top]), base = tops.map((x) => [x[0], x[1], GROUND]);
+  const faces = [];
+  for (let i = 0; i < 4; i++) {
+    const j = (i + 1) % 4, f = [tops[i], tops[j], base[j], base[i]];
+    faces.push({ f, depth: dot(sub(scale(f.reduce(add), 0.25), cam.eye), cam.f) });
+  }
+  faces.push({ f: tops, depth: dot(sub(scale(tops.reduce(add), 0.25), cam.eye), cam.f) });
+  faces.sort((x, y) => y.depth - x.depth);
+  const g = el("g", { "data-block": "1" }, svg);
+  for (const x of faces) {
+    el("polygon", { points: polyPoints(x.f.map((pt) => cam.project(pt))), fill: "#c49a5c", stroke: "#5d4322",
+                    "stroke-width": 2, "stroke-linejoin": "round" }, g);
+  }
+  const c = cam.project([(e0[0] + e2[0]) / 2, (e0[1] + e2[1]) / 2, GROUND]);
+  const t = el("text", { x: c[0], y: c[1] + 22, "text-anchor": "middle", "font-size": 16, fill: "#5d4322" }, g);
+  t.textContent = "block";
+}
+
+function drawScene(id, C, waiting, block) {
   const svg = $(id);
   svg.textContent = "";
   const cam = SCENE_CAM();
   drawGround(svg, cam);
+  if (C && block) drawBlock(svg, cam, C);
   if (C) drawVehicle(svg, cam, C, false);
   else {
     const t = el("text", { x: 220, y: 140, "text-anchor": "middle", "font-size": 24, fill: "#4a5a68" }, svg);
@@ -334,7 +366,9 @@ function renderCapture(st, live) {
   const ins = $("instruction");
   ins.textContent = st && st.done && !state.result ? (st.aborted ? "Stopped: " + st.reason : "Done capturing. Calculating...") : text;
   ins.className = "instruction " + (st && st.aborted ? "bad" : cls);
-  drawScene("scene-target", st && st.next ? st.next.C : null, st && st.done ? "done" : "waiting for the first advice...");
+  drawScene("scene-target", st && st.next ? st.next.C : null, st && st.done ? "done" : "waiting for the first advice...",
+            Boolean(st && st.max_tilt));
+  $("skip").hidden = !(st && st.next && !st.done);
   drawScene("scene-live", shownLive(st, live));
   $("pose-words").textContent = st && st.next ? "In words: " + st.next.words : "";
   $("pose-for").textContent = st && st.next && st.advice_for ? "This pose helps " + sensorName(st.advice_for) + " most." : "";
@@ -464,6 +498,12 @@ function setup() {
     $("finish").disabled = true;
     const r = await post("finish", { csrf: state.csrf });
     $("finish").disabled = false;
+    if (!r.ok) $("messages").textContent = r.message;
+  });
+  $("skip").addEventListener("click", async () => {
+    $("skip").disabled = true;
+    const r = await post("skip", { csrf: state.csrf });
+    $("skip").disabled = false;
     if (!r.ok) $("messages").textContent = r.message;
   });
   $("decline").addEventListener("click", async () => {
