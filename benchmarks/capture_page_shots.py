@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -97,13 +98,31 @@ def _drive(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path)
     _shoot(drv, out, "capture-written")
 
 
-def run(out: Path, seed: int) -> int:
+def _drive_reach(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path) -> None:
+    """--max-tilt: one screenshot, "capture-reach", of the page advising a tilted pose with its
+    raised edge on a block (a vehicle that cannot be turned over), once a few poses are held."""
+    drv.get(url)
+    wait_for("the first advice", lambda: page_text(drv, "pose-words").strip() != "", 120,
+             show=lambda: page_text(drv, "instruction"))
+    hand.start()
+
+    def tilted() -> bool:
+        block = drv.execute_script("return document.querySelectorAll('#scene-target [data-block]').length") > 0
+        return status()[0] >= 4 and bool(block) and not status()[2]
+    wait_for("a tilted pose on its block advised (4+ poses held)", tilted, 240, poll_s=0.05,
+             show=lambda: status.text()[-600:])
+    time.sleep(1.0)
+    _shoot(drv, out, "capture-reach")
+
+
+def run(out: Path, seed: int, max_tilt: float | None = None) -> int:
     with SitlVehicle(InjectedErrors.random(seed, mag_orient=6)) as sitl, \
             tempfile.TemporaryDirectory(prefix="capture-shots-") as tmp:
         status = StatusLines()
         p = sitl.popen([sys.executable, "-m", "mavcal", "capture", "--connect", sitl.tool_device, "--ui",
                         "--no-browser", "--json", str(Path(tmp) / "run.json"),
-                        "--backup", str(Path(tmp) / "backup.param")],
+                        "--backup", str(Path(tmp) / "backup.param")]
+                       + ([] if max_tilt is None else ["--max-tilt", f"{max_tilt:g}"]),
                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         reader = status.follow(p.stderr)
         hand = AdviceHand(sitl, status, seed=seed)
@@ -114,7 +133,10 @@ def run(out: Path, seed: int) -> int:
                       file=sys.stderr)
                 return 1
             with sitl.netns(), headless_chromium(WIDTH, HEIGHT) as drv:  # the browser in the vehicle's namespace
-                _drive(drv, url, status, hand, out)
+                (_drive if max_tilt is None else _drive_reach)(drv, url, status, hand, out)
+            if max_tilt is not None:  # the screenshot is taken: nothing is written
+                hand.stop()
+                p.send_signal(signal.SIGINT)
             rc = p.wait(timeout=60)
         finally:
             hand.stop()
@@ -122,7 +144,7 @@ def run(out: Path, seed: int) -> int:
                 p.kill()
             reader.join(timeout=10)
         print(f"capture exited {rc}; poses held: {len(hand.poses)}")
-        return 0 if rc in (0, 7) else 1
+        return 0 if rc in (0, 7) or (max_tilt is not None and rc in (4, 130, -2)) else 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--save", action="store_true", help=f"write into {DOCS_IMG.relative_to(HERE.parent)}/ (tracked)")
     g.add_argument("--out", type=Path, metavar="DIR", help="write into DIR")
+    ap.add_argument("--max-tilt", type=float, metavar="DEG",
+                    help="a capture within reach (capture --max-tilt DEG): the one screenshot capture-reach, no write")
     args = ap.parse_args(argv)
     reason = unavailable_reason() or (f"{', '.join(missing())} not installed" if missing() else None)
     if reason is not None:
@@ -142,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     if out == resolve(False, None):
         out = out / "capture_page_shots"
     out.mkdir(parents=True, exist_ok=True)
-    return run(out, args.seed)
+    return run(out, args.seed, args.max_tilt)
 
 
 if __name__ == "__main__":
