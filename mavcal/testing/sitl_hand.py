@@ -35,7 +35,7 @@ __all__ = ["AdviceHand", "ScheduleHand", "SPREAD_POSES", "StatusLines", "parse_s
 Pose = tuple[float, float, float]
 Advice = tuple[int, "Pose | None", bool]
 
-_STATUS = re.compile(r"(\d+) intervals, \w+, heading \S+ deg(?:; next: .*\(roll (\S+) pitch (\S+) yaw (\S+) "
+_STATUS = re.compile(r"(\d+) intervals, \w+, heading (?:\S+ deg|not determined)(?:; next: .*\(roll (\S+) pitch (\S+) yaw (\S+) "
                      r"deg magnetic\)|: (done|ABORTED)|: )")
 
 
