@@ -23,8 +23,8 @@ from mavcal.testing.vehicle import VehicleTruth
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,
                                 reason="MAVProxy is not installed (pip install mavcal[test])")
 
-_ADVICE = re.compile(r"mavcal: (\d+) intervals, \w+, heading (?:\S+ deg|not determined)(?:; next: .*\(roll (\S+) pitch (\S+) yaw (\S+) "
-                     r"deg magnetic\)|: (done|ABORTED))")
+_ADVICE = re.compile(r"mavcal: (\d+) intervals, \w+, heading (?:\S+ deg|not determined)"
+                     r"(?:; next: .*\(roll (\S+) pitch (\S+) yaw (\S+) deg magnetic\)|: (done|ABORTED))")
 
 
 class MAVProxy:

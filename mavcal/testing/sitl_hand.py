@@ -35,8 +35,8 @@ __all__ = ["AdviceHand", "ScheduleHand", "SPREAD_POSES", "StatusLines", "parse_s
 Pose = tuple[float, float, float]
 Advice = tuple[int, "Pose | None", bool]
 
-_STATUS = re.compile(r"(\d+) intervals, \w+, heading (?:\S+ deg|not determined)(?:; next: .*\(roll (\S+) pitch (\S+) yaw (\S+) "
-                     r"deg magnetic\)|: (done|ABORTED)|: )")
+_STATUS = re.compile(r"(\d+) intervals, \w+, heading (?:\S+ deg|not determined)"
+                     r"(?:; next: .*\(roll (\S+) pitch (\S+) yaw (\S+) deg magnetic\)|: (done|ABORTED)|: )")
 
 
 def parse_status_line(line: str) -> Advice | None:
