@@ -188,7 +188,7 @@ def _progress_view(st: CaptureStatus, config: CaptureConfig, run: Any) -> list[d
         return sensor_bounds(run, config)
     return [{"sensor": p.sensor, "what": p.kind, "bound_deg": _finite(p.bound_deg), "target_deg": float(p.target_deg),
              "met": bool(p.met), "blocked": p.blocked, "dropped": bool(p.dropped),
-             "needs": getattr(p, "needs", ""), "determined": determined(p.kind, _finite(p.bound_deg))}
+             "needs": p.needs, "determined": determined(p.kind, _finite(p.bound_deg))}
             for p in progress]
 
 

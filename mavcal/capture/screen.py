@@ -47,7 +47,7 @@ def sensors_line(st: CaptureStatus) -> str:
     def one(p) -> str:
         b = "-" if p.bound_deg is None else f"{p.bound_deg:.2f}" if determined(p.kind, p.bound_deg) else "undetermined"
         tag = (" dropped" if p.dropped else " ok" if p.met else " cannot" if p.blocked
-               else " needs poses" if getattr(p, "needs", "") else "")
+               else " needs poses" if p.needs else "")
         return f"{p.sensor} {p.kind} {b}/{p.target_deg:g}{tag}"
     return ", ".join(one(p) for p in st.sensors)
 
