@@ -542,10 +542,8 @@ class CaptureSession:
             return True, self._stopped + (f" (without {', '.join(offer)}: cannot reach the target)" if offer
                                           else ""), offer
         kept = {p.sensor for p in remaining}
-        data_gate = run is not None and any(g.cause == "data" and g.sensor in kept  # calibrate's coverage rule
-                                            for g in run.gates.failures())
-        if run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining) \
-                and not data_gate:
+        # met includes calibrate's coverage rule (SensorProgress.needs: its failed data gates)
+        if run is not None and n >= cfg.min_intervals and remaining and all(p.met for p in remaining):
             floors = [f"{s} {b:.2f} deg" for s, b in self._floors.items() if s in kept]
             return True, stop_reason(self._progress) + (
                 f"; poses within reach: the bound has reached its floor ({', '.join(floors)}: the kept "
