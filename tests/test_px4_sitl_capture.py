@@ -39,14 +39,15 @@ def _pose_forever(poser, stop: threading.Event) -> None:
 
 
 def _px4_output(link, poser, poses) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """(SCALED_IMU accel m/s^2, HIGHRES_IMU mag mGauss, true f_body, true B_body) per pose, 2 s means."""
+    """(SCALED_IMU accel m/s^2, HIGHRES_IMU mag mGauss, true f_body, true B_body) per pose: medians of
+    the last of 2 s of readings, taken 1 s after the pose was reached."""
     from mavcal.link.streams import PX4_STREAM_MESSAGES, start_streams
 
     start_streams(link, 50.0, message_ids=tuple(PX4_STREAM_MESSAGES.values()))
     out = []
     for p in poses:
         poser.turn_to(*p, MOVE_S)
-        link.pump(0.5)
+        link.pump(1.0)
         acc: list = []
         mag: list = []
         tokens = [link.add_handler("SCALED_IMU", lambda m, acc=acc: acc.append([m.xacc, m.yacc, m.zacc])),
@@ -57,7 +58,10 @@ def _px4_output(link, poser, poses) -> list[tuple[np.ndarray, np.ndarray, np.nda
         for t in tokens:
             link.remove_handler(t)
         f, B = poser.truth_body()
-        out.append((np.mean(acc, axis=0) * 9.80665 / 1000, np.mean(mag, axis=0) * 1000, f, B))
+        # the later half only: under CI load PX4's clock (driven by the poser's HIL_SENSOR) lags the
+        # wall clock, and a 2 s mean once still held readings from before the pose (0.31 deg off)
+        acc, mag = acc[len(acc) // 2:], mag[len(mag) // 2:]
+        out.append((np.median(acc, axis=0) * 9.80665 / 1000, np.median(mag, axis=0) * 1000, f, B))
     return out
 
 
