@@ -241,6 +241,12 @@ class ReachCoverage:
     missing: tuple[str, ...] = ()
     add: str = ""
 
+    def refit_advice(self) -> str:
+        """What poses to add when the fit of these poses was not certified (a wrong basin not ruled
+        out): headings between those recorded and tilts in new directions, the vehicle's reach kept."""
+        return (f"turn the vehicle to headings between the {self.n_field_directions} recorded and tilt it in new "
+                f"directions, as far as it can go (the largest tilt so far is {self.max_tilt_deg:.0f} deg)")
+
     def lines(self) -> list[str]:
         """The verdict in words, one line per fact (empty when the rule does not apply)."""
         if not self.applies:

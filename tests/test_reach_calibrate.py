@@ -119,6 +119,24 @@ def test_dip_held_at_the_world_magnetic_model_when_the_tilts_see_it_less_well(tm
     assert _errors(r.mapping.compass[0], REACH_FLOWN_TILT_DEG).max_heading_deg <= r.quality.heading_95_deg
 
 
+def test_a_fit_within_reach_not_certified_says_which_poses_to_add(small, monkeypatch):
+    """When the fit of poses within reach is not certified (forced here: the weak-fit rule asks
+    for more degrees of freedom than any capture has), the compass is not written and its
+    reason names poses the vehicle can take (headings, tilts), not the full capture's advice."""
+    import mavcal.core.held
+
+    monkeypatch.setattr(mavcal.core.held, "WEAK_DOF", 10 ** 6)
+    r = calibrate_source(str(small), Options(uncertainty_draws=10, location=LOCATION))
+    assert not r.calibration.converged and r.exit_code != 0
+    (v,) = [v for v in r.verdicts if v.sensor == "compass0"]
+    assert not v.accepted
+    why = " ".join(v.reasons)
+    assert "not certified" in why and "turn the vehicle to headings between the" in why, why
+    assert "tilt it in new directions, as far as it can go (the largest tilt so far is 12 deg)" in why, why
+    assert "record more, better spread poses" not in why
+    assert not any(n.startswith("COMPASS_") for n in r.params_to_write())
+
+
 def test_too_few_headings_are_refused_with_what_to_add(tmp_path):
     with pytest.raises(InsufficientDataError, match="too few headings.*turn the vehicle to more headings"):
         calibrate_source(str(_log(tmp_path / "few.tlog", 12.0, headings=3)), Options(uncertainty_draws=10))

@@ -204,9 +204,14 @@ def _could_reach(kind: str, bound_deg: float) -> str:
     return f"is {bound_value_words(kind, bound_deg)}"
 
 
+#: what to do when a fit is not certified (the capture of full poses; poses within reach say their own)
+FIT_ADVICE = "record more, better spread poses"
+
+
 def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_orientations: int = 0,
                   heading_95_deg: float, holdout_mgauss: float, config: GateConfig = GateConfig(),
-                  fit_converged: bool = True, fit_message: str = "", coverage=None) -> list[Gate]:
+                  fit_converged: bool = True, fit_message: str = "", coverage=None,
+                  fit_advice: str = FIT_ADVICE) -> list[Gate]:
     """The gates of one compass (:class:`~mavcal.ardupilot.mapping.CompassMapping`): its own
     values, and the heading bound and held-out error of its fit with the accelerometer it is
     paired with. The field gate runs only when the field strength is known (WMM or given).
@@ -243,8 +248,7 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_or
             f"the compass measures a field of {f:.0f} mGauss, which is nowhere on Earth: readings not in mGauss, "
             "a strong disturbance or a poor fit; give --location or --field-mgauss to check it")
     add(s, "converged", fit_converged, 1.0 if fit_converged else 0.0, "certified as the global optimum",
-        f"the fit is not certified as the global optimum: {fit_message or 'no reason given'}; "
-        "record more, better spread poses")
+        f"the fit is not certified as the global optimum: {fit_message or 'no reason given'}; {fit_advice}")
     dev = params.get(names["dev_id"])
     prio = params.get(names["prio_id"])
     if dev is not None and prio is not None and int(dev) != int(prio) and int(prio) != 0:
