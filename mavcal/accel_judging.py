@@ -105,7 +105,8 @@ def judge_accel(prep: Prepared, opts: Options, a: int, joint: AccelMapping | Non
             am, tilt = mine, own_tilt
     cov = sensor_coverages(prep.segmentation, opts.accel_instance, coverage_rule(opts, prep.segmentation),
                            accels=[a], compasses=[])[0]
-    gates = gates_mod.accel_gates(am, tilt_95_deg=tilt[0], holdout_mps2=ho, config=opts.gates, coverage=cov)
+    gates = gates_mod.accel_gates(am, tilt_95_deg=tilt[0], holdout_mps2=ho,
+                                  config=model_for(prep.log).gate_config(opts.gates), coverage=cov)
     return am, gates, fit, tilt, ho
 
 

@@ -13,6 +13,7 @@ from typing import Protocol
 
 import numpy as np
 
+from mavcal.ardupilot.gates import GateConfig
 from mavcal.ardupilot.mapping import AccelMapping, ParamMapping
 from mavcal.ardupilot.recover import RawImu
 from mavcal.sources.types import ImuLog
@@ -31,6 +32,8 @@ class AutopilotModel(Protocol):
 
     def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float],
                   instance: int) -> AccelMapping: ...
+
+    def gate_config(self, base: GateConfig) -> GateConfig: ...
 
 
 def is_px4(log_: ImuLog) -> bool:

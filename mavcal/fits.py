@@ -372,7 +372,7 @@ def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outco
         cov = within_reach(cov, f.reach)
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
         cm, f.params_now, coverage=cov,
-        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=opts.gates,
+        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=model_for(prep.log).gate_config(opts.gates),
         fit_converged=cal.converged,
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message,
         fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice())))

@@ -122,6 +122,24 @@ def test_external_magnetometer_off_by_degrees_gets_custom_euler_angles():
     assert truth_errors(truth, new)["heading_deg"] <= 0.1
 
 
+def test_gates_speak_of_px4s_limits_not_ardupilots():
+    """A PX4 recording is judged against PX4's own compass limits (offsets: its 1.3 gauss saturation
+    warning; field: its 0.2-0.7 gauss sphere radius) and the reasons never name an ArduPilot
+    parameter: a compass 1.5 gauss off is refused in PX4's words."""
+    truth = dataclasses.replace(random_truth(8), o_mgauss=np.array([1500.0, 100.0, -50.0]))
+    run = calibrate_source(simulate_px4(truth, seed=8), FAST)
+    gates = {(g.sensor, g.name): g for g in run.gates.gates}
+    off = gates["compass0", "offsets"]
+    assert not off.ok and "1300 mGauss" in off.limit and "PX4's saturation warning" in off.reason, off
+    assert [v.accepted for v in run.verdicts if v.sensor == "compass0"] == [False]
+    texts = " ".join(g.limit + " " + g.reason for g in run.gates.gates)
+    assert "ArduPilot" not in texts and "COMPASS_" not in texts and "INS_" not in texts, texts
+    ok = calibrate_source(simulate_px4(random_truth(8), seed=8), FAST)
+    field = {(g.sensor, g.name): g for g in ok.gates.gates}["compass0", "field"]
+    assert ok.accepted and field.ok, ok.gates.failures()
+    assert "COMPASS_OFFS_MAX" not in {(g.sensor, g.name): g for g in ok.gates.gates}["compass0", "offsets"].limit
+
+
 def test_sensor_without_a_slot_gets_a_free_one_with_its_device_id():
     truth = random_truth(7)
     p = dict(truth.params)

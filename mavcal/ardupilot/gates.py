@@ -52,6 +52,13 @@ class GateConfig:
     tilt_95_max_deg: float = 0.5
     holdout_accel_max_mps2: float = 0.15
     holdout_mag_max_mgauss: float = 15.0
+    #: whose limits the offset, scale, soft-iron and field gates are, in the reasons' words ("ArduPilot's";
+    #: PX4's model, :meth:`mavcal.px4.model.Px4Model.gate_config`, names its own)
+    limits_of: str = "ArduPilot's"
+    #: the autopilot whose field range the field gate applies
+    autopilot: str = "ArduPilot"
+    #: what the compass offset limit is called in the reasons
+    offset_limit_name: str = "COMPASS_OFFS_MAX"
 
 
 @dataclass(frozen=True)
@@ -173,13 +180,13 @@ def accel_gates(am, *, n_intervals: int = 0, n_orientations: int = 0, tilt_95_de
     s = f"accel{am.instance}"
     ofs = float(np.abs(np.asarray(am.new.ofs_mps2)).max())
     add(s, "offsets", ofs <= c.accel_offset_max_mps2, ofs, f"<= {c.accel_offset_max_mps2} m/s^2",
-        f"accelerometer offset {ofs:.2f} m/s^2 is beyond ArduPilot's limit: a damaged IMU, "
+        f"accelerometer offset {ofs:.2f} m/s^2 is beyond {c.limits_of} limit: a damaged IMU, "
         "or readings that are not in m/s^2")
     sc = np.asarray(am.new.scale)
     lo, hi = c.accel_scale_range
     worst = float(sc[np.argmax(np.abs(sc - 1))])
     add(s, "scales", np.all((sc >= lo) & (sc <= hi)), worst, f"{lo}-{hi}",
-        f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside ArduPilot's {lo}-{hi}: check the IMU "
+        f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside {c.limits_of} {lo}-{hi}: check the IMU "
         "and that the vehicle was still")
     enough = _data_gates(add, s, n_intervals, n_orientations, c, coverage)
     if enough and tilt_95_deg >= UNIDENTIFIED_TILT_DEG:
@@ -226,14 +233,14 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_or
     names = fw.compass_param_names(cm.instance)
     omax = c.compass_offset_max_mgauss or L.compass_offset_max(params)
     ol = float(np.linalg.norm(cm.new.ofs_mgauss))
-    add(s, "offsets", ol <= omax, ol, f"<= {omax:g} mGauss (COMPASS_OFFS_MAX)",
-        f"compass offset length {ol:.0f} mGauss exceeds COMPASS_OFFS_MAX: a magnet or steel near the compass, "
+    add(s, "offsets", ol <= omax, ol, f"<= {omax:g} mGauss ({c.offset_limit_name})",
+        f"compass offset length {ol:.0f} mGauss exceeds {c.offset_limit_name}: a magnet or steel near the compass, "
         "or a magnetised part; move it away and record again")
     dia = np.asarray(cm.new.dia)
     worst = float(dia[np.argmax(np.abs(dia - 1))])
     add(s, "diagonal", np.all((dia > c.dia_range[0]) & (dia < c.dia_range[1])), worst,
         f"{c.dia_range[0]}-{c.dia_range[1]}",
-        f"soft-iron diagonal {np.round(dia, 3)} outside ArduPilot's range: steel or currents near the compass")
+        f"soft-iron diagonal {np.round(dia, 3)} outside {c.limits_of} range: steel or currents near the compass")
     odi = float(np.abs(np.asarray(cm.new.odi)).max())
     add(s, "off-diagonal", odi < c.odi_max, odi, f"< {c.odi_max}",
         "soft-iron off-diagonal too large: steel or currents near the compass distort the field")
@@ -241,7 +248,7 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_or
     if cm.field_checked:
         lo, hi = c.field_range_mgauss
         add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss",
-            f"field magnitude {f:.0f} mGauss is outside ArduPilot's arming range: check --location")
+            f"field magnitude {f:.0f} mGauss is outside {c.autopilot}'s range: check --location")
     else:  # not scaled to a known field: the compass's own scale must still measure an Earth-like field
         lo, hi = EARTH_FIELD_MGAUSS
         add(s, "field", lo <= f <= hi, f, f"{lo:g}-{hi:g} mGauss (Earth's field anywhere)",

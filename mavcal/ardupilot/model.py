@@ -7,6 +7,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
+from mavcal.ardupilot.gates import GateConfig
 from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, map_accel, map_calibration
 from mavcal.ardupilot.recover import RawImu, recover_raw
 from mavcal.sources.types import ImuLog
@@ -26,6 +27,10 @@ class ArduPilotModel:
 
     def map_calibration(self, cal, params: Mapping[str, float], raw_mag_means, **kw) -> ParamMapping:
         return map_calibration(cal, params, raw_mag_means, **kw)
+
+    def gate_config(self, base: GateConfig) -> GateConfig:
+        """``base`` unchanged: its limits are ArduPilot's (:mod:`mavcal.ardupilot.limits`)."""
+        return base
 
     def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
         return map_accel(K_a, b_a, fw.accel_cal_from_params(params, instance), instance)

@@ -7,9 +7,11 @@ The calibration of each sensor is found by its device id (``CAL_ACC<n>_ID``, ``C
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 
+from mavcal.ardupilot.gates import GateConfig
 from mavcal.ardupilot.mapping import AccelMapping, ParamMapping
 from mavcal.ardupilot.recover import RawImu
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal
@@ -20,6 +22,13 @@ from mavcal.sources.types import ImuLog, SensorSeries
 __all__ = ["Px4Model", "NAME"]
 
 NAME = "PX4"
+
+#: PX4's own compass limits (src/modules/commander/mag_calibration.cpp, check_calibration_result):
+#: it refuses a sphere radius (the field) outside 0.2-0.7 gauss and a non-positive scale, and warns of
+#: offsets beyond 1.3 gauss (the compass saturates in some directions). Its accelerometer
+#: calibration checks no range: the accelerometer and soft-iron gates keep mavcal's plausible ones.
+PX4_FIELD_RANGE_MGAUSS = (200.0, 700.0)
+PX4_OFFSET_MAX_MGAUSS = 1300.0
 
 
 class Px4Model:
@@ -46,6 +55,13 @@ class Px4Model:
         assert isinstance(old_a, Px4AccelCal) and isinstance(old_m, Px4MagCal)
         return map_calibration_px4(cal, params, old_a, old_m, accel_instance=accel_instance,
                                    mag_instance=mag_instance, **kw)
+
+    def gate_config(self, base: GateConfig) -> GateConfig:
+        """``base`` with PX4's own limits where it has them (module constants), in PX4's words;
+        a limit the user set (``compass_offset_max_mgauss``) is kept."""
+        return replace(base, limits_of="the plausible", autopilot=NAME, field_range_mgauss=PX4_FIELD_RANGE_MGAUSS,
+                       compass_offset_max_mgauss=base.compass_offset_max_mgauss or PX4_OFFSET_MAX_MGAUSS,
+                       offset_limit_name="PX4's saturation warning at 1.3 gauss")
 
     def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
         old = self._cal("accel", instance, params)
