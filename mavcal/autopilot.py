@@ -35,6 +35,9 @@ class AutopilotModel(Protocol):
 
     def gate_config(self, base: GateConfig) -> GateConfig: ...
 
+    def device_ids(self, log_: ImuLog, params: Mapping[str, float], accel_instance: int,
+                   mag_instance: int) -> tuple[int | None, int | None]: ...
+
 
 def is_px4(log_: ImuLog) -> bool:
     """Whether ``log_`` comes from a PX4 autopilot (see the module docstring)."""

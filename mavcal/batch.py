@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
+from mavcal.autopilot import model_for
 from mavcal.errors import MavcalError, UsageError
 from mavcal.workers import ForkPool, Outcome
 
@@ -159,14 +160,8 @@ def _identity(log_, params: dict[str, float], ai: int, mi: int) -> dict:
     veh = dict(getattr(log_, "vehicle", {}) or {})
     out = {"sysid": _int_or_none(veh.get("sysid")), "firmware": veh.get("firmware")}
     out["firmware"] = None if out["firmware"] is None else str(out["firmware"])
-    try:
-        out["compass_dev_id"] = _int_or_none(params.get(fw.compass_param_names(mi)["dev_id"]))
-    except ValueError:
-        out["compass_dev_id"] = None
-    try:
-        out["accel_id"] = _int_or_none(params.get(fw.accel_param_names(ai)["id"]))
-    except ValueError:
-        out["accel_id"] = None
+    accel_id, compass_id = model_for(log_).device_ids(log_, params, ai, mi)
+    out["compass_dev_id"], out["accel_id"] = _int_or_none(compass_id), _int_or_none(accel_id)
     return out
 
 
@@ -174,14 +169,17 @@ def _row_from_run(source: str, run, ai: int, mi: int, elapsed: float) -> BatchRo
     am = run.mapping.accel[0] if run.mapping.accel else None
     cm = run.mapping.compass[0] if run.mapping.compass else None
     old = dict(run.mapping.old)
+    # the calibration in force: ArduPilot's parameters as logged (None when the log lacks them); a PX4
+    # vehicle's CAL_* in the ArduPilot form the mapping compares (its slot found by device id)
+    px4 = model_for(run.log).name != "ArduPilot"
     c_old = c_new = a_old = a_new = s_old = s_new = None
     if cm is not None:
         cn = fw.compass_param_names(cm.instance)
-        c_old, c_new = _old_vec(old, cn["ofs"]), _vec(cm.new.ofs_mgauss)
+        c_old, c_new = _vec(cm.old.ofs_mgauss) if px4 else _old_vec(old, cn["ofs"]), _vec(cm.new.ofs_mgauss)
     if am is not None:
         an = fw.accel_param_names(am.instance)
-        a_old, a_new = _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
-        s_old, s_new = _old_vec(old, an["scale"]), _vec(am.new.scale)
+        a_old, a_new = _vec(am.old.ofs_mps2) if px4 else _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
+        s_old, s_new = _vec(am.old.scale) if px4 else _old_vec(old, an["scale"]), _vec(am.new.scale)
     fails = tuple(f"{g.sensor} {g.name}: {g.reason}" if g.reason else f"{g.sensor} {g.name}"
                   for g in run.gates.failures())
     return BatchRow(

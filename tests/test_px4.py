@@ -265,3 +265,26 @@ def test_accel_cal_from_ulog_params_uses_board_rotation(px4_logs):
     cal = accel_cal_from_params(p, 2424842)
     assert cal.slot == 0 and cal.ofs_mps2[0] == pytest.approx(0.158, abs=1e-3)
     assert np.allclose(cal.rotation, sensor_rotation(4, (p["SENS_BOARD_X_OFF"], p["SENS_BOARD_Y_OFF"], 0.0)))
+
+
+def test_batch_rows_of_px4_name_device_ids_and_the_change_in_px4s_calibration(px4_logs, monkeypatch):
+    """``mavcal batch`` on PX4: the device ids come from the recording (CAL_*_ID by slot), and the
+    drift columns compare the calibration in force (CAL_* in the mapping's form) with the new one."""
+    import mavcal.pipeline
+    from mavcal.batch import calibrate_many
+
+    (row,) = calibrate_many([str(px4_logs / "sample_log_small.ulg")], FAST)
+    assert row.exit_code == 4 and row.accel_id and row.compass_dev_id  # refused, but the vehicle is named
+    truth = random_truth(9)
+    sim = simulate_px4(truth, seed=9)
+    run = calibrate_source(sim, FAST)
+    real_prepare = mavcal.pipeline.prepare
+    monkeypatch.setattr(mavcal.pipeline, "prepare", lambda source, options: real_prepare(sim, options))
+    (row,) = calibrate_many(["simulated.ulg"], FAST)
+    assert row.ok and row.accepted, row
+    assert (row.accel_id, row.compass_dev_id) == (truth.accel_id, truth.mag_id)
+    cm, am = run.mapping.compass[0], run.mapping.accel[0]
+    assert row.compass_ofs_old == pytest.approx(tuple(cm.old.ofs_mgauss), abs=1e-9)
+    assert row.compass_ofs_new == pytest.approx(tuple(cm.new.ofs_mgauss), rel=1e-6, abs=1e-6)
+    assert row.accel_scale_old == pytest.approx(tuple(am.old.scale), abs=1e-12)
+    assert row.compass_ofs_change_mgauss > 1.0 and row.drift is not None

@@ -16,7 +16,7 @@ from mavcal.ardupilot.mapping import AccelMapping, ParamMapping
 from mavcal.ardupilot.recover import RawImu
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal
 from mavcal.px4.mapping import map_accel_px4, map_calibration_px4
-from mavcal.px4.recover import cal_of, recover_raw
+from mavcal.px4.recover import cal_of, device_id_of, recover_raw
 from mavcal.sources.types import ImuLog, SensorSeries
 
 __all__ = ["Px4Model", "NAME"]
@@ -62,6 +62,16 @@ class Px4Model:
         return replace(base, limits_of="the plausible", autopilot=NAME, field_range_mgauss=PX4_FIELD_RANGE_MGAUSS,
                        compass_offset_max_mgauss=base.compass_offset_max_mgauss or PX4_OFFSET_MAX_MGAUSS,
                        offset_limit_name="PX4's saturation warning at 1.3 gauss")
+
+    def device_ids(self, log_: ImuLog, params: Mapping[str, float], accel_instance: int,
+                   mag_instance: int) -> tuple[int | None, int | None]:
+        """The device ids of the instances (the recording's, else the slot's ``CAL_*_ID``); None when
+        the recording has no such sensor."""
+        out: list[int | None] = []
+        for sensor, i in (("accel", accel_instance), ("mag", mag_instance)):
+            s = self._series.get((sensor, i))
+            out.append(None if s is None else (device_id_of(s, params)[0] or None))
+        return out[0], out[1]
 
     def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
         old = self._cal("accel", instance, params)
