@@ -90,10 +90,13 @@ class MavcalModule(mp_module.MPModule):
         super().__init__(mpstate, "mavcal", "guided accelerometer + compass calibration (mavcal)")
         self.mavcal_settings = mp_settings.MPSettings(_settings_table())
         self._vehicle: tuple[int, int] | None = None
+        self._autopilot: int | None = None  # the vehicle HEARTBEAT's autopilot (PX4: 12)
         self._saved_streamrate: int | None = None  # MAVProxy's streamrate while we paused it
         self._streams_seen = False  # the worker's streams_active as idle_task last saw it
         self.worker = CaptureWorker(self._vehicle_ids,
-                                    host_restores_rates=lambda: self._saved_streamrate is not None)
+                                    host_restores_rates=lambda: self._saved_streamrate is not None,
+                                    autopilot=self._vehicle_autopilot,
+                                    source_system=lambda: int(self.mpstate.settings.source_system))
         self.page: Any = None  # the live page (mavcal.capture.workerpage.WorkerPage) while it is open
         self.add_command("mavcal", self.cmd_mavcal, "guided IMU/compass calibration",
                          ["<start|stop|finish|skip|status|next|fit|write|threads>", "restore (FILENAME)",
@@ -113,6 +116,17 @@ class MavcalModule(mp_module.MPModule):
             if ts:
                 self._vehicle = (int(ts), int(getattr(master, "target_component", 0) or 1))
         return self._vehicle
+
+    def _vehicle_autopilot(self) -> int | None:
+        """The primary vehicle HEARTBEAT's ``autopilot``: from the heartbeats filed since the module
+        was loaded, else the last one MAVProxy's master holds (a ``mavcal start`` right after
+        ``module load`` comes before the module's first heartbeat)."""
+        if self._autopilot is None:
+            master = self.master
+            hb = getattr(master, "messages", {}).get("HEARTBEAT") if master is not None else None
+            if hb is not None and hb.type != _MAV_TYPE_GCS and hb.autopilot != _MAV_AUTOPILOT_INVALID:
+                self._autopilot = int(hb.autopilot)
+        return self._autopilot
 
     def _snapshot(self) -> WorkerSettings:
         s = self.mavcal_settings
@@ -223,9 +237,11 @@ class MavcalModule(mp_module.MPModule):
             return
         if mtype not in FED_TYPES or not self.message_is_from_primary_vehicle(m):
             return
-        if (mtype == "HEARTBEAT" and m.type != _MAV_TYPE_GCS and m.autopilot != _MAV_AUTOPILOT_INVALID
-                and self._vehicle is None):
-            self._vehicle = (m.get_srcSystem(), m.get_srcComponent())
+        if mtype == "HEARTBEAT" and m.type != _MAV_TYPE_GCS and m.autopilot != _MAV_AUTOPILOT_INVALID:
+            if self._vehicle is None:
+                self._vehicle = (m.get_srcSystem(), m.get_srcComponent())
+            if (m.get_srcSystem(), m.get_srcComponent()) == self._vehicle:
+                self._autopilot = int(m.autopilot)
         fed = self.worker.fed
         if fed is not None:
             fed.feed(m)

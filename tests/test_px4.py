@@ -288,3 +288,21 @@ def test_batch_rows_of_px4_name_device_ids_and_the_change_in_px4s_calibration(px
     assert row.compass_ofs_new == pytest.approx(tuple(cm.new.ofs_mgauss), rel=1e-6, abs=1e-6)
     assert row.accel_scale_old == pytest.approx(tuple(am.old.scale), abs=1e-12)
     assert row.compass_ofs_change_mgauss > 1.0 and row.drift is not None
+
+
+def test_a_live_capture_recovering_again_and_again_logs_each_warning_once(caplog):
+    """A live capture undoes the readings at every update: the recovery's warnings reach the log at
+    WARNING once per process, at DEBUG after that (they stay in every result's warnings)."""
+    from mavcal.px4.recover import recover_raw
+
+    truth = random_truth(10)
+    truth = dataclasses.replace(truth, params={**truth.params, pn.THERMAL_ACCEL: 1.0})
+    log_ = simulate_px4(truth, seed=10)
+    caplog.set_level("DEBUG")
+    first = recover_raw(log_)
+    assert any("thermal compensation" in w for w in first.warnings)
+    n = sum(r.levelname == "WARNING" for r in caplog.records)
+    assert n <= 1
+    again = [recover_raw(log_) for _ in range(3)]
+    assert sum(r.levelname == "WARNING" for r in caplog.records) == n
+    assert all(r.warnings == first.warnings for r in again)

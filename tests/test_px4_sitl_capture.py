@@ -6,8 +6,12 @@ are read back from PX4, the INT32 device ids are intact, the written calibration
 truth, and PX4's own calibrated output after the write (SCALED_IMU accelerometer, HIGHRES_IMU
 magnetometer) agrees with the poser's truth.
 
-In CI: one guided capture (seed 1, ~55 s: the poses are held in real time) and one live calibration
-(seed 2, ~65 s); ``MAVCAL_PX4_SEEDS=1,2,3`` runs more guided captures."""
+The MAVProxy module in a real MAVProxy does the same guided capture and write (seed 3): PX4's INT32
+device ids decoded through MAVProxy's feed, SCALED_IMU filed (PX4 refuses RAW_IMU).
+
+In CI: one guided capture (seed 1, ~55 s: the poses are held in real time), one through MAVProxy
+(seed 3, ~50 s) and one live calibration (seed 2, ~65 s); ``MAVCAL_PX4_SEEDS=1,2,3`` runs more guided
+captures."""
 from __future__ import annotations
 
 import json
@@ -98,8 +102,58 @@ def _guided_capture(px4, poser, tmp_path, seed: int) -> tuple[int, dict]:
     return g.rc, json.loads(report.read_text()) if report.exists() else {}
 
 
-#: (how, seed): a guided capture (the page's advice followed by a hand) and a plain live calibration
-CASES = [("capture", s) for s in SEEDS] + [("calibrate", SEEDS[0] + 1)]
+def _mavproxy_capture(px4, poser, tmp_path, seed: int) -> tuple[int, dict]:
+    """The MAVProxy module in a real MAVProxy against PX4: load, ``mavcal start``, a hand following the
+    module's advice, ``mavcal write yes``; the verdicts and written rows parsed from its output in the
+    shape of the JSON report (``sensors``, ``parameters``). PX4's INT32 device ids must be decoded
+    through MAVProxy's feed (the module tells the worker the HEARTBEAT's autopilot)."""
+    import importlib.util
+    import re
+
+    if importlib.util.find_spec("MAVProxy") is None:
+        pytest.fail("MAVProxy is not installed (pip install --no-deps MAVProxy, as README.md says)")
+    from test_sitl_mavproxy import SitlMAVProxy, changed_rows
+
+    from mavcal.testing.px4_poser import PosedPx4
+    from mavcal.testing.sitl_hand import AdviceHand
+
+    posed = PosedPx4(px4, poser)
+    mp = SitlMAVProxy(posed, tmp_path)
+    hand = AdviceHand(posed, mp.advice, return_prob=0.0, seed=seed)
+    try:
+        mp.expect(r"Detected vehicle 1:1", timeout=30)
+        mp.expect(r"Loaded module mavcal\.mavproxy_mavcal", after=mp.send("module load mavcal.mavproxy_mavcal"))
+        mp.send(f"mavcal set backup_dir {tmp_path / 'backups'}")
+        _, at = mp.expect(r"mavcal: capture started", timeout=60, after=mp.send("mavcal start"))
+        hand.start()
+        m, at = mp.expect(r"capture (finished|aborted)", timeout=150, after=at)
+        hand.stop()
+        assert m.group(1) == "finished" and hand.error is None, "\n".join(mp.lines[-30:])
+        mp.expect(r"mavcal: fit done", timeout=60, after=at)
+        sensors = []
+        for line in mp.lines[at:]:
+            v = re.match(r"^(accel\d|compass\d): (accepted|rejected.*)$", line)
+            if v:
+                sensors.append({"sensor": v.group(1), "accepted": v.group(2) == "accepted"})
+        mark = mp.send("mavcal write yes")
+        mp.expect(r"mavcal: \d+ parameters written and verified", timeout=60, after=mark)
+        rows = changed_rows(mp.lines, mark)
+        mp.expect(r"mavcal: unloaded; worker stopped; mavcal threads left: none",
+                  after=mp.send("module unload mavcal"))
+        # the recovery's warnings: logged once, then in the summary; not at every one of ~40 updates
+        assert sum("device id not in the data" in line for line in mp.lines) <= 4
+        assert sum("SET_MESSAGE_INTERVAL" in line for line in mp.lines) <= 8  # asked once, not again and again
+    finally:
+        hand.stop()
+        mp.close()
+        (tmp_path / "mavproxy.txt").write_text("\n".join(mp.lines))
+    return 0, {"sensors": sensors, "parameters": {n: {"new": v, "written": True, "changed": True}
+                                                  for n, v in rows.items()}}
+
+
+#: (how, seed): a guided capture (the page's advice followed by a hand), the MAVProxy module's guided
+#: capture, and a plain live calibration
+CASES = [("capture", s) for s in SEEDS] + [("mavproxy", SEEDS[0] + 2), ("calibrate", SEEDS[0] + 1)]
 
 
 @pytest.mark.parametrize("how, seed", CASES)
@@ -118,8 +172,8 @@ def test_live_calibration_of_px4_is_written_and_px4_agrees_with_the_truth(how, s
                  before_boot=lambda: holder.setdefault("poser", Poser(truth, seed=seed).start())) as px4:
         poser = holder["poser"]
         try:
-            rc, run = (_guided_capture(px4, poser, tmp_path, seed) if how == "capture"
-                       else _calibrate_device(px4, poser, tmp_path))
+            rc, run = {"capture": _guided_capture, "mavproxy": _mavproxy_capture,
+                       "calibrate": lambda *a: _calibrate_device(*a[:3])}[how](px4, poser, tmp_path, seed)
             assert rc == 0, (rc, run.get("sensors"), run.get("warnings"), px4.log_tail(400))
             assert {s["sensor"] for s in run["sensors"] if s["accepted"]} == {"accel0", "compass0"}
             written = {n: v["new"] for n, v in run["parameters"].items()}

@@ -37,7 +37,21 @@ from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RawImu", "recover_raw", "find_accel_cal_periods", "ACCEL_FRAME", "MAG_FRAME"]
+__all__ = ["RawImu", "recover_raw", "find_accel_cal_periods", "ACCEL_FRAME", "MAG_FRAME", "log_warnings_once"]
+
+#: the recovery's warnings already logged at WARNING by this process (a live capture recovers the
+#: readings at every update: the same warning again and again would flood the console)
+_LOGGED: set[str] = set()
+
+
+def log_warnings_once(logger: logging.Logger, warnings) -> None:
+    """Log each warning at WARNING the first time this process meets it, at DEBUG after that (every
+    warning is also in :attr:`RawImu.warnings`, which the reports show)."""
+    for w in warnings:
+        logger.log(logging.DEBUG if w in _LOGGED else logging.WARNING, "%s", w)
+        if len(_LOGGED) < 10000:
+            _LOGGED.add(w)
+
 
 ACCEL_FRAME = "board frame (before AHRS_ORIENTATION)"
 MAG_FRAME = "body frame after COMPASS_ORIENT/AHRS_ORIENTATION"
@@ -498,8 +512,7 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
         for w in [w for w in warnings if "readings treated as raw" in w]:
             warnings.remove(w)
             log.info("%s", w)
-    for w in warnings:
-        log.warning("%s", w)
+    log_warnings_once(log, warnings)
     return RawImu(
         source=log_.source,
         accel=tuple(accel_out),

@@ -50,8 +50,9 @@ __all__ = ["CaptureWorker", "WorkerSettings", "IMU_TYPES", "FED_TYPES", "POSITIO
 
 log = logging.getLogger(__name__)
 
-#: the IMU messages a capture files
-IMU_TYPES = frozenset(("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"))
+#: the IMU messages a capture files (SCALED_IMU: PX4's first IMU, which refuses RAW_IMU; on ArduPilot the
+#: same data as RAW_IMU, which the recovery prefers, as for ``mavcal capture``)
+IMU_TYPES = frozenset(("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3"))
 #: what a parameter operation needs from the vehicle
 FED_TYPES = frozenset(("HEARTBEAT", "PARAM_VALUE", "PARAM_ERROR", "COMMAND_ACK", "STATUSTEXT"))
 #: where the vehicle is (for the World Magnetic Model; :mod:`mavcal.link.position`)
@@ -101,11 +102,21 @@ class CaptureWorker:
         are no longer paused); then the worker sends no reset of its own.
     prefix : str
         Start of every line the worker says (tables excepted).
+    autopilot : callable, optional
+        ``() -> int | None``: the vehicle HEARTBEAT's ``autopilot`` (None while unknown). PX4 (12)
+        sends its integer parameters bytewise: the parameter protocol decodes them by it.
+    source_system : callable
+        ``() -> int | None``: the system id the host sends as (MAVProxy's ``source_system``), so
+        that a PARAM_ERROR addressed to another ground station is not taken as ours.
     """
 
     def __init__(self, vehicle_ids: Callable[[], tuple[int, int] | None], *,
-                 host_restores_rates: Callable[[], bool] = lambda: False, prefix: str = "mavcal: ") -> None:
+                 host_restores_rates: Callable[[], bool] = lambda: False, prefix: str = "mavcal: ",
+                 autopilot: Callable[[], int | None] | None = None,
+                 source_system: Callable[[], int | None] = lambda: None) -> None:
         self.vehicle_ids = vehicle_ids
+        self.autopilot = autopilot
+        self.source_system = source_system
         self.host_restores_rates = host_restores_rates
         self.prefix = prefix
         self.out: queue.Queue[str] = queue.Queue()
@@ -213,6 +224,17 @@ class CaptureWorker:
             if time.monotonic() >= deadline or self._halt.wait(0.05):
                 raise MavcalError("no vehicle heartbeat yet: is the vehicle connected?")
 
+    def _autopilot_now(self, wait_s: float = 3.0) -> int | None:
+        """The vehicle's autopilot, waited for up to ``wait_s`` (its next heartbeat) while unknown;
+        None at once when the host gives none."""
+        if self.autopilot is None:
+            return None
+        deadline = time.monotonic() + wait_s
+        ap = self.autopilot()
+        while ap is None and time.monotonic() < deadline and not self._halt.wait(0.05):
+            ap = self.autopilot()
+        return ap
+
     @contextmanager
     def _link(self) -> Iterator[Any]:
         """A Link over a connection fed by the host, sending through the outbox."""
@@ -220,10 +242,12 @@ class CaptureWorker:
         from mavcal.link.fed import FedConnection
 
         sysid, compid = self._ids()
-        conn = FedConnection(sysid, compid, address="mavproxy", outbox=self.outbox)
+        conn = FedConnection(sysid, compid, address="mavproxy", outbox=self.outbox, source_system=self.source_system())
         self.fed = conn
+        link = Link(conn, target_system=sysid, target_component=compid, device="mavproxy")
+        link.autopilot = self._autopilot_now()  # PX4's integer parameters travel bytewise
         try:
-            yield Link(conn, target_system=sysid, target_component=compid, device="mavproxy")
+            yield link
         finally:
             self.fed = None
             conn.close()
@@ -257,16 +281,24 @@ class CaptureWorker:
             send_message_intervals(QueuedSender(self.outbox), ids[0], ids[1], None, self._stream_ids)
 
     def _watch_rate(self, msgs: list[Any], now: float) -> None:
-        """Ask again when the RAW_IMU rate falls well below the one asked for (another ground
-        station's REQUEST_DATA_STREAM resets the message intervals on ArduPilot)."""
-        self._imu_count += sum(1 for m in msgs if m.get_type() == "RAW_IMU")
+        """Ask again when the rate of the first IMU message asked for (RAW_IMU; SCALED_IMU on PX4,
+        which refuses RAW_IMU) falls well below the one asked for (another ground station's
+        REQUEST_DATA_STREAM resets the message intervals on ArduPilot)."""
+        watched = self._watched_type()
+        self._imu_count += sum(1 for m in msgs if m.get_type() == watched)
         if now - self._imu_since < _RATE_CHECK_S:
             return
         rate = self._imu_count / (now - self._imu_since)
         if rate < _RATE_LOW * self._cfg.rate_hz and now - self._stream_asked > _REASK_GUARD_S:
-            log.info("RAW_IMU at %.1f Hz; asking for %g Hz again", rate, self._cfg.rate_hz)
+            log.info("%s at %.1f Hz; asking for %g Hz again", watched, rate, self._cfg.rate_hz)
             self._ask_streams(self._cfg.rate_hz)
         self._imu_count, self._imu_since = 0, now
+
+    def _watched_type(self) -> str:
+        """The IMU message whose rate :meth:`_watch_rate` watches: the first of those asked for."""
+        from mavcal.link.streams import message_name
+
+        return message_name(self._stream_ids[0]) if self._stream_ids else "RAW_IMU"
 
     def _filed_position(self) -> Any:
         """The best position among the filed messages (None: none)."""

@@ -21,8 +21,10 @@ class QueuedSender:
     The outbox's owner sends them with :func:`flush_outbox` on its own thread.
     """
 
-    def __init__(self, outbox: queue.Queue[tuple[str, tuple, dict]]) -> None:
+    def __init__(self, outbox: queue.Queue[tuple[str, tuple, dict]], src_system: int | None = None) -> None:
         self._outbox = outbox
+        #: the system id the owner's encoder sends as (MAVProxy's ``source_system``); None: not known
+        self.srcSystem = src_system
 
     def __getattr__(self, name: str) -> Callable[..., None]:
         if not name.endswith("_send"):
@@ -67,16 +69,20 @@ class FedConnection:
     outbox : queue.Queue, optional
         Where sends are queued (several connections may share the owner's one outbox);
         default a new queue.
+    source_system : int, optional
+        The system id the owner sends as (replies addressed to another system are not ours);
+        None: not known, every reply is taken as ours.
     """
 
     def __init__(self, target_system: int, target_component: int, *, address: str = "fed",
-                 max_queued: int = 20000, outbox: queue.Queue[tuple[str, tuple, dict]] | None = None) -> None:
+                 max_queued: int = 20000, outbox: queue.Queue[tuple[str, tuple, dict]] | None = None,
+                 source_system: int | None = None) -> None:
         self.target_system = int(target_system)
         self.target_component = int(target_component)
         self.address = address
         self._in: queue.Queue[Any] = queue.Queue(maxsize=max_queued)
         self._outbox: queue.Queue[tuple[str, tuple, dict]] = outbox if outbox is not None else queue.Queue()
-        self.mav = QueuedSender(self._outbox)
+        self.mav = QueuedSender(self._outbox, source_system)
         self._closed = threading.Event()
         self.dropped = 0
 

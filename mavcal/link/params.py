@@ -65,7 +65,8 @@ def vehicle_param_error(link: Link, m: Any) -> tuple[str, str] | None:
     """``(name, words)`` of a PARAM_ERROR from the vehicle addressed to us, else None."""
     if not link.is_from_vehicle(m):
         return None
-    if getattr(m, "target_system", 0) not in (0, link.conn.mav.srcSystem):
+    own = getattr(link.conn.mav, "srcSystem", None)  # None: a fed connection whose owner did not say
+    if own is not None and getattr(m, "target_system", 0) not in (0, own):
         return None
     return _param_name(m), param_error_words(int(m.error))
 

@@ -25,7 +25,7 @@ from mavcal.errors import LinkError
 from mavcal.link.connection import Link
 
 __all__ = ["STREAM_MESSAGES", "STREAM_MESSAGE_IDS", "PX4_STREAM_MESSAGES", "MIN_STREAM_RATE_HZ",
-           "send_message_intervals", "start_streams", "reset_streams", "needed_stream_ids"]
+           "send_message_intervals", "start_streams", "reset_streams", "needed_stream_ids", "message_name"]
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +42,12 @@ PX4_STREAM_MESSAGES: dict[str, int] = {"SCALED_IMU": _A.MAVLINK_MSG_ID_SCALED_IM
                                        "SCALED_IMU2": _A.MAVLINK_MSG_ID_SCALED_IMU2,
                                        "SCALED_IMU3": _A.MAVLINK_MSG_ID_SCALED_IMU3,
                                        "HIGHRES_IMU": _A.MAVLINK_MSG_ID_HIGHRES_IMU}
+def message_name(message_id: int) -> str:
+    """The name of a stream message id of :data:`STREAM_MESSAGES` or :data:`PX4_STREAM_MESSAGES`."""
+    names = {mid: name for name, mid in {**STREAM_MESSAGES, **PX4_STREAM_MESSAGES}.items()}
+    return names.get(int(message_id), str(message_id))
+
+
 #: :func:`start_streams` never asks for less (the still-interval detector needs the samples)
 MIN_STREAM_RATE_HZ = 25.0
 

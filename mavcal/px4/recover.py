@@ -25,7 +25,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mavcal.ardupilot.recover import RawImu
+from mavcal.ardupilot.recover import RawImu, log_warnings_once
 from mavcal.px4 import params as pn
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal, accel_cal_from_params, mag_cal_from_params
 from mavcal.sources.types import ImuLog, SensorSeries
@@ -104,8 +104,7 @@ def recover_raw(log_: ImuLog) -> RawImu:
     if not accel:
         warnings.append("no accelerometer readings")
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g))
-    for w in warnings:
-        log.warning("%s", w)
+    log_warnings_once(log, warnings)
     a0 = next((s for s in log_.series if s.sensor == "accel" and len(s)), None)
     board = cal_of(a0, params).rotation if a0 is not None else None
     return RawImu(source=log_.source, accel=tuple(accel), mag=tuple(mag), gyro=gyro,
