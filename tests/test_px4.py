@@ -306,3 +306,17 @@ def test_a_live_capture_recovering_again_and_again_logs_each_warning_once(caplog
     again = [recover_raw(log_) for _ in range(3)]
     assert sum(r.levelname == "WARNING" for r in caplog.records) == n
     assert all(r.warnings == first.warnings for r in again)
+
+
+def test_custom_rotation_is_px4s_dcm_of_euler_angles():
+    """CAL_MAG<n>_ROT 100: PX4 builds the rotation as matrix::Dcmf(Eulerf(roll, pitch, yaw))
+    (Magnetometer::ParametersUpdate, set_custom_rotation), the 3-2-1 intrinsic Tait-Bryan matrix
+    written out here from PX4's matrix library (Dcm.hpp, the constructor from Euler angles)."""
+    def px4_dcm(phi, the, psi):
+        cf, sf, ct, st, cp, sp = np.cos(phi), np.sin(phi), np.cos(the), np.sin(the), np.cos(psi), np.sin(psi)
+        return np.array([[ct * cp, -cf * sp + sf * st * cp, sf * sp + cf * st * cp],
+                         [ct * sp, cf * cp + sf * st * sp, -sf * cp + cf * st * sp],
+                         [-st, sf * ct, cf * ct]])
+
+    for deg in [(4.0, -3.0, 5.0), (30.0, 20.0, -120.0), (-170.0, 80.0, 45.0)]:
+        np.testing.assert_allclose(rotation_matrix(pn.ROT_CUSTOM, deg), px4_dcm(*np.radians(deg)), atol=1e-12)
