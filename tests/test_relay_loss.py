@@ -25,7 +25,9 @@ from pymavlink import mavutil
 from mavcal.testing.relay import LossRelay
 from mavcal.testing.vehicle import TestVehicle
 
-N_SESSIONS = 20
+#: sessions in CI: every one must end verified or restored, never silently wrong; the rate bar
+#: (>= 39 of 40 complete) is benchmarks/apply_loss.py's, run against SITL outside CI
+N_SESSIONS = 8
 PARAM_SET_ID = mavutil.mavlink.MAVLINK_MSG_ID_PARAM_SET
 NAMES = ("COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z")
 
@@ -75,7 +77,7 @@ def _one_session(i: int, tmp_path, blackout_s: float | None = None) -> dict:
 
 
 @pytest.mark.slow
-def test_twenty_apply_sessions_through_a_lossy_relay_start_included(tmp_path):
+def test_apply_sessions_through_a_lossy_relay_start_included(tmp_path):
     t0 = time.monotonic()
     with ThreadPoolExecutor(4) as pool:
         outcomes = list(pool.map(lambda i: _one_session(i, tmp_path), range(N_SESSIONS)))
@@ -89,7 +91,7 @@ def test_twenty_apply_sessions_through_a_lossy_relay_start_included(tmp_path):
           f"{len(mismatches)} silent mismatches; session {np.median([o['s'] for o in outcomes]):.1f} s median, "
           f"{max(o['s'] for o in outcomes):.1f} s max; wall {wall:.0f} s")
     assert not mismatches, mismatches
-    assert len(complete) >= 19, outcomes
+    assert len(complete) >= N_SESSIONS - 1, outcomes
     assert len(complete) + len(restored) == N_SESSIONS, others
     dropped = sum(o["stats"]["dropped_out"] + o["stats"]["dropped_in"] for o in outcomes)
     sent = sum(o["stats"]["out"] + o["stats"]["in"] for o in outcomes)

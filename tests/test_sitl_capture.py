@@ -14,11 +14,15 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
+import numpy as np
 import pytest
+from pymavlink import mavutil
 
+from mavcal.sources.wmm import field_at
 from mavcal.testing.numbers import assert_json_close
-from mavcal.testing.sitl import InjectedErrors, SitlVehicle
+from mavcal.testing.sitl import DEFAULT_HOME, InjectedErrors, SitlVehicle
 from mavcal.testing.sitl_hand import ScheduleHand, run_guided_capture
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(420)]
@@ -54,6 +58,34 @@ def test_capture_write_follows_the_advice_and_writes_the_truth(start_sitl, tmp_p
     check_score(sitl)
 
 
+def calibrated_field(sitl: SitlVehicle, poses) -> list[float]:
+    """|mean RAW_IMU compass 1 reading| (corrected by the calibration in force) in each pose, over SERIAL1."""
+    with sitl.netns():
+        conn = mavutil.mavlink_connection(sitl.tool_device, source_system=255, source_component=190,
+                                          dialect="ardupilotmega")
+    try:
+        assert conn.wait_heartbeat(timeout=20) is not None
+        conn.mav.command_long_send(conn.target_system, conn.target_component,
+                                   mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                   mavutil.mavlink.MAVLINK_MSG_ID_RAW_IMU, 40000, 0, 0, 0, 0, 0)
+        out = []
+        for pose in poses:
+            sitl.set_pose(*pose)
+            while conn.recv_match(blocking=False) is not None:
+                pass  # what arrived while the vehicle turned
+            t_end = time.monotonic() + 1.5
+            mags = []
+            while time.monotonic() < t_end:
+                m = conn.recv_match(type="RAW_IMU", blocking=True, timeout=0.5)
+                if m is not None:
+                    mags.append((m.xmag, m.ymag, m.zmag))
+            assert len(mags) > 10, "no RAW_IMU"
+            out.append(float(np.linalg.norm(np.mean(mags, axis=0))))
+        return out
+    finally:
+        conn.close()
+
+
 def test_calibrate_device_write_from_a_recording(start_sitl, tmp_path):
     """``mavcal calibrate DEVICE --write``: record while a hand holds a fixed schedule of poses
     (no advice), calibrate, write every accepted sensor."""
@@ -81,6 +113,18 @@ def test_calibrate_device_write_from_a_recording(start_sitl, tmp_path):
     assert {"COMPASS_OFS_X", "COMPASS_OFS2_X", "COMPASS_OFS3_X", "INS_ACCOFFS_X", "INS_ACC2OFFS_X",
             "COMPASS_ORIENT"} <= written, written
     check_score(sitl)
+    # the compass is scaled to the World Magnetic Model at the vehicle's GPS position, named in the summary,
+    # and ArduPilot's own corrected compass measures that field after the write (|B| does not depend on
+    # COMPASS_ORIENT)
+    lat, lon, alt = DEFAULT_HOME[:3]
+    wmm = field_at(lat, lon, alt)[2]
+    source = report["compass"]["field_source"]
+    assert source.startswith("World Magnetic Model at vehicle ") and f"{lat:.4f}, {lon:.4f}" in source
+    assert f"({source})" in r.stdout
+    assert report["compass"]["field_mgauss"] == pytest.approx(wmm, rel=1e-6)
+    fields = calibrated_field(sitl, [(0, 0, 0), (90, 0, 45), (0, -85, 225), (180, 0, 90)])
+    print(f"calibrated |B| {[round(f, 1) for f in fields]} mGauss vs WMM {wmm:.1f}")
+    assert np.max(np.abs(np.array(fields) / wmm - 1)) < 0.02, fields
     # the session as SITL sent it, saved and calibrated again offline: the same values
     assert f"recording saved to {tmp_path / 'session.tlog'}" in r.stderr
     again = subprocess.run([sys.executable, "-m", "mavcal", "calibrate", str(tmp_path / "session.tlog"), "-q",
