@@ -236,18 +236,16 @@ def calibrate_held(a: IntervalStats, m: IntervalStats, K_a: np.ndarray, b_a: np.
     if 3 * a.mu.shape[0] < prob.P:
         raise InsufficientDataError(f"{a.mu.shape[0]} still intervals cannot identify the {prob.P} free parameters "
                                     f"(3N >= {prob.P} needed); add poses at new headings")
-    every = [prob.solve(q, max_iter=max_iter) for q in _starts(p0)]
+    fits = [prob.solve(q, max_iter=max_iter) for q in _starts(p0)]
     # the proper branch: with the accelerometer's frame held, det K_m < 0 is a mirrored compass (its twin
     # (K_m D, -h_z), D = diag(1, 1, -1), predicts nearly the same readings when the tilts are small)
-    fits = [r for r in every if np.linalg.det(r.params.gains[1]) > 0] or every
+    fits = [r for r in fits if np.linalg.det(r.params.gains[1]) > 0] or fits
     res = min(fits, key=lambda r: r.cost)
     costs = (float(res.cost),) + tuple(float(r.cost) for r in fits if r is not res)
     if res.cov is None:
         raise InsufficientDataError("the poses do not identify the compass parameters fitted (singular Fisher "
                                     "information); turn the vehicle to more headings and tilt it a little")
-    # starts that agree: a mirrored start that reached the same J' found the mirror twin of the same
-    # optimum (exactly the same cost when h_z is free), so it counts as agreement too
-    agree = sum(1 for r in every if abs(float(r.cost) - costs[0]) <= 1e-7 * max(costs[0], 1e-300))
+    agree = sum(1 for c in costs if abs(c - costs[0]) <= 1e-7 * max(costs[0], 1e-300))
     note = ""
     if res.dof < WEAK_DOF or (chi2_sf(res.cost, res.dof) < WEAK_P and agree < 2):
         note = (f"chi2/dof = {res.cost / max(res.dof, 1):.3g} on {res.dof} degrees of freedom, {agree} of "
