@@ -174,7 +174,7 @@ def test_a_timed_out_test_stops_its_sitl(tmp_path):
             print("PIDS", v.pid, v._keeper.pid, flush=True)
             time.sleep(300)
     """))
-    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider", "--timeout", "20",
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider", "--timeout", "12",
                         "-o", "addopts=", str(tmp_path / "test_hang.py")], cwd=tmp_path, capture_output=True,
                        text=True, timeout=100)
     assert r.returncode == 1 and "Timeout" in r.stdout, r.stdout[-2000:]
