@@ -320,3 +320,14 @@ def test_custom_rotation_is_px4s_dcm_of_euler_angles():
 
     for deg in [(4.0, -3.0, 5.0), (30.0, 20.0, -120.0), (-170.0, 80.0, 45.0)]:
         np.testing.assert_allclose(rotation_matrix(pn.ROT_CUSTOM, deg), px4_dcm(*np.radians(deg)), atol=1e-12)
+
+
+def test_a_px4_calibration_asks_for_a_reboot_and_says_why():
+    """PX4 was seen keeping the last CAL_* parameter written over MAVLink out of use until it
+    restarted (PX4 SITL, seed 2 of the live tests): a PX4 calibration says a reboot is needed, and why."""
+    from mavcal.px4.mapping import REBOOT_REASON
+    from mavcal.report.text import summary_text
+
+    run = calibrate_source(simulate_px4(random_truth(1), seed=1), FAST)
+    assert run.mapping.reboot_required
+    assert f"reboot needed after writing ({REBOOT_REASON})" in summary_text(run)

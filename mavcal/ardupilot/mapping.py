@@ -125,6 +125,7 @@ class CompassMapping:
     custom_deg: tuple[float, float, float] | None = None
     extra_params: Mapping[str, float] = field(default_factory=dict)  # ORIENT, EXTERN, CUST_ROT...
     reboot_required: bool = False
+    reboot_reason: str = "custom orientation"  # why, in words, when ``reboot_required``
     inclination_deg: float = float("nan")
     inclination_model_deg: float | None = None
     field_checked: bool = True  # False: no WMM/given magnitude, the sensor's own scale kept

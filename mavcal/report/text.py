@@ -270,7 +270,8 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     if run.exit_code == 0:  # (the reasons of a rejection are said once, at the top)
         L.append("ACCEPTED: all quality gates passed")
     if run.mapping.reboot_required:
-        L.append("reboot needed after writing (custom orientation)")
+        why = "; ".join(dict.fromkeys(c.reboot_reason for c in run.mapping.compass if c.reboot_required))
+        L.append("reboot needed after writing" + (f" ({why})" if why else ""))
     L += [f"warning: {m}" for m in run.warnings]
     return "\n".join(L)
 
