@@ -37,6 +37,11 @@ from mavcal.testing.browser import headless_chromium, missing, page_text, wait_f
 from mavcal.testing.vehicle import VehicleTruth
 
 REPO = Path(__file__).resolve().parents[1]
+#: on the worker of the PX4 SITL tests (--dist loadgroup): a guided capture on the page runs the vehicle,
+#: the capture, the page server and chromium's client in real time, and it once stalled at 1 interval for
+#: 300 s beside the other heavy tests (CI, -n 3); so never beside PX4's lockstep simulation nor each other
+pytestmark = pytest.mark.xdist_group("heavy")
+
 SHOTS = Path(os.environ.get("MAVCAL_PAGE_SHOTS") or REPO / "benchmarks" / "out" / "capture_page")
 
 

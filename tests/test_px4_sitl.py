@@ -14,9 +14,9 @@ from mavcal.ardupilot.rotations import euler_to_matrix
 from mavcal.px4.firmware import accel_cal_from_params, mag_cal_from_params
 from mavcal.px4.rotations import rotation_matrix
 
-#: one PX4 at a time per machine (its lock): every PX4 test on one xdist worker (--dist loadgroup), so
-#: that the other worker runs other tests rather than waiting for the lock
-pytestmark = [pytest.mark.sitl, pytest.mark.xdist_group("px4")]
+#: one PX4 at a time per machine (its lock): every PX4 test on one xdist worker (--dist loadgroup, group
+#: "heavy", with the browser captures), so that the other workers run other tests rather than wait for it
+pytestmark = [pytest.mark.sitl, pytest.mark.xdist_group("heavy")]
 
 #: a calibration far from the default: every term PX4 has, and a rotation
 CALIBRATION = {"CAL_MAG0_XOFF": 0.12, "CAL_MAG0_YOFF": -0.08, "CAL_MAG0_ZOFF": 0.05,

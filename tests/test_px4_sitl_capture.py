@@ -25,7 +25,7 @@ import pytest
 from mavcal.testing.px4_sim import random_truth, truth_errors
 from mavcal.testing.simlog import DEFAULT_POSES_DEG
 
-pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.xdist_group("px4")]  # see test_px4_sitl.py
+pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.xdist_group("heavy")]  # see test_px4_sitl.py
 
 #: the CLI's guided captures in CI. Seed 1 passes but holds twice as many poses (~90 s). Seed 2's written
 #: calibration is always right (heading 0.02-0.1 deg), but in 2 of 4 full-suite runs PX4's own HIGHRES_IMU
