@@ -33,8 +33,8 @@ class ArduPilotModel:
         return base
 
     def device_ids(self, log_: ImuLog, params: Mapping[str, float], accel_instance: int,
-                   mag_instance: int) -> tuple[int | None, int | None]:
-        """(INS_ACC<n>_ID, COMPASS_DEV_ID<n>) of the instances; None when not in ``params``."""
+                   mag_instance: int) -> tuple[float | None, float | None]:
+        """(INS_ACC<n>_ID, COMPASS_DEV_ID<n>) of the instances as ``params`` hold them; None when absent."""
         try:
             accel = params.get(fw.accel_param_names(accel_instance)["id"])
         except ValueError:  # no such instance
@@ -43,7 +43,7 @@ class ArduPilotModel:
             compass = params.get(fw.compass_param_names(mag_instance)["dev_id"])
         except ValueError:
             compass = None
-        return (None if accel is None else int(accel)), (None if compass is None else int(compass))
+        return accel, compass
 
     def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
         return map_accel(K_a, b_a, fw.accel_cal_from_params(params, instance), instance)

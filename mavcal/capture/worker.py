@@ -136,6 +136,7 @@ class CaptureWorker:
         self.write_result: Any = None  # the last write's WriteReport, or the ParamWriteError it raised
         self._cfg = WorkerSettings()
         self._stream_ids: tuple[int, ...] = ()
+        self._watched = "RAW_IMU"  # the first of them, whose rate _watch_rate watches
         self._last_update = 0.0
         self._last_line = ""
         self._stream_asked = 0.0
@@ -284,7 +285,7 @@ class CaptureWorker:
         """Ask again when the rate of the first IMU message asked for (RAW_IMU; SCALED_IMU on PX4,
         which refuses RAW_IMU) falls well below the one asked for (another ground station's
         REQUEST_DATA_STREAM resets the message intervals on ArduPilot)."""
-        watched = self._watched_type()
+        watched = self._watched
         self._imu_count += sum(1 for m in msgs if m.get_type() == watched)
         if now - self._imu_since < _RATE_CHECK_S:
             return
@@ -293,12 +294,6 @@ class CaptureWorker:
             log.info("%s at %.1f Hz; asking for %g Hz again", watched, rate, self._cfg.rate_hz)
             self._ask_streams(self._cfg.rate_hz)
         self._imu_count, self._imu_since = 0, now
-
-    def _watched_type(self) -> str:
-        """The IMU message whose rate :meth:`_watch_rate` watches: the first of those asked for."""
-        from mavcal.link.streams import message_name
-
-        return message_name(self._stream_ids[0]) if self._stream_ids else "RAW_IMU"
 
     def _filed_position(self) -> Any:
         """The best position among the filed messages (None: none)."""
@@ -337,7 +332,7 @@ class CaptureWorker:
     def _start(self, cfg: WorkerSettings) -> None:
         from mavcal.capture import CaptureConfig, CaptureSession, status_line
         from mavcal.link.params import fetch_all_params
-        from mavcal.link.streams import needed_stream_ids
+        from mavcal.link.streams import message_name, needed_stream_ids
         from mavcal.pipeline import Options
         from mavcal.segment import StillConfig
 
@@ -361,6 +356,7 @@ class CaptureWorker:
         self.run = None
         self._cfg = cfg
         self._stream_ids = needed_stream_ids(values)
+        self._watched = message_name(self._stream_ids[0]) if self._stream_ids else "RAW_IMU"
         with self._imu_lock:
             self._imu = []
         self._imu_count, self._imu_since = 0, time.monotonic()

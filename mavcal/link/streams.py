@@ -42,10 +42,11 @@ PX4_STREAM_MESSAGES: dict[str, int] = {"SCALED_IMU": _A.MAVLINK_MSG_ID_SCALED_IM
                                        "SCALED_IMU2": _A.MAVLINK_MSG_ID_SCALED_IMU2,
                                        "SCALED_IMU3": _A.MAVLINK_MSG_ID_SCALED_IMU3,
                                        "HIGHRES_IMU": _A.MAVLINK_MSG_ID_HIGHRES_IMU}
+
+
 def message_name(message_id: int) -> str:
-    """The name of a stream message id of :data:`STREAM_MESSAGES` or :data:`PX4_STREAM_MESSAGES`."""
-    names = {mid: name for name, mid in {**STREAM_MESSAGES, **PX4_STREAM_MESSAGES}.items()}
-    return names.get(int(message_id), str(message_id))
+    """The MAVLink name of a message id (pymavlink's table), e.g. ``"SCALED_IMU"``."""
+    return _A.mavlink_map[int(message_id)].msgname
 
 
 #: :func:`start_streams` never asks for less (the still-interval detector needs the samples)

@@ -64,10 +64,10 @@ class Px4Model:
                        offset_limit_name="PX4's saturation warning at 1.3 gauss")
 
     def device_ids(self, log_: ImuLog, params: Mapping[str, float], accel_instance: int,
-                   mag_instance: int) -> tuple[int | None, int | None]:
+                   mag_instance: int) -> tuple[float | None, float | None]:
         """The device ids of the instances (the recording's, else the slot's ``CAL_*_ID``); None when
         the recording has no such sensor."""
-        out: list[int | None] = []
+        out: list[float | None] = []
         for sensor, i in (("accel", accel_instance), ("mag", mag_instance)):
             s = self._series.get((sensor, i))
             out.append(None if s is None else (device_id_of(s, params)[0] or None))
