@@ -480,7 +480,8 @@ class CaptureWorker:
         from mavcal.ardupilot.limits import check_limits, failing_kinds
         from mavcal.ardupilot.protocol import force_save_kinds
         from mavcal.errors import ParamWriteError
-        from mavcal.link.writer import default_backup_path, write_params
+        from mavcal.link.backup import default_backup_path
+        from mavcal.link.writer import write_params
         from mavcal.report.text import forced_limits_text, plan_text, write_done_text, write_failed_text, writing_text
 
         opts: dict[str, Any] = dict(retries=cfg.retries, timeout_s=cfg.param_timeout,

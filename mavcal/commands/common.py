@@ -24,7 +24,7 @@ __all__ = ["add_json_argument", "json_output", "BACKUP_HELP",
 # --------------------------------------------------------------------------- arguments
 
 #: how every command that writes parameters names its default backup file
-#: (:func:`mavcal.link.writer.default_backup_path`)
+#: (:func:`mavcal.link.backup.default_backup_path`)
 BACKUP_HELP = ("backup .param of the old values, never overwritten (default mavcal-backup-YYYYmmdd-HHMMSS.param "
                "in the current directory)")
 
@@ -391,8 +391,9 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
     """
     from mavcal.ardupilot.protocol import force_save_kinds
     from mavcal.errors import ParamWriteError
+    from mavcal.link.backup import default_backup_path
     from mavcal.link.connection import open_link
-    from mavcal.link.writer import default_backup_path, write_params
+    from mavcal.link.writer import write_params
     from mavcal.report.text import plan_text, write_done_text, write_failed_text
 
     out = out or sys.stdout
