@@ -18,7 +18,8 @@ section 8):
   element of a Vector3 echoes all three (Y or Z only themselves). An echo with the right name and the expected value
   (float32-equal after the conversion) confirms a write; anything else is ignored until the
   attempt times out, then the PARAM_SET is sent again.
-* Values go out as plain float32 (REAL32), never byte-wise (PX4 style).
+* Values go out as float32 (REAL32) to ArduPilot; to PX4 an integer goes byte-wise with its type, and
+  each changed CAL_* vector by a detour (:func:`mavcal.px4.params.detoured_order`).
 
 Sequence of :func:`write_params`:
 
@@ -27,8 +28,8 @@ Sequence of :func:`write_params`:
    would not store exactly are refused before any write;
 2. a backup ``.param`` of every value about to change, written and fsync'ed before the first
    PARAM_SET (never overwriting an existing file);
-3. one parameter at a time: PARAM_SET, wait for the matching echo, retry. For steps 3-6 the
-   vehicle is kept talking (ATTITUDE at 5 Hz, put back to its default rate at the end) and a
+3. one parameter at a time (PX4's detours first): PARAM_SET, wait for the matching echo, retry.
+   For steps 3-6 the vehicle is kept talking (ATTITUDE at 5 Hz, put back to its default rate at the end) and a
    silence is measured against a limit derived from the link's observed loss
    (:mod:`mavcal.link.silence`); while the vehicle is silent nothing is sent and the budget
    does not run, and the write resumes when it is heard again (within the write budget);
@@ -47,7 +48,6 @@ The library logs and never prints; the :class:`WriteReport` is data.
 """
 from __future__ import annotations
 
-import datetime as _dt
 import logging
 import math
 import time
@@ -60,7 +60,6 @@ import numpy as np
 from pymavlink import mavutil
 
 from mavcal.ardupilot.limits import check_limits, failing_kinds
-from mavcal.ardupilot.paramfile import write_param_file
 from mavcal.ardupilot.protocol import needs_reboot, valid_param_name, vector_group
 from mavcal.errors import (
     LinkError,
@@ -70,6 +69,7 @@ from mavcal.errors import (
     UnknownParameterError,
     UsageError,
 )
+from mavcal.link.backup import write_backup
 from mavcal.link.connection import Link, as_link, param_to_wire
 from mavcal.link.params import (
     ParamTable,
@@ -79,11 +79,11 @@ from mavcal.link.params import (
     vehicle_param_error,
 )
 from mavcal.link.silence import SETTLE_S, Patience, VehicleSilence
+from mavcal.px4.params import detoured_order
 
 __all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "UnknownParameterError",
            "OutOfRangeError", "expected_stored_value", "FORCE_SAVE_KINDS", "DEFAULT_BUDGET_FACTOR", "result_words",
-           "RESTORE_WAIT_FACTOR",
-           "fetch_for_write"]
+           "RESTORE_WAIT_FACTOR", "fetch_for_write"]
 
 log = logging.getLogger(__name__)
 
@@ -452,10 +452,8 @@ def _read_back(link: Link, names: Sequence[str], retries: int, timeout_s: float,
     return got
 
 
-def _default_header(link: Link, what: str) -> list[str]:
-    now = _dt.datetime.now().astimezone().isoformat(timespec="seconds")
-    return [f"mavcal {what}: values on system {link.target_system} before the write, {now}",
-            f"undo with: mavcal restore THIS_FILE --connect {link.device}"]
+#: seconds PX4 gets to see the detours (a parameter update: it looks at its sensors' rate) before the rest
+DETOUR_DWELL_S = 0.3
 
 
 class _WriteRun:
@@ -492,7 +490,7 @@ class _WriteRun:
         if dry_run or not to_write:
             return _no_write_report(self.plan, to_write, dry_run)
         with VehicleSilence(self.link, keepalive=keepalive, answer_s=self.timeout_s) as self.silence:
-            self.backup = _write_backup(self.link, str(backup_path), to_write, backup_header)
+            self.backup = write_backup(self.link, str(backup_path), {r.name: r.old for r in to_write}, backup_header)
             return self.execute(to_write, [k for k in force_save if k not in self.force_skipped])
 
     def _patience(self) -> Patience:
@@ -517,18 +515,34 @@ class _WriteRun:
         return tuple(self.results[r.name] for r in self.plan)
 
     # 3. one at a time, confirmed by echo
-    def write_each(self, to_write: Sequence[ParamResult]) -> str | None:
-        """PARAM_SET every change until its echo confirms it; the failure, or None."""
-        for r in to_write:
+    def _set(self, r: ParamResult, value: float, wait: Patience | None = None) -> tuple[_SetOutcome, str | None]:
+        """One confirmed PARAM_SET of the write (or, with the restore's ``wait``, of the restore)."""
+        if r.name not in self.attempted:
             self.attempted.append(r.name)
-            failure = None
-            try:
-                out = _set_and_confirm(self.link, self.watch, r.name, r.requested, r.expected,
-                                       self.retries, self.timeout_s, self.budget_s, self._patience(),
-                                       self.table[r.name][1])
-            except LinkError as exc:
-                out = _SetOutcome(False, self.watch.last.get(r.name), max(1, self.retries))
-                failure = str(exc)
+        try:
+            return _set_and_confirm(self.link, self.watch, r.name, value, expected_stored_value(
+                value, self.table[r.name][1]), self.retries if wait is None else self.restore_retries, self.timeout_s,
+                self.budget_s, wait or self._patience(), self.table[r.name][1]), None
+        except LinkError as exc:
+            return _SetOutcome(False, self.watch.last.get(r.name), max(1, self.retries)), str(exc)
+
+    def write_each(self, to_write: Sequence[ParamResult]) -> str | None:
+        """PARAM_SET every change until its echo confirms it (PX4's detours first, then the changes in
+        their order, see :func:`~mavcal.px4.params.detoured_order`); the failure, or None."""
+        order, detours = detoured_order({r.name: r.requested for r in to_write})
+        by_name = {r.name: r for r in to_write}
+        for name, value in detours.items():
+            out, failure = self._set(by_name[name], value)
+            if not out.ok:
+                return failure or out.unheard or f"{name}: the detour to {value:g} was not confirmed"
+        try:
+            if detours:
+                self.link.pump(DETOUR_DWELL_S)
+        except LinkError as exc:
+            return str(exc)
+        for name in order:
+            r = by_name[name]
+            out, failure = self._set(r, r.requested)
             ok, echoed, attempts = out.ok, out.echoed, out.attempts
             self.results[r.name] = replace(r, ok=ok, echoed=echoed, attempts=attempts)
             if not ok:
@@ -587,6 +601,17 @@ class _WriteRun:
             self.link.pump(min(self.timeout_s, 0.5))  # let late echoes of the failed attempts arrive first
         except LinkError:
             link_ok = False
+        _, detours = detoured_order({n: self.results[n].old for n in self.attempted})  # pivots: restored last
+        for name, value in detours.items():
+            if link_ok:
+                out, problem = self._set(self.results[name], value, wait)
+                link_ok = out.unheard is None and problem is None
+                self.restore_problem = out.unheard or problem or self.restore_problem
+        try:
+            if detours and link_ok:
+                self.link.pump(DETOUR_DWELL_S)
+        except LinkError as exc:
+            link_ok, self.restore_problem = False, str(exc)
         for name in reversed(self.attempted):
             r = self.results[name]
             if not link_ok:
@@ -685,15 +710,6 @@ def _checked_request(changes: Mapping[str, float], force_save: Sequence[str], ba
     return {str(k): float(v) for k, v in changes.items()}
 
 
-def _write_backup(link: Link, backup_path: str, to_write: Sequence[ParamResult],
-                  backup_header: Sequence[str] | None) -> Path:
-    """2. The backup of every value about to change, written and fsync'ed before the first PARAM_SET."""
-    header = list(backup_header) if backup_header is not None else _default_header(link, "backup")
-    bpath = write_param_file(backup_path, {r.name: r.old for r in to_write}, header=header, exclusive=True)
-    log.info("backup of %d values written to %s", len(to_write), bpath)
-    return Path(bpath)
-
-
 def _no_write_report(plan: Sequence[ParamResult], to_write: Sequence[ParamResult], dry_run: bool) -> WriteReport:
     msg = ("dry run: " if dry_run else "") + (
         f"{len(to_write)} of {len(plan)} parameters would change" if dry_run
@@ -782,15 +798,3 @@ def write_params(conn: Any, changes: Mapping[str, float], *, backup_path: str | 
     return run.start(changes, params, force_save, dry_run=dry_run, fetch_timeout_s=fetch_timeout_s,
                      allow_out_of_range=allow_out_of_range, backup_path=backup_path, backup_header=backup_header,
                      keepalive=keepalive)
-
-
-def default_backup_path(directory: str = ".", stem: str = "mavcal-backup") -> Path:
-    """A new, not yet existing backup file name ``<stem>-YYYYmmdd-HHMMSS[-n].param``."""
-    ts = time.strftime("%Y%m%d-%H%M%S")
-    base = Path(directory) / f"{stem}-{ts}.param"
-    n = 1
-    p = base
-    while p.exists():
-        p = base.with_name(f"{stem}-{ts}-{n}.param")
-        n += 1
-    return p

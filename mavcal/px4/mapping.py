@@ -47,11 +47,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["Px4AccelMapping", "Px4CompassMapping", "map_accel_px4", "map_compass_px4", "map_calibration_px4"]
 
-#: PX4 SITL (main, August 2026) was seen keeping the last CAL_* parameter written over MAVLink out of
-#: use: CAL_MAG0_ZODIAG read back new while PX4's HIGHRES_IMU matched its old value within 0.1 mGauss
-#: (tests/test_px4_sitl_capture.py, seed 2, 2 of 4 full-suite runs); a restart reads every parameter
-REBOOT_REASON = "PX4 may keep the last calibration parameter written out of use until it restarts"
-
 
 def _slot(params: Mapping[str, float], kind: str, cal: Px4AccelCal | Px4MagCal, notes: list[str]) -> tuple[int, bool]:
     if cal.slot is not None:
@@ -190,8 +185,7 @@ def map_compass_px4(K_m: np.ndarray, b_m: np.ndarray, h_z: float, frame_rotation
         instance=instance, old=old.ardupilot_form(), new=new.ardupilot_form(), external=old.external,
         field_mgauss=float(implied if not checked else B), field_source=field_source, rotation=U @ R_old.T,
         rotation_deg=rotation_angle_deg(U, R_old), orientation_note=rot.note, residual_rotation_deg=residual,
-        custom_deg=rot.custom, extra_params=rot.extra, reboot_required=True, reboot_reason=REBOOT_REASON,
-        inclination_deg=incl,
+        custom_deg=rot.custom, extra_params=rot.extra, inclination_deg=incl,
         inclination_model_deg=inclination_model_deg, field_checked=checked, slot=slot, device_id=old.device_id,
         new_slot=new_slot, px4_old=old, px4_new=new)
 

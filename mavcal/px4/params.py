@@ -16,10 +16,12 @@ A slot applies to the sensor whose device id is in its ``_ID``, whatever the top
 """
 from __future__ import annotations
 
+import re
 from collections.abc import Container, Mapping
 from typing import TypedDict
 
-__all__ = ["MAX_SLOTS", "SCALE_RANGE", "ROT_INTERNAL", "ROT_CUSTOM", "AccelNames", "MagNames", "accel_names",
+__all__ = ["CHANGE_MIN", "DETOUR_STEP", "calibration_vector", "detoured_order", "MAX_SLOTS", "SCALE_RANGE",
+           "ROT_INTERNAL", "ROT_CUSTOM", "AccelNames", "MagNames", "accel_names",
            "mag_names", "board_names", "is_int32", "find_slot", "free_slot", "device_ids", "is_px4_params",
            "is_calibration",
            "THERMAL_ACCEL", "THERMAL_MAG", "MAG_COMP_TYPE", "MAG_AUTOCAL"]
@@ -33,6 +35,15 @@ THERMAL_MAG = "TC_M_ENABLE"
 MAG_COMP_TYPE = "CAL_MAG_COMP_TYP"
 MAG_AUTOCAL = "SENS_MAG_AUTOCAL"
 _XYZ = ("X", "Y", "Z")
+#: PX4's calibration library (src/lib/sensor_calibration: ``set_offset``, ``set_scale``,
+#: ``set_offdiagonal``) takes a changed CAL_* vector (OFF, SCALE, ODIAG) into use only when it differs
+#: from the one in use by more than a threshold (Euclidean norm). Seen on the PX4 SITL (main, August
+#: 2026): 0.005 gauss for magnetometer offsets, 0.01 for scales and off-diagonals (0.01 for all in
+#: older sources); each vector on its own, and the values read back new either way
+CHANGE_MIN = 0.01
+#: how far the detour of a changed vector's pivot lies from its target (> 2 thresholds, with margin)
+DETOUR_STEP = 0.1
+_VECTOR = re.compile(r"^(CAL_(?:ACC|MAG)[0-9]_)([XYZ])(OFF|SCALE|ODIAG)$")
 
 Names3 = tuple[str, str, str]
 
@@ -133,3 +144,50 @@ def is_calibration(name: str) -> bool:
 def is_px4_params(names: Container[str]) -> bool:
     """Whether a set of parameter names is PX4's (it holds a calibration slot id or the board rotation)."""
     return board_names()[0] in names or accel_names(0)["id"] in names or mag_names(0)["id"] in names
+
+
+def calibration_vector(name: str) -> Names3 | None:
+    """The three names of the CAL_* vector ``name`` belongs to (``CAL_MAG0_YODIAG`` -> X/Y/Z ODIAG), or None."""
+    m = _VECTOR.match(name)
+    return _vec(m.group(1), m.group(3)) if m else None
+
+
+def detoured_order(changes: Mapping[str, float]) -> tuple[dict[str, float], dict[str, float]]:
+    """The order in which to send ``changes`` to PX4 so that each changed CAL_* vector is taken into use
+    whole, and the detours to send before them.
+
+    PX4 compares each vector with the one in use at every parameter change and ignores a difference
+    up to a threshold (see :data:`CHANGE_MIN`): written one component at a time, a vector's last small
+    change is left out of use although it reads back new (seen on the PX4 SITL: a 0.004 change of
+    ``CAL_MAG0_ZODIAG`` alone, 2 mGauss; in a calibration's write, 0.3 deg of heading). So one component
+    of each vector (its pivot: the first one changed) is first sent :data:`DETOUR_STEP` away from its
+    target (towards the default, 0 or 1), and its target last, after the vector's other components:
+    whatever PX4 held before, the pivot in use is then within a threshold of the detour, so the last
+    change exceeds the threshold and PX4 takes the whole vector as written. The caller lets PX4 see the
+    detours (a parameter update) before the rest follows.
+
+    Returns
+    -------
+    (dict, dict)
+        ``changes`` reordered (each pivot right after the last other component of its vector) and
+        ``{pivot name: detour value}``. Names that are not CAL_* vectors keep their place.
+    """
+    groups: dict[Names3, list[str]] = {}
+    for n in changes:
+        g = calibration_vector(n)
+        if g is not None:
+            groups.setdefault(g, []).append(n)
+    out: dict[str, float] = {}
+    for n, v in changes.items():
+        g = calibration_vector(n)
+        members = groups[g] if g is not None else [n]
+        if g is not None and n == members[0] and len(members) > 1:
+            continue  # the pivot goes last
+        out[n] = float(v)
+        if g is not None and n == members[-1] and len(members) > 1:
+            out[members[0]] = float(changes[members[0]])
+    detours = {}
+    for g, members in groups.items():
+        t, default = float(changes[members[0]]), 1.0 if g[0].endswith("SCALE") else 0.0
+        detours[members[0]] = t - DETOUR_STEP if t > default else t + DETOUR_STEP
+    return out, detours
