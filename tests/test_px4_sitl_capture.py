@@ -22,7 +22,7 @@ import time
 import numpy as np
 import pytest
 
-from mavcal.testing.px4_sim import random_truth, truth_errors
+from mavcal.testing.px4_sim import truth_errors
 from mavcal.testing.simlog import DEFAULT_POSES_DEG
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.xdist_group("heavy")]  # see test_px4_sitl.py
@@ -33,8 +33,6 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.xdist_group("heavy
 #: (test_a_small_change_is_taken_into_use_through_the_detour below); the writer's detours now put every
 #: vector into use (seed 2 since: 0.004-0.056 deg). MAVCAL_PX4_SEEDS=2 runs seed 2.
 SEEDS = [int(s) for s in os.environ.get("MAVCAL_PX4_SEEDS", "4,5").split(",")]
-#: PX4 must not learn compass biases of its own during the test (see test_px4_sitl.py)
-QUIET = {"EKF2_MAG_TYPE": 5, "MBE_ENABLE": 0, "SENS_MAG_AUTOCAL": 0}
 HOLD_S, MOVE_S = 2.5, 1.0
 
 
@@ -172,47 +170,40 @@ def test_live_calibration_of_px4_is_written_and_px4_agrees_with_the_truth(how, s
     from mavcal.link.connection import open_link
     from mavcal.link.params import fetch_all_params
     from mavcal.px4.params import accel_names, mag_names
-    from mavcal.testing.px4_poser import Poser
-    from mavcal.testing.px4_sitl import Px4Sitl, require_px4
+    from mavcal.testing.px4_poser import posed_px4
+    from mavcal.testing.px4_sitl import require_px4
 
     require_px4()
-    truth = random_truth(seed)
-    boot = {k: v for k, v in truth.params.items() if k not in mag_names(0)["custom"]}
-    holder: dict = {}
-    with Px4Sitl(sim_model="none_iris", params={**boot, **QUIET},
-                 before_boot=lambda: holder.setdefault("poser", Poser(truth, seed=seed).start())) as px4:
-        poser = holder["poser"]
+    with posed_px4(seed) as (posed, truth):
+        px4, poser = posed.px4, posed.poser
+        rc, run = {"capture": _guided_capture, "mavproxy": _mavproxy_capture,
+                   "calibrate": lambda *a: _calibrate_device(*a[:3])}[how](px4, poser, tmp_path, seed)
+        assert rc == 0, (rc, run.get("sensors"), run.get("warnings"), px4.log_tail(400))
+        assert {s["sensor"] for s in run["sensors"] if s["accepted"]} == {"accel0", "compass0"}
+        written = {n: v["new"] for n, v in run["parameters"].items()}
+        assert all(v["written"] for v in run["parameters"].values() if v["changed"])
+        err = truth_errors(truth, written)
+        assert err["heading_deg"] <= 0.2 and err["tilt_deg"] <= 0.05, err
+        assert err["mag_offset_gauss"] <= 0.001, err
+        with px4.netns():
+            link = open_link(px4.device)
         try:
-            rc, run = {"capture": _guided_capture, "mavproxy": _mavproxy_capture,
-                       "calibrate": lambda *a: _calibrate_device(*a[:3])}[how](px4, poser, tmp_path, seed)
-            assert rc == 0, (rc, run.get("sensors"), run.get("warnings"), px4.log_tail(400))
-            assert {s["sensor"] for s in run["sensors"] if s["accepted"]} == {"accel0", "compass0"}
-            written = {n: v["new"] for n, v in run["parameters"].items()}
-            assert all(v["written"] for v in run["parameters"].values() if v["changed"])
-            err = truth_errors(truth, written)
-            assert err["heading_deg"] <= 0.2 and err["tilt_deg"] <= 0.05, err
-            assert err["mag_offset_gauss"] <= 0.001, err
-            with px4.netns():
-                link = open_link(px4.device)
-            try:
-                table = fetch_all_params(link, timeout_s=20)
-                for n, v in written.items():  # read back from the vehicle (float32 on the wire)
-                    assert table[n][0] == pytest.approx(v, rel=1e-6, abs=1e-7), n
-                assert table[accel_names(0)["id"]] == (truth.accel_id, 6)  # INT32 device ids intact
-                assert table[mag_names(0)["id"]] == (truth.mag_id, 6)
-                # PX4's own calibrated output after the write, against the poser's truth
-                outputs = _px4_output(link, poser, [(0, 0, 0), (30, -20, 120), (-60, 40, 250)])
-                for acc, mag, f, B in outputs:
-                    print(f"{how} seed {seed}: PX4 after the write: accel {_angle_deg(acc, f):.4f} deg, "
-                          f"{np.linalg.norm(acc) - np.linalg.norm(f):+.4f} m/s^2; mag {_angle_deg(mag, B):.4f} deg "
-                          f"(PX4 {np.round(mag, 2)}, truth {np.round(B, 2)} mGauss); written: {err}")
-                for acc, mag, f, B in outputs:
-                    assert _angle_deg(acc, f) <= 0.05 and abs(np.linalg.norm(acc) - np.linalg.norm(f)) <= 0.02
-                    assert _angle_deg(mag, B) <= 0.2, (mag, B)
-            finally:
-                link.close()
+            table = fetch_all_params(link, timeout_s=20)
+            for n, v in written.items():  # read back from the vehicle (float32 on the wire)
+                assert table[n][0] == pytest.approx(v, rel=1e-6, abs=1e-7), n
+            assert table[accel_names(0)["id"]] == (truth.accel_id, 6)  # INT32 device ids intact
+            assert table[mag_names(0)["id"]] == (truth.mag_id, 6)
+            # PX4's own calibrated output after the write, against the poser's truth
+            outputs = _px4_output(link, poser, [(0, 0, 0), (30, -20, 120), (-60, 40, 250)])
+            for acc, mag, f, B in outputs:
+                print(f"{how} seed {seed}: PX4 after the write: accel {_angle_deg(acc, f):.4f} deg, "
+                      f"{np.linalg.norm(acc) - np.linalg.norm(f):+.4f} m/s^2; mag {_angle_deg(mag, B):.4f} deg "
+                      f"(PX4 {np.round(mag, 2)}, truth {np.round(B, 2)} mGauss); written: {err}")
+            for acc, mag, f, B in outputs:
+                assert _angle_deg(acc, f) <= 0.05 and abs(np.linalg.norm(acc) - np.linalg.norm(f)) <= 0.02
+                assert _angle_deg(mag, B) <= 0.2, (mag, B)
         finally:
-            poser.stop()
+            link.close()
 
 
 def _highres_mag_mgauss(link, seconds: float) -> np.ndarray:
@@ -244,51 +235,43 @@ def test_a_small_change_is_taken_into_use_through_the_detour(tmp_path, monkeypat
     from mavcal.link.params import fetch_all_params
     from mavcal.link.streams import PX4_STREAM_MESSAGES, start_streams
     from mavcal.px4.firmware import mag_cal_from_params
-    from mavcal.px4.params import mag_names
-    from mavcal.testing.px4_poser import Poser
+    from mavcal.testing.px4_poser import posed_px4
     from mavcal.testing.px4_sim import raw_at
-    from mavcal.testing.px4_sitl import Px4Sitl, require_px4
+    from mavcal.testing.px4_sitl import require_px4
 
     require_px4()
-    truth = random_truth(2)
-    boot = {k: v for k, v in truth.params.items() if k not in mag_names(0)["custom"]}
-    holder: dict = {}
-    with Px4Sitl(sim_model="none_iris", params={**boot, **QUIET},
-                 before_boot=lambda: holder.setdefault("poser", Poser(truth, seed=2).start())) as px4:
-        poser = holder["poser"]
+    with posed_px4(2) as (posed, truth):
+        px4, poser = posed.px4, posed.poser
+        poser.turn_to(0, 0, 120, MOVE_S)
+        raw = raw_at(truth, Rotation.from_matrix(euler_to_matrix(*np.radians([0, 0, 120]))[None]))[1][0]
+        with px4.netns():
+            link = open_link(px4.device)
         try:
-            poser.turn_to(0, 0, 120, MOVE_S)
-            raw = raw_at(truth, Rotation.from_matrix(euler_to_matrix(*np.radians([0, 0, 120]))[None]))[1][0]
-            with px4.netns():
-                link = open_link(px4.device)
-            try:
-                start_streams(link, 50.0, message_ids=tuple(PX4_STREAM_MESSAGES.values()))
+            start_streams(link, 50.0, message_ids=tuple(PX4_STREAM_MESSAGES.values()))
 
-                def write(value: float, name: str) -> np.ndarray:
-                    report = writer.write_params(link, {"CAL_MAG0_YODIAG": value}, force_save=(),
-                                                 backup_path=str(tmp_path / f"{name}.param"))
-                    assert report.complete, report.message
-                    link.pump(0.5)
-                    table = fetch_all_params(link, timeout_s=20)
-                    assert table["CAL_MAG0_YODIAG"][0] == pytest.approx(value, abs=1e-6)
-                    return mag_cal_from_params({k: v for k, (v, _) in table.items()}, truth.mag_id).correct(raw)
+            def write(value: float, name: str) -> np.ndarray:
+                report = writer.write_params(link, {"CAL_MAG0_YODIAG": value}, force_save=(),
+                                             backup_path=str(tmp_path / f"{name}.param"))
+                assert report.complete, report.message
+                link.pump(0.5)
+                table = fetch_all_params(link, timeout_s=20)
+                assert table["CAL_MAG0_YODIAG"][0] == pytest.approx(value, abs=1e-6)
+                return mag_cal_from_params({k: v for k, (v, _) in table.items()}, truth.mag_id).correct(raw)
 
-                old = mag_cal_from_params(truth.params, truth.mag_id).correct(raw)
-                assert np.abs(_highres_mag_mgauss(link, 2.0) - old).max() < 0.6
-                y0 = truth.params["CAL_MAG0_YODIAG"]
-                with monkeypatch.context() as m:
-                    m.setattr(writer, "detoured_order", lambda changes: (dict(changes), {}))
-                    new = write(y0 + 0.009, "plain")
-                seen = _highres_mag_mgauss(link, 2.0)
-                print(f"plain: PX4 - old {np.abs(seen - old).max():.2f}, PX4 - new {np.abs(seen - new).max():.2f}")
-                assert np.abs(new - old).max() > 2.5  # what the change would do
-                assert np.abs(seen - old).max() < 0.6  # PX4 left it out of use
-                new = write(y0 - 0.009, "detoured")
-                seen = _highres_mag_mgauss(link, 2.0)
-                print(f"detoured: PX4 - old {np.abs(seen - old).max():.2f}, PX4 - new {np.abs(seen - new).max():.2f}")
-                assert np.abs(new - old).max() > 2.5
-                assert np.abs(seen - new).max() < 0.6  # in use
-            finally:
-                link.close()
+            old = mag_cal_from_params(truth.params, truth.mag_id).correct(raw)
+            assert np.abs(_highres_mag_mgauss(link, 2.0) - old).max() < 0.6
+            y0 = truth.params["CAL_MAG0_YODIAG"]
+            with monkeypatch.context() as m:
+                m.setattr(writer, "detoured_order", lambda changes: (dict(changes), {}))
+                new = write(y0 + 0.009, "plain")
+            seen = _highres_mag_mgauss(link, 2.0)
+            print(f"plain: PX4 - old {np.abs(seen - old).max():.2f}, PX4 - new {np.abs(seen - new).max():.2f}")
+            assert np.abs(new - old).max() > 2.5  # what the change would do
+            assert np.abs(seen - old).max() < 0.6  # PX4 left it out of use
+            new = write(y0 - 0.009, "detoured")
+            seen = _highres_mag_mgauss(link, 2.0)
+            print(f"detoured: PX4 - old {np.abs(seen - old).max():.2f}, PX4 - new {np.abs(seen - new).max():.2f}")
+            assert np.abs(new - old).max() > 2.5
+            assert np.abs(seen - new).max() < 0.6  # in use
         finally:
-            poser.stop()
+            link.close()

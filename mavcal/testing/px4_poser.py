@@ -29,9 +29,12 @@ from mavcal.ardupilot.rotations import euler_to_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.testing.px4_sim import FIELD_NED_MGAUSS, Px4Truth, raw_at
 
-__all__ = ["Poser", "SIM_PORT"]
+__all__ = ["Poser", "PosedPx4", "posed_px4", "QUIET_PARAMS", "SIM_PORT"]
 
 SIM_PORT = 4560
+#: PX4 must not learn compass biases of its own while a test poses it: neither the estimator
+#: (EKF2_MAG_TYPE 5) nor the in-flight bias estimator (MBE) nor the autocal of a slot-less magnetometer
+QUIET_PARAMS = {"EKF2_MAG_TYPE": 5, "MBE_ENABLE": 0, "SENS_MAG_AUTOCAL": 0}
 _FIELDS_ALL = 0x1FFF  # accel, gyro, mag, baro, diff pressure, altitude, temperature
 
 
@@ -177,3 +180,32 @@ class PosedPx4:
 
     def popen(self, argv, **kw):
         return self.px4.net.popen(argv, **kw)
+
+    def netns(self):
+        """Enter PX4's network namespace (``with posed.netns(): ...``)."""
+        return self.px4.netns()
+
+
+@contextlib.contextmanager
+def posed_px4(seed: int, **sitl_kw):
+    """A PX4 SITL in external-simulator mode posed by a :class:`Poser` with the random sensor errors and
+    calibration in force of :func:`mavcal.testing.px4_sim.random_truth` (``seed``): yields
+    ``(PosedPx4, truth)``; PX4 and the poser are stopped at the end."""
+    from mavcal.px4.params import mag_names
+    from mavcal.testing.px4_sim import random_truth
+    from mavcal.testing.px4_sitl import Px4Sitl
+
+    truth = random_truth(seed)
+    boot = {k: v for k, v in truth.params.items() if k not in mag_names(0)["custom"]}
+    holder: dict = {}
+    try:
+        with Px4Sitl(sim_model="none_iris", params={**boot, **QUIET_PARAMS},
+                     before_boot=lambda: holder.setdefault("poser", Poser(truth, seed=seed).start()),
+                     **sitl_kw) as px4:
+            try:
+                yield PosedPx4(px4, holder["poser"]), truth
+            finally:
+                holder["poser"].stop()
+    finally:
+        if "poser" in holder:  # also when PX4 did not boot after the poser started (stop is idempotent)
+            holder["poser"].stop()
