@@ -13,6 +13,7 @@ writer's outcome). The run fails, saving nothing further, if a moment does not c
 
     python benchmarks/capture_page_shots.py            # -> benchmarks/out/capture_page_shots/ (untracked)
     python benchmarks/capture_page_shots.py --save     # -> docs/img/ (the images the documentation shows)
+    python benchmarks/capture_page_shots.py --px4 --seed 4 --save   # the same against PX4 SITL: docs/img/px4-*.png
 
 Needs what the SITL tests need (Linux, root for the namespace, ``../shared/sitl/arducopter``)
 and chromium + chromium-driver + selenium (the ``[test]`` extra). About 2 minutes.
@@ -20,6 +21,7 @@ and chromium + chromium-driver + selenium (the ``[test]`` extra). About 2 minute
 from __future__ import annotations
 
 import argparse
+import contextlib
 import re
 import signal
 import subprocess
@@ -40,13 +42,16 @@ WIDTH, HEIGHT = 1280, 860
 URL = re.compile(r"capture page: (http://127\.0\.0\.1:\d+/\?t=\S+)")
 
 
+PREFIX = ""  # "px4-" with --px4
+
+
 def _shoot(drv: Any, out: Path, name: str, full_height: bool = False) -> Path:
-    """The viewport as ``out/name.png`` (``full_height``: the window grown to the whole page first)."""
+    """The viewport as ``out/PREFIX name.png`` (``full_height``: the window grown to the whole page first)."""
     if full_height:
         h = int(drv.execute_script("return document.documentElement.scrollHeight"))
         drv.set_window_size(WIDTH, min(max(h + 40, HEIGHT), 1300))
         time.sleep(0.5)
-    path = out / f"{name}.png"
+    path = out / f"{PREFIX}{name}.png"
     drv.save_screenshot(str(path))
     print(f"wrote {path} ({path.stat().st_size // 1024} KB)", flush=True)
     return path
@@ -115,9 +120,21 @@ def _drive_reach(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out:
     _shoot(drv, out, "capture-reach")
 
 
-def run(out: Path, seed: int, max_tilt: float | None = None) -> int:
-    with SitlVehicle(InjectedErrors.random(seed, mag_orient=6)) as sitl, \
-            tempfile.TemporaryDirectory(prefix="capture-shots-") as tmp:
+@contextlib.contextmanager
+def _vehicle(seed: int, px4: bool):
+    """ArduPilot SITL with random injected errors, or (``px4``) PX4 SITL posed with random sensor errors."""
+    if px4:
+        from mavcal.testing.px4_poser import posed_px4
+
+        with posed_px4(seed) as (posed, _):
+            yield posed
+    else:
+        with SitlVehicle(InjectedErrors.random(seed, mag_orient=6)) as sitl:
+            yield sitl
+
+
+def run(out: Path, seed: int, max_tilt: float | None = None, px4: bool = False) -> int:
+    with _vehicle(seed, px4) as sitl, tempfile.TemporaryDirectory(prefix="capture-shots-") as tmp:
         status = StatusLines()
         p = sitl.popen([sys.executable, "-m", "mavcal", "capture", "--connect", sitl.tool_device, "--ui",
                         "--no-browser", "--json", str(Path(tmp) / "run.json"),
@@ -155,8 +172,18 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--out", type=Path, metavar="DIR", help="write into DIR")
     ap.add_argument("--max-tilt", type=float, metavar="DEG",
                     help="a capture within reach (capture --max-tilt DEG): the one screenshot capture-reach, no write")
+    ap.add_argument("--px4", action="store_true",
+                    help="against PX4 SITL (../shared/px4, posed by mavcal's test poser): the images named px4-*.png")
     args = ap.parse_args(argv)
-    reason = unavailable_reason() or (f"{', '.join(missing())} not installed" if missing() else None)
+    global PREFIX
+    PREFIX = "px4-" if args.px4 else ""
+    if args.px4:
+        from mavcal.testing.px4_sitl import px4_unavailable_reason
+
+        reason = px4_unavailable_reason()
+    else:
+        reason = unavailable_reason()
+    reason = reason or (f"{', '.join(missing())} not installed" if missing() else None)
     if reason is not None:
         print(f"capture_page_shots: {reason}", file=sys.stderr)
         return 2
@@ -166,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     if out == resolve(False, None):
         out = out / "capture_page_shots"
     out.mkdir(parents=True, exist_ok=True)
-    return run(out, args.seed, args.max_tilt)
+    return run(out, args.seed, args.max_tilt, args.px4)
 
 
 if __name__ == "__main__":
