@@ -36,29 +36,38 @@ class AdviceHand(threading.Thread):
     ``advice()`` returns ``(n_intervals, (roll, pitch, yaw_magnetic) or None, done)``.
     """
 
-    def __init__(self, vehicle: TestVehicle, advice, *, move_s: float = 0.3, extra_hold_s: float = 0.5):
+    def __init__(self, vehicle: TestVehicle, advice, *, move_s: float = 0.3, extra_hold_s: float = 0.5,
+                 follow_s: float | None = None):
         super().__init__(name="test-hand", daemon=True)
         self.v, self.advice = vehicle, advice
         self.decl = declination_deg(vehicle)
-        self.move_s, self.extra_hold_s = move_s, extra_hold_s
+        self.move_s, self.extra_hold_s, self.follow_s = move_s, extra_hold_s, follow_s
         self.halt = threading.Event()
         self.poses = []
+        self.follows = 0  # moves to a changed advice without a new interval (follow_s)
 
     def run(self) -> None:
-        held_n = None
+        held_n, held, other_since = None, None, None
         while not self.halt.is_set():
             n, pose, done = self.advice()
             if done:
                 return
-            if pose is not None and (held_n is None or n > held_n):
-                if held_n is not None and self.halt.wait(self.extra_hold_s):  # let the interval settle
+            # follow_s: as a person does, also follow an advice that changed while the count did not grow
+            # (the capture gave the held pose up), once it has stood for follow_s
+            changed = pose is not None and held is not None and pose != held
+            other_since = (other_since or time.monotonic()) if changed else None
+            follow = (self.follow_s is not None and other_since is not None
+                      and time.monotonic() - other_since >= self.follow_s)
+            if pose is not None and (held_n is None or n > held_n or follow):
+                if held_n is not None and not follow and self.halt.wait(self.extra_hold_s):  # let it settle
                     return
+                self.follows += follow
                 self.v.set_moving(True)
                 if self.halt.wait(self.move_s):
                     return
                 self.v.set_attitude(roll=pose[0], pitch=pose[1], yaw=pose[2] + self.decl)
                 self.poses.append(pose)
-                held_n = n
+                held_n, held, other_since = n, pose, None
             self.halt.wait(0.05)
 
     def stop(self) -> None:
