@@ -222,7 +222,7 @@ def _highres_mag_mgauss(link, seconds: float) -> np.ndarray:
 
 def test_a_small_change_is_taken_into_use_through_the_detour(tmp_path, monkeypatch):
     """PX4 takes a changed CAL_* vector into use only when it differs from the one in use by more than a
-    threshold (0.01 for an off-diagonal; mavcal.px4.params.CHANGE_MIN): a plain PARAM_SET of
+    threshold (0.01 for an off-diagonal; see mavcal.px4.params.DETOUR_STEP): a plain PARAM_SET of
     CAL_MAG0_YODIAG 0.009 away reads back new while PX4's calibrated field (HIGHRES_IMU, the poser's
     exact raw field) stays as the old value gives it (seen: within 0.25 mGauss; the new value would move
     it by ~4). mavcal's writer sends the vector's pivot a detour first (detoured_order): as small a

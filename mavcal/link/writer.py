@@ -530,9 +530,8 @@ class _WriteRun:
         """PARAM_SET every change until its echo confirms it (PX4's detours first, then the changes in
         their order, see :func:`~mavcal.px4.params.detoured_order`); the failure, or None."""
         order, detours = detoured_order({r.name: r.requested for r in to_write})
-        by_name = {r.name: r for r in to_write}
         for name, value in detours.items():
-            out, failure = self._set(by_name[name], value)
+            out, failure = self._set(self.results[name], value)
             if not out.ok:
                 return failure or out.unheard or f"{name}: the detour to {value:g} was not confirmed"
         try:
@@ -541,7 +540,7 @@ class _WriteRun:
         except LinkError as exc:
             return str(exc)
         for name in order:
-            r = by_name[name]
+            r = self.results[name]
             out, failure = self._set(r, r.requested)
             ok, echoed, attempts = out.ok, out.echoed, out.attempts
             self.results[r.name] = replace(r, ok=ok, echoed=echoed, attempts=attempts)
@@ -605,8 +604,8 @@ class _WriteRun:
         for name, value in detours.items():
             if link_ok:
                 out, problem = self._set(self.results[name], value, wait)
-                link_ok = out.unheard is None and problem is None
-                self.restore_problem = out.unheard or problem or self.restore_problem
+                if out.unheard is not None or problem is not None:
+                    link_ok, self.restore_problem = False, out.unheard or problem
         try:
             if detours and link_ok:
                 self.link.pump(DETOUR_DWELL_S)
@@ -617,18 +616,13 @@ class _WriteRun:
             if not link_ok:
                 self.results[name] = replace(r, restored=False)
                 continue
-            try:
-                out = _set_and_confirm(
-                    self.link, self.watch, name, r.old, expected_stored_value(r.old, self.table[name][1]),
-                    self.restore_retries, self.timeout_s, self.budget_s, wait, self.table[name][1])
-                ok, echoed, attempts = out.ok, out.echoed, out.attempts
-                if out.unheard is not None:
-                    link_ok, self.restore_problem = False, out.unheard
-            except LinkError as exc:
-                ok, echoed, attempts, link_ok = False, None, 1, False
-                self.restore_problem = str(exc)
-            self.results[name] = replace(r, restored=ok, restore_attempts=attempts,
-                                         echoed=echoed if echoed is not None else r.echoed)
+            out, problem = self._set(r, r.old, wait)
+            if problem is not None:  # the connection failed: one attempt, nothing heard
+                out = _SetOutcome(False, None, 1)
+            if out.unheard is not None or problem is not None:
+                link_ok, self.restore_problem = False, out.unheard or problem
+            self.results[name] = replace(r, restored=out.ok, restore_attempts=out.attempts,
+                                         echoed=out.echoed if out.echoed is not None else r.echoed)
         return link_ok
 
     def _verify_restore(self, wait: Patience) -> None:

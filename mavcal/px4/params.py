@@ -20,7 +20,7 @@ import re
 from collections.abc import Container, Mapping
 from typing import TypedDict
 
-__all__ = ["CHANGE_MIN", "DETOUR_STEP", "calibration_vector", "detoured_order", "MAX_SLOTS", "SCALE_RANGE",
+__all__ = ["DETOUR_STEP", "calibration_vector", "detoured_order", "MAX_SLOTS", "SCALE_RANGE",
            "ROT_INTERNAL", "ROT_CUSTOM", "AccelNames", "MagNames", "accel_names",
            "mag_names", "board_names", "is_int32", "find_slot", "free_slot", "device_ids", "is_px4_params",
            "is_calibration",
@@ -35,13 +35,12 @@ THERMAL_MAG = "TC_M_ENABLE"
 MAG_COMP_TYPE = "CAL_MAG_COMP_TYP"
 MAG_AUTOCAL = "SENS_MAG_AUTOCAL"
 _XYZ = ("X", "Y", "Z")
-#: PX4's calibration library (src/lib/sensor_calibration: ``set_offset``, ``set_scale``,
-#: ``set_offdiagonal``) takes a changed CAL_* vector (OFF, SCALE, ODIAG) into use only when it differs
-#: from the one in use by more than a threshold (Euclidean norm). Seen on the PX4 SITL (main, August
-#: 2026): 0.005 gauss for magnetometer offsets, 0.01 for scales and off-diagonals (0.01 for all in
-#: older sources); each vector on its own, and the values read back new either way
-CHANGE_MIN = 0.01
-#: how far the detour of a changed vector's pivot lies from its target (> 2 thresholds, with margin)
+#: how far the detour of a changed CAL_* vector's pivot lies from its target (see detoured_order). PX4's
+#: calibration library (src/lib/sensor_calibration: ``set_offset``, ``set_scale``, ``set_offdiagonal``)
+#: takes a changed vector (OFF, SCALE, ODIAG) into use only when it differs from the one in use by more
+#: than a threshold (Euclidean norm): seen on the PX4 SITL (main, August 2026) 0.005 gauss for
+#: magnetometer offsets and 0.01 for scales and off-diagonals (0.01 for all in older sources), each
+#: vector on its own, the values reading back new either way. The step exceeds twice any of them.
 DETOUR_STEP = 0.1
 _VECTOR = re.compile(r"^(CAL_(?:ACC|MAG)[0-9]_)([XYZ])(OFF|SCALE|ODIAG)$")
 
@@ -157,7 +156,7 @@ def detoured_order(changes: Mapping[str, float]) -> tuple[dict[str, float], dict
     whole, and the detours to send before them.
 
     PX4 compares each vector with the one in use at every parameter change and ignores a difference
-    up to a threshold (see :data:`CHANGE_MIN`): written one component at a time, a vector's last small
+    up to a threshold (see :data:`DETOUR_STEP`): written one component at a time, a vector's last small
     change is left out of use although it reads back new (seen on the PX4 SITL: a 0.004 change of
     ``CAL_MAG0_ZODIAG`` alone, 2 mGauss; in a calibration's write, 0.3 deg of heading). So one component
     of each vector (its pivot: the first one changed) is first sent :data:`DETOUR_STEP` away from its
@@ -181,10 +180,10 @@ def detoured_order(changes: Mapping[str, float]) -> tuple[dict[str, float], dict
     for n, v in changes.items():
         g = calibration_vector(n)
         members = groups[g] if g is not None else [n]
-        if g is not None and n == members[0] and len(members) > 1:
+        if len(members) > 1 and n == members[0]:
             continue  # the pivot goes last
         out[n] = float(v)
-        if g is not None and n == members[-1] and len(members) > 1:
+        if len(members) > 1 and n == members[-1]:
             out[members[0]] = float(changes[members[0]])
     detours = {}
     for g, members in groups.items():
