@@ -42,16 +42,13 @@ WIDTH, HEIGHT = 1280, 860
 URL = re.compile(r"capture page: (http://127\.0\.0\.1:\d+/\?t=\S+)")
 
 
-PREFIX = ""  # "px4-" with --px4
-
-
-def _shoot(drv: Any, out: Path, name: str, full_height: bool = False) -> Path:
-    """The viewport as ``out/PREFIX name.png`` (``full_height``: the window grown to the whole page first)."""
+def _shoot(drv: Any, out: Path, prefix: str, name: str, full_height: bool = False) -> Path:
+    """The viewport as ``out/<prefix><name>.png`` (``full_height``: the window grown to the whole page first)."""
     if full_height:
         h = int(drv.execute_script("return document.documentElement.scrollHeight"))
         drv.set_window_size(WIDTH, min(max(h + 40, HEIGHT), 1300))
         time.sleep(0.5)
-    path = out / f"{PREFIX}{name}.png"
+    path = out / f"{prefix}{name}.png"
     drv.save_screenshot(str(path))
     print(f"wrote {path} ({path.stat().st_size // 1024} KB)", flush=True)
     return path
@@ -65,14 +62,14 @@ def _url(status: StatusLines, proc: subprocess.Popen) -> str:
                     show=lambda: status.text()[-800:]) and (find() or "")
 
 
-def _drive(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path) -> None:
+def _drive(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path, prefix: str) -> None:
     """Open the page, take the four screenshots, Write and confirm."""
     drv.get(url)
     wait_for("the first advice and the live attitude", lambda: drv.execute_script(
         "return document.querySelectorAll('#scene-live polygon').length") > 3
         and page_text(drv, "pose-words").strip() != "", 120, show=lambda: page_text(drv, "instruction"))
     time.sleep(1.0)  # the ring and the live drawing settle
-    _shoot(drv, out, "capture-start")
+    _shoot(drv, out, prefix, "capture-start")
     hand.start()
 
     def mid() -> bool:
@@ -83,14 +80,14 @@ def _drive(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path)
         return n >= 7 and bool(matched) and holding and fitted and not status()[2]
     wait_for("a mid-capture view (7+ poses, the advised pose matched and held)", mid, 240, poll_s=0.05,
              show=lambda: status.text()[-600:])
-    _shoot(drv, out, "capture-mid")
+    _shoot(drv, out, prefix, "capture-mid")
 
     wait_for("the verdict", lambda: drv.execute_script(
         "return !document.getElementById('result').hidden && !document.getElementById('write').disabled"), 300,
         show=lambda: status.text()[-600:])
     hand.stop()
     time.sleep(0.5)
-    _shoot(drv, out, "capture-verdict", full_height=True)
+    _shoot(drv, out, prefix, "capture-verdict", full_height=True)
 
     drv.find_element("id", "write").click()
     wait_for("the confirmation dialog", lambda: drv.execute_script("return document.getElementById('confirm').open"), 10)
@@ -100,10 +97,10 @@ def _drive(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path)
     drv.execute_script("document.getElementById('write-outcome').scrollIntoView({block: 'center'})")
     drv.set_window_size(WIDTH, HEIGHT)
     time.sleep(0.5)
-    _shoot(drv, out, "capture-written")
+    _shoot(drv, out, prefix, "capture-written")
 
 
-def _drive_reach(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path) -> None:
+def _drive_reach(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out: Path, prefix: str) -> None:
     """--max-tilt: one screenshot, "capture-reach", of the page advising a tilted pose with its
     raised edge on a block (a vehicle that cannot be turned over), once a few poses are held."""
     drv.get(url)
@@ -117,7 +114,7 @@ def _drive_reach(drv: Any, url: str, status: StatusLines, hand: AdviceHand, out:
     wait_for("a tilted pose on its block advised (4+ poses held)", tilted, 240, poll_s=0.05,
              show=lambda: status.text()[-600:])
     time.sleep(1.0)
-    _shoot(drv, out, "capture-reach")
+    _shoot(drv, out, prefix, "capture-reach")
 
 
 @contextlib.contextmanager
@@ -150,7 +147,7 @@ def run(out: Path, seed: int, max_tilt: float | None = None, px4: bool = False) 
                       file=sys.stderr)
                 return 1
             with sitl.netns(), headless_chromium(WIDTH, HEIGHT) as drv:  # the browser in the vehicle's namespace
-                (_drive if max_tilt is None else _drive_reach)(drv, url, status, hand, out)
+                (_drive if max_tilt is None else _drive_reach)(drv, url, status, hand, out, "px4-" if px4 else "")
             if max_tilt is not None:  # the screenshot is taken: nothing is written
                 hand.stop()
                 p.send_signal(signal.SIGINT)
@@ -175,8 +172,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--px4", action="store_true",
                     help="against PX4 SITL (../shared/px4, posed by mavcal's test poser): the images named px4-*.png")
     args = ap.parse_args(argv)
-    global PREFIX
-    PREFIX = "px4-" if args.px4 else ""
     if args.px4:
         from mavcal.testing.px4_sitl import px4_unavailable_reason
 
