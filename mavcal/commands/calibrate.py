@@ -101,6 +101,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fit.add_argument("--force-external", action="store_true",
                      help="internal compass: write COMPASS_EXTERNAL (COMPASS_EXTERNn for compass n) = 2 so its "
                           "misalignment goes into COMPASS_ORIENT")
+    fit.add_argument("--params", metavar="FILE",
+                     help="the vehicle's parameters when the log was recorded (a .param file saved by Mission "
+                          "Planner, QGroundControl or MAVProxy): the calibration in force of the sensors whose "
+                          "parameters the log lacks (without it such a sensor is judged but never written)")
     fit.add_argument("--duration", type=float, default=60.0, metavar="S", help="live source: seconds to record")
     add_save_tlog_argument(fit)
     add_still_arguments(p)
@@ -193,7 +197,7 @@ def _single(args, source: str) -> int:
             say_tlog_saved(args)
         else:
             log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))
-        prep = prepare(log_, opts, progress=progress, owned=True)
+        prep = prepare(log_, opts, progress=progress, owned=True, params=args.params)
         del log_  # handed over: what prepare dropped from it is freed now, not after the fits
         run = calibrate_prepared(prep, opts, progress=progress)
     except MavcalError as exc:  # no fit at all: the JSON still says why, per sensor
@@ -279,9 +283,16 @@ def check_flags(args) -> None:
     if unused and not writes:
         raise UsageError(f"{', '.join(unused)} only appl{'ies' if len(unused) == 1 else 'y'} with --write or "
                          "--dry-run; nothing was done")
+    if args.params and (several or is_device(args.sources[0])):
+        raise UsageError("--params gives the parameters of one recorded log: a single log SOURCE (a live vehicle "
+                         "sends its own); nothing was done")
     if args.save_tlog and not is_device(args.sources[0]):
         raise UsageError("--save-tlog keeps a live recording: SOURCE is a log file already; nothing was done")
     _check_numbers(args)
+    if args.params:  # read before any work: a bad file is refused at once (exit 3)
+        from mavcal.ardupilot.paramfile import read_param_file
+
+        read_param_file(args.params)
     check_save_tlog(args.save_tlog)
     if args.write:
         check_new_backup(args.backup)

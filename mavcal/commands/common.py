@@ -212,7 +212,6 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
     ``param_table`` False leaves the parameter table out of the summary (a write follows, whose
     plan shows the parameters against the vehicle's values).
     """
-    from mavcal.ardupilot.paramfile import write_param_file
     from mavcal.report.json import to_json
     from mavcal.report.text import gate_refusal_text, summary_text
 
@@ -230,12 +229,7 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
             print(gate_refusal_text(run, "use --force"), file=sys.stderr, end="")
         raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
     if args.param_out:
-        values = run.params_to_write(args.force)
-        marks = run.rejected_params() if args.force else {}
-        model = run.calibration.model if run.calibration is not None else "accelerometers alone"
-        write_param_file(args.param_out, values, header=[title, f"model {model}"],
-                         comments={n: f"REJECTED ({why}), written with --force" for n, why in marks.items()
-                                   if n in values})
+        values = run.write_param_file(args.param_out, force=bool(args.force), title=title)
         left = sorted(set(run.mapping.new) - set(values))
         print(f"parameters written to {args.param_out}"
               + (f" ({len(left)} of rejected sensors left out: they keep their current values)" if left else ""),

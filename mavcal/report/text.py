@@ -157,6 +157,13 @@ def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str
     """What to do now, from the verdicts (the hints name the commands: :data:`CLI_HINTS`,
     :data:`MAVPROXY_HINTS`; an empty ``only_hint`` is left out)."""
     code = run.exit_code
+    unknown = run.gates.not_known_sensors()  # never written, not even with --force: say how to get it in
+    if unknown and code != 0:
+        head = "write the accepted sensors' parameters; " if code == 7 else "nothing is written; "
+        others = [x for x in run.gates.rejected_sensors() if x not in unknown]
+        return (f"next: {head}{', '.join(unknown)}: give the parameters in force with --params FILE, or record "
+                "again with them (how: above)" + (f"; {', '.join(others)}: fix the cause named above and record "
+                                                  "again" if others else ""))
     if code == 0:
         return f"next: write the parameters ({write_hint}), then reboot the vehicle"
     if code == 7:
