@@ -107,6 +107,8 @@ def with_param_file(log_: ImuLog, params: PathLike | Mapping[str, float], origin
     """
     from mavcal.ardupilot.paramfile import read_param_file
 
+    # (values as the vehicle holds them, float32: a .param file's "0.001" stands for float32(0.001), the
+    # value a PARAM_VALUE / PARM record carries)
     if isinstance(params, Mapping):
         values = {str(k): float(v) for k, v in params.items()}
         origin = origin or "--params"
@@ -123,7 +125,7 @@ def with_param_file(log_: ImuLog, params: PathLike | Mapping[str, float], origin
             if np.float32(changes[name][1][0]) != np.float32(v):
                 differ.append(name)
             continue
-        changes[name] = (np.array([t0]), np.array([v]))
+        changes[name] = (np.array([t0]), np.array([float(np.float32(v))]))  # the vehicle holds float32
         origins[name] = origin
     warnings = list(log_.warnings)
     if differ:

@@ -521,18 +521,7 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
         mag_out.append(_recover_mag(log_.params, s, events, used, warnings, missing))
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
                  and not (drop_zero_series and not g.any_nonzero()))
-    origin = {f"accel{s.instance}": log_.origin_of(_names_accel(s.instance)) for s in accel_out}
-    origin.update({f"compass{s.instance}": log_.origin_of(_names_compass(s.instance)) if s.instance < fw.MAX_COMPASSES
-                   else "" for s in mag_out})
-    if log_.kind == "csv":  # a CSV never carries parameters: its readings are raw by design, not a warning
-        for w in [w for w in warnings if "readings treated as raw" in w]:
-            warnings.remove(w)
-            log.info("%s", w)
-        missing, origin = {}, {k: "raw readings (a CSV holds no calibration)" for k in origin}
-    else:
-        for sensor, names in missing.items():
-            origin[sensor] = ""
-            log.debug("%s: the calibration in force is not known (%s missing)", sensor, ", ".join(names) or "no slot")
+    missing, origin = _in_force(log_, accel_out, mag_out, missing, warnings)
     log_warnings_once(log, warnings)
     return RawImu(
         source=log_.source,
@@ -548,6 +537,24 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
         cal_origin=origin,
         cal_missing=missing,
     )
+
+
+def _in_force(log_: ImuLog, accel: Sequence[SensorSeries], mag: Sequence[SensorSeries],
+              missing: dict[str, tuple[str, ...]], warnings: list[str]
+              ) -> tuple[dict[str, tuple[str, ...]], dict[str, str]]:
+    """(sensors whose calibration in force is not known with their missing names, where each
+    sensor's came from): :attr:`RawImu.cal_missing` and :attr:`RawImu.cal_origin`."""
+    origin = {f"accel{s.instance}": log_.origin_of(_names_accel(s.instance)) for s in accel}
+    origin.update({f"compass{s.instance}": log_.origin_of(_names_compass(s.instance)) if s.instance < fw.MAX_COMPASSES
+                   else "" for s in mag})
+    if log_.kind == "csv":  # a CSV never carries parameters: its readings are raw by design, not a warning
+        for w in [w for w in warnings if "readings treated as raw" in w]:
+            warnings.remove(w)
+            log.info("%s", w)
+        return {}, {k: "raw readings (a CSV holds no calibration)" for k in origin}
+    for sensor in missing:
+        origin[sensor] = ""
+    return missing, origin
 
 
 def _usable(s: SensorSeries | None, sensor: str, drop_zero: bool, warnings: list[str]) -> SensorSeries | None:

@@ -16,7 +16,8 @@ from mavcal.determined import bound_phrase, joint_unidentified
 __all__ = ["summary_text", "holdout_text", "verdict_lines", "kept_lines", "next_step", "param_rows", "format_value",
            "gate_failures_by_sensor", "param_table", "written_rows",
            "rejection_notes", "plan_text", "gate_refusal_text", "write_done_text",
-           "write_failed_text", "in_doubt_text", "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS"]
+           "write_failed_text", "in_doubt_text", "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS",
+           "in_force_lines"]
 
 #: how the ``mavcal`` command names the next steps (:func:`next_step`)
 CLI_HINTS: dict[str, str] = {"force_hint": "--force", "write_hint": "--write, or load the .param file",
@@ -205,6 +206,16 @@ def holdout_text(run) -> str:
     return f"held-out error: not run ({why})"
 
 
+def in_force_lines(run) -> list[str]:
+    """Where the calibration in force came from, when not (only) from the source itself (a
+    parameter file given with ``--params``): ``calibration in force: --params v.param (accel0)``."""
+    by: dict[str, list[str]] = {}
+    for sensor, origin in run.raw.cal_origin.items():
+        if origin and origin not in ("the recording's parameters", "the vehicle") and not origin.startswith("raw"):
+            by.setdefault(origin, []).append(sensor)
+    return [f"calibration in force: {o} ({', '.join(ss)})" for o, ss in by.items()]
+
+
 def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool = True, force: bool = False) -> str:
     """Short human summary of a run for a terminal.
 
@@ -236,6 +247,7 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
          *kept_lines(run), next_step(run, **(hints or {}))]
     L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
           f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
+    L += in_force_lines(run)
     why_a, why_m = joint_unidentified(run)  # numbers of a sensor the poses do not identify: not printed
     why = why_a or why_m
     if cal is None:
