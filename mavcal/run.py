@@ -228,9 +228,18 @@ class CalibrationRun:
         dict of str to float
             The parameters written (empty: nothing accepted, and the file is still written, empty
             of parameters, so check :attr:`verdict` first).
+
+        Raises
+        ------
+        OutputIsInputError
+            ``path`` is the log the run was read from (nothing written).
+        SourceError
+            The file cannot be written.
         """
         from mavcal.ardupilot.paramfile import write_param_file
+        from mavcal.outputs import check_outputs
 
+        check_outputs([("the .param file", str(path))], [self.source])  # never over the log it came from
         values = self.params_to_write(force)
         marks = self.rejected_params() if force else {}
         model = self.calibration.model if self.calibration is not None else "accelerometers alone"

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from mavcal.errors import GateError, UsageError
+from mavcal.errors import GateError, SourceError, UsageError
 
 __all__ = ["add_json_argument", "json_output", "BACKUP_HELP",
            "parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
@@ -182,10 +182,30 @@ def write_text_output(dest: str, text: str) -> None:
     if dest == "-":
         print(text)
         return
+    from mavcal.outputs import write_atomic
+
     try:
-        Path(dest).write_text(text)
-    except OSError as exc:
-        raise UsageError(f"cannot write {dest}: {exc.strerror or exc}") from None
+        write_atomic(dest, text)  # an interrupted run leaves the old file whole
+    except SourceError as exc:
+        raise UsageError(str(exc)) from None
+
+
+#: the options that name a file a command writes, and those that name a file it reads
+OUTPUT_OPTIONS = ("param_out", "json", "report", "backup", "save_tlog")
+INPUT_OPTIONS = ("sources", "source", "file", "backup_file", "params", "signing_key_file")
+
+
+def check_output_paths(args: argparse.Namespace) -> None:
+    """Before any work: refuse an output that is an input or another output
+    (:func:`mavcal.outputs.check_outputs`, exit code 9)."""
+    from mavcal.outputs import check_outputs
+
+    outs = [(f"--{o.replace('_', '-')}", getattr(args, o, None)) for o in OUTPUT_OPTIONS]
+    ins: list = []
+    for o in INPUT_OPTIONS:
+        v = getattr(args, o, None)
+        ins += list(v) if isinstance(v, (list, tuple)) else [v]
+    check_outputs([(o, p) for o, p in outs if isinstance(p, str)], [p for p in ins if isinstance(p, str)])
 
 
 def check_optional_dependencies(args: argparse.Namespace) -> None:
