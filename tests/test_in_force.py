@@ -227,3 +227,11 @@ def test_params_option_is_checked_before_any_work(stripped, tmp_path, capsys):
     assert main(["calibrate", str(stripped), str(stripped), "--params", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(e.startswith("mavcal: error:") for e in err)
+
+
+def test_qgroundcontrols_parameter_file_is_read(tmp_path):
+    from mavcal.ardupilot.paramfile import parse_param_text
+
+    text = ("# Onboard parameters for Vehicle 1\n#\n# Vehicle-Id Component-Id Name Value Type\n"
+            "1\t1\tCOMPASS_OFS_X\t-141.250000000000000000\t4\n1\t1\tAHRS_ORIENTATION\t0\t2\n")
+    assert parse_param_text(text) == {"COMPASS_OFS_X": -141.25, "AHRS_ORIENTATION": 0.0}

@@ -4,6 +4,8 @@ Format
 ------
 One parameter per line, ``NAME,VALUE`` or ``NAME VALUE`` (any run of spaces, tabs or one
 comma), ``#`` starts a comment (whole line or end of line), blank lines are ignored.
+QGroundControl's saved parameter files (``VEHICLE COMPONENT NAME VALUE TYPE``, tab-separated)
+are read too.
 Values are decimal (``1.5``, ``-2e-07``) or hexadecimal integers (``0x1F``), as
 ``pymavlink.mavparm.MAVParmDict.load`` accepts them. Names are at most 16 characters of
 ``[A-Z0-9_]`` (ArduPilot's ``AP_MAX_NAME_SIZE``).
@@ -117,6 +119,8 @@ def parse_param_text(text: str, source: str = "<text>") -> dict[str, float]:
         if not line:
             continue
         fields = line.replace(",", " ").split()
+        if len(fields) == 5 and all(f.isdigit() for f in (fields[0], fields[1], fields[4])):
+            fields = fields[2:4]  # QGroundControl's "vehicle component NAME VALUE type" (tab-separated)
         if len(fields) != 2:
             raise ParamFileError(
                 f"{source}:{lineno}: expected 'NAME VALUE' or 'NAME,VALUE', got {raw.strip()!r}", lineno)

@@ -396,4 +396,4 @@ def _write(path: Path, text: str) -> None:
     try:
         write_atomic(path, text)
     except SourceError as exc:
-        raise UsageError(str(exc)) from None
+        raise UsageError(f"cannot write the report: {exc}") from None
