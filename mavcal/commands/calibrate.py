@@ -42,7 +42,9 @@ EPILOG = """\
 every accelerometer and compass with data gets its own verdict: accepted, or rejected with
 the reasons (gate, value, limit, what to do). Only the accepted sensors' parameters go into
 --param-out and --write; a rejected sensor keeps its current values (--force includes it,
-its lines marked with the failed gate in the .param file).
+its lines marked with the failed gate in the .param file). A sensor whose calibration in
+force is not in the log (recorded without its parameters) is never written, not even with
+--force: give them with --params FILE, or record with them.
 
 exit codes:
   0  every sensor with data accepted (all written)
@@ -51,6 +53,8 @@ exit codes:
   2  usage error      3  unreadable source or no IMU data
   5  write failed, vehicle restored      6  write failed and restore failed
   8  the vehicle requires MAVLink 2 signing: no or wrong --signing-key (nothing written)
+  9  an output file is an input (the log, --params; also through a link) or another output
+     (refused before any work)
   70 internal error (a bug in mavcal: please report it with the -vv output)
 with --json, a log that was read but could not be calibrated still gets its report: every
 sensor with data rejected with the reason, "exit_code" and "error".
