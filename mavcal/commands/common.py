@@ -244,9 +244,12 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
         write_html(run, args.report, force=bool(args.force))
         print(f"report written to {args.report}", file=say)
     code = run.exit_code
-    if code == 4 and not args.force:
+    forceable = bool(run.params_to_write(True))  # False: only sensors whose calibration in force is not known
+    if code == 4 and not (args.force and forceable):
         if args.param_out or getattr(args, "write", False):
-            print(gate_refusal_text(run, "use --force"), file=sys.stderr, end="")
+            hint = ("use --force" if forceable else "connect again (the parameters must download)"
+                    if run.log.kind == "live" else "give the parameters in force with --params FILE")
+            print(gate_refusal_text(run, hint), file=sys.stderr, end="")
         raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
     if args.param_out:
         values = run.write_param_file(args.param_out, force=bool(args.force), title=title)
