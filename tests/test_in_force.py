@@ -166,6 +166,11 @@ def test_ulog_without_parameters(tmp_path):
     assert full.raw.cal_missing == {} and set(full.raw.cal_origin.values()) == {"the recording's parameters"}
     sensors = {f"accel{i}" for i in prep.raw.accel_instances()} | {f"compass{i}" for i in prep.raw.mag_instances()}
     assert sensors and set(prep.raw.cal_missing) == sensors
+    # only the magnetometers' calibration dropped: the accelerometers' is still known
+    part = tmp_path / "nomag.ulg"
+    assert strip_ulog_params(src, part, ("CAL_MAG",)) > 0
+    missing = prepare(part).raw.cal_missing
+    assert set(missing) == {s for s in sensors if s.startswith("compass")} and missing
 
 
 def _px4_log(kind: str = "ulog", drop=()):

@@ -96,16 +96,21 @@ def strip_bin_params(src: str | Path, dst: str | Path, names: tuple[str, ...] | 
     return n
 
 
-def strip_ulog_params(src: str | Path, dst: str | Path) -> int:
-    """Copy the ULog ``src`` to ``dst`` without its parameter messages ('P', and the defaults 'Q').
-    Returns how many were dropped."""
+def strip_ulog_params(src: str | Path, dst: str | Path, names: tuple[str, ...] | None = None) -> int:
+    """Copy the ULog ``src`` to ``dst`` without its parameter messages ('P', and the defaults 'Q';
+    those whose name starts with one of ``names``, or all). Returns how many were dropped."""
+    drop = _dropper(names)
     data = Path(src).read_bytes()
     out = bytearray(data[:16])
     pos, n = 16, 0
     while pos + 3 <= len(data):
         size, ty = struct.unpack_from("<HB", data, pos)
         rec = data[pos:pos + 3 + size]
-        if ty in (ord("P"), ord("Q")):
+        # 'P': key_len, "type name", value; 'Q': default_types, key_len, "type name", value
+        key_at = 4 if ty == ord("P") else 5
+        key_len = rec[key_at - 1] if len(rec) >= key_at else 0
+        key = rec[key_at:key_at + key_len].decode("ascii", "replace").split(" ")[-1]
+        if ty in (ord("P"), ord("Q")) and drop(key):
             n += 1
         else:
             out += rec
