@@ -52,6 +52,8 @@ exit codes:
   5  write failed, vehicle restored      6  write failed and restore failed
   8  the vehicle requires MAVLink 2 signing: no or wrong --signing-key (nothing written)
   70 internal error (a bug in mavcal: please report it with the -vv output)
+several logs: the worst log's code, worst first: an error, too little data (4), every
+sensor rejected (4), some accepted (7), all accepted (0)
 with --json, a log that was read but could not be calibrated still gets its report: every
 sensor with data rejected with the reason, "exit_code" and "error".
 """
@@ -298,10 +300,10 @@ def run(args) -> int:
         return _single(args, args.sources[0])
     from dataclasses import asdict
 
-    from mavcal.batch import calibrate_many, format_fleet_table
+    from mavcal.batch import calibrate_many, fleet_exit_code, format_fleet_table
 
-    rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1)
+    rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1, csv_rate_hz=csv_rate(args))
     print(format_fleet_table(rows))
     if args.json:
         json_output(args.json, [asdict(r) for r in rows])
-    return max((r.exit_code for r in rows), default=0)
+    return fleet_exit_code(rows)
