@@ -177,6 +177,14 @@ def _field_flag(cm) -> str:
     return f" -- IMPLAUSIBLE: Earth's field is {lo:.0f}-{hi:.0f} mGauss everywhere"
 
 
+def _not_certified(run) -> str:
+    """The joint fit is not certified as the optimum: what that means for what is written (its
+    compass fails its "converged" gate; the accelerometer is judged, and written, on its own fit)."""
+    a, m = run.mapping.accel[0].instance, run.mapping.compass[0].instance
+    return (f"the joint fit of accel{a} + compass{m} is not certified as the global optimum: compass{m} is "
+            f"rejected for it (gate converged), accel{a} is judged and written from its own fit")
+
+
 def holdout_text(run) -> str:
     """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
     q = run.quality
@@ -238,8 +246,8 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
             L.append(f"model: {cal.model} (the choice of model is not determined: {why})")
         else:
             L.append(f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}")
-        if not cal.converged:
-            L.append("the fit did NOT converge: treat the result with caution")
+        if not cal.converged and not why and run.mapping.accel and run.mapping.compass:
+            L.append(_not_certified(run))
     if cal is not None and run.mapping.accel and run.mapping.compass:
         L.append(f"joint fit of accel{run.mapping.accel[0].instance} + compass{run.mapping.compass[0].instance} "
                  "(each sensor's own numbers are in its verdict):")
