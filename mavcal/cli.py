@@ -65,7 +65,7 @@ def _global_options(parser: argparse.ArgumentParser, default) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot.")
+    parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot and PX4.")
     parser.add_argument("--version", action=_Version, help="show mavcal's version and exit")
     _global_options(parser, None)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)

@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.epilog = EPILOG  # exit codes in --help
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("sources", nargs="+", metavar="SOURCE",
-                   help="log file(s) (.tlog, .bin, .log, .csv) or one MAVLink device "
+                   help="log file(s) (.tlog, .bin, .log, .ulg, .csv) or one MAVLink device "
                         "(udpin:..., tcp:..., /dev/ttyACM0)")
     out = p.add_argument_group("outputs")
     out.add_argument("--param-out", metavar="F",

@@ -45,7 +45,8 @@ exit codes:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG  # exit codes in --help
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("source", metavar="SOURCE", nargs="?", help="log file (.tlog, .bin, .csv) or MAVLink device")
+    parser.add_argument("source", metavar="SOURCE", nargs="?",
+                        help="log file (.tlog, .bin, .log, .ulg, .csv) or MAVLink device")
     add_json_argument(parser, "the intervals and coverage as JSON")
     parser.add_argument("--no-recover", action="store_true",
                         help="segment the readings as logged (skip undoing the vehicle's calibration)")
