@@ -64,7 +64,7 @@ HELP = "calibrate from a log or a live link, check quality, write .param/JSON/HT
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.epilog = EPILOG  # exit codes in --help
     p.formatter_class = argparse.RawDescriptionHelpFormatter
-    p.add_argument("sources", nargs="+", metavar="SOURCE",
+    p.add_argument("sources", nargs="*", metavar="SOURCE",
                    help="log file(s) (.tlog, .bin, .log, .ulg, .csv) or one MAVLink device "
                         "(udpin:..., tcp:..., /dev/ttyACM0)")
     out = p.add_argument_group("outputs")
@@ -261,8 +261,12 @@ def _check_numbers(args) -> None:
 def check_flags(args) -> None:
     """Refuse (UsageError, exit 2) every combination of options that cannot work, before the
     source is read: nothing is done and the message names the options the user gave."""
+    from mavcal.commands.common import json_source_switch
     from mavcal.sources.reader import is_device
 
+    args.sources = json_source_switch(args, list(args.sources))  # `calibrate --json LOG`: LOG, JSON on stdout
+    if not args.sources:
+        raise UsageError("calibrate needs a SOURCE: a log file, several, or a MAVLink device")
     several = len(args.sources) > 1
     if several and (args.write or args.dry_run or args.param_out or args.report):
         raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE")

@@ -225,11 +225,13 @@ def reach(seg):
 
 def _source(args) -> str:
     """SOURCE; ``segments --json LOG`` (the old switch before the log) still reads LOG."""
+    from mavcal.commands.common import json_source_switch
+
+    if args.source is None and args.json not in (None, "-"):
+        args.source, args.json = args.json, "-"
     if args.source is None:
-        if args.json not in (None, "-"):
-            args.source, args.json = args.json, "-"
-        else:
-            raise UsageError("segments needs a SOURCE (a log file or a MAVLink device)")
+        raise UsageError("segments needs a SOURCE (a log file or a MAVLink device)")
+    json_source_switch(args, [args.source])  # never a log as the JSON file
     return str(args.source)
 
 

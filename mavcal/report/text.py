@@ -20,6 +20,7 @@ __all__ = ["summary_text", "holdout_text", "verdict_lines", "kept_lines", "next_
 
 #: how the ``mavcal`` command names the next steps (:func:`next_step`)
 CLI_HINTS: dict[str, str] = {"force_hint": "--force", "write_hint": "--write, or load the .param file",
+                             "write_hint_log": "--write --connect DEVICE, or load the .param file",
                              "only_hint": "--accel-only / --compass-only"}
 #: how the MAVProxy module names them
 MAVPROXY_HINTS: dict[str, str] = {"force_hint": "'mavcal set force 1'", "write_hint": "'mavcal write'",
@@ -153,12 +154,19 @@ def kept_lines(run) -> list[str]:
 
 
 def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str = CLI_HINTS["write_hint"],
-              only_hint: str = CLI_HINTS["only_hint"]) -> str:
+              only_hint: str = CLI_HINTS["only_hint"], write_hint_log: str | None = None) -> str:
     """What to do now, from the verdicts (the hints name the commands: :data:`CLI_HINTS`,
-    :data:`MAVPROXY_HINTS`; an empty ``only_hint`` is left out)."""
+    :data:`MAVPROXY_HINTS`; an empty ``only_hint`` is left out). ``write_hint_log`` is how to
+    write after a log rather than a live recording (the command line's ``--write`` then needs
+    ``--connect``); None: ``write_hint`` (and, with the default ``write_hint``, the command
+    line's)."""
     code = run.exit_code
     if code == 0:
-        return f"next: write the parameters ({write_hint}), then reboot the vehicle"
+        if write_hint_log is None and write_hint == CLI_HINTS["write_hint"]:
+            write_hint_log = CLI_HINTS["write_hint_log"]
+        live = getattr(getattr(run, "log", None), "kind", None) == "live"
+        hint = write_hint if live or write_hint_log is None else write_hint_log
+        return f"next: write the parameters ({hint}), then reboot the vehicle"
     if code == 7:
         bad = ", ".join(run.gates.rejected_sensors())
         only = f"{only_hint}, or " if only_hint else ""
@@ -322,7 +330,7 @@ def _lines(lines: Sequence[str], prefix: str) -> str:
 
 def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
     """Why nothing is written: the quality gates that failed, and how to override."""
-    fails = "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures())
+    fails = "; ".join(f"{s} {why}" for s, why in rejection_notes(run).items())  # the verdicts' gates
     return _lines([f"nothing written: the calibration failed a quality gate ({fails}); {override_hint} to override"],
                   prefix)
 
