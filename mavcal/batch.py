@@ -20,16 +20,18 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.gates import SensorVerdict
 from mavcal.autopilot import model_for
-from mavcal.determined import determined, joint_unidentified
+from mavcal.determined import determined, joint_unidentified, unidentified
 from mavcal.errors import EXIT_PARTIAL, GateError, MavcalError, UsageError
 from mavcal.workers import ForkPool, Outcome
+
+if TYPE_CHECKING:
+    from mavcal.ardupilot.gates import SensorVerdict
 
 log = logging.getLogger(__name__)
 
@@ -201,8 +203,6 @@ def _identity(log_, params: dict[str, float], ai: int, mi: int) -> dict:
 
 
 def _row_from_run(source: str, run, ai: int, mi: int, elapsed: float) -> BatchRow:
-    from mavcal.determined import unidentified
-
     am = run.mapping.accel[0] if run.mapping.accel else None
     cm = run.mapping.compass[0] if run.mapping.compass else None
     old = dict(run.mapping.old)

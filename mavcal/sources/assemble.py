@@ -354,12 +354,9 @@ def _int_values(c: Mapping[str, np.ndarray], sensor: str, names: Sequence[str], 
 
 
 def _zero_imu_warning(out: _SeriesSet, name: str, inst: int, nz: int, n: int) -> None:
-    """Some all-zero rows of an IMU: a warning (samples dropped). All of them: the vehicle has no
-    IMU ``inst`` and ArduPilot streams the message for its compass alone (SITL's SCALED_IMU3, a
-    board with one IMU's SCALED_IMU2): nothing is wrong, so it is said at INFO only."""
     if nz and nz < n:
         out.warns.append(f"dropped {nz} {name} samples with all-zero accel and gyro")
-    elif nz:
+    elif nz:  # no such IMU: the message is streamed for its compass (SITL's SCALED_IMU3): nothing wrong
         log.info("%s: accel and gyro are all zero (no IMU %d); used its mag only", name, inst + 1)
 
 
