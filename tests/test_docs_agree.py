@@ -172,6 +172,16 @@ def test_json_dash_before_the_log_writes_stdout(capsys):
     assert json.loads(cap.out)["exit_code"] == 0 and cap.err.startswith("ACCEPTED:")
 
 
+def test_json_dash_of_many_logs_is_the_json_alone(tmp_path, capsys):
+    """docs/commands.md: ``--json -`` writes the JSON alone to stdout, the text to stderr; many logs too."""
+    bad = tmp_path / "bad.tlog"
+    bad.write_bytes(b"\x00" * 100)
+    assert main(["calibrate", str(SITL02), str(bad), "--json", "-"]) == 3
+    cap = capsys.readouterr()
+    rows = json.loads(cap.out)
+    assert [r["exit_code"] for r in rows] == [0, 3] and "VEHICLE" in cap.err and "2 logs:" in cap.err
+
+
 @pytest.mark.parametrize("cmd", [["calibrate", "x.tlog", "--bogus"], ["segments", "x.tlog", "--bogus"],
                                  ["apply", "x.param", "--connect", "udp:127.0.0.1:1", "--bogus"]])
 def test_a_wrong_flag_shows_its_subcommands_usage(capsys, cmd):

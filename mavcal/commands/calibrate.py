@@ -307,7 +307,7 @@ def run(args) -> int:
     from mavcal.batch import calibrate_many, fleet_exit_code, format_fleet_table
 
     rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1, csv_rate_hz=csv_rate(args))
-    print(format_fleet_table(rows))
+    print(format_fleet_table(rows), file=sys.stderr if args.json == "-" else sys.stdout)  # --json -: JSON alone
     if args.json:
         json_output(args.json, [asdict(r) for r in rows])
     return fleet_exit_code(rows)
