@@ -1,4 +1,4 @@
-"""mavcal: joint accelerometer + magnetometer calibration for ArduPilot over MAVLink.
+"""mavcal: joint accelerometer + magnetometer calibration for ArduPilot and PX4 over MAVLink.
 
 Public API
 ----------

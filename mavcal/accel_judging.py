@@ -55,6 +55,8 @@ def judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own:
     mi = opts.mag_instance
     mi_ok = all(g.ok for g in runs[0].gates.gates)
     joint = {r.mapping.accel[0].instance: r for r in runs if r.mapping.compass[0].instance == mi}
+    # a joint fit not certified as the optimum is never written (the primary's fails its compass's gate)
+    unconverged = {a for a, r in joint.items() if r.calibration is not None and not r.calibration.converged}
     accels: list[AccelMapping] = []
     fits: list[tuple[int, AccelFit]] = []
     gates: list[gates_mod.Gate] = []
@@ -62,8 +64,9 @@ def judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own:
         try:
             if not ok:
                 raise res
-            am, ag, fit, _, _ = judge_accel(prep, opts, a, joint[a].mapping.accel[0] if a in joint and mi_ok
-                                            else None, res, warnings)
+            use_joint = a in joint and mi_ok and a not in unconverged
+            am, ag, fit, _, _ = judge_accel(prep, opts, a, joint[a].mapping.accel[0] if use_joint else None, res,
+                                            warnings)
         except MavcalError as exc:
             warnings.append(f"accelerometer {a} not calibrated: {exc}")
             if isinstance(exc, WorkerDiedError):
@@ -75,6 +78,9 @@ def judge_accels(prep: Prepared, opts: Options, runs: list[CalibrationRun], own:
         if a in joint and not mi_ok and all(g.ok for g in ag):  # (a rejected one is not written at all)
             warnings.append(f"accelerometer {a} written from its own fit: compass {mi}, its joint partner, "
                             "was rejected")
+        elif a in joint and a in unconverged and all(g.ok for g in ag):
+            warnings.append(f"accelerometer {a} written from its own fit: its joint fit with compass {mi} is not "
+                            "certified as the optimum")
     return accels, fits, gates
 
 

@@ -20,18 +20,22 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.autopilot import model_for
-from mavcal.errors import MavcalError, UsageError
+from mavcal.determined import determined, joint_unidentified, unidentified
+from mavcal.errors import EXIT_PARTIAL, GateError, MavcalError, UsageError
 from mavcal.workers import ForkPool, Outcome
+
+if TYPE_CHECKING:
+    from mavcal.ardupilot.gates import SensorVerdict
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BatchRow", "calibrate_many", "format_fleet_table", "MAX_TASKS_PER_CHILD",
+__all__ = ["BatchRow", "calibrate_many", "format_fleet_table", "fleet_exit_code", "MAX_TASKS_PER_CHILD",
            "DRIFT_COMPASS_MGAUSS", "DRIFT_ACCEL_OFS_MPS2", "DRIFT_ACCEL_SCALE"]
 
 #: Logs a worker process handles before it is replaced (bounds fragmentation growth).
@@ -67,11 +71,25 @@ class BatchRow:
     compass_dev_id, accel_id : COMPASS_DEV_ID(n) / INS_ACC(n)_ID of the calibrated instances.
     accel_instance, compass_instance : int
     accepted : bool or None
-        All quality gates passed.
+        Every sensor accepted (all quality gates passed).
+    sensors : tuple of SensorVerdict
+        One verdict per sensor with data, exactly those of ``mavcal calibrate`` of this log
+        alone (its JSON's ``"sensors"``): accepted, or rejected with the reasons shown; for a
+        log that could not be calibrated, every sensor with data rejected with why.
     failed_gates : tuple of str
-        ``"sensor gate: reason"`` per failed gate.
+        ``"sensor reason"`` per reason of a rejected sensor's verdict (the reasons the summary
+        of this log alone shows: the data's cause alone when the poses cannot identify it).
     heading_95_deg, tilt_95_deg : float or None
         95 % bounds of the heading and tilt error with the new parameters.
+    heading_determined, tilt_determined : bool or None
+        Whether those bounds are estimates (the JSON's ``quality`` flags): False when the poses
+        do not identify the pair's sensors or the bound is above 90 / 45 deg; the table then
+        says "not determined", as the summary does.
+    not_determined_why : str
+        Why not ("" when determined).
+    compass_determined, accel_determined : bool or None
+        Whether the poses identify the compass / accelerometer of the row (the offsets'
+        changes of one they do not identify are "not determined" in the table and no drift).
     compass_ofs_old, compass_ofs_new : (3,) tuples (mGauss) or None
     compass_ofs_change_mgauss : float or None
         |new - old| of the compass offsets (None when the log has no old values).
@@ -101,9 +119,15 @@ class BatchRow:
     accel_instance: int = 0
     compass_instance: int = 0
     accepted: bool | None = None
+    sensors: tuple[SensorVerdict, ...] = ()
     failed_gates: tuple[str, ...] = ()
     heading_95_deg: float | None = None
     tilt_95_deg: float | None = None
+    heading_determined: bool | None = None
+    tilt_determined: bool | None = None
+    not_determined_why: str = ""
+    compass_determined: bool | None = None
+    accel_determined: bool | None = None
     compass_ofs_old: Vec3 | None = None
     compass_ofs_new: Vec3 | None = None
     compass_ofs_change_mgauss: float | None = None
@@ -130,11 +154,24 @@ class BatchRow:
 
     @property
     def drift(self) -> float | None:
-        """Largest change relative to its flag threshold (>= 1: drifted); None if unknown."""
-        terms = [c / t for c, t in ((self.compass_ofs_change_mgauss, DRIFT_COMPASS_MGAUSS),
-                                    (self.accel_ofs_change_mps2, DRIFT_ACCEL_OFS_MPS2),
-                                    (self.accel_scale_change, DRIFT_ACCEL_SCALE)) if c is not None]
+        """Largest change relative to its flag threshold (>= 1: drifted); None if unknown (a
+        change of a sensor the poses do not identify is not known)."""
+        mag, acc = self.compass_determined is not False, self.accel_determined is not False
+        terms = [c / t for c, t, known in ((self.compass_ofs_change_mgauss, DRIFT_COMPASS_MGAUSS, mag),
+                                           (self.accel_ofs_change_mps2, DRIFT_ACCEL_OFS_MPS2, acc),
+                                           (self.accel_scale_change, DRIFT_ACCEL_SCALE, acc))
+                 if c is not None and known]
         return max(terms) if terms else None
+
+    @property
+    def result(self) -> str:
+        """The verdict in the words of the single log's summary: ``ACCEPTED``, ``PARTLY
+        ACCEPTED (1 of 3)``, ``REJECTED``, or ``ERROR <exit code>``."""
+        if not self.ok:
+            return f"ERROR {self.exit_code}"
+        if self.exit_code == EXIT_PARTIAL:
+            return f"PARTLY ACCEPTED ({sum(v.accepted for v in self.sensors)} of {len(self.sensors)})"
+        return "ACCEPTED" if self.exit_code == 0 else "REJECTED"
 
 
 # --------------------------------------------------------------------------- worker
@@ -180,14 +217,20 @@ def _row_from_run(source: str, run, ai: int, mi: int, elapsed: float) -> BatchRo
         an = fw.accel_param_names(am.instance)
         a_old, a_new = _vec(am.old.ofs_mps2) if px4 else _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
         s_old, s_new = _vec(am.old.scale) if px4 else _old_vec(old, an["scale"]), _vec(am.new.scale)
-    fails = tuple(f"{g.sensor} {g.name}: {g.reason}" if g.reason else f"{g.sensor} {g.name}"
-                  for g in run.gates.failures())
+    verdicts = tuple(run.verdicts)  # the single log's own (the data's cause alone when it applies)
+    why_a, why_m = joint_unidentified(run)
+    q = run.quality
     return BatchRow(
         source=source, ok=True, exit_code=int(run.exit_code),
         **_identity(run.log, dict(run.params_before), ai, mi),
         accel_instance=am.instance if am else ai, compass_instance=cm.instance if cm else mi,
-        accepted=bool(run.accepted), failed_gates=fails,
-        heading_95_deg=float(run.quality.heading_95_deg), tilt_95_deg=float(run.quality.tilt_95_deg),
+        accepted=bool(run.accepted), sensors=verdicts,
+        failed_gates=tuple(f"{v.sensor} {r}" for v in verdicts for r in v.reasons),
+        heading_95_deg=float(q.heading_95_deg), tilt_95_deg=float(q.tilt_95_deg),
+        heading_determined=not (why_a or why_m) and determined("heading", q.heading_95_deg),
+        tilt_determined=not why_a and determined("tilt", q.tilt_95_deg), not_determined_why=why_a or why_m,
+        compass_determined=None if cm is None else not unidentified(run, f"compass{cm.instance}"),
+        accel_determined=None if am is None else not unidentified(run, f"accel{am.instance}"),
         compass_ofs_old=c_old, compass_ofs_new=c_new,
         compass_ofs_change_mgauss=None if c_old is None or c_new is None else
          float(np.linalg.norm(np.subtract(c_new, c_old))),
@@ -202,38 +245,62 @@ def _row_from_run(source: str, run, ai: int, mi: int, elapsed: float) -> BatchRo
         elapsed_s=float(elapsed))
 
 
-def _calibrate_one(source: str, options) -> BatchRow:
-    """Calibrate one log and keep only its summary (runs in a worker process)."""
-    from mavcal.pipeline import calibrate_prepared, prepare
+@dataclass(frozen=True)
+class _Job:
+    """What every log of a batch is calibrated with (inherited by the workers)."""
+
+    options: object  # mavcal.pipeline.Options
+    csv_rate_hz: float | None = None
+
+
+def _calibrate_one(source: str, options, csv_rate_hz: float | None = None) -> BatchRow:
+    """Calibrate one log and keep only its summary (runs in a worker process).
+
+    The same steps as ``mavcal calibrate LOG`` of this log alone (read with ``--csv-rate``,
+    prepare the log read, fit; a refusal's message with its hint and every sensor's verdict),
+    so that its row is that log's verdict, whatever the path."""
+    from mavcal.commands.segments import csv_rate_hint
+    from mavcal.errors import InsufficientDataError
+    from mavcal.pipeline import calibrate_prepared, prepare, refusal_verdicts
+    from mavcal.sources.reader import DEFAULT_CSV_RATE_HZ, read_log
 
     ai, mi = options.accel_instance, options.mag_instance
     t0 = time.perf_counter()
     ident: dict = {}
+    prep = None
     try:
-        prep = prepare(source, options)
+        log_ = read_log(source, csv_rate_hz=DEFAULT_CSV_RATE_HZ if csv_rate_hz is None else csv_rate_hz)
+        prep = prepare(log_, options, owned=True)
+        del log_
         ident = _identity(prep.log, prep.log.params.snapshot(), ai, mi)
         run = calibrate_prepared(prep, options)
-        del prep
+        prep = None  # what the run does not hold is freed now
         return _row_from_run(source, run, ai, mi, time.perf_counter() - t0)
     except MavcalError as exc:
         log.info("%s: %s", source, exc)
-        return BatchRow(source=source, ok=False, error=str(exc), exit_code=int(exc.exit_code), accel_instance=ai,
-                        compass_instance=mi, elapsed_s=time.perf_counter() - t0, **ident)
+        hint = csv_rate_hint(prep.log if prep is not None else None)
+        error = f"{exc}{hint}" if hint and isinstance(exc, InsufficientDataError) else str(exc)
+        told = exc if error == str(exc) else type(exc)(error)
+        verdicts = refusal_verdicts(prep, told, options) if prep is not None else ()
+        return BatchRow(source=source, ok=False, error=error, exit_code=int(exc.exit_code), accel_instance=ai,
+                        compass_instance=mi, sensors=tuple(verdicts),
+                        failed_gates=tuple(f"{v.sensor} {r}" for v in verdicts for r in v.reasons),
+                        elapsed_s=time.perf_counter() - t0, **ident)
     except Exception as exc:  # a bug or a resource limit: report it, keep the batch going
         log.exception("%s: unexpected error", source)
         return BatchRow(source=source, ok=False, error=f"unexpected {type(exc).__name__}: {exc}", exit_code=1,
                         accel_instance=ai, compass_instance=mi, elapsed_s=time.perf_counter() - t0, **ident)
 
 
-def _calibrate_indexed(options, item: tuple[int, str]) -> BatchRow:
+def _calibrate_indexed(job: _Job, item: tuple[int, str]) -> BatchRow:
     """:func:`_calibrate_one` as a :class:`~mavcal.workers.ForkPool` job (``item``: index, source)."""
-    return _calibrate_one(item[1], options)
+    return _calibrate_one(item[1], job.options, job.csv_rate_hz)
 
 
 # --------------------------------------------------------------------------- batch
 
 def calibrate_many(sources: list[str], options, jobs: int = 1, *,
-                   progress: ProgressFn | None = None) -> list[BatchRow]:
+                   progress: ProgressFn | None = None, csv_rate_hz: float | None = None) -> list[BatchRow]:
     """Calibrate many logs, in parallel worker processes when ``jobs > 1``.
 
     Parameters
@@ -247,6 +314,8 @@ def calibrate_many(sources: list[str], options, jobs: int = 1, *,
         logs nor :func:`mavcal.workers.worker_limit`.
     progress : callable ``(done, total, row)``, optional
         Called in this process after each log, in completion order.
+    csv_rate_hz : float, optional
+        Sample rate of a CSV log without a time column (``--csv-rate``; default the reader's).
 
     Returns
     -------
@@ -282,7 +351,7 @@ def calibrate_many(sources: list[str], options, jobs: int = 1, *,
         finish(i, row)
         return []
 
-    with ForkPool(options, min(int(jobs), total), max_tasks=MAX_TASKS_PER_CHILD) as pool:
+    with ForkPool(_Job(options, csv_rate_hz), min(int(jobs), total), max_tasks=MAX_TASKS_PER_CHILD) as pool:
         pool.run(_calibrate_indexed, list(enumerate(sources)), then)
     return [r for r in rows if r is not None]
 
@@ -318,29 +387,70 @@ def _ids(r: BatchRow) -> list[str]:
             f"{r.accel_instance}({r.accel_id if r.accel_id is not None else '?'})"]
 
 
+#: the table's words for a number the data do not determine (the summary's)
+NOT_DETERMINED = "not determined"
+
+
 def _ok_cells(r: BatchRow, name: str) -> list[str]:
-    ofs = ("-" if r.compass_ofs_new is None else
+    nd_mag, nd_acc = r.compass_determined is False, r.accel_determined is False
+    ofs = ("-" if r.compass_ofs_new is None else NOT_DETERMINED if nd_mag else
            ("?" if r.compass_ofs_old is None else "(" + ",".join(f"{v:.0f}" for v in r.compass_ofs_old) + ")")
            + " -> (" + ",".join(f"{v:.0f}" for v in r.compass_ofs_new) + ")")
-    return _ids(r) + [name, "accepted" if r.accepted else "REJECTED", _f(r.compass_ofs_change_mgauss, ".1f"), ofs,
-                      _f(r.accel_ofs_change_mps2, ".3f"), _f(r.accel_scale_change, ".4f"),
-                      _f(r.heading_95_deg, ".2f"), _f(r.tilt_95_deg, ".3f"), r.model or "-",
+
+    def known(v: float | None, fmt: str, ok: bool | None) -> str:
+        return NOT_DETERMINED if ok is False and v is not None else _f(v, fmt)
+
+    return _ids(r) + [name, r.result, known(r.compass_ofs_change_mgauss, ".1f", not nd_mag), ofs,
+                      known(r.accel_ofs_change_mps2, ".3f", not nd_acc), known(r.accel_scale_change, ".4f", not nd_acc),
+                      known(r.heading_95_deg, ".2f", r.heading_determined),
+                      known(r.tilt_95_deg, ".3f", r.tilt_determined), r.model or "-",
                       "-" if r.n_intervals is None else str(r.n_intervals),
                       ("DRIFT" if r.accepted else "drift?") if _score(r) >= 1.0 else ""]
 
 
 def _footer(rows: Sequence[BatchRow], names: dict[str, str], n_failed: int, n_groups: int) -> list[str]:
-    n_ok = len(rows) - n_failed
     drifted = [names[r.source] for r in rows if r.ok and r.accepted and _score(r) >= 1.0]
     unsure = [names[r.source] for r in rows if r.ok and not r.accepted and _score(r) >= 1.0]
-    n_acc = sum(1 for r in rows if r.ok and r.accepted)
-    out = ["", f"{len(rows)} logs: {n_acc} accepted, {n_ok - n_acc} rejected by the gates, {n_failed} failed; "
-               f"{n_groups} vehicle/instance group(s)",
+    n_acc = sum(1 for r in rows if r.ok and r.exit_code == 0)
+    n_part = sum(1 for r in rows if r.ok and r.exit_code == EXIT_PARTIAL)
+    n_rej = len(rows) - n_failed - n_acc - n_part
+    out = ["", f"{len(rows)} logs: {n_acc} accepted, {n_part} partly accepted, {n_rej} rejected by the gates, "
+               f"{n_failed} failed; {n_groups} vehicle/instance group(s); exit code {fleet_exit_code(rows)} "
+               "(the worst log's)",
            (f"drifted (compass offsets > {DRIFT_COMPASS_MGAUSS:g} mGauss, accel offsets > {DRIFT_ACCEL_OFS_MPS2:g} "
             f"m/s^2 or scale > {DRIFT_ACCEL_SCALE:g}): " + ", ".join(drifted))
            if drifted else "no accepted calibration drifted beyond the thresholds"]
     if unsure:
         out.append("large changes in rejected calibrations (not trustworthy, see the gates): " + ", ".join(unsure))
+    return out
+
+
+def _rank(r: BatchRow) -> tuple[int, int]:
+    """How bad a row's outcome is (larger: worse), :func:`fleet_exit_code`'s order."""
+    if not r.ok:
+        return (4, r.exit_code) if r.exit_code != GateError.exit_code else (3, 0)
+    return ({0: 0, EXIT_PARTIAL: 1}.get(r.exit_code, 2), r.exit_code)
+
+
+def fleet_exit_code(rows: Sequence[BatchRow]) -> int:
+    """The exit code of a many-log run: the worst row's, in this order (worst first): a log that
+    failed with an error (the largest such code: 70 an internal error, 8 signing, 3 unreadable
+    ...), a log too short to calibrate (4), a log whose every sensor was rejected (4), a
+    partial acceptance (7), full acceptance (0). No rows: 0."""
+    return max(rows, key=_rank).exit_code if rows else 0
+
+
+def _verdict_lines(r: BatchRow) -> list[str]:
+    """What the summary of the log alone says of its sensors: each rejected sensor and its reasons."""
+    if not r.ok:
+        return [f"    {r.error}"]
+    if not r.sensors:  # a row made without verdicts (older callers): its failed gates
+        return [f"    gate {fg}" for fg in r.failed_gates]
+    out = []
+    for v in r.sensors:
+        if not v.accepted:
+            out.append(f"    {v.sensor}: REJECTED")
+            out += [f"        {reason}" for reason in v.reasons]
     return out
 
 
@@ -359,8 +469,10 @@ def format_fleet_table(rows: Sequence[BatchRow]) -> str:
         largest calibration change relative to the drift thresholds
         (:data:`DRIFT_COMPASS_MGAUSS`, :data:`DRIFT_ACCEL_OFS_MPS2`,
         :data:`DRIFT_ACCEL_SCALE`), ``DRIFT`` marking accepted calibrations beyond them
-        (``drift?`` for rejected ones, whose values are not trustworthy); failed logs
-        last with their error; then a count line and the drifted logs by name.
+        (``drift?`` for rejected ones, whose values are not trustworthy); under each line
+        its rejected sensors with the reasons of its own summary; "not determined" where the
+        summary says so; failed logs last with their error; then a count line with the exit
+        code (:func:`fleet_exit_code`) and the drifted logs by name.
     """
     rows = list(rows)
     if not rows:
@@ -384,8 +496,5 @@ def format_fleet_table(rows: Sequence[BatchRow]) -> str:
     out = [line(_HEADER), line(["-" * w for w in widths])]
     for t, r in zip(table, ordered + failed):
         out.append(line(t))
-        if not r.ok:
-            out.append(f"    {r.error}")
-        elif r.failed_gates:
-            out += [f"    gate {fg}" for fg in r.failed_gates]
+        out += _verdict_lines(r)
     return "\n".join(out + _footer(rows, names, len(failed), len(groups)))

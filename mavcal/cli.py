@@ -61,11 +61,11 @@ def _global_options(parser: argparse.ArgumentParser, default) -> None:
     parser.add_argument("-v", "--verbose", action="count", default=0 if default is None else default,
                         help="more log output (-vv for debug)")
     parser.add_argument("-q", "--quiet", action="store_true", default=False if default is None else default,
-                        help="only errors")
+                        help="only errors on stderr: no warnings, notes or progress (the results still print)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot.")
+    parser = _Parser(prog="mavcal", description="Joint accelerometer + compass calibration for ArduPilot and PX4.")
     parser.add_argument("--version", action=_Version, help="show mavcal's version and exit")
     _global_options(parser, None)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
         _global_options(p, argparse.SUPPRESS)
-        p.set_defaults(_run=mod.run)
+        p.set_defaults(_run=mod.run, _parser=p)
     return parser
 
 
@@ -98,7 +98,9 @@ def main(argv: list[str] | None = None) -> int:
     # unless the user chose otherwise (read when numpy is first imported, i.e. after this)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # a wrong option of a subcommand: its usage, not the top level's
+        getattr(args, "_parser", parser).error(f"unrecognized arguments: {' '.join(extra)}")
     if not getattr(args, "_run", None):
         parser.print_help(sys.stderr)
         return 2

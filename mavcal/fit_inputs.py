@@ -39,7 +39,8 @@ def stats_of(prep: Prepared, cache: StatsCache, kind: str, inst: int, used: list
     numbers, to the bit, as each computing them from the readings)."""
     key = (kind, inst, tuple(used))
     if key not in cache:
-        cache[key] = interval_stats(sets(prep, kind, inst, used), f"{kind}_sets",
+        who = f"{'accelerometer' if kind == 'accel' else 'compass'} {inst}"  # a person's words, not the API's
+        cache[key] = interval_stats(sets(prep, kind, inst, used), who,
                                     noise_floor=noise_floor(prep, kind, inst), per_interval=True)
     return cache[key]
 

@@ -174,7 +174,7 @@ def _prefill_stats(prep: Prepared, jobs: list[Options], stats: StatsCache, accel
     wanted = []
     for o in jobs:
         try:
-            used = _intervals_of_pair(prep, o.accel_instance, o.mag_instance)
+            used = _intervals_of_pair(prep, o.accel_instance, o.mag_instance, o)
         except MavcalError:
             continue
         wanted += [("accel", o.accel_instance, used), ("mag", o.mag_instance, used)]
@@ -288,9 +288,10 @@ def _n_orientations(dirs: np.ndarray, seg: Segmentation) -> int:
     return len(centres)
 
 
-def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
+def _intervals_of_pair(prep: Prepared, ai: int, mi: int, opts: Options = Options()) -> list[int]:
     """The still intervals holding samples of both accelerometer ``ai`` and compass ``mi``;
-    InsufficientDataError/SourceError when too few for any model."""
+    InsufficientDataError/SourceError when too few for any model (saying how many ``opts``'
+    gates accept: never fewer than the poses the coverage messages ask for)."""
     log_, raw, seg = prep.log, prep.raw, prep.segmentation
     none = np.empty((0, 3))
     used = [k for k, iv in enumerate(seg.intervals)
@@ -306,9 +307,10 @@ def _intervals_of_pair(prep: Prepared, ai: int, mi: int) -> list[int]:
     if len(used) < n_min:
         why = "; ".join(blind_cal(prep) + list(seg.coverage.messages)) \
             or f"{seg.coverage.n_orientations} distinct orientation(s)"
+        need = max(n_min, coverage_rule(opts, seg).min_orientations)  # what a verdict accepts, not a fit's least
         raise InsufficientDataError(
             f"{log_.source}: {len(used)} still interval(s) with accelerometer {ai} and compass {mi} data; at least "
-            f"{n_min} in different orientations are needed ({MODELS['full'].min_intervals} for the full model): {why}")
+            f"{need} in different orientations are needed ({MODELS['full'].min_intervals} for the full model): {why}")
     return used
 
 
@@ -330,7 +332,7 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
     log_ = prep.log
     warnings: list[str] = list(prep.warnings)
     ai, mi = opts.accel_instance, opts.mag_instance
-    used = _intervals_of_pair(prep, ai, mi)
+    used = _intervals_of_pair(prep, ai, mi, opts)
     params_now = log_.params.snapshot()
     reach = reach_of(prep, opts)
     try:

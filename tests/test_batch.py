@@ -56,6 +56,8 @@ def test_rows_are_small_and_plain(batch):
         for f in fields(r):
             v = getattr(r, f.name)
             items = v if isinstance(v, tuple) else (v,)
+            if f.name == "sensors":  # the verdicts: a sensor name, a yes/no and reasons in words
+                items = tuple(x for s in v for x in (s.sensor, s.accepted, *s.reasons))
             assert all(x is None or isinstance(x, (str, int, float, bool)) for x in items), f.name
 
 
@@ -69,7 +71,7 @@ def test_fleet_table_mentions_both_logs(batch):
     assert "ERROR 3" in lines[ib] and "not a tlog" in lines[ib + 1]
     assert max(i1, i2) < ib  # failed logs last
     assert "DRIFT" in lines[i1] and "DRIFT" in lines[i2]
-    assert "3 logs: 2 accepted, 0 rejected by the gates, 1 failed" in text
+    assert "3 logs: 2 accepted, 0 partly accepted, 0 rejected by the gates, 1 failed" in text
 
 
 def test_sequential_matches_parallel(batch, sitl_dir):
@@ -106,7 +108,9 @@ def test_fleet_table_orders_vehicles_by_drift():
     assert "DRIFT" in lines["v2_new"] and "drift?" in lines["v3.tlog"]  # above 25 mGauss, v3 rejected
     assert "DRIFT" not in lines["v2_old"] and "DRIFT" not in lines["v1.tlog"]
     assert "REJECTED" in lines["v3.tlog"] and "gate data intervals: only 4 still intervals" in text
-    assert "5 logs: 3 accepted, 1 rejected by the gates, 1 failed; 3 vehicle/instance group(s)" in text
+    assert ("5 logs: 3 accepted, 0 partly accepted, 1 rejected by the gates, 1 failed; 3 vehicle/instance group(s)"
+            in text)
+    assert "exit code 3 (the worst" in text  # the failure, not the largest code
     assert f"compass offsets > {DRIFT_COMPASS_MGAUSS:g} mGauss" in text and "scale > 0.01): v2_new.tlog\n" in text
     assert "rejected calibrations (not trustworthy, see the gates): v3.tlog" in text
     assert format_fleet_table([]) == "no logs"

@@ -240,7 +240,7 @@ def test_fleet_jobs_100000_is_capped_and_bounded(tmp_path):
     assert _gone(_with_marker(marker), 10) == []
 
 
-def _one_dies(source, options):
+def _one_dies(source, options, csv_rate_hz=None):
     if source.endswith("dies.tlog"):
         os.kill(os.getpid(), signal.SIGKILL)  # as the out-of-memory killer would
     return batch.BatchRow(source=source, ok=True, exit_code=0, accepted=True)

@@ -56,6 +56,8 @@ exit codes:
   9  an output file is an input (the log, --params; also through a link) or another output
      (refused before any work)
   70 internal error (a bug in mavcal: please report it with the -vv output)
+several logs: the worst log's code, worst first: an error, too little data (4), every
+sensor rejected (4), some accepted (7), all accepted (0)
 with --json, a log that was read but could not be calibrated still gets its report: every
 sensor with data rejected with the reason, "exit_code" and "error".
 """
@@ -66,8 +68,8 @@ HELP = "calibrate from a log or a live link, check quality, write .param/JSON/HT
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.epilog = EPILOG  # exit codes in --help
     p.formatter_class = argparse.RawDescriptionHelpFormatter
-    p.add_argument("sources", nargs="+", metavar="SOURCE",
-                   help="log file(s) (.tlog, .bin, .log, .csv) or one MAVLink device "
+    p.add_argument("sources", nargs="*", metavar="SOURCE",
+                   help="log file(s) (.tlog, .bin, .log, .ulg, .csv) or one MAVLink device "
                         "(udpin:..., tcp:..., /dev/ttyACM0)")
     out = p.add_argument_group("outputs")
     out.add_argument("--param-out", metavar="F",
@@ -267,8 +269,12 @@ def _check_numbers(args) -> None:
 def check_flags(args) -> None:
     """Refuse (UsageError, exit 2) every combination of options that cannot work, before the
     source is read: nothing is done and the message names the options the user gave."""
+    from mavcal.commands.common import json_source_switch
     from mavcal.sources.reader import is_device
 
+    args.sources = json_source_switch(args, list(args.sources))  # `calibrate --json LOG`: LOG, JSON on stdout
+    if not args.sources:
+        raise UsageError("calibrate needs a SOURCE: a log file, several, or a MAVLink device")
     several = len(args.sources) > 1
     if several and (args.write or args.dry_run or args.param_out or args.report):
         raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE")
@@ -313,10 +319,10 @@ def run(args) -> int:
         return _single(args, args.sources[0])
     from dataclasses import asdict
 
-    from mavcal.batch import calibrate_many, format_fleet_table
+    from mavcal.batch import calibrate_many, fleet_exit_code, format_fleet_table
 
-    rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1)
-    print(format_fleet_table(rows))
+    rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1, csv_rate_hz=csv_rate(args))
+    print(format_fleet_table(rows), file=sys.stderr if args.json == "-" else sys.stdout)  # --json -: JSON alone
     if args.json:
         json_output(args.json, [asdict(r) for r in rows])
-    return max((r.exit_code for r in rows), default=0)
+    return fleet_exit_code(rows)

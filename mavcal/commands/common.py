@@ -36,6 +36,27 @@ def add_json_argument(parser: Any, what: str = "the JSON report") -> None:
                         help=f"write {what} to F ('-' or no F: stdout, the text then goes to stderr)")
 
 
+#: what a log file's name ends with (:func:`mavcal.sources.reader.read_log`'s types)
+LOG_SUFFIXES = (".tlog", ".bin", ".log", ".ulg", ".csv")
+
+
+def is_log_file(path: str | None) -> bool:
+    """``path`` is an existing file named as a log (an input, never an output to write over)."""
+    return path not in (None, "-") and Path(str(path)).suffix.lower() in LOG_SUFFIXES and Path(str(path)).is_file()
+
+
+def json_source_switch(args, sources: list[str]) -> list[str]:
+    """``--json LOG`` with no SOURCE after it (argparse gave the log to ``--json``): LOG is the
+    source and the JSON goes to stdout, in every subcommand; ``--json LOG`` beside a SOURCE is
+    refused (LOG would be written over). Returns the sources."""
+    if not sources and is_log_file(args.json):
+        sources, args.json = [args.json], "-"
+    if is_log_file(args.json):
+        raise UsageError(f"--json {args.json}: that is a log (an input), not the JSON file to write: give the JSON "
+                         "file's name (--json report.json) or --json - for stdout; nothing was done")
+    return sources
+
+
 def json_output(dest: str, doc: Any, say: TextIO | None = None) -> None:
     """Write ``doc`` as JSON to ``dest`` (``-``: stdout); a file is named on ``say`` (stdout by default)
     as the .param and the HTML report are."""
@@ -233,7 +254,7 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
     plan shows the parameters against the vehicle's values).
     """
     from mavcal.report.json import to_json
-    from mavcal.report.text import gate_refusal_text, summary_text
+    from mavcal.report.text import gate_refusal_text, rejection_notes, summary_text
 
     say = sys.stderr if args.json == "-" else sys.stdout
     print(summary_text(run, param_table=param_table, force=bool(args.force)), file=say)
@@ -250,7 +271,7 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
             hint = ("use --force" if forceable else "connect again (the parameters must download)"
                     if run.log.kind == "live" else "give the parameters in force with --params FILE")
             print(gate_refusal_text(run, hint), file=sys.stderr, end="")
-        raise GateError("calibration rejected: " + "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures()))
+        raise GateError("calibration rejected: " + "; ".join(f"{s} {why}" for s, why in rejection_notes(run).items()))
     if args.param_out:
         values = run.write_param_file(args.param_out, force=bool(args.force), title=title)
         left = sorted(set(run.mapping.new) - set(values))

@@ -45,7 +45,8 @@ exit codes:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = EPILOG  # exit codes in --help
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("source", metavar="SOURCE", nargs="?", help="log file (.tlog, .bin, .csv) or MAVLink device")
+    parser.add_argument("source", metavar="SOURCE", nargs="?",
+                        help="log file (.tlog, .bin, .log, .ulg, .csv) or MAVLink device")
     add_json_argument(parser, "the intervals and coverage as JSON")
     parser.add_argument("--no-recover", action="store_true",
                         help="segment the readings as logged (skip undoing the vehicle's calibration)")
@@ -224,11 +225,13 @@ def reach(seg):
 
 def _source(args) -> str:
     """SOURCE; ``segments --json LOG`` (the old switch before the log) still reads LOG."""
+    from mavcal.commands.common import json_source_switch
+
+    if args.source is None and args.json not in (None, "-"):
+        args.source, args.json = args.json, "-"
     if args.source is None:
-        if args.json not in (None, "-"):
-            args.source, args.json = args.json, "-"
-        else:
-            raise UsageError("segments needs a SOURCE (a log file or a MAVLink device)")
+        raise UsageError("segments needs a SOURCE (a log file or a MAVLink device)")
+    json_source_switch(args, [args.source])  # never a log as the JSON file
     return str(args.source)
 
 

@@ -43,6 +43,12 @@ class IntervalStats:
         return int(self.n.sum())
 
 
+def _item(name: str, i: int) -> str:
+    """Interval ``i`` of ``name``: ``accel_sets[3]`` for an argument's name, ``accelerometer 0,
+    still interval 3`` for a sensor named in words."""
+    return f"{name}[{i}]" if name.isidentifier() else f"{name}, still interval {i}"
+
+
 def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float | None = None,
                    per_interval: bool = False) -> IntervalStats:
     """Validate one sensor's interval readings and compute their statistics.
@@ -70,19 +76,19 @@ def interval_stats(sets: Sequence[np.ndarray], name: str, *, noise_floor: float 
         try:
             a = np.asarray(s, dtype=float)
         except (TypeError, ValueError):
-            raise EstimationError(f"{name}[{i}] is not numeric") from None
+            raise EstimationError(f"{_item(name, i)} is not numeric") from None
         if a.ndim == 1 and a.shape[0] == 3:
             a = a[None, :]
         if a.ndim != 2 or a.shape[1] != 3:
-            raise EstimationError(f"{name}[{i}] must have shape (n_i, 3), got {a.shape}")
+            raise EstimationError(f"{_item(name, i)} must have shape (n_i, 3), got {a.shape}")
         if a.shape[0] < 2:
-            raise EstimationError(f"{name}[{i}] has {a.shape[0]} sample(s); every still interval needs at "
+            raise EstimationError(f"{_item(name, i)} has {a.shape[0]} sample(s); every still interval needs at "
                                   "least 2 samples to estimate the noise (hold each pose longer)")
         arrays.append(a)
     moments = _moments(arrays, per_interval)
     if moments is None:
         bad = [i for i, a in enumerate(arrays) if not np.all(np.isfinite(a))]
-        raise EstimationError(f"{name}[{bad[0]}] contains NaN/inf readings ({len(bad)} interval(s) affected); "
+        raise EstimationError(f"{_item(name, bad[0])} contains NaN/inf readings ({len(bad)} interval(s) affected); "
                               "drop them before calibrating")
     return _finish_stats(name, *moments, noise_floor)
 

@@ -21,6 +21,7 @@ __all__ = ["summary_text", "holdout_text", "verdict_lines", "kept_lines", "next_
 
 #: how the ``mavcal`` command names the next steps (:func:`next_step`)
 CLI_HINTS: dict[str, str] = {"force_hint": "--force", "write_hint": "--write, or load the .param file",
+                             "write_hint_log": "--write --connect DEVICE, or load the .param file",
                              "only_hint": "--accel-only / --compass-only"}
 #: how the MAVProxy module names them
 MAVPROXY_HINTS: dict[str, str] = {"force_hint": "'mavcal set force 1'", "write_hint": "'mavcal write'",
@@ -154,19 +155,28 @@ def kept_lines(run) -> list[str]:
 
 
 def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str = CLI_HINTS["write_hint"],
-              only_hint: str = CLI_HINTS["only_hint"]) -> str:
+              only_hint: str = CLI_HINTS["only_hint"], write_hint_log: str | None = None) -> str:
     """What to do now, from the verdicts (the hints name the commands: :data:`CLI_HINTS`,
-    :data:`MAVPROXY_HINTS`; an empty ``only_hint`` is left out)."""
+    :data:`MAVPROXY_HINTS`; an empty ``only_hint`` is left out). ``write_hint_log`` is how to
+    write after a log rather than a live recording (the command line's ``--write`` then needs
+    ``--connect``); None: ``write_hint`` (and, with the default ``write_hint``, the command
+    line's)."""
     code = run.exit_code
     unknown = run.gates.not_known_sensors()  # never written, not even with --force: say how to get it in
     if unknown and code != 0:
         head = "write the accepted sensors' parameters; " if code == 7 else "nothing is written; "
         others = [x for x in run.gates.rejected_sensors() if x not in unknown]
-        return (f"next: {head}{', '.join(unknown)}: give the parameters in force with --params FILE, or record "
-                "again with them (how: above)" + (f"; {', '.join(others)}: fix the cause named above and record "
-                                                  "again" if others else ""))
+        live = getattr(getattr(run, "log", None), "kind", None) == "live"
+        how = ("connect again and let the parameter download finish" if live else
+               "give the parameters in force with --params FILE, or record again with them (how: above)")
+        return (f"next: {head}{', '.join(unknown)}: {how}"
+                + (f"; {', '.join(others)}: fix the cause named above and record again" if others else ""))
     if code == 0:
-        return f"next: write the parameters ({write_hint}), then reboot the vehicle"
+        if write_hint_log is None and write_hint == CLI_HINTS["write_hint"]:
+            write_hint_log = CLI_HINTS["write_hint_log"]
+        live = getattr(getattr(run, "log", None), "kind", None) == "live"
+        hint = write_hint if live or write_hint_log is None else write_hint_log
+        return f"next: write the parameters ({hint}), then reboot the vehicle"
     if code == 7:
         bad = ", ".join(run.gates.rejected_sensors())
         only = f"{only_hint}, or " if only_hint else ""
@@ -183,6 +193,14 @@ def _field_flag(cm) -> str:
     if cm.field_checked or lo <= cm.field_mgauss <= hi:
         return ""
     return f" -- IMPLAUSIBLE: Earth's field is {lo:.0f}-{hi:.0f} mGauss everywhere"
+
+
+def _not_certified(run) -> str:
+    """The joint fit is not certified as the optimum: what that means for what is written (its
+    compass fails its "converged" gate; the accelerometer is judged, and written, on its own fit)."""
+    a, m = run.mapping.accel[0].instance, run.mapping.compass[0].instance
+    return (f"the joint fit of accel{a} + compass{m} is not certified as the global optimum: compass{m} is "
+            f"rejected for it (gate converged), accel{a} is judged and written from its own fit")
 
 
 def holdout_text(run) -> str:
@@ -257,8 +275,8 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
             L.append(f"model: {cal.model} (the choice of model is not determined: {why})")
         else:
             L.append(f"model: {cal.model} - {cal.model_reason}" if cal.model_reason else f"model: {cal.model}")
-        if not cal.converged:
-            L.append("the fit did NOT converge: treat the result with caution")
+        if not cal.converged and not why and run.mapping.accel and run.mapping.compass:
+            L.append(_not_certified(run))
     if cal is not None and run.mapping.accel and run.mapping.compass:
         L.append(f"joint fit of accel{run.mapping.accel[0].instance} + compass{run.mapping.compass[0].instance} "
                  "(each sensor's own numbers are in its verdict):")
@@ -333,7 +351,7 @@ def _lines(lines: Sequence[str], prefix: str) -> str:
 
 def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
     """Why nothing is written: the quality gates that failed, and how to override."""
-    fails = "; ".join(f"{g.sensor} {g.name}" for g in run.gates.failures())
+    fails = "; ".join(f"{s} {why}" for s, why in rejection_notes(run).items())  # the verdicts' gates
     return _lines([f"nothing written: the calibration failed a quality gate ({fails}); {override_hint} to override"],
                   prefix)
 

@@ -356,8 +356,8 @@ def _int_values(c: Mapping[str, np.ndarray], sensor: str, names: Sequence[str], 
 def _zero_imu_warning(out: _SeriesSet, name: str, inst: int, nz: int, n: int) -> None:
     if nz and nz < n:
         out.warns.append(f"dropped {nz} {name} samples with all-zero accel and gyro")
-    elif nz:
-        out.warns.append(f"{name}: accel and gyro are all zero (no IMU {inst + 1}); used its mag only")
+    elif nz:  # no such IMU: the message is streamed for its compass (SITL's SCALED_IMU3): nothing wrong
+        log.info("%s: accel and gyro are all zero (no IMU %d); used its mag only", name, inst + 1)
 
 
 def _rows_nonzero(*arrays: np.ndarray) -> np.ndarray:

@@ -56,9 +56,19 @@ def _load(path: str, topics: list[str]):
         raise SourceError(f"cannot read {path}: not a ULog, or corrupt ({type(exc).__name__}: {exc})") from None
 
 
-def _times_s(d) -> np.ndarray:
-    t = d.data.get("timestamp_sample", d.data["timestamp"])
-    return np.asarray(t, dtype=np.float64) / 1e6
+def _start_us(ulog) -> int:
+    """The log's start (its header's timestamp, microseconds): times are seconds from it, as
+    a tlog's and a DataFlash log's are seconds from their start (boot), whatever clock the
+    vehicle stamped with (a SITL with the wall clock stamps epoch microseconds)."""
+    try:
+        return max(int(getattr(ulog, "start_timestamp", 0) or 0), 0)
+    except (TypeError, ValueError):
+        return 0
+
+
+def _times_s(d, start_us: int = 0) -> np.ndarray:
+    t = np.asarray(d.data.get("timestamp_sample", d.data["timestamp"]))
+    return (t.astype(np.int64) - np.int64(start_us)).astype(np.float64) / 1e6  # exact: integers first
 
 
 def _vec(d, names: tuple[str, str, str]) -> np.ndarray:
@@ -67,11 +77,12 @@ def _vec(d, names: tuple[str, str, str]) -> np.ndarray:
 
 def _raw_series(ulog) -> list[SensorSeries]:
     out = []
+    start = _start_us(ulog)
     for topic, sensor, unit in _RAW:
         for d in sorted((d for d in ulog.data_list if d.name == topic), key=lambda d: d.multi_id):
             if not {"x", "y", "z", "timestamp"} <= set(d.data):
                 continue
-            t = _times_s(d)
+            t = _times_s(d, start)
             order = np.argsort(t, kind="stable")
             extra = {"device_id": np.asarray(d.data.get("device_id", np.zeros(len(t))), dtype=np.float64)[order]}
             if "is_external" in d.data:
@@ -85,9 +96,10 @@ def _params(ulog, t0: float) -> ParamTimeline:
     changes: dict[str, tuple[list[float], list[float]]] = {}
     for name, value in ulog.initial_parameters.items():
         changes[name] = ([t0], [float(value)])
+    start = _start_us(ulog)
     for ts, name, value in ulog.changed_parameters:
         tl, vl = changes.setdefault(name, ([], []))
-        t = float(ts) / 1e6
+        t = (int(ts) - start) / 1e6
         if tl and t < tl[-1]:
             t = tl[-1]
         tl.append(t)
@@ -195,9 +207,10 @@ def calibrated_topics(path: str) -> list[CalibratedTopic]:
     ULog: PX4's calibrated, rotated readings."""
     ulog = _load(path, ["vehicle_acceleration", "vehicle_magnetometer", "vehicle_imu"])
     out = []
+    start = _start_us(ulog)
     for d in ulog.data_list:
         data: Mapping[str, np.ndarray] = d.data
-        t = _times_s(d)
+        t = _times_s(d, start)
         n = len(t)
         if d.name == "vehicle_acceleration" and "xyz[0]" in data:
             out.append(CalibratedTopic(d.name, d.multi_id, "accel", t, _vec(d, ("xyz[0]", "xyz[1]", "xyz[2]")),
