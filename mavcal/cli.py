@@ -108,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="mavcal: %(levelname)s: %(message)s")
     logging.captureWarnings(True)  # numpy/scipy RuntimeWarnings go through logging (-q hides them)
     try:
+        from mavcal.commands.common import check_output_paths
+
+        check_output_paths(args)  # an output that is an input: refused before any work
         return int(args._run(args) or 0)
     except MavcalError as exc:
         print(f"mavcal: error: {exc}", file=sys.stderr)

@@ -15,6 +15,7 @@ Exit codes (CLI contract):
 6   parameter write failed and the restore failed too
 7   some sensors accepted (written / in the .param), some rejected
 8   the vehicle requires MAVLink 2 signing and no key, or a wrong key, was given
+9   an output file is an input (or another output): refused before any work
 ==  =========================================================
 """
 from __future__ import annotations
@@ -53,6 +54,13 @@ class OutOfRangeError(UsageError):
         self.violations = list(violations)
         super().__init__("refusing to write (nothing was written): "
                          + "; ".join(v.message for v in self.violations) + " (--force writes anyway)")
+
+
+class OutputIsInputError(UsageError):
+    """An output path is an input file (the same file, also through a link) or another output:
+    refused before any work, so no input is ever overwritten (:mod:`mavcal.outputs`)."""
+
+    exit_code = 9
 
 
 class SourceError(MavcalError):

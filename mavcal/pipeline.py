@@ -79,7 +79,7 @@ def open_source(source, *, baud: int = 115200, duration_s: float = 10.0, heartbe
     return read_log(src, progress=progress)
 
 
-def prepare(source, options: Options = Options(), *, progress=None, owned: bool = False) -> Prepared:
+def prepare(source, options: Options = Options(), *, progress=None, owned: bool = False, params=None) -> Prepared:
     """Read a source and make it ready for the fit (everything before the estimation).
 
     Undoes the integer truncation of the telemetry, undoes the autopilot's correction with the
@@ -102,6 +102,11 @@ def prepare(source, options: Options = Options(), *, progress=None, owned: bool 
         instead of in a copy of every series (on a 100 MB tlog, 80 MB less), and the series'
         receive times (``log_time_s``, which no later stage reads) are dropped. The values
         are bit-identical either way; a log read here from a path is always owned.
+    params : path or mapping of str to float, optional
+        The parameters the vehicle held when the log was recorded (a Mission Planner / MAVProxy
+        .param file, what ``--params FILE`` gives): the calibration in force of the sensors whose
+        parameters the recording lacks (:func:`mavcal.in_force.with_param_file`). Without it, a
+        sensor whose calibration in force is not in the recording is judged but never written.
 
     Returns
     -------
@@ -121,6 +126,10 @@ def prepare(source, options: Options = Options(), *, progress=None, owned: bool 
     given = isinstance(source, ImuLog)
     own = owned or not given  # nobody else reads it as read: changed in place
     log_ = source if given else open_source(source, progress=progress)
+    if params is not None:
+        from mavcal.in_force import with_param_file
+
+        log_ = with_param_file(log_, params)
     warnings: list[str] = list(log_.warnings)
     steps = {(s.sensor, s.instance): quantization_step(s) for s in log_.series}
     report(progress, STAGE_RECOVER, 0, 1)
@@ -158,7 +167,7 @@ def _without_receive_times(log_: ImuLog, raw: RawImu) -> tuple[ImuLog, RawImu]:
 
 # --------------------------------------------------------------------------- chain
 
-def calibrate_source(source, options: Options = Options(), *, progress=None) -> CalibrationRun:
+def calibrate_source(source, options: Options = Options(), *, progress=None, params=None) -> CalibrationRun:
     """Calibrate from a log or a live vehicle: the whole chain, without writing anything.
 
     read -> undo truncation -> raw recovery -> still intervals -> joint fit (paper's
@@ -177,17 +186,19 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
         is told every stage (reading, recovery, segmentation, :data:`STAGE_FIT` counted in
         fits): :func:`mavcal.sources.progress.auto_progress` for a terminal line,
         :class:`mavcal.sources.progress.CallbackProgress` for ``fn(stage, fraction)`` calls.
+    params : path or mapping of str to float, optional
+        As :func:`prepare`'s (``--params FILE``).
 
     Returns
     -------
     CalibrationRun
-        ``run.mapping.new`` maps each ArduPilot parameter name (``"COMPASS_OFS_X"``,
-        ``"INS_ACCSCAL_Y"`` ...) to its new value, for every accelerometer and compass with
-        enough data; ``run.quality`` the heading/tilt 95 % bounds and held-out errors;
-        ``run.gates`` the quality gates (``run.accepted`` is ``run.gates.passed``);
-        ``run.to_json()`` the JSON report as a dict. Write a ``.param`` file with
-        :func:`mavcal.ardupilot.paramfile.write_param_file` (``run.mapping.new``) and a
-        vehicle with :mod:`mavcal.link.writer`; this function never writes.
+        ``run.verdict`` ("accepted", "partly accepted", "rejected") and ``run.verdicts`` (one
+        per sensor); ``run.write_param_file(path)`` writes what ``--param-out`` writes (the
+        accepted sensors' parameters) and ``run.params_to_write()`` returns them;
+        ``run.quality`` the heading/tilt 95 % bounds and held-out errors; ``run.gates`` the
+        quality gates; ``run.to_json()`` the JSON report as a dict. ``run.mapping.new`` holds
+        every fitted sensor's values, rejected ones included: not what to write. A vehicle is
+        written with :mod:`mavcal.link.writer`; this function never writes.
 
     Raises
     ------
@@ -202,10 +213,10 @@ def calibrate_source(source, options: Options = Options(), *, progress=None) -> 
     --------
     >>> from mavcal.pipeline import calibrate_source
     >>> run = calibrate_source("sitl_logs/sitl02.tlog")        # doctest: +SKIP
-    >>> run.accepted, round(run.mapping.new["COMPASS_OFS_X"])  # doctest: +SKIP
-    (True, -141)
+    >>> run.verdict, round(run.params_to_write()["COMPASS_OFS_X"])  # doctest: +SKIP
+    ('accepted', -141)
     """
-    return calibrate_prepared(prepare(source, options, progress=progress), options, progress=progress)
+    return calibrate_prepared(prepare(source, options, progress=progress, params=params), options, progress=progress)
 
 
 def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
@@ -240,4 +251,17 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
     SourceError, InsufficientDataError
         As :func:`calibrate_source`, for the primary pair.
     """
-    return fit_recording(prep, options, progress=progress)
+    return with_in_force_gates(fit_recording(prep, options, progress=progress))
+
+
+def with_in_force_gates(run: CalibrationRun) -> CalibrationRun:
+    """``run`` with a failed gate for every fitted sensor whose calibration in force is not known
+    (:func:`mavcal.in_force.in_force_gates`): judged, never accepted, never written."""
+    from mavcal.ardupilot.gates import GateReport
+    from mavcal.in_force import in_force_gates
+
+    fitted = set(run.gates.by_sensor())
+    extra = [g for g in in_force_gates(run.raw, live=run.log.kind == "live") if g.sensor in fitted]
+    if not extra:
+        return run
+    return replace(run, gates=GateReport(tuple(extra) + tuple(run.gates.gates)))

@@ -22,9 +22,11 @@ STAGE_SEGMENT = "finding still intervals"
 STAGE_FIT = "fitting"
 
 EXIT_ALL_ACCEPTED, EXIT_NONE_ACCEPTED = 0, GateError.exit_code
+#: :attr:`CalibrationRun.verdict`
+VERDICT_ACCEPTED, VERDICT_PARTLY, VERDICT_REJECTED = "accepted", "partly accepted", "rejected"
 
 __all__ = ["Options", "Prepared", "CalibrationRun", "STAGE_RECOVER", "STAGE_SEGMENT", "STAGE_FIT",
-           "EXIT_ALL_ACCEPTED", "EXIT_NONE_ACCEPTED"]
+           "EXIT_ALL_ACCEPTED", "EXIT_NONE_ACCEPTED", "VERDICT_ACCEPTED", "VERDICT_PARTLY", "VERDICT_REJECTED"]
 
 
 @dataclass(frozen=True)
@@ -168,8 +170,21 @@ class CalibrationRun:
 
     @property
     def accepted(self) -> bool:
-        """Every sensor accepted."""
+        """Every sensor accepted (False on a partly accepted run: see :attr:`verdict`)."""
         return self.gates.passed
+
+    @property
+    def verdict(self) -> str:
+        """The run's verdict by name: ``"accepted"`` (every sensor), ``"partly accepted"`` (some
+        sensors accepted, their parameters written, the others keep their values) or
+        ``"rejected"`` (none); exit codes 0, 7 and 4 of ``mavcal calibrate``."""
+        return {EXIT_ALL_ACCEPTED: VERDICT_ACCEPTED, EXIT_PARTIAL: VERDICT_PARTLY}.get(self.exit_code,
+                                                                                      VERDICT_REJECTED)
+
+    @property
+    def partly_accepted(self) -> bool:
+        """Some sensors accepted and some rejected (what the command line calls PARTLY ACCEPTED)."""
+        return self.verdict == VERDICT_PARTLY
 
     @property
     def verdicts(self) -> tuple[gates_mod.SensorVerdict, ...]:
@@ -184,9 +199,54 @@ class CalibrationRun:
         return EXIT_ALL_ACCEPTED if n_ok == len(v) else EXIT_PARTIAL if n_ok else EXIT_NONE_ACCEPTED
 
     def params_to_write(self, force: bool = False) -> dict[str, float]:
-        """The accepted sensors' parameters (every sensor's with ``force``); a rejected sensor
-        keeps its current values on the vehicle."""
-        return dict(self.mapping.new) if force else self.mapping.restricted(self.gates.accepted_sensors())
+        """The accepted sensors' parameters (every sensor's with ``force``, except a sensor whose
+        calibration in force is not known: never); a rejected sensor keeps its current values on
+        the vehicle. This is what ``--param-out`` and ``--write`` write."""
+        if not force:
+            return self.mapping.restricted(self.gates.accepted_sensors())
+        unknown = set(self.gates.not_known_sensors())
+        drop = {n for s, p in self.mapping.by_sensor().items() if s in unknown for n in p}
+        return {n: v for n, v in self.mapping.new.items() if n not in drop}
+
+    def write_param_file(self, path, *, force: bool = False, title: str | None = None):
+        """Write the .param file ``mavcal calibrate --param-out`` writes: the accepted sensors'
+        parameters (:meth:`params_to_write`), kept parameters and rejected sensors left out.
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file (written atomically: a file already there stays whole until the new one
+            replaces it).
+        force : bool
+            As ``--force``: rejected sensors too, their lines marked with the failed gates
+            (never a sensor whose calibration in force is not known).
+        title : str, optional
+            The first comment line (default ``"mavcal calibration of <source>"``).
+
+        Returns
+        -------
+        dict of str to float
+            The parameters written (empty: nothing accepted, and the file is still written, empty
+            of parameters, so check :attr:`verdict` first).
+
+        Raises
+        ------
+        OutputIsInputError
+            ``path`` is the log the run was read from (nothing written).
+        SourceError
+            The file cannot be written.
+        """
+        from mavcal.ardupilot.paramfile import write_param_file
+        from mavcal.outputs import check_outputs
+
+        check_outputs([("the .param file", str(path))], [self.source])  # never over the log it came from
+        values = self.params_to_write(force)
+        marks = self.rejected_params() if force else {}
+        model = self.calibration.model if self.calibration is not None else "accelerometers alone"
+        write_param_file(path, values, header=[title or f"mavcal calibration of {self.source}", f"model {model}"],
+                         comments={n: f"REJECTED ({why}), written with --force" for n, why in marks.items()
+                                   if n in values})
+        return values
 
     def rejected_params(self) -> dict[str, str]:
         """Parameter name -> the failed gates of its (rejected) sensor, e.g. ``"compass1 diagonal"``."""

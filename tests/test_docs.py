@@ -110,12 +110,14 @@ def test_api_page_has_the_examples():
 def test_log_example_runs_and_writes_the_param_file(tmp_path, monkeypatch, capsys):
     ns = run_block(PYTHON_BLOCKS[0], tmp_path, monkeypatch)
     run = ns["run"]
-    assert run.accepted
-    # keyed by parameter name, one entry per axis, and the .param file holds exactly that mapping
-    assert all(isinstance(k, str) and k == k.upper() for k in run.mapping.new)
+    assert run.accepted and run.verdict == "accepted"
+    # keyed by parameter name, one entry per axis, and the .param file holds exactly what is to be written
+    # (tests/test_api_safe_path.py compares it with the CLI's --param-out)
+    new = run.params_to_write()
+    assert new and all(isinstance(k, str) and k == k.upper() for k in new)
     written = read_param_file(tmp_path / "sitl02.param")
-    assert set(written) == set(run.mapping.new)
-    assert all(abs(written[k] - v) <= 1e-6 * max(1.0, abs(v)) for k, v in run.mapping.new.items())
+    assert set(written) == set(new)
+    assert all(abs(written[k] - v) <= 1e-6 * max(1.0, abs(v)) for k, v in new.items())
     assert ns["report"]["accepted"] is True
     out = capsys.readouterr().out
     assert "heading <=" in out and "was" in out

@@ -85,6 +85,10 @@ class SensorVerdict:
     reasons: tuple[str, ...] = ()
 
 
+#: the cause of the gate a sensor whose calibration in force is not known fails (:mod:`mavcal.in_force`):
+#: it comes first in the verdict, and no ``--force`` writes that sensor
+CAUSE_IN_FORCE = "in force"
+
 #: gates that are a yes/no question (value 1 yes, 0 no): their reason alone says it all
 #: ("fit": the sensor's fit gave a result; no when its worker process died)
 YES_NO_GATES = ("converged", "fit")
@@ -93,6 +97,8 @@ YES_NO_GATES = ("converged", "fit")
 def reason_text(g: Gate) -> str:
     """The reason of a failed gate in words a user can act on: the gate, what to do, the value
     and the limit (a yes/no gate's value in words)."""
+    if g.cause == CAUSE_IN_FORCE:  # "not written: ..." says it all
+        return g.reason
     if g.name in YES_NO_GATES:
         return f"{g.name}: {g.reason} (value: {'yes' if g.value else 'no'}, limit: {g.limit})"
     kind = {"heading uncertainty": "heading", "tilt uncertainty": "tilt"}.get(g.name)
@@ -121,11 +127,14 @@ class GateReport:
     def verdicts(self) -> tuple[SensorVerdict, ...]:
         """One verdict per sensor, in the order of the gates (accelerometers first). A sensor
         the data cannot identify gets only the data's reasons (a fit of too few directions
-        fails the other gates too, and naming steel there would send the user the wrong way)."""
+        fails the other gates too, and naming steel there would send the user the wrong way). A
+        sensor whose calibration in force is not known says that first (it is never written)."""
         out = []
         for s, gs in self.by_sensor().items():
             failed = [g for g in gs if not g.ok]
-            shown = [g for g in failed if g.cause == "data"] or failed
+            first = [g for g in failed if g.cause == CAUSE_IN_FORCE]
+            rest = [g for g in failed if g.cause != CAUSE_IN_FORCE]
+            shown = first + ([g for g in rest if g.cause == "data"] or rest)
             out.append(SensorVerdict(s, not failed, tuple(reason_text(g) for g in shown)))
         return tuple(out)
 
@@ -134,6 +143,10 @@ class GateReport:
 
     def rejected_sensors(self) -> list[str]:
         return [v.sensor for v in self.verdicts() if not v.accepted]
+
+    def not_known_sensors(self) -> list[str]:
+        """The sensors whose calibration in force is not known: never written, not even with ``--force``."""
+        return list(dict.fromkeys(g.sensor for g in self.gates if not g.ok and g.cause == CAUSE_IN_FORCE))
 
 
 def _adder(gates: list[Gate]):

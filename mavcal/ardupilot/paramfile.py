@@ -4,6 +4,8 @@ Format
 ------
 One parameter per line, ``NAME,VALUE`` or ``NAME VALUE`` (any run of spaces, tabs or one
 comma), ``#`` starts a comment (whole line or end of line), blank lines are ignored.
+QGroundControl's saved parameter files (``VEHICLE COMPONENT NAME VALUE TYPE``, tab-separated)
+are read too.
 Values are decimal (``1.5``, ``-2e-07``) or hexadecimal integers (``0x1F``), as
 ``pymavlink.mavparm.MAVParmDict.load`` accepts them. Names are at most 16 characters of
 ``[A-Z0-9_]`` (ArduPilot's ``AP_MAX_NAME_SIZE``).
@@ -25,6 +27,7 @@ import numpy as np
 
 from mavcal.ardupilot.protocol import valid_param_name
 from mavcal.errors import SourceError, UsageError
+from mavcal.outputs import write_atomic
 
 __all__ = ["ParamFileError", "read_param_file", "parse_param_text", "write_param_file",
            "format_param_value"]
@@ -116,6 +119,8 @@ def parse_param_text(text: str, source: str = "<text>") -> dict[str, float]:
         if not line:
             continue
         fields = line.replace(",", " ").split()
+        if len(fields) == 5 and all(f.isdigit() for f in (fields[0], fields[1], fields[4])):
+            fields = fields[2:4]  # QGroundControl's "vehicle component NAME VALUE type" (tab-separated)
         if len(fields) != 2:
             raise ParamFileError(
                 f"{source}:{lineno}: expected 'NAME VALUE' or 'NAME,VALUE', got {raw.strip()!r}", lineno)
@@ -153,7 +158,8 @@ def read_param_file(path: PathLike) -> dict[str, float]:
 
 def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Iterable[str] | None = None,
                      exclusive: bool = False, comments: Mapping[str, str] | None = None) -> Path:
-    """Write ``params`` as a .param file, sorted by name, durably (fsync).
+    """Write ``params`` as a .param file, sorted by name, atomically and durably
+    (:func:`mavcal.outputs.write_atomic`: an existing file stays whole until the new one replaces it).
 
     Parameters
     ----------
@@ -189,26 +195,5 @@ def write_param_file(path: PathLike, params: Mapping[str, float], *, header: Ite
         tail = "  # " + " ".join(str(note).split()) if note else ""
         lines.append(f"{name},{format_param_value(params[name])}{tail}")
     data = ("\n".join(lines) + "\n").encode("utf-8")
-    flags = os.O_WRONLY | os.O_CREAT | (os.O_EXCL if exclusive else os.O_TRUNC)
-    try:
-        fd = os.open(p, flags, 0o644)
-    except FileExistsError:
-        raise UsageError(f"{str(p)!r} already exists; not overwriting it") from None
-    except OSError as exc:
-        raise SourceError(f"cannot write {str(p)!r}: {exc}") from None
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-    except OSError as exc:
-        raise SourceError(f"cannot write {str(p)!r}: {exc}") from None
-    try:  # make the directory entry durable too
-        dfd = os.open(p.parent if str(p.parent) else ".", os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:
-        pass
+    write_atomic(p, data, exclusive=exclusive)
     return p

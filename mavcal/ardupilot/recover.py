@@ -92,6 +92,15 @@ class RawImu:
     accel_cal_without_imu : tuple of (start_s, end_s)
         Accelerometer calibrations whose prompts the log holds but during which it has
         (almost) no IMU readings (:func:`accel_cal_without_imu`): the poses held then are lost.
+    cal_origin : mapping sensor -> str
+        Per sensor (``"accel0"``, ``"compass1"``, as the gates name them) where the calibration
+        in force that was undone came from: ``"the recording's parameters"``, ``"the vehicle"``,
+        ``"--params FILE"`` (:mod:`mavcal.in_force`), or ``"raw readings"`` (a CSV).
+    cal_missing : mapping sensor -> tuple of str
+        The sensors whose calibration in force is **not known** (the recording lacks some or all
+        of its parameters), each with the names missing. Their readings were recovered with the
+        firmware's defaults to be judged, but their new values are never written
+        (:func:`mavcal.in_force.in_force_gates`).
     """
 
     source: str
@@ -104,6 +113,8 @@ class RawImu:
     accel_cal_periods: tuple[tuple[float, float], ...] = ()
     board_rotation: np.ndarray | None = None
     accel_cal_without_imu: tuple[tuple[float, float], ...] = ()
+    cal_origin: Mapping[str, str] = field(default_factory=dict)
+    cal_missing: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
     def accel_instances(self) -> list[int]:
         return [s.instance for s in self.accel]
@@ -492,10 +503,11 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
                         "its poses cannot be used")
     events = sorted(ph.change_events(log_.events) + ph.accel_cal_events(periods), key=lambda e: e.time_s)
     accel_out: list[SensorSeries] = []
+    missing: dict[str, tuple[str, ...]] = {}  # sensor -> names of its calibration in force the log lacks
     for inst in log_.instances("accel"):
         s = _usable(log_.get("accel", inst), "accel", drop_zero_series, warnings)
         if s is not None:
-            accel_out.append(_recover_accel(log_.params, s, periods, events, used, warnings))
+            accel_out.append(_recover_accel(log_.params, s, periods, events, used, warnings, missing))
     mag_out: list[SensorSeries] = []
     for inst in log_.instances("mag"):
         s = _usable(log_.get("mag", inst), "mag", drop_zero_series, warnings)
@@ -503,15 +515,13 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
             continue
         if inst >= fw.MAX_COMPASSES:
             warnings.append(f"mag {inst}: no parameter slot for compass {inst + 1}; readings treated as raw")
+            missing[f"compass{inst}"] = ()
             mag_out.append(s)
             continue
-        mag_out.append(_recover_mag(log_.params, s, events, used, warnings))
+        mag_out.append(_recover_mag(log_.params, s, events, used, warnings, missing))
     gyro = tuple(g for g in log_.series if g.sensor == "gyro" and len(g)
                  and not (drop_zero_series and not g.any_nonzero()))
-    if log_.kind == "csv":  # a CSV never carries parameters: its readings are raw by design, not a warning
-        for w in [w for w in warnings if "readings treated as raw" in w]:
-            warnings.remove(w)
-            log.info("%s", w)
+    missing, origin = _in_force(log_, accel_out, mag_out, missing, warnings)
     log_warnings_once(log, warnings)
     return RawImu(
         source=log_.source,
@@ -524,7 +534,27 @@ def recover_raw(log_: ImuLog, accel_cal_periods: Sequence[tuple[float, float]] |
         accel_cal_periods=tuple((float(a), float(b)) for a, b in periods),
         board_rotation=_board_rotation(log_.params),
         accel_cal_without_imu=tuple(blind),
+        cal_origin=origin,
+        cal_missing=missing,
     )
+
+
+def _in_force(log_: ImuLog, accel: Sequence[SensorSeries], mag: Sequence[SensorSeries],
+              missing: dict[str, tuple[str, ...]], warnings: list[str]
+              ) -> tuple[dict[str, tuple[str, ...]], dict[str, str]]:
+    """(sensors whose calibration in force is not known with their missing names, where each
+    sensor's came from): :attr:`RawImu.cal_missing` and :attr:`RawImu.cal_origin`."""
+    origin = {f"accel{s.instance}": log_.origin_of(_names_accel(s.instance)) for s in accel}
+    origin.update({f"compass{s.instance}": log_.origin_of(_names_compass(s.instance)) if s.instance < fw.MAX_COMPASSES
+                   else "" for s in mag})
+    if log_.kind == "csv":  # a CSV never carries parameters: its readings are raw by design, not a warning
+        for w in [w for w in warnings if "readings treated as raw" in w]:
+            warnings.remove(w)
+            log.info("%s", w)
+        return {}, {k: "raw readings (a CSV holds no calibration)" for k in origin}
+    for sensor in missing:
+        origin[sensor] = ""
+    return missing, origin
 
 
 def _usable(s: SensorSeries | None, sensor: str, drop_zero: bool, warnings: list[str]) -> SensorSeries | None:
@@ -549,7 +579,7 @@ def _with_known(s: SensorSeries, values: np.ndarray, extra: dict[str, np.ndarray
 
 def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tuple[float, float]],
                    events: Sequence[ph.ChangeEvent], used: dict[str, list[tuple[float, float]]],
-                   warnings: list[str]) -> SensorSeries:
+                   warnings: list[str], not_known: dict[str, tuple[str, ...]]) -> SensorSeries:
     """Undo offsets/scale (outside accel-cal periods) and the board rotation of one IMU."""
     inst, t = s.instance, s.time_s
     an: Mapping[str, Any] = fw.accel_param_names(inst)
@@ -588,11 +618,15 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
     if not have:
         no_board = "" if bn["orientation"] in params else " (and no AHRS_ORIENTATION: board frame = body frame)"
         warnings.append(f"accel {inst}: the log has no {an['ofs'][0][:-2]}/{an['scale'][0][:-2]} "
-                        f"parameters; readings treated as raw" + no_board)
+                        f"parameters; readings treated as raw" + no_board + "; the calibration in force is not "
+                        "known, so its new values are not written")
+        not_known[f"accel{inst}"] = tuple(n for n in _names_accel(inst)[:7] if n not in params)
         _record(used, params, [bn["orientation"]], float(t[0]), float(t[-1]))
     else:
         if missing:
-            warnings.append(f"accel {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
+            warnings.append(f"accel {inst}: missing {', '.join(sorted(set(missing)))}; the firmware's defaults "
+                            "used to judge it, but the calibration in force is not known: not written")
+            not_known[f"accel{inst}"] = tuple(sorted(set(missing)))
         _record(used, params, names, float(t[0]), float(t[-1]))
     w = _left_out(f"accel {inst}", t, left_out & ~bad, pieces, known, params)
     if w:
@@ -604,7 +638,8 @@ def _recover_accel(params: ParamTimeline, s: SensorSeries, periods: Sequence[tup
 
 
 def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.ChangeEvent],
-                 used: dict[str, list[tuple[float, float]]], warnings: list[str]) -> SensorSeries:
+                 used: dict[str, list[tuple[float, float]]], warnings: list[str],
+                 not_known: dict[str, tuple[str, ...]]) -> SensorSeries:
     """Undo the compass correction (offsets, soft iron, scale, motor offset) of one compass."""
     inst, t = s.instance, s.time_s
     cn: Mapping[str, Any] = fw.compass_param_names(inst)
@@ -612,6 +647,7 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
     if motor is not None and np.asarray(motor).shape != (len(s), 3):
         motor = None
     if not [n for n in list(cn["ofs"]) + list(cn["dia"]) + [cn["scale"]] if n in params]:
+        not_known[f"compass{inst}"] = tuple(n for n in _names_compass(inst)[:10] if n not in params)
         return _mag_without_params(s, cn, motor, warnings)
     names = _names_compass(inst)
     known = ph.known_table(params, names, events)
@@ -629,8 +665,14 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
         except (ValueError, np.linalg.LinAlgError) as exc:  # e.g. a singular DIA/ODI matrix, unknown rotation
             out[p.i0:p.i1], left_out[p.i0:p.i1], bad[p.i0:p.i1] = np.nan, True, True
             unusable.append(f"{t[p.i0]:.1f} s: {exc}")
+    missing = sorted(set(missing))
+    if cn["scale"] in missing and not _has_compass_scale(params):  # a firmware before COMPASS_SCALE (4.0): 1
+        missing.remove(cn["scale"])
+        log.info("mag %d: the log has no COMPASS_SCALE parameter at all (a firmware before it): scale 1", inst)
     if missing:
-        warnings.append(f"mag {inst}: missing {', '.join(sorted(set(missing)))}; defaults used")
+        warnings.append(f"mag {inst}: missing {', '.join(missing)}; the firmware's defaults used to judge it, "
+                        "but the calibration in force is not known: not written")
+        not_known[f"compass{inst}"] = tuple(missing)
     _record(used, params, names, float(t[0]), float(t[-1]))
     warnings += _mag_param_warnings(params, inst, motor is None)
     w = _left_out(f"mag {inst}", t, left_out & ~bad, pieces, known, params)
@@ -638,6 +680,12 @@ def _recover_mag(params: ParamTimeline, s: SensorSeries, events: Sequence[ph.Cha
         warnings.append(w)
     warnings += _unusable_warning(f"mag {inst}", unusable)
     return _with_known(s, out, dict(s.extra), left_out)
+
+
+def _has_compass_scale(params: ParamTimeline) -> bool:
+    """Whether the log holds any COMPASS_SCALEn: a firmware without any (ArduPilot before 4.0) has
+    no compass scale at all (1), which is not a default guessed for a missing value."""
+    return any(fw.compass_param_names(k)["scale"] in params for k in range(fw.MAX_COMPASSES))
 
 
 def _unusable_warning(label: str, unusable: Sequence[str]) -> list[str]:
@@ -655,13 +703,15 @@ def _mag_without_params(s: SensorSeries, cn: Mapping[str, Any], motor: np.ndarra
     ofs_logged = s.extra.get("ofs_mgauss")
     if ofs_logged is not None and np.asarray(ofs_logged).shape == (len(s), 3):
         warnings.append(f"mag {s.instance}: the log has no COMPASS parameters for this compass; "
-                        f"used the logged MAG offsets (int16) and no matrix/scale")
+                        f"used the logged MAG offsets (int16) and no matrix/scale to judge it; the calibration in "
+                        "force is not known, so its new values are not written")
         out = s.values - np.asarray(ofs_logged)
         if motor is not None:
             out = out - motor
     else:
         warnings.append(f"mag {s.instance}: the log has no {cn['ofs'][0][:-2]}/DIA/ODI/SCALE parameters; "
-                        f"readings treated as raw")
+                        "readings treated as raw; the calibration in force is not known, so its new values are not "
+                        "written")
         out = s.values if s.packed is not None else np.array(s.values)  # (computed: a new array already)
     return SensorSeries("mag", s.instance, s.message, s.time_s, out, s.log_time_s, dict(s.extra))
 

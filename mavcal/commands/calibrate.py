@@ -42,7 +42,9 @@ EPILOG = """\
 every accelerometer and compass with data gets its own verdict: accepted, or rejected with
 the reasons (gate, value, limit, what to do). Only the accepted sensors' parameters go into
 --param-out and --write; a rejected sensor keeps its current values (--force includes it,
-its lines marked with the failed gate in the .param file).
+its lines marked with the failed gate in the .param file). A sensor whose calibration in
+force is not in the log (recorded without its parameters) is never written, not even with
+--force: give them with --params FILE, or record with them.
 
 exit codes:
   0  every sensor with data accepted (all written)
@@ -51,6 +53,8 @@ exit codes:
   2  usage error      3  unreadable source or no IMU data
   5  write failed, vehicle restored      6  write failed and restore failed
   8  the vehicle requires MAVLink 2 signing: no or wrong --signing-key (nothing written)
+  9  an output file is an input (the log, --params; also through a link) or another output
+     (refused before any work)
   70 internal error (a bug in mavcal: please report it with the -vv output)
 several logs: the worst log's code, worst first: an error, too little data (4), every
 sensor rejected (4), some accepted (7), all accepted (0)
@@ -103,6 +107,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fit.add_argument("--force-external", action="store_true",
                      help="internal compass: write COMPASS_EXTERNAL (COMPASS_EXTERNn for compass n) = 2 so its "
                           "misalignment goes into COMPASS_ORIENT")
+    fit.add_argument("--params", metavar="FILE",
+                     help="the vehicle's parameters when the log was recorded (a .param file saved by Mission "
+                          "Planner, QGroundControl or MAVProxy): the calibration in force of the sensors whose "
+                          "parameters the log lacks (without it such a sensor is judged but never written)")
     fit.add_argument("--duration", type=float, default=60.0, metavar="S", help="live source: seconds to record")
     add_save_tlog_argument(fit)
     add_still_arguments(p)
@@ -195,7 +203,7 @@ def _single(args, source: str) -> int:
             say_tlog_saved(args)
         else:
             log_ = read_log(source, progress=progress, csv_rate_hz=csv_rate(args))
-        prep = prepare(log_, opts, progress=progress, owned=True)
+        prep = prepare(log_, opts, progress=progress, owned=True, params=args.params)
         del log_  # handed over: what prepare dropped from it is freed now, not after the fits
         run = calibrate_prepared(prep, opts, progress=progress)
     except MavcalError as exc:  # no fit at all: the JSON still says why, per sensor
@@ -285,9 +293,16 @@ def check_flags(args) -> None:
     if unused and not writes:
         raise UsageError(f"{', '.join(unused)} only appl{'ies' if len(unused) == 1 else 'y'} with --write or "
                          "--dry-run; nothing was done")
+    if args.params and (several or is_device(args.sources[0])):
+        raise UsageError("--params gives the parameters of one recorded log: a single log SOURCE (a live vehicle "
+                         "sends its own); nothing was done")
     if args.save_tlog and not is_device(args.sources[0]):
         raise UsageError("--save-tlog keeps a live recording: SOURCE is a log file already; nothing was done")
     _check_numbers(args)
+    if args.params:  # read before any work: a bad file is refused at once (exit 3)
+        from mavcal.ardupilot.paramfile import read_param_file
+
+        read_param_file(args.params)
     check_save_tlog(args.save_tlog)
     if args.write:
         check_new_backup(args.backup)

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from mavcal.errors import GateError, UsageError
+from mavcal.errors import GateError, SourceError, UsageError
 
 __all__ = ["add_json_argument", "json_output", "BACKUP_HELP",
            "parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
@@ -203,10 +203,30 @@ def write_text_output(dest: str, text: str) -> None:
     if dest == "-":
         print(text)
         return
+    from mavcal.outputs import write_atomic
+
     try:
-        Path(dest).write_text(text)
-    except OSError as exc:
-        raise UsageError(f"cannot write {dest}: {exc.strerror or exc}") from None
+        write_atomic(dest, text)  # an interrupted run leaves the old file whole
+    except SourceError as exc:
+        raise UsageError(str(exc)) from None
+
+
+#: the options that name a file a command writes, and those that name a file it reads
+OUTPUT_OPTIONS = ("param_out", "json", "report", "backup", "save_tlog")
+INPUT_OPTIONS = ("sources", "source", "file", "backup_file", "params", "signing_key_file")
+
+
+def check_output_paths(args: argparse.Namespace) -> None:
+    """Before any work: refuse an output that is an input or another output
+    (:func:`mavcal.outputs.check_outputs`, exit code 9)."""
+    from mavcal.outputs import check_outputs
+
+    outs = [(f"--{o.replace('_', '-')}", getattr(args, o, None)) for o in OUTPUT_OPTIONS]
+    ins: list = []
+    for o in INPUT_OPTIONS:
+        v = getattr(args, o, None)
+        ins += list(v) if isinstance(v, (list, tuple)) else [v]
+    check_outputs([(o, p) for o, p in outs if isinstance(p, str)], [p for p in ins if isinstance(p, str)])
 
 
 def check_optional_dependencies(args: argparse.Namespace) -> None:
@@ -233,7 +253,6 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
     ``param_table`` False leaves the parameter table out of the summary (a write follows, whose
     plan shows the parameters against the vehicle's values).
     """
-    from mavcal.ardupilot.paramfile import write_param_file
     from mavcal.report.json import to_json
     from mavcal.report.text import gate_refusal_text, rejection_notes, summary_text
 
@@ -246,17 +265,15 @@ def write_outputs(run, args: argparse.Namespace, title: str, *, param_table: boo
         write_html(run, args.report, force=bool(args.force))
         print(f"report written to {args.report}", file=say)
     code = run.exit_code
-    if code == 4 and not args.force:
+    forceable = bool(run.params_to_write(True))  # False: only sensors whose calibration in force is not known
+    if code == 4 and not (args.force and forceable):
         if args.param_out or getattr(args, "write", False):
-            print(gate_refusal_text(run, "use --force"), file=sys.stderr, end="")
+            hint = ("use --force" if forceable else "connect again (the parameters must download)"
+                    if run.log.kind == "live" else "give the parameters in force with --params FILE")
+            print(gate_refusal_text(run, hint), file=sys.stderr, end="")
         raise GateError("calibration rejected: " + "; ".join(f"{s} {why}" for s, why in rejection_notes(run).items()))
     if args.param_out:
-        values = run.params_to_write(args.force)
-        marks = run.rejected_params() if args.force else {}
-        model = run.calibration.model if run.calibration is not None else "accelerometers alone"
-        write_param_file(args.param_out, values, header=[title, f"model {model}"],
-                         comments={n: f"REJECTED ({why}), written with --force" for n, why in marks.items()
-                                   if n in values})
+        values = run.write_param_file(args.param_out, force=bool(args.force), title=title)
         left = sorted(set(run.mapping.new) - set(values))
         print(f"parameters written to {args.param_out}"
               + (f" ({len(left)} of rejected sensors left out: they keep their current values)" if left else ""),

@@ -52,6 +52,11 @@ def _slot(params: Mapping[str, float], kind: str, cal: Px4AccelCal | Px4MagCal, 
     if cal.slot is not None:
         return cal.slot, False
     free = pn.free_slot(params, kind)
+    ids = [(pn.accel_names if kind == "accel" else pn.mag_names)(k)["id"] for k in range(pn.MAX_SLOTS)]
+    if free is None and not any(n in params for n in ids):  # no slot at all in the parameters: not known
+        notes.append(f"{kind} device {cal.device_id}: the parameters hold no calibration slot (the calibration in "
+                     "force is not known): shown in slot 0, never written")
+        return 0, True
     if free is None:
         raise ParameterMappingError(f"{kind} device {cal.device_id} has no calibration slot and every "
                                     f"CAL_{'ACC' if kind == 'accel' else 'MAG'}n_ID is taken: clear one first")

@@ -64,6 +64,29 @@ def cal_of(s: SensorSeries, params: Mapping[str, float]) -> Px4AccelCal | Px4Mag
     return mag_cal_from_params(params, dev, bool(ext[-1]) if ext is not None and len(ext) else None)
 
 
+def missing_calibration(s: SensorSeries, params: Mapping[str, float]) -> tuple[str, ...] | None:
+    """The names of the calibration in force of series ``s``'s sensor that ``params`` lacks (the
+    calibration in force is then not known), or None when it is known: its slot's ``_ID``,
+    ``_ROT``, offsets and scales (and off-diagonals of a magnetometer) and ``SENS_BOARD_ROT``. A
+    device no slot names, in a parameter set that has that kind's slots, is PX4's uncalibrated
+    device (known); a parameter set without any slot of its kind says nothing."""
+    kind = "accel" if s.sensor == "accel" else "mag"
+    names_of = pn.accel_names if kind == "accel" else pn.mag_names
+    board = pn.board_names()[0]
+    slots = [names_of(k)["id"] for k in range(pn.MAX_SLOTS)]
+    if not any(n in params for n in slots):
+        return tuple(slots[:1] + ([board] if board not in params else []))
+    cal = cal_of(s, params)
+    need = [board]
+    if cal.slot is not None:
+        n = names_of(cal.slot)
+        has_rot = any(names_of(k)["rot"] in params for k in range(pn.MAX_SLOTS))  # none before PX4 1.12: internal
+        need += ([n["rot"]] if has_rot else []) + [*n["ofs"], *n["scale"]] \
+            + (list(n["odiag"]) if kind == "mag" else [])  # type: ignore[typeddict-item]
+    miss = tuple(x for x in need if x not in params)
+    return miss or None
+
+
 def _warnings(params: Mapping[str, float], log_: ImuLog) -> list[str]:
     out = []
     if params.get(pn.THERMAL_ACCEL):
@@ -80,11 +103,21 @@ def recover_raw(log_: ImuLog) -> RawImu:
     params = log_.params.snapshot()
     warnings = _warnings(params, log_)
     accel, mag = [], []
+    missing: dict[str, tuple[str, ...]] = {}
+    origin: dict[str, str] = {}
     old_mag_driver_cal = pn.mag_names(0)["id"] in params and pn.mag_names(0)["prio"] not in params
     for s in log_.series:
         if not len(s) or s.sensor == "gyro":
             continue
         dev, assumed = device_id_of(s, params)
+        label = f"{'accel' if s.sensor == 'accel' else 'compass'}{s.instance}"
+        miss = missing_calibration(s, params)
+        if miss is not None:
+            missing[label] = miss
+            warnings.append(f"{s.sensor} {s.instance}: the recording lacks {', '.join(miss)}: the calibration in "
+                            "force is not known, so its new values are not written")
+        origin[label] = "" if miss is not None else log_.origin_of(
+            [n for n in params if pn.is_calibration(n)])
         if assumed:
             warnings.append(f"{s.sensor} {s.instance}: device id not in the data, taken as slot {s.instance}'s ({dev})")
         cal = cal_of(s, params)
@@ -107,7 +140,10 @@ def recover_raw(log_: ImuLog) -> RawImu:
     log_warnings_once(log, warnings)
     a0 = next((s for s in log_.series if s.sensor == "accel" and len(s)), None)
     board = cal_of(a0, params).rotation if a0 is not None else None
+    have = {f"accel{a.instance}" for a in accel} | {f"compass{m.instance}" for m in mag}
     return RawImu(source=log_.source, accel=tuple(accel), mag=tuple(mag), gyro=gyro,
                   params_used={n: ((0.0, float(v)),) for n, v in params.items() if pn.is_calibration(n)},
                   frames={"accel": ACCEL_FRAME, "mag": MAG_FRAME}, warnings=tuple(dict.fromkeys(warnings)),
-                  board_rotation=None if board is None else np.array(board))
+                  board_rotation=None if board is None else np.array(board),
+                  cal_origin={k: v for k, v in origin.items() if k in have},
+                  cal_missing={k: v for k, v in missing.items() if k in have})

@@ -367,10 +367,7 @@ def write_html(run, path, *, png_dir=None, force: bool = False) -> Path:
     path = Path(path)
     if not (run.mapping.accel and run.mapping.compass and run.calibration is not None):
         # one kind of sensor only (--accel-only / --compass-only): verdicts, quality, parameters, gates
-        try:
-            path.write_text(html_page(run, None, {}, 0, force))
-        except OSError as exc:
-            raise UsageError(f"cannot write {path}: {exc.strerror or exc}") from None
+        _write(path, html_page(run, None, {}, 0, force))
         return path
     st = interval_numbers(run)
     fig_t, n_spans = fig_timeline(Figure, run)
@@ -384,8 +381,19 @@ def write_html(run, path, *, png_dir=None, force: bool = False) -> Path:
             for name, data in images.items():
                 (d / f"{name}.png").write_bytes(data)
             log.info("figures written to %s", d)
-        path.write_text(html_page(run, st, images, n_spans, force), encoding="utf-8")
     except OSError as exc:
         raise UsageError(f"cannot write the report: {exc.filename or path}: {exc.strerror or exc}") from None
+    _write(path, html_page(run, st, images, n_spans, force))
     log.info("HTML report written to %s", path)
     return path
+
+
+def _write(path: Path, text: str) -> None:
+    """The page, atomically (:func:`mavcal.outputs.write_atomic`); UsageError when it cannot be written."""
+    from mavcal.errors import SourceError
+    from mavcal.outputs import write_atomic
+
+    try:
+        write_atomic(path, text)
+    except SourceError as exc:
+        raise UsageError(f"cannot write the report: {exc}") from None

@@ -178,7 +178,9 @@ def _parameters(run) -> dict[str, Any]:
 def to_json(run) -> dict[str, Any]:
     """The JSON report of a :class:`mavcal.pipeline.CalibrationRun` (a dict for :func:`json.dump`).
 
-    ``"sensors"`` holds the per-sensor verdicts and ``"exit_code"`` the CLI's (0, 7 or 4);
+    ``"sensors"`` holds the per-sensor verdicts, ``"verdict"`` the run's ("accepted", "partly accepted",
+    "rejected") and ``"exit_code"`` the CLI's (0, 7 or 4); ``"raw_recovery"`` says per sensor where the
+    calibration in force came from (``"calibration_in_force"``, null: not known, never written);
     ``"calibration"`` and ``"compass"`` are null when the accelerometers were calibrated alone."""
     seg = run.segmentation
     return {
@@ -187,6 +189,7 @@ def to_json(run) -> dict[str, Any]:
         "mavcal_version": mavcal.__version__,
         "source": run.source,
         "accepted": run.accepted,
+        "verdict": run.verdict,
         "sensors": sensors_json(run.gates),
         "kept": [{"sensor": k.sensor, "parameter": k.what, "why": k.why, "pose": k.pose} for k in run.kept],
         "exit_code": run.exit_code,
@@ -206,7 +209,8 @@ def to_json(run) -> dict[str, Any]:
                      "messages": list(seg.coverage.messages)},
         "instances": _instances(run),
         "raw_recovery": {"frames": dict(run.raw.frames), "accel_cal_periods": _f(run.raw.accel_cal_periods),
-                         "params_used": {k: _f(v) for k, v in run.raw.params_used.items()}},
+                         "params_used": {k: _f(v) for k, v in run.raw.params_used.items()},
+                         "calibration_in_force": {k: v or None for k, v in run.raw.cal_origin.items()}},
         "notes": list(run.mapping.notes),
         "warnings": list(run.warnings),
     }
@@ -246,11 +250,14 @@ def refusal_json(source: str, error: Exception, verdicts: Sequence[Any] = (), pr
 
 def write_json(run, path) -> Path:
     """Write :func:`to_json` of ``run`` to ``path`` ('-' is not a path here); UsageError when it cannot."""
+    from mavcal.errors import SourceError
+    from mavcal.outputs import write_atomic
+
     path = Path(path)
     try:
-        path.write_text(_json.dumps(to_json(run), indent=1))
-    except OSError as exc:
-        raise UsageError(f"cannot write the JSON report: {exc.filename or path}: {exc.strerror or exc}") from None
+        write_atomic(path, _json.dumps(to_json(run), indent=1))  # an interrupted run leaves the old file whole
+    except SourceError as exc:
+        raise UsageError(f"cannot write the JSON report: {exc}") from None
     return path
 
 

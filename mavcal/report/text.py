@@ -16,7 +16,8 @@ from mavcal.determined import bound_phrase, joint_unidentified
 __all__ = ["summary_text", "holdout_text", "verdict_lines", "kept_lines", "next_step", "param_rows", "format_value",
            "gate_failures_by_sensor", "param_table", "written_rows",
            "rejection_notes", "plan_text", "gate_refusal_text", "write_done_text",
-           "write_failed_text", "in_doubt_text", "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS"]
+           "write_failed_text", "in_doubt_text", "writing_text", "forced_limits_text", "CLI_HINTS", "MAVPROXY_HINTS",
+           "in_force_lines"]
 
 #: how the ``mavcal`` command names the next steps (:func:`next_step`)
 CLI_HINTS: dict[str, str] = {"force_hint": "--force", "write_hint": "--write, or load the .param file",
@@ -161,6 +162,15 @@ def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str
     ``--connect``); None: ``write_hint`` (and, with the default ``write_hint``, the command
     line's)."""
     code = run.exit_code
+    unknown = run.gates.not_known_sensors()  # never written, not even with --force: say how to get it in
+    if unknown and code != 0:
+        head = "write the accepted sensors' parameters; " if code == 7 else "nothing is written; "
+        others = [x for x in run.gates.rejected_sensors() if x not in unknown]
+        live = getattr(getattr(run, "log", None), "kind", None) == "live"
+        how = ("connect again and let the parameter download finish" if live else
+               "give the parameters in force with --params FILE, or record again with them (how: above)")
+        return (f"next: {head}{', '.join(unknown)}: {how}"
+                + (f"; {', '.join(others)}: fix the cause named above and record again" if others else ""))
     if code == 0:
         if write_hint_log is None and write_hint == CLI_HINTS["write_hint"]:
             write_hint_log = CLI_HINTS["write_hint_log"]
@@ -214,6 +224,16 @@ def holdout_text(run) -> str:
     return f"held-out error: not run ({why})"
 
 
+def in_force_lines(run) -> list[str]:
+    """Where the calibration in force came from, when not (only) from the source itself (a
+    parameter file given with ``--params``): ``calibration in force: --params v.param (accel0)``."""
+    by: dict[str, list[str]] = {}
+    for sensor, origin in run.raw.cal_origin.items():
+        if origin and origin not in ("the recording's parameters", "the vehicle") and not origin.startswith("raw"):
+            by.setdefault(origin, []).append(sensor)
+    return [f"calibration in force: {o} ({', '.join(ss)})" for o, ss in by.items()]
+
+
 def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool = True, force: bool = False) -> str:
     """Short human summary of a run for a terminal.
 
@@ -245,6 +265,7 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
          *kept_lines(run), next_step(run, **(hints or {}))]
     L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
           f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
+    L += in_force_lines(run)
     why_a, why_m = joint_unidentified(run)  # numbers of a sensor the poses do not identify: not printed
     why = why_a or why_m
     if cal is None:

@@ -311,6 +311,10 @@ class ImuLog:
     vehicle : mapping with what is known of the vehicle (``"sysid"``, ``"autopilot"``,
         ``"vehicle_type"``, ``"firmware"`` ...)
     warnings : tuple of str, what was skipped and how many (bad CRC, unknown messages...)
+    param_origins : mapping of parameter name to where its value came from, for the names that did
+        not come from the source itself (``"--params vehicle.param"``: a parameter file given with
+        the recording, :func:`mavcal.in_force.with_param_file`); every other name came from the
+        recording (a log) or the vehicle (a live link)
     """
 
     source: str
@@ -322,6 +326,7 @@ class ImuLog:
     vehicle: Mapping[str, object] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
     position_source: str = ""
+    param_origins: Mapping[str, str] = field(default_factory=dict)
 
     def get(self, sensor: str, instance: int = 0) -> SensorSeries | None:
         for s in self.series:
@@ -331,3 +336,11 @@ class ImuLog:
 
     def instances(self, sensor: str) -> list[int]:
         return sorted({s.instance for s in self.series if s.sensor == sensor})
+
+    def origin_of(self, names: Iterable[str]) -> str:
+        """Where the values of ``names`` (those the timeline has) came from, in words: the
+        recording's parameters, the vehicle (a live link) or a parameter file given with it
+        (``param_origins``); several joined by " and "."""
+        own = "the vehicle" if self.kind == "live" else "the recording's parameters"
+        found = {self.param_origins.get(n, own) for n in names if n in self.params}
+        return " and ".join(sorted(found)) if found else ""
