@@ -5,7 +5,8 @@ The sessions: a write through the symlinked port at radio speed; a cable pulled 
 after the 4th PARAM_SET of a 15-parameter write and plugged back at the same path (the write
 resumes: exit 0, every value held); the one-line reasons, each within 5 s: no such port, busy
 (held exclusively by another program), permission denied (the dialout group), no MAVLink at the
-baud rate given (the rate that answered is named), nothing received.
+baud rate given (the rate that answered is named), nothing received; a second writer (a ground
+station beside mavcal) changing a parameter during the write is caught by the read-back.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import errno
 import os
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -210,3 +212,27 @@ def test_a_port_that_sends_nothing_names_the_radio_rate():
 def test_our_ids_are_not_a_ground_stations():
     assert (GCS_SYSTEM_ID, GCS_COMPONENT_ID) != (255, 190)
     assert GCS_SYSTEM_ID != 255 and GCS_COMPONENT_ID != 190
+
+
+def test_a_second_writer_during_the_write_is_caught_by_the_read_back(cabled, tmp_path):
+    """A ground station beside mavcal sets COMPASS_OFS_X to its own value while mavcal's write is on
+    (right after mavcal's PARAM_SET of COMPASS_OFS_Y): never reported as written."""
+    vehicle, cable = cabled
+    pfile = tmp_path / "cal.param"
+    pfile.write_text("COMPASS_OFS_X 20\nCOMPASS_OFS_Y 21\nCOMPASS_OFS_Z 22\n")
+    before = vehicle.params
+
+    def meddle() -> None:
+        deadline = time.monotonic() + 60
+        while not any(s[0] == "COMPASS_OFS_Y" for s in vehicle.param_sets) and time.monotonic() < deadline:
+            time.sleep(0.001)
+        vehicle.set_param_local("COMPASS_OFS_X", 99.0, announce=True)  # as another GCS's write, echoed
+
+    threading.Thread(target=meddle, daemon=True).start()
+    proc = _mavcal("apply", str(pfile), "--connect", cable.path, "--baud", "57600", "--yes",
+                   "--backup", str(tmp_path / "b.param"))
+    assert proc.returncode == 5, f"rc {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    assert "written and verified" not in proc.stdout
+    assert "read-back does not confirm COMPASS_OFS_X (got 99.0, expected 20.0)" in proc.stderr
+    assert {n: vehicle.get_param(n) for n in ("COMPASS_OFS_Y", "COMPASS_OFS_Z")} == {
+        n: before[n] for n in ("COMPASS_OFS_Y", "COMPASS_OFS_Z")}

@@ -21,7 +21,9 @@ that the link is lossy.
 
 Device strings are pymavlink's: ``udpin:HOST:PORT`` (listen), ``udpout:HOST:PORT`` (send
 first), ``udp:HOST:PORT`` (= udpin), ``tcp:HOST:PORT`` (client), ``tcpin:HOST:PORT``, or a
-serial device (``/dev/ttyACM0``, ``COM3``) with ``baud``.
+serial device (``/dev/ttyACM0``, ``COM3``, any path to a character device) with ``baud``, opened by
+:mod:`mavcal.link.serial_port` (exclusively; one-line reasons; a pulled cable waited out as a
+silence); ``auto``: the serial port found by :mod:`mavcal.link.autodetect`.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ from typing import Any, BinaryIO, Callable
 from pymavlink import mavutil
 
 from mavcal.errors import LinkError, SigningError, SourceError
+from mavcal.link.autodetect import AUTO, find_port
 from mavcal.link.serial_port import (
     GARBAGE_BYTES,
     SerialConnection,
@@ -416,7 +419,8 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
     Parameters
     ----------
     device : str
-        pymavlink device string (see the module docstring).
+        pymavlink device string (see the module docstring); ``"auto"``: the one serial port that looks
+        like a flight controller (:func:`mavcal.link.autodetect.find_port`).
     baud : int
         Serial baud rate (ignored for network links).
     timeout_s : float
@@ -448,6 +452,8 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
     """
     if not device:
         raise LinkError("no device given")
+    if device == AUTO:
+        device = find_port().device
     conn = _connect(device, baud, source_system, source_component, signing_key)
     link = Link(conn, target_system=target_system or 0, target_component=0, device=device)
     if tlog is not None:
