@@ -27,7 +27,7 @@ from mavcal.link.connection import GCS_COMPONENT_ID, GCS_SYSTEM_ID, open_link
 from mavcal.link.serial_port import is_serial_device, open_error
 from mavcal.sources.reader import is_device
 from mavcal.testing.serial_cable import SerialCable
-from mavcal.testing.vehicle import TestVehicle
+from mavcal.testing.vehicle import TestVehicle, VehicleTruth
 
 PARAM_SET_ID = mavutil.mavlink.MAVLINK_MSG_ID_PARAM_SET
 NAMES = tuple(f"COMPASS_OFS{s}_{a}" for s in ("", "2", "3") for a in "XYZ") + tuple(
@@ -236,3 +236,73 @@ def test_a_second_writer_during_the_write_is_caught_by_the_read_back(cabled, tmp
     assert "read-back does not confirm COMPASS_OFS_X (got 99.0, expected 20.0)" in proc.stderr
     assert {n: vehicle.get_param(n) for n in ("COMPASS_OFS_Y", "COMPASS_OFS_Z")} == {
         n: before[n] for n in ("COMPASS_OFS_Y", "COMPASS_OFS_Z")}
+
+
+def test_a_capture_keeps_its_poses_over_a_pulled_cable_and_goes_on_after_a_reboot(caplog):
+    """A cable pulled for 3 s mid-capture while the board reboots (USB power: it forgets the streams
+    it was asked for): the intervals held so far are kept, the streams are asked for again once the
+    vehicle is heard, and the capture counts new poses after it."""
+    from mavcal.capture import CaptureConfig
+    from mavcal.capture import live as live_capture
+    from mavcal.segment import StillConfig
+
+    vehicle = TestVehicle("tcp", truth=VehicleTruth.random(3), seed=3, heartbeat_hz=5.0).start()
+    cable = SerialCable(tcp_port=vehicle.port, baud=115200).start()
+    poses = [(0, 0, 0), (0, 90, 0), (90, 0, 0), (180, 0, 0), (0, -90, 0), (-90, 0, 0), (0, 45, 90), (45, 0, 200)]
+    vehicle.run_pose_script(poses, hold_s=1.6, move_s=0.4)
+    seen: list = []
+    at_pull: list[int] = []
+
+    def on_status(st) -> None:
+        seen.append(st.n_intervals)
+        if st.n_intervals >= 2 and not at_pull:
+            at_pull.append(st.n_intervals)
+            cable.pull(3.0)
+            other = mavutil.mavlink_connection(f"tcp:127.0.0.1:{vehicle.port}", source_system=200)
+            other.mav.command_long_send(vehicle.sysid, vehicle.compid,
+                                        mavutil.mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 0, 1, 0, 0, 0, 0, 0, 0)
+            time.sleep(0.2)
+            other.close()
+
+    caplog.set_level("WARNING")
+    try:
+        sess = live_capture.capture_live(cable.path, config=CaptureConfig(still=StillConfig(min_duration_s=0.6,
+                                                                                             window_s=0.4)),
+                                         on_status=on_status, max_duration_s=40,
+                                         should_stop=lambda: vehicle.script_done.is_set() and len(seen) > 0
+                                         and seen[-1] >= 6)
+    finally:
+        cable.stop()
+        vehicle.stop()
+    assert at_pull and vehicle.reboots == 1 and cable.pulls[0][1] is not None  # (pulls[1]: the cable's stop)
+    assert sess.status.n_intervals > at_pull[0] + 1, (at_pull, seen[-5:])
+    assert "asking for the streams again" in caplog.text
+    assert "too slow" not in caplog.text  # a silence is not a slow link
+
+
+@pytest.mark.parametrize("baud, slow", [(9600, True), (115200, False)])
+def test_a_link_too_slow_for_the_streams_asked_is_said(baud, slow):
+    """At 9600 baud (960 bytes/s) the IMU messages asked at 25 Hz cannot all pass: one warning with the
+    rate received; at 115200 they do, and nothing is said."""
+    from mavcal.link.live import RATE_CHECK_S, open_recorder
+
+    vehicle = TestVehicle("tcp", heartbeat_hz=2.0).start()
+    cable = SerialCable(tcp_port=vehicle.port, baud=baud).start()
+    try:
+        rec = open_recorder(cable.path, baud=baud)
+        try:
+            rec.start_streams(25.0)
+            for _ in rec.iter_batches(RATE_CHECK_S + 1.5):
+                pass
+        finally:
+            rec.close()
+    finally:
+        cable.stop()
+        vehicle.stop()
+    assert rec.imu_rate_hz is not None
+    said = [w for w in rec.warnings if "too slow" in w]
+    if slow:
+        assert rec.imu_rate_hz < 17.5 and len(said) == 1, (rec.imu_rate_hz, rec.warnings)
+        assert f"{rec.imu_rate_hz:.0f} Hz of the 25 Hz asked" in said[0]
+    else:
+        assert rec.imu_rate_hz > 22.0 and not said, (rec.imu_rate_hz, rec.warnings)
