@@ -306,3 +306,21 @@ def test_a_link_too_slow_for_the_streams_asked_is_said(baud, slow):
         assert f"{rec.imu_rate_hz:.0f} Hz of the 25 Hz asked" in said[0]
     else:
         assert rec.imu_rate_hz > 22.0 and not said, (rec.imu_rate_hz, rec.warnings)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="other processes' open files: Linux's /proc")
+def test_a_port_another_program_opened_without_a_lock_is_busy_and_named(cabled):
+    """MAVProxy and pymavlink scripts open a port without any lock; two readers would each get half of
+    the bytes, so such a holder is found in /proc and named."""
+    _, cable = cabled
+    holder = subprocess.Popen([sys.executable, "-c", "import os, sys, time; fd = os.open(sys.argv[1], os.O_RDWR | "
+                               "os.O_NOCTTY); print('open', flush=True); time.sleep(60)", cable.path],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        text = _fails_within(cable.path)
+        assert "is busy" in text and f"(pid {holder.pid}) has it open" in text, text
+    finally:
+        holder.kill()
+        holder.wait()
+    open_link(cable.path, baud=57600).close()  # once it is gone, the port opens

@@ -10,7 +10,9 @@ through a symlink (udev's ``/dev/serial/by-id/...`` names) is a serial device
   already holds that way is reported busy rather than shared (two programs reading one serial
   port each get half the bytes);
 * **its failures in one line** each (:func:`open_error`): no such port (the ports seen are
-  listed), busy, permission denied (the ``dialout`` group on Linux), not a serial port;
+  listed), busy (locked, or on Linux open in another process, named: :func:`port_holders`,
+  since MAVProxy and pymavlink scripts open ports without a lock), permission denied (the
+  ``dialout`` group on Linux), not a serial port;
 * **a pulled cable is waited for**: when the port fails under a read or a write (the USB
   device went away: "device reports readiness to read but returned no data"), the connection
   closes it, drops what is sent meanwhile (as a radio loses frames) and tries to open the same
@@ -39,7 +41,8 @@ from pymavlink import mavutil
 from mavcal.errors import LinkError
 
 __all__ = ["is_serial_device", "split_baud", "open_serial", "open_error", "SerialConnection", "probe_bauds",
-           "no_mavlink_reason", "COMMON_BAUDS", "RADIO_BAUD", "REOPEN_PERIOD_S", "GARBAGE_BYTES", "ports_seen"]
+           "no_mavlink_reason", "port_holders", "COMMON_BAUDS", "RADIO_BAUD", "REOPEN_PERIOD_S", "GARBAGE_BYTES",
+           "ports_seen"]
 
 log = logging.getLogger(__name__)
 
@@ -110,8 +113,7 @@ def open_error(device: str, exc: BaseException) -> LinkError:
         return LinkError(f"permission denied opening {device}: {hint}")
     if (code in (errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK) or "exclusively lock" in text
             or (os.name == "nt" and ("Access is denied" in text or code == errno.EACCES))):
-        return LinkError(f"{device} is busy: another program holds it (Mission Planner, QGroundControl, MAVProxy?): "
-                         "close it there, or have it forward MAVLink to mavcal over UDP (docs/live-link.md)")
+        return _busy(device, port_holders(device))
     if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO) or "FileNotFoundError" in text:
         return LinkError(f"no serial port {device}: is the cable plugged in and the board powered?{_seen_text()}")
     if code == errno.EIO:
@@ -136,6 +138,46 @@ def _check_path(device: str) -> None:
         raise LinkError(f"{device} is not a serial port (not a character device)")
 
 
+def port_holders(device: str) -> list[str]:
+    """Other processes that have ``device`` open, as ``name (pid N)`` (Linux: their /proc/PID/fd;
+    processes of other users are not visible to a normal user). Empty elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return []
+    try:
+        rdev = os.stat(device).st_rdev
+    except OSError:
+        return []
+    me = os.getpid()
+    out = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit() or int(pid) == me:
+            continue
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                st = os.stat(f"/proc/{pid}/fd/{fd}")
+            except OSError:
+                continue
+            if stat.S_ISCHR(st.st_mode) and st.st_rdev == rdev:
+                try:
+                    with open(f"/proc/{pid}/comm") as f:
+                        name = f.read().strip()
+                except OSError:
+                    name = "?"
+                out.append(f"{name} (pid {pid})")
+                break
+    return out
+
+
+def _busy(device: str, who: Sequence[str] = ()) -> LinkError:
+    held = f"{', '.join(who)} has it open" if who else "another program holds it"
+    return LinkError(f"{device} is busy: {held} (Mission Planner, QGroundControl, MAVProxy?): close it there, or "
+                     "have it forward MAVLink to mavcal over UDP (docs/live-link.md)")
+
+
 def _open_port(device: str, baud: int) -> Any:
     """A pyserial port on ``device``, exclusive (flock and TIOCEXCL), non-blocking reads; LinkError else."""
     import serial
@@ -146,6 +188,10 @@ def _open_port(device: str, baud: int) -> Any:
                              xonxoff=False, exclusive=True)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise open_error(device, exc) from None
+    who = port_holders(device)  # a program that opened it without a lock (MAVProxy, a script) reads it too
+    if who:
+        port.close()
+        raise _busy(device, who)
     try:  # others opening it now get EBUSY, as QGroundControl's own ports do
         import fcntl
         import termios

@@ -128,7 +128,7 @@ class SerialCable:
         else:
             self._veh_master, self._veh_slave, self.vehicle_tty = _new_pty()
         self._tool_master: int | None = None
-        self._tool_slave: int | None = None
+        self._tool_idle_until = 0.0
         self.tool_tty: str | None = None
         self._lock = threading.RLock()
         self._to_tool = bytearray()
@@ -156,7 +156,8 @@ class SerialCable:
         with self._lock:
             if self._tool_master is not None:
                 return
-            self._tool_master, self._tool_slave, self.tool_tty = _new_pty()
+            self._tool_master, slave, self.tool_tty = _new_pty()
+            os.close(slave)  # nobody but the tool has its end open (mavcal names other holders as busy)
             tmp = self.path + ".new"
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
@@ -174,10 +175,9 @@ class SerialCable:
                 return
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.path)
-            for fd in (self._tool_master, self._tool_slave):
-                with contextlib.suppress(OSError):
-                    os.close(fd)  # type: ignore[arg-type]
-            self._tool_master = self._tool_slave = None
+            with contextlib.suppress(OSError):
+                os.close(self._tool_master)
+            self._tool_master = None
             self._to_tool.clear()
             self._to_vehicle.clear()
             self.pulls.append([time.monotonic(), None])
@@ -272,7 +272,8 @@ class SerialCable:
             if self._plug_due is not None and time.monotonic() >= self._plug_due:
                 self.plug()
             rlist: list[Any] = []
-            if len(self._to_vehicle) < BUFFER_BYTES and self._tool_master is not None:
+            if (len(self._to_vehicle) < BUFFER_BYTES and self._tool_master is not None
+                    and time.monotonic() >= self._tool_idle_until):
                 rlist.append(self._tool_master)
             if len(self._to_tool) < BUFFER_BYTES:
                 rlist.append(self._sock if self._sock is not None else self._veh_master)
@@ -286,8 +287,11 @@ class SerialCable:
                 if r is self._tool_master and self._tool_master is not None:
                     try:
                         data = os.read(self._tool_master, BUFFER_BYTES - len(self._to_vehicle))
-                    except (BlockingIOError, InterruptedError, OSError):
-                        data = b""  # EIO: the tool has not opened its end (or closed it)
+                    except (BlockingIOError, InterruptedError):
+                        data = b""
+                    except OSError:  # EIO: the tool has not opened its end (or closed it): look again soon
+                        data = b""
+                        self._tool_idle_until = time.monotonic() + 0.02
                     if data:
                         self._to_vehicle += data
                         pull_for = self._count(data) if pull_for is None else pull_for
