@@ -471,7 +471,7 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
                 raise SigningError(f"{device}: {problem}")
             waited = max(timeout_s, budget_s) if link.messages_received else timeout_s
             if isinstance(conn, SerialConnection) and not link.messages_received:
-                garbage = _garbage_only(link)
+                garbage = conn.bytes_received > 0  # bytes, never a frame: the wrong rate (few bytes: a slow talker)
                 answered = probe_bauds(conn) if garbage else None
                 raise LinkError(no_mavlink_reason(conn.device, conn.baud, garbage=garbage, waited_s=waited,
                                                   answered_at=answered))
