@@ -122,8 +122,9 @@ def open_error(device: str, exc: BaseException) -> LinkError:
     return LinkError(f"cannot open {device}: {reason}")
 
 
-def _check_path(device: str) -> None:
-    """The one-line reasons a path gives before any open: missing (a broken symlink too), not a port."""
+def _check_path(device: str, quiet: bool = False) -> None:
+    """The one-line reasons a path gives before any open: missing (a broken symlink too), not a port
+    (``quiet``: without listing the ports seen, as the reopening of a pulled port tries again and again)."""
     if _WINDOWS_PORT.match(device) or os.name == "nt":
         return
     try:
@@ -133,7 +134,7 @@ def _check_path(device: str) -> None:
     except (FileNotFoundError, NotADirectoryError):
         broken = f" (a link to {os.readlink(device)}, which is gone)" if os.path.islink(device) else ""
         raise LinkError(f"no serial port {device}{broken}: is the cable plugged in and the board powered?"
-                        f"{_seen_text()}") from None
+                        f"{'' if quiet else _seen_text()}") from None
     if not stat.S_ISCHR(mode):
         raise LinkError(f"{device} is not a serial port (not a character device)")
 
@@ -178,17 +179,18 @@ def _busy(device: str, who: Sequence[str] = ()) -> LinkError:
                      "have it forward MAVLink to mavcal over UDP (docs/live-link.md)")
 
 
-def _open_port(device: str, baud: int) -> Any:
-    """A pyserial port on ``device``, exclusive (flock and TIOCEXCL), non-blocking reads; LinkError else."""
+def _open_port(device: str, baud: int, reopen: bool = False) -> Any:
+    """A pyserial port on ``device``, exclusive (flock and TIOCEXCL), non-blocking reads; LinkError else.
+    ``reopen``: a pulled port tried again (every REOPEN_PERIOD_S): no port list, no search for holders."""
     import serial
 
-    _check_path(device)
+    _check_path(device, quiet=reopen)
     try:
         port = serial.Serial(device, baud, timeout=0, write_timeout=_WRITE_TIMEOUT_S, dsrdtr=False, rtscts=False,
                              xonxoff=False, exclusive=True)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise open_error(device, exc) from None
-    who = port_holders(device)  # a program that opened it without a lock (MAVProxy, a script) reads it too
+    who = [] if reopen else port_holders(device)  # one that opened it without a lock (MAVProxy) reads it too
     if who:
         port.close()
         raise _busy(device, who)
@@ -247,7 +249,7 @@ class SerialConnection(mavutil.mavserial):
             return False
         self._next_try = now + REOPEN_PERIOD_S
         try:
-            port = _open_port(self.device, self.baud)
+            port = _open_port(self.device, self.baud, reopen=True)
         except LinkError as exc:
             log.debug("%s: not back yet: %s", self.device, exc)
             return False
