@@ -38,6 +38,7 @@ from mavcal.commands.common import (
     check_optional_dependencies,
     check_save_tlog,
     parse_location,
+    resolve_connect,
     say_tlog_saved,
     signing_key,
     start_budget_s,
@@ -176,6 +177,7 @@ def _run(args: argparse.Namespace, page=None) -> int:
 
     _check(args)
     check_optional_dependencies(args)
+    resolve_connect(args)
     try:
         still = StillConfig(min_duration_s=args.hold)
     except ValueError as exc:
