@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mavcal.core.headings import YAW_ORIENTATIONS, provisional_headings
 from mavcal.core.held import relaxed_headings, tilts_of
 from mavcal.errors import MavcalError
 from mavcal.segment import Segmentation, axis_label, count_clusters
@@ -276,19 +277,36 @@ def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
 
 
 def _headings(gravity_dirs: np.ndarray, mag_means: np.ndarray) -> int:
-    """Distinct headings among poses near level: each pose's heading from the compass means and
-    the tilts the gravity directions give (:func:`mavcal.core.held.relaxed_headings`, the linear
-    relaxation of the compass model), in clusters :data:`REACH_HEADING_DEG` apart. (The sphere of
-    :func:`field_directions` is not determined by means near a circle, and a tilt moves the
-    vertical field into the horizontal readings as much as a heading does.)"""
+    """Distinct headings among poses near level, in clusters :data:`REACH_HEADING_DEG` apart: each
+    pose's heading from a provisional fit of the compass (:func:`mavcal.core.headings.provisional_headings`:
+    the offsets, scale and dip fitted, the tilts the gravity directions give removed, each yaw
+    mounting of the compass tried), so that neither offsets of any size nor a steep field's
+    vertical share in a tilted pose's readings merge or split headings. When that fit fails (too
+    few poses, no convergence), the linear relaxation of the compass model
+    (:func:`mavcal.core.held.relaxed_headings`) or the circle the raw means trace, whichever
+    counts more (issue 37: both fail for ordinary offsets and soft iron beside a steep field)."""
     g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
     M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
     ok = np.isfinite(g).all(axis=1) & np.isfinite(M).all(axis=1)
     g, M = g[ok], M[ok]
-    if g.shape[0] < 4:
+    if g.shape[0] < 3:
         return min(g.shape[0], 1)
     try:
-        psi = relaxed_headings(tilts_of(-g), M)[0]  # FRD gravity points down; the specific force up
+        T = tilts_of(-g)  # FRD gravity points down; the specific force up
+    except MavcalError:
+        T = None
+    if T is not None:
+        try:
+            psi = provisional_headings(T, M, tuple(YAW_ORIENTATIONS)).psi_rad
+            return count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
+        except (MavcalError, np.linalg.LinAlgError):
+            pass
+    if g.shape[0] < 4:
+        return 1
+    try:
+        if T is None:
+            raise MavcalError("upside down")
+        psi = relaxed_headings(T, M)[0]
         n_relaxed = count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
     except (MavcalError, np.linalg.LinAlgError):
         n_relaxed = 1
