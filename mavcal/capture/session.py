@@ -40,6 +40,7 @@ from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reas
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
+from mavcal.coverage import ReachCoverage, headings_text, reach_coverage
 from mavcal.errors import MavcalError
 from mavcal.pipeline import CalibrationRun, Options, Prepared, calibrate_prepared, prepare
 from mavcal.segment import StillConfig
@@ -76,6 +77,9 @@ class CaptureConfig:
     # a vehicle that cannot be turned over: only poses tilted at most this far from level (any
     # heading) are advised; the accelerometers then keep their calibration (None: no limit)
     max_tilt_deg: float | None = None
+    # ... and then the capture ends at this many intervals (or max_intervals, the smaller) with a verdict:
+    # poses within reach add little after the plan and the advice's first rounds (issue 37)
+    max_intervals_reach: int = 25
 
 
 @dataclass(frozen=True)
@@ -200,6 +204,13 @@ def reach_plan(max_tilt_deg: float) -> list[tuple[float, float, float]]:
     t, d = float(max_tilt_deg), round(float(max_tilt_deg) / np.sqrt(2.0), 1)
     return [(0.0, 0.0, 0.0), (0.0, t, 60.0), (t, 0.0, 120.0), (0.0, 0.0, 180.0), (0.0, -t, 240.0),
             (-t, 0.0, 300.0), (d, d, 30.0), (-d, -d, 210.0)]
+
+
+def reach_plan_extended(max_tilt_deg: float) -> list[tuple[float, float, float]]:
+    """The plan before the first fit, when no fit comes: :func:`reach_plan`, then the same turned
+    by 30, 15 and 45 deg (new headings between those held, never a pose asked for before)."""
+    base = reach_plan(max_tilt_deg)
+    return [(r, p, float((y + turn) % 360.0)) for turn in (0.0, 30.0, 15.0, 45.0) for r, p, y in base]
 
 
 #: poses within reach: a compass bound that fell by less than this fraction over this many new
@@ -386,6 +397,8 @@ class CaptureSession:
         self._dropped: dict[str, str] = {}  # sensor -> why the capture finishes without it
         self._progress: tuple[SensorProgress, ...] = ()
         self._floors: dict[str, float] = {}  # poses within reach: compass -> the bound's floor reached
+        self._reach_key: tuple[int, int] | None = None  # (intervals, pieces) of the cached reach coverage
+        self._reach: ReachCoverage | None = None
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -499,10 +512,11 @@ class CaptureSession:
             spread = _field_spread(run) if _paired(run) else 0.0
             if spread > cfg.max_field_spread and n >= n_min + 2:
                 aborted = True
-                reason = (f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses: magnetic "
-                          "disturbance (steel, magnets, currents nearby); move to a clean place and start again")
+                reason = self._spread_reason(spread, prep, n)
         progress = self._progress = self._measure(run if not aborted else None, prep, n)
         done, reason, offer = self._stop_rule(run, n, aborted, reason)
+        if cfg.max_tilt_deg is not None and not aborted:
+            messages += self._reach_messages(prep, n, done)
         advice, target = None, None
         if not done:
             messages += self._stall_check(n, still_now)
@@ -550,10 +564,69 @@ class CaptureSession:
                 "accelerometer's uncertainty, which more poses do not lower)" if floors else ""), offer
         if n >= cfg.max_intervals:
             return True, f"{n} intervals: the maximum", offer
+        if cfg.max_tilt_deg is not None and n >= cfg.max_intervals_reach:
+            return True, self._reach_cap_reason(n), offer
         if offer and all(p.met or p.sensor in offer for p in remaining):
             reason = (f"every other sensor has reached its target; {', '.join(offer)} cannot: finish without "
                       f"{'it' if len(offer) == 1 else 'them'} or keep holding poses")
         return False, reason, offer
+
+    def _reach_coverage(self, prep: Prepared, n: int) -> ReachCoverage | None:
+        """Poses within reach: what the primary compass's intervals identify
+        (:func:`mavcal.coverage.reach_coverage`: its headings from a provisional fit), once per new
+        or changed interval."""
+        ivs = prep.segmentation.intervals
+        key = (n, len(ivs[-1].pieces_s) if ivs else 0)
+        if key == self._reach_key:
+            return self._reach
+        ai, mi = self.options.accel_instance, self.options.mag_instance
+        used = [iv for iv in ivs if len(iv.mag_mgauss.get(mi, ())) >= 2 and len(iv.accel_mps2.get(ai, ())) >= 2]
+        self._reach_key = key
+        self._reach = None
+        if used:
+            g = np.array([iv.gravity_dir for iv in used]).reshape(-1, 3)
+            means = np.array([iv.mag_mgauss[mi].mean(0) for iv in used]).reshape(-1, 3)
+            self._reach = reach_coverage(g, means)
+        return self._reach
+
+    def _reach_messages(self, prep: Prepared, n: int, done: bool) -> list[str]:
+        """Poses within reach, once the plan's poses are held and the headings still fall short:
+        the headings seen and those to add, in words a person can check (issue 37)."""
+        if done or n < len(reach_plan(self.config.max_tilt_deg or 15.0)):
+            return []
+        r = self._reach_coverage(prep, n)
+        if r is None or not r.missing:
+            return []
+        return [f"poses within reach: {'; '.join(r.missing)}; {r.add}"]
+
+    def _reach_cap_reason(self, n: int) -> str:
+        """The reason of a capture within reach ended at its cap: what the poses gave."""
+        assert self._prep is not None
+        r = self._reach_coverage(self._prep, n)
+        text = f"{n} poses: the most a capture within reach asks for (--max-poses)"
+        bounds = [f"{p.sensor} {p.bound_deg:.2f} deg (target {p.target_deg:g})" for p in self._progress
+                  if p.bound_deg is not None]
+        if bounds:
+            text += "; heading error bounds: " + ", ".join(bounds)
+        if r is not None:
+            text += f"; {r.n_field_directions} distinct heading(s)"
+            if r.headings_deg:
+                text += f" ({headings_text(r.headings_deg)} from the first pose's)"
+            if r.missing:
+                text += "; the compass is not identified: " + "; ".join(r.missing)
+            if r.mounting_text():
+                text += "; " + r.mounting_text()
+        return text + "; the verdict follows"
+
+    def _spread_reason(self, spread: float, prep: Prepared, n: int) -> str:
+        """Why the calibrated field magnitude differs between poses: within reach, a compass whose
+        readings fit a turned mounting is said to be mounted rotated, not in a disturbance."""
+        r = self._reach_coverage(prep, n) if self.config.max_tilt_deg is not None else None
+        said = f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses"
+        if r is not None and r.mounting_text():
+            return f"{said}: {r.mounting_text()}; then start again"
+        return (f"{said}: magnetic disturbance (steel, magnets, currents nearby); move to a clean place and start "
+                "again" + (f" ({r.mounting_evidence})" if r is not None and r.mounting_evidence else ""))
 
     def _measure(self, run: CalibrationRun | None, prep: Prepared, n: int) -> tuple[SensorProgress, ...]:
         """Every sensor's bound against its target (:func:`mavcal.capture.progress.measure`)."""
@@ -629,9 +702,9 @@ class CaptureSession:
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
         reach = self.config.max_tilt_deg
         if not _paired(self._run) or len(dirs) < PLAN_FIRST:  # no fit yet, or no sensor of the pair accepted
-            if reach is not None:  # every pose near level: the plan by the count of intervals
-                plan = [q for q in reach_plan(reach) if q not in self._given_up] or reach_plan(reach)
-                return _advice(plan[len(dirs) % len(plan)])
+            if reach is not None:  # every pose near level: the plan by the count of intervals, never cycled
+                plan = [q for q in reach_plan_extended(reach) if q not in self._given_up] or reach_plan(reach)
+                return _advice(plan[min(len(dirs), len(plan) - 1)])
             plan = [q for q in INITIAL_PLAN if q not in self._given_up] or INITIAL_PLAN
             for pose in plan:
                 g = euler_matrix(*pose).T @ np.array([0.0, 0.0, 1.0])
