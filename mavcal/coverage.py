@@ -351,13 +351,12 @@ def heading_gaps(headings_deg: Sequence[float], step_deg: float = 60.0) -> list[
     seen = np.asarray(headings_deg, dtype=float) % 360.0
     if seen.size == 0:
         return [0.0]
-    out: list[tuple[float, float]] = []
-    for c in np.arange(0.0, 360.0, 15.0):
-        d = np.abs((seen - c + 180.0) % 360.0 - 180.0).min()
-        if d >= REACH_HEADING_DEG and all(abs((c - o + 180.0) % 360.0 - 180.0) >= step_deg - 1e-9 for o, _ in out):
-            out.append((float(c), float(d)))
-            out.sort(key=lambda t: -t[1])
-    return [c for c, _ in sorted(out, key=lambda t: -t[1])]
+    cands = [(float(c), float(np.abs((seen - c + 180.0) % 360.0 - 180.0).min())) for c in np.arange(0.0, 360.0, 15.0)]
+    out: list[float] = []
+    for c, d in sorted(cands, key=lambda t: -t[1]):  # the farthest from every heading seen first
+        if d >= REACH_HEADING_DEG and all(abs((c - o + 180.0) % 360.0 - 180.0) >= step_deg - 1e-9 for o in out):
+            out.append(c)
+    return out
 
 
 def headings_text(headings_deg: Sequence[float]) -> str:
@@ -409,8 +408,8 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
                        (f"; headings seen, from the first pose's, turning clockwise: {headings_text(seen)})"
                         if seen else ")"))
         gaps = heading_gaps(seen)[:REACH_MIN_FIELD_DIRECTIONS - n_f] if seen else []
-        add = (f"turn the vehicle to {', '.join(f'{h:.0f}' for h in gaps)} deg from the first pose's heading "
-               "(clockwise seen from above)" if gaps else
+        add = (f"turn the vehicle to more headings: {', '.join(f'{h:.0f}' for h in sorted(gaps))} deg from the first "
+               "pose's heading (clockwise seen from above)" if gaps else
                "turn the vehicle to more headings (about 60 deg apart, all the way round)")
     if tilt < REACH_MIN_TILT_DEG:
         missing.append(f"tilts up to {tilt:.1f} deg cannot separate the compass's vertical terms from its "

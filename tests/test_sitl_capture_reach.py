@@ -55,3 +55,35 @@ def test_capture_within_reach_writes_the_compass_and_keeps_the_rest(start_sitl, 
     print(f"level flight: max heading error {level.max_heading_deg:.3f} deg; bound "
           f"{report['quality']['heading_95_deg']:.3f} deg (95 %, tilts up to 15 deg)")
     assert level.max_heading_deg <= 0.5
+
+
+#: issue 37: the compass's errors far from the calibration in force (offsets 250-350 mGauss away from
+#: WRONG_CALIBRATION's, the soft iron of the issue's reproduction) at CMAC's -66 deg dip
+FAR_ERRORS = InjectedErrors(mag_ofs_mgauss=(-290.0, 245.0, -310.0), mag_dia=(1.038, 1.0616, 0.9742),
+                            mag_odi=(0.0135, 0.0012, 0.0085), mag_noise_mgauss=3.0,
+                            acc_bias_mps2=(-0.021, 0.005, -0.431), acc_scale=(0.9716, 0.9736, 1.0294))
+
+
+def test_capture_within_reach_ends_accepted_with_offsets_far_from_those_in_force(start_sitl, tmp_path):
+    """Issue 37: with offsets 300+ mGauss from those in force the headings are counted from a
+    provisional fit, and the capture ends within 25 poses with the compass accepted."""
+    errors = FAR_ERRORS
+    far = np.array(errors.mag_ofs_mgauss) - np.array([WRONG_CALIBRATION[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    assert np.linalg.norm(far) >= 300.0
+    sitl = start_sitl(errors, wrong_calibration=boot_calibration(errors))
+    g = run_guided_capture(sitl, tmp_path, return_prob=0.0, seed=37, timeout_s=200, args=["--max-tilt", "15"])
+    print(f"capture within reach, offsets {np.linalg.norm(far):.0f} mGauss from those in force: "
+          f"{len(g.hand.poses)} poses held, {g.took_s:.0f} s, rc {g.rc}")
+    assert g.hand.error is None, g.hand.error
+    assert len(g.hand.poses) <= 26, g.hand.poses  # the cap (25 intervals), and the last pose held as it ends
+    assert (tmp_path / "run.json").exists(), f"rc {g.rc}\n{g.status.text()[-3000:]}\n{g.stdout[-2000:]}"
+    report = json.loads((tmp_path / "run.json").read_text())
+    verdicts = {s["sensor"]: s for s in report["sensors"]}
+    assert g.rc == 0 and verdicts["compass0"]["accepted"], f"{verdicts}\n{g.status.text()[-2000:]}\n{g.stdout[-2000:]}"
+    after = sitl.get_params(CALIBRATION_NAMES)
+    cal_c, cal_a = fw.compass_cal_from_params(after, 0), fw.accel_cal_from_params(after, 0)
+    level = attitude_errors(errors.raw_accel, errors.raw_mag_sensor, cal_a, cal_c, sitl.field_ned_mgauss,
+                            attitude_grid(max_tilt_deg=0.0))
+    print(f"level flight: max heading error {level.max_heading_deg:.3f} deg; offsets "
+          f"{np.max(np.abs(np.array(cal_c.ofs_mgauss) - errors.mag_ofs_mgauss)):.1f} mGauss off")
+    assert level.max_heading_deg <= 0.5
