@@ -513,6 +513,10 @@ class CaptureSession:
             if spread > cfg.max_field_spread and n >= n_min + 2:
                 aborted = True
                 reason = self._spread_reason(spread, prep, n)
+        if cfg.max_tilt_deg is not None and not aborted and n >= len(reach_plan(cfg.max_tilt_deg)):
+            r = self._reach_coverage(prep, n)  # a compass mounted turned: no fit of these poses can be right
+            if r is not None and r.mounting_text():
+                aborted, reason = True, f"{r.mounting_text()}; then start again"
         progress = self._progress = self._measure(run if not aborted else None, prep, n)
         done, reason, offer = self._stop_rule(run, n, aborted, reason)
         if cfg.max_tilt_deg is not None and not aborted:
