@@ -418,8 +418,10 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
                                              "block, a ramp)")
     kept = [k for a in accels for k in _accel_kept(a, tilt)] if applies else []
     if applies and not missing:
-        kept.append(KeptParameter(compass, "orientation", "turning about the vertical cannot tell a rotation of "
-                                  "the compass from the heading", _BEYOND))
+        why = ("the tilts confirm the yaw mounting configured, its other turns fit worse" if turn == 0.0 else
+               "turning about the vertical cannot tell a rotation of the compass from the heading, and the tilts "
+               "did not tell the yaw mountings apart")
+        kept.append(KeptParameter(compass, "orientation", f"{why} ({evidence})" if evidence else why, _BEYOND))
     return ReachCoverage(applies, tilt, n_f, applies and not missing, tuple(kept), tuple(missing), add, seen,
                          turn, evidence)
 

@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix
 from mavcal.errors import EstimationError
