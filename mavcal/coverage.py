@@ -259,6 +259,15 @@ class ReachCoverage:
                     "mounted and set its orientation")
         return ""
 
+    def heading_advice(self) -> str:
+        """What to do when the heading bound of these poses is above its gate: the bound counts the
+        uncertainty of the accelerometer calibration kept, which no pose within reach lowers (issue 37)."""
+        return ("within reach the bound counts the uncertainty of the accelerometer's calibration, which is kept "
+                "(poses within reach do not identify it) and which more poses do not lower once the bound stops "
+                "falling: calibrate the accelerometer (its full calibration, or at least a level calibration on "
+                "level ground) and capture again, or write anyway with --force; else turn the vehicle to headings "
+                f"between the {self.n_field_directions} recorded")
+
     def refit_advice(self) -> str:
         """What poses to add when the fit of these poses was not certified (a wrong basin not ruled
         out): headings between those recorded and tilts in new directions, the vehicle's reach kept."""
