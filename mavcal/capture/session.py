@@ -397,6 +397,7 @@ class CaptureSession:
         self._dropped: dict[str, str] = {}  # sensor -> why the capture finishes without it
         self._progress: tuple[SensorProgress, ...] = ()
         self._floors: dict[str, float] = {}  # poses within reach: compass -> the bound's floor reached
+        self._all_held = False  # the last advice repeats a pose: every candidate was held or given up
         self._reach_key: tuple[int, int] | None = None  # (intervals, pieces) of the cached reach coverage
         self._reach: ReachCoverage | None = None
 
@@ -525,7 +526,11 @@ class CaptureSession:
         if not done:
             messages += self._stall_check(n, still_now)
             target = self._advice_target() if self._run is not None and n >= PLAN_FIRST else None
+            self._all_held = False
             advice = self.next_pose()
+            if self._all_held:
+                messages.append("every candidate pose has been held (or given up): the most informative one is "
+                                "advised again, as more samples there still lower the bound")
             messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
                          "values if it is rejected) or keep holding poses" for p in progress if p.sensor in offer]
             messages += [f"{p.sensor}'s bound is at its target but the poses do not identify it yet: {p.needs}"
@@ -719,6 +724,7 @@ class CaptureSession:
         n_typ = float(np.median([len(self._run.segmentation.intervals[k].accel_mps2[self.options.accel_instance])
                                  for k in self._run.intervals_used]))
         out = self._excluded(poses)
+        self._all_held = bool(out.all())
         ratios = self._predicted_ratios(poses, n_typ, target) if self.config.criterion == "heading" else []
         if ratios:
             R = np.array(ratios)  # (sensors, K)
