@@ -111,3 +111,22 @@ def test_a_compass_mounted_rotated_and_configured_so_is_calibrated():
     sess, st, _ = _capture(_vehicle(orientation=6, configured=6))
     assert st.done and not st.aborted and st.n_intervals <= 25, st.reason
     assert "mounted rotated" not in st.reason
+
+
+def test_a_heading_bound_above_its_gate_names_the_kept_accelerometer():
+    """Issue 37, item 4: the accelerometer in force 0.5 m/s^2 off (SITL's reproduction): a compass
+    rejected for its heading bound is told that the bound counts the kept accelerometer's calibration
+    and what to do, not "more poses at different headings, or steel and magnets"."""
+    from dataclasses import replace
+
+    from mavcal.ardupilot.gates import GateConfig
+
+    sess, st, _ = _capture(_vehicle())
+    assert st.done and not st.aborted, st.reason
+    opts = replace(sess.options, holdout=True, gates=GateConfig(heading_95_max_deg=0.5))
+    run = sess.result(opts)
+    verdict = {v.sensor: v for v in run.verdicts}["compass0"]
+    assert not verdict.accepted
+    said = " ".join(verdict.reasons)
+    assert "accelerometer's calibration" in said and "calibrate the accelerometer" in said, said
+    assert "steel and magnets" not in said, said
