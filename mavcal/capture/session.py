@@ -37,10 +37,10 @@ import numpy as np
 
 from mavcal.ardupilot.rotations import euler_to_matrix
 from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reason, tilt_pose_variances
+from mavcal.capture.reach import ReachWatch, reach_plan, reach_plan_extended, reach_tilts
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
-from mavcal.coverage import ReachCoverage, headings_text, reach_coverage
 from mavcal.errors import MavcalError
 from mavcal.pipeline import CalibrationRun, Options, Prepared, calibrate_prepared, prepare
 from mavcal.segment import StillConfig
@@ -174,7 +174,7 @@ def candidate_poses(max_tilt_deg: float | None = None) -> list[tuple[float, floa
     it in 8 directions (one side or a corner on a block), every heading in 45 deg steps."""
     out = []
     if max_tilt_deg is not None:
-        for roll, pitch in _reach_tilts(max_tilt_deg):
+        for roll, pitch in reach_tilts(max_tilt_deg):
             for yaw in range(0, 360, 45):
                 out.append((roll, pitch, float(yaw)))
         return out
@@ -186,37 +186,14 @@ def candidate_poses(max_tilt_deg: float | None = None) -> list[tuple[float, floa
     return out
 
 
-def _reach_tilts(max_tilt_deg: float) -> list[tuple[float, float]]:
-    """(roll, pitch) deg: level, and tilted by half and all of ``max_tilt_deg`` towards the 8
-    points (a corner: roll and pitch each t / sqrt(2), so the tilt stays within the limit)."""
-    out = [(0.0, 0.0)]
-    for t in (0.5 * max_tilt_deg, float(max_tilt_deg)):
-        for k in range(8):
-            a = np.radians(45.0 * k)
-            out.append((round(float(t * np.sin(a)), 1), round(float(t * np.cos(a)), 1)))
-    return out
-
-
-def reach_plan(max_tilt_deg: float) -> list[tuple[float, float, float]]:
-    """The plan before the first fit for a vehicle that cannot be turned over: turned to six
-    headings 60 deg apart, level and tilted by ``max_tilt_deg`` nose up, rolled right, nose down,
-    rolled left, then two corners."""
-    t, d = float(max_tilt_deg), round(float(max_tilt_deg) / np.sqrt(2.0), 1)
-    return [(0.0, 0.0, 0.0), (0.0, t, 60.0), (t, 0.0, 120.0), (0.0, 0.0, 180.0), (0.0, -t, 240.0),
-            (-t, 0.0, 300.0), (d, d, 30.0), (-d, -d, 210.0)]
-
-
-def reach_plan_extended(max_tilt_deg: float) -> list[tuple[float, float, float]]:
-    """The plan before the first fit, when no fit comes: :func:`reach_plan`, then the same turned
-    by 30, 15 and 45 deg (new headings between those held, never a pose asked for before)."""
-    base = reach_plan(max_tilt_deg)
-    return [(r, p, float((y + turn) % 360.0)) for turn in (0.0, 30.0, 15.0, 45.0) for r, p, y in base]
-
-
 #: poses within reach: a compass bound that fell by less than this fraction over this many new
 #: intervals is at the floor set by the kept accelerometer (CaptureSession._reach_floor)
 REACH_PLATEAU = 0.10
 REACH_PLATEAU_POSES = 3
+
+#: said when the advice repeats a pose: every candidate was held or given up
+ALL_HELD = ("every candidate pose has been held (or given up): the most informative one is advised again, as "
+            "more samples there still lower the bound")
 
 # the plan before the first fit (and until PLAN_FIRST intervals): six faces, then two diagonals
 PLAN_FIRST = 6
@@ -398,8 +375,7 @@ class CaptureSession:
         self._progress: tuple[SensorProgress, ...] = ()
         self._floors: dict[str, float] = {}  # poses within reach: compass -> the bound's floor reached
         self._all_held = False  # the last advice repeats a pose: every candidate was held or given up
-        self._reach_key: tuple[int, int] | None = None  # (intervals, pieces) of the cached reach coverage
-        self._reach: ReachCoverage | None = None
+        self._reach = ReachWatch(config.max_tilt_deg, self.options)  # poses within reach: what they identify
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -506,31 +482,23 @@ class CaptureSession:
             except MavcalError as exc:
                 messages.append(f"no fit yet: {exc}")
         run = self._run
-        heading = tilt = None
-        model = None
+        heading = tilt = model = None
         if run is not None and not aborted:
             heading, tilt, model = run.quality.heading_95_deg, run.quality.tilt_95_deg, run.calibration.model
             spread = _field_spread(run) if _paired(run) else 0.0
             if spread > cfg.max_field_spread and n >= n_min + 2:
-                aborted = True
-                reason = self._spread_reason(spread, prep, n)
-        if cfg.max_tilt_deg is not None and not aborted and n >= len(reach_plan(cfg.max_tilt_deg)):
-            r = self._reach_coverage(prep, n)  # a compass mounted turned: no fit of these poses can be right
-            if r is not None and r.mounting_text():
-                aborted, reason = True, f"{r.mounting_text()}; then start again"
+                aborted, reason = True, self._reach.spread_reason(spread, prep, n)
+        if not aborted and (turned := self._reach.mounting_abort(prep, n)):
+            aborted, reason = True, turned
         progress = self._progress = self._measure(run if not aborted else None, prep, n)
         done, reason, offer = self._stop_rule(run, n, aborted, reason)
-        if cfg.max_tilt_deg is not None and not aborted:
-            messages += self._reach_messages(prep, n, done)
+        messages += [] if aborted else self._reach.messages(prep, n, done)
         advice, target = None, None
         if not done:
             messages += self._stall_check(n, still_now)
             target = self._advice_target() if self._run is not None and n >= PLAN_FIRST else None
-            self._all_held = False
             advice = self.next_pose()
-            if self._all_held:
-                messages.append("every candidate pose has been held (or given up): the most informative one is "
-                                "advised again, as more samples there still lower the bound")
+            messages += [ALL_HELD] if self._all_held else []
             messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
                          "values if it is rejected) or keep holding poses" for p in progress if p.sensor in offer]
             messages += [f"{p.sensor}'s bound is at its target but the poses do not identify it yet: {p.needs}"
@@ -574,68 +542,12 @@ class CaptureSession:
         if n >= cfg.max_intervals:
             return True, f"{n} intervals: the maximum", offer
         if cfg.max_tilt_deg is not None and n >= cfg.max_intervals_reach:
-            return True, self._reach_cap_reason(n), offer
+            assert self._prep is not None
+            return True, self._reach.cap_reason(self._prep, n, self._progress), offer
         if offer and all(p.met or p.sensor in offer for p in remaining):
             reason = (f"every other sensor has reached its target; {', '.join(offer)} cannot: finish without "
                       f"{'it' if len(offer) == 1 else 'them'} or keep holding poses")
         return False, reason, offer
-
-    def _reach_coverage(self, prep: Prepared, n: int) -> ReachCoverage | None:
-        """Poses within reach: what the primary compass's intervals identify
-        (:func:`mavcal.coverage.reach_coverage`: its headings from a provisional fit), once per new
-        or changed interval."""
-        ivs = prep.segmentation.intervals
-        key = (n, len(ivs[-1].pieces_s) if ivs else 0)
-        if key == self._reach_key:
-            return self._reach
-        ai, mi = self.options.accel_instance, self.options.mag_instance
-        used = [iv for iv in ivs if len(iv.mag_mgauss.get(mi, ())) >= 2 and len(iv.accel_mps2.get(ai, ())) >= 2]
-        self._reach_key = key
-        self._reach = None
-        if used:
-            g = np.array([iv.gravity_dir for iv in used]).reshape(-1, 3)
-            means = np.array([iv.mag_mgauss[mi].mean(0) for iv in used]).reshape(-1, 3)
-            self._reach = reach_coverage(g, means)
-        return self._reach
-
-    def _reach_messages(self, prep: Prepared, n: int, done: bool) -> list[str]:
-        """Poses within reach, once the plan's poses are held and the headings still fall short:
-        the headings seen and those to add, in words a person can check (issue 37)."""
-        if done or n < len(reach_plan(self.config.max_tilt_deg or 15.0)):
-            return []
-        r = self._reach_coverage(prep, n)
-        if r is None or not r.missing:
-            return []
-        return [f"poses within reach: {'; '.join(r.missing)}; {r.add}"]
-
-    def _reach_cap_reason(self, n: int) -> str:
-        """The reason of a capture within reach ended at its cap: what the poses gave."""
-        assert self._prep is not None
-        r = self._reach_coverage(self._prep, n)
-        text = f"{n} poses: the most a capture within reach asks for (--max-poses)"
-        bounds = [f"{p.sensor} {p.bound_deg:.2f} deg (target {p.target_deg:g})" for p in self._progress
-                  if p.bound_deg is not None]
-        if bounds:
-            text += "; heading error bounds: " + ", ".join(bounds)
-        if r is not None:
-            text += f"; {r.n_field_directions} distinct heading(s)"
-            if r.headings_deg:
-                text += f" ({headings_text(r.headings_deg)} from the first pose's)"
-            if r.missing:
-                text += "; the compass is not identified: " + "; ".join(r.missing)
-            if r.mounting_text():
-                text += "; " + r.mounting_text()
-        return text + "; the verdict follows"
-
-    def _spread_reason(self, spread: float, prep: Prepared, n: int) -> str:
-        """Why the calibrated field magnitude differs between poses: within reach, a compass whose
-        readings fit a turned mounting is said to be mounted rotated, not in a disturbance."""
-        r = self._reach_coverage(prep, n) if self.config.max_tilt_deg is not None else None
-        said = f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses"
-        if r is not None and r.mounting_text():
-            return f"{said}: {r.mounting_text()}; then start again"
-        return (f"{said}: magnetic disturbance (steel, magnets, currents nearby); move to a clean place and start "
-                "again" + (f" ({r.mounting_evidence})" if r is not None and r.mounting_evidence else ""))
 
     def _measure(self, run: CalibrationRun | None, prep: Prepared, n: int) -> tuple[SensorProgress, ...]:
         """Every sensor's bound against its target (:func:`mavcal.capture.progress.measure`)."""
@@ -707,6 +619,7 @@ class CaptureSession:
         the primary pair's :func:`pose_scores`. Never a pose already recorded (see
         ``CaptureConfig.repeat_deg``) nor one given up after a stall.
         """
+        self._all_held = False
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
         reach = self.config.max_tilt_deg
