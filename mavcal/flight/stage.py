@@ -114,10 +114,9 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
                      {i: (info[i].mot_per_unit if motct == kind_code else np.zeros(3)) for i in fits}, rotation)
     for c in s.compasses:
         f = info[c.instance]
-        fit = fits.get(c.instance)
-        if fit is None:
+        if c.instance not in fits:
             continue
-        results.append(CompassResult(c.instance, fit, verdicts[c.instance], f.missing,
+        results.append(CompassResult(c.instance, fits[c.instance], verdicts[c.instance], f.missing,
                                      apf.compass_in_use(s.params, c.instance),
                                      np.median(c.ofs_mgauss, axis=0), f.mot_per_unit))
     return FlightResult(s.source, kind, motct, yaw_source, field_source, B0, tuple(results), tuple(warnings))
