@@ -54,9 +54,9 @@ def test_wrong_compasses_are_named_with_their_cause_and_the_good_one_is_not():
     assert v[2].wrong and "wrong rotation" in v[2].causes[0] and not v[2].accepted
     text = summary_text(r)
     lines = text.splitlines()
-    assert any(ln.startswith("compass2: WRONG in flight: a constant 80 mGauss offset") for ln in lines)
-    assert any(ln.startswith("compass3: WRONG in flight: its heading is +") for ln in lines)
-    assert not any("WRONG" in ln for ln in lines if ln.startswith("compass1"))
+    assert any(ln.startswith("compass1: WRONG in flight: a constant 80 mGauss offset") for ln in lines)
+    assert any(ln.startswith("compass2: WRONG in flight: its heading is +") for ln in lines)
+    assert not any("WRONG" in ln for ln in lines if ln.startswith("compass0"))
     p = param_values(r)  # the accepted compass only
     assert set(p) == {"COMPASS_MOTCT", "COMPASS_MOT_X", "COMPASS_MOT_Y", "COMPASS_MOT_Z"}
     doc = to_json(r)

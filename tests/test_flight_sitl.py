@@ -3,11 +3,11 @@
 SITL's ``quad`` flies the short scripted flight of :mod:`mavcal.testing.sitl_flight` (GUIDED
 take-off, yaw turns, legs at changing speed and climb rate, LAND; ``--speedup 8``) with an
 injected motor interference ``SIM_MAG_MOT`` on every compass (``COMPASS_MOTCT 2``: the right
-compensation is ``COMPASS_MOT = -SIM_MAG_MOT``), and compass 2 made wrong: its simulated hard
+compensation is ``COMPASS_MOT = -SIM_MAG_MOT``), and the second compass (``compass1``) made wrong: its simulated hard
 iron (``SIM_MAG2_OFS``) 80 mGauss from the calibration in force (kept out of the EKF with
-``COMPASS_USE2 0``). The log SITL wrote goes through the CLI; the motor term of compasses 1
-and 3 must be within max(0.3 mGauss/A, 5 %) of the truth per axis with the truth inside the
-95 % bounds; compass 2 is named wrong with its cause, the others are not, and only the
+``COMPASS_USE2 0``). The log SITL wrote goes through the CLI; the motor term of compass0 and
+compass2 must be within max(0.3 mGauss/A, 5 %) of the truth per axis with the truth inside the
+95 % bounds; compass1 is named wrong with its cause, the others are not, and only the
 accepted compasses' terms are in ``--param-out``.
 """
 from __future__ import annotations
@@ -46,8 +46,8 @@ def test_flight_recovers_the_injected_interference_and_names_the_wrong_compass(f
     assert out.returncode == 7, out.stdout + out.stderr  # a compass wrong: partial
     doc = json.loads(js.read_text())
     comp = {c["compass"]: c for c in doc["compasses"]}
-    assert set(comp) == {1, 2, 3}
-    for k in (1, 3):
+    assert set(comp) == {0, 1, 2}  # numbered from 0, as every verdict of mavcal
+    for k in (0, 2):
         c = comp[k]
         assert c["mot_fitted"] and c["accepted"] and not c["wrong"], c["summary"]
         for a in range(3):
@@ -55,11 +55,11 @@ def test_flight_recovers_the_injected_interference_and_names_the_wrong_compass(f
             got, bound = c["mot_per_unit"][a], c["mot_bound95_per_unit"][a]
             assert numbers_close(got, truth, rtol=0.0, atol=max(0.3, 0.05 * abs(truth))), (k, a, got, truth)
             assert abs(got - truth) <= bound, (k, a, got, bound, truth)
-    assert comp[2]["wrong"] and not comp[2]["accepted"]
-    assert "offset in flight that its calibration lacks" in comp[2]["causes"][0]
+    assert comp[1]["wrong"] and not comp[1]["accepted"]
+    assert "offset in flight that its calibration lacks" in comp[1]["causes"][0]
     lines = out.stdout.splitlines()
-    assert any(ln.startswith("compass2: WRONG in flight: a constant") for ln in lines), out.stdout
-    assert not any("WRONG" in ln for ln in lines if ln.startswith(("compass1", "compass3")))
+    assert any(ln.startswith("compass1: WRONG in flight: a constant") for ln in lines), out.stdout
+    assert not any("WRONG" in ln for ln in lines if ln.startswith(("compass0", "compass2")))
     p = read_param_file(par)
     assert p["COMPASS_MOTCT"] == 2.0
     assert {"COMPASS_MOT_X", "COMPASS_MOT3_Z"} <= set(p) and not any(n.startswith("COMPASS_MOT2") for n in p)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from mavcal.ardupilot.paramfile import write_param_file
+from mavcal.commands.common import add_json_argument
 from mavcal.errors import EXIT_PARTIAL, UsageError
 from mavcal.flight.stage import FlightResult, param_values, run_flight
 
@@ -34,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = ("exit codes:\n  0  every compass fine or accepted   7  a compass wrong or not accepted\n"
                      "  3  unreadable log   4  too little data   2  bad options   70  internal error")
     parser.add_argument("log", metavar="LOG", help="DataFlash flight log (.bin)")
-    parser.add_argument("--json", metavar="FILE", default=None, help="write the report as JSON ('-': stdout)")
+    add_json_argument(parser)
     parser.add_argument("--param-out", metavar="FILE", default=None,
                         help="write the motor compensation (its type, the accepted compasses' terms) to this .param")
     parser.add_argument("--driver", choices=("auto", "current", "throttle"), default="auto",
@@ -59,7 +60,7 @@ def to_json(r: FlightResult) -> dict[str, Any]:
         f, v = c.fit, c.verdict
         assert f is not None
         comp.append({
-            "compass": c.instance + 1, "in_use": c.in_use, "accepted": v.accepted, "wrong": v.wrong,
+            "compass": c.instance, "in_use": c.in_use, "accepted": v.accepted, "wrong": v.wrong,
             "causes": list(v.causes), "advice": list(v.advice), "not_written_because": v.not_written_because or None,
             "interference_pct": _f(v.interference_pct), "interference_left_pct": _f(v.interference_left_pct),
             "level": v.level, "mot_per_unit": _f(f.mot_per_unit), "mot_bound95_per_unit": _f(f.mot_bound95_per_unit),
@@ -88,9 +89,9 @@ def summary_text(r: FlightResult) -> str:
     for c in r.compasses:
         v, f = c.verdict, c.fit
         assert f is not None
-        lines.append(f"compass{c.instance + 1}: {v.summary}")
+        lines.append(f"compass{c.instance}: {v.summary}")
         if v.wrong:
-            lines.append(f"compass{c.instance + 1}: WRONG in flight: " + "; ".join(v.causes)
+            lines.append(f"compass{c.instance}: WRONG in flight: " + "; ".join(v.causes)
                          + (" -> " + "; ".join(v.advice) if v.advice else ""))
         elif v.advice:
             lines.append(f"  advice: {'; '.join(v.advice)}")
@@ -127,24 +128,23 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--param-out needs a file name")
     r = run_flight(args.log, yaw=args.yaw, driver=args.driver)
     doc = to_json(r)
+    say = sys.stderr if args.json == "-" else sys.stdout  # JSON alone on stdout with '-'
+    print(summary_text(r), file=say)
     if args.json == "-":
         print(json.dumps(doc, indent=1))
-    else:
-        print(summary_text(r))
-        if args.json:
-            try:
-                _atomic_write(args.json, lambda t: Path(t).write_text(json.dumps(doc, indent=1)))
-            except OSError as exc:
-                raise UsageError(f"cannot write the JSON report: {exc}") from None
+    elif args.json:
+        try:
+            _atomic_write(args.json, lambda t: Path(t).write_text(json.dumps(doc, indent=1)))
+        except OSError as exc:
+            raise UsageError(f"cannot write the JSON report: {exc}") from None
+        print(f"JSON report written to {args.json}", file=say)
     if args.param_out:
         params = param_values(r)
         if params:
             head = [f"mavcal flight {Path(args.log).name}: motor compensation of the accepted compasses"]
             _atomic_write(args.param_out, lambda t: write_param_file(t, params, header=head, exclusive=True))
-            out = sys.stderr if args.json == "-" else sys.stdout
-            print(f"wrote {len(params)} parameters to {args.param_out}", file=out)
+            print(f"wrote {len(params)} parameters to {args.param_out}", file=say)
         else:
-            print("no compass accepted: nothing written to " + args.param_out,
-                  file=sys.stderr if args.json == "-" else sys.stdout)
+            print("no compass accepted: nothing written to " + args.param_out, file=say)
     bad = any(c.verdict.wrong or not c.verdict.accepted for c in r.compasses)
     return EXIT_PARTIAL if bad else 0

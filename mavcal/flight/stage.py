@@ -96,7 +96,7 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
         try:
             fit = fits[c.instance] = fit_compass(inp)
         except ValueError as exc:
-            warnings.append(f"compass{c.instance + 1}: {exc}")
+            warnings.append(f"compass{c.instance}: {exc}")
             continue
         # the rotation check against the compass-independent yaw where it has converged, on the
         # field corrected as fitted (offsets and interference bend single headings, not all of them)
