@@ -73,7 +73,9 @@ def to_json(r: FlightResult) -> dict[str, Any]:
             "driver_max": _f(f.driver_max), "heading_span_deg": _f(f.heading_span_deg),
             "rms_before_mgauss": _f(f.rms_before_mgauss), "rms_after_mgauss": _f(f.rms_after_mgauss),
             "heading_error_before_deg": _f(f.heading_err_before_deg),
-            "heading_error_after_deg": _f(f.heading_err_after_deg), "samples": f.n_samples,
+            "heading_error_after_deg": _f(f.heading_err_after_deg),
+            "heading_error_vs_gsf_before_deg": _f(c.gsf_heading_err_deg[0]),
+            "heading_error_vs_gsf_after_deg": _f(c.gsf_heading_err_deg[1]), "samples": f.n_samples,
             "missing_params": list(c.missing_params), "summary": v.summary})
     return {"source": r.source, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
             "yaw_source": r.yaw_source, "field_source": r.field_source,
@@ -95,6 +97,9 @@ def summary_text(r: FlightResult) -> str:
                          + (" -> " + "; ".join(v.advice) if v.advice else ""))
         elif v.advice:
             lines.append(f"  advice: {'; '.join(v.advice)}")
+        if np.isfinite(c.gsf_heading_err_deg[0]):
+            lines.append(f"  heading against the compass-independent (GSF) yaw: {c.gsf_heading_err_deg[0]:.1f} -> "
+                         f"{c.gsf_heading_err_deg[1]:.1f} deg RMS (logged -> fitted)")
         if not v.accepted:
             lines.append(f"  not written: {v.not_written_because}")
         lines.append(f"  max {r.driver_kind} {f.driver_max:.3g} {unit}; rms field error {f.rms_before_mgauss:.1f} -> "

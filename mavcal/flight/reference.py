@@ -89,8 +89,8 @@ def reference_at(s: FlightSeries, t: np.ndarray, yaw: str = "auto") -> Reference
     return Reference(_matrices(roll, pitch, yaw_deg), valid, source, B0, fsrc)
 
 
-def heading_offset_deg(R: np.ndarray, mag_body: np.ndarray, B: np.ndarray) -> tuple[float, float]:
-    """The compass's heading minus the reference's: its circular mean and spread (deg).
+def heading_offset_deg(R: np.ndarray, mag_body: np.ndarray, B: np.ndarray) -> tuple[float, float, float]:
+    """The compass's heading minus the reference's: its circular mean, spread and RMS (deg).
 
     ``mag_body`` (n, 3) is the field the firmware uses; tilt-compensated by the reference's roll
     and pitch, its horizontal direction must lie at the declination from the reference's yaw. A
@@ -99,5 +99,9 @@ def heading_offset_deg(R: np.ndarray, mag_body: np.ndarray, B: np.ndarray) -> tu
     """
     h = np.einsum("nij,nj->ni", R, mag_body)  # in NED by the reference attitude
     d = np.arctan2(h[:, 1], h[:, 0]) - np.arctan2(B[1], B[0])
-    z = np.exp(1j * d).mean() if len(d) else 0.0
-    return float(np.degrees(np.angle(z))), float(np.degrees(np.sqrt(max(0.0, -2.0 * np.log(max(abs(z), 1e-12))))))
+    if not len(d):
+        return float("nan"), float("nan"), float("nan")
+    z = np.exp(1j * d).mean()
+    w = np.angle(np.exp(1j * d))
+    return (float(np.degrees(np.angle(z))), float(np.degrees(np.sqrt(max(0.0, -2.0 * np.log(max(abs(z), 1e-12)))))),
+            float(np.degrees(np.sqrt(np.mean(w * w)))))

@@ -30,6 +30,7 @@ class CompassResult:
     in_use: bool | None
     ofs_in_force_mgauss: np.ndarray
     mot_in_force: np.ndarray
+    gsf_heading_err_deg: tuple[float, float]  # RMS against the EKF-GSF yaw: as logged, as fitted (NaN: no GSF)
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,7 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
     fits: dict[int, CompassFit] = {}
     info: dict[int, apf.InForce] = {}
     rotation: dict[int, float] = {}
+    gsf_err: dict[int, tuple[float, float]] = {}
     for c in s.compasses:
         f = apf.in_force(s.params, c.instance)
         info[c.instance] = f
@@ -106,7 +108,10 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
             x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
             mag = (c.field_mgauss[gk] + (f.matrix_times_scale @ (fit.ofs_mgauss - c.ofs_mgauss[gk]).T).T
                    - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
-            rotation[c.instance] = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)[0]
+            rotation[c.instance], _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
+            before = heading_offset_deg(gref.R[gk], c.field_mgauss[gk], gref.B0_ned_mgauss)[2]
+            if gref.yaw_source == "gsf":
+                gsf_err[c.instance] = (before, after)
     if not fits:
         raise InsufficientDataError(f"{s.source}: no compass has enough samples in flight with a known attitude")
     verdicts = judge(fits, kind, {i: info[i].missing for i in fits},
@@ -118,7 +123,8 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
             continue
         results.append(CompassResult(c.instance, fits[c.instance], verdicts[c.instance], f.missing,
                                      apf.compass_in_use(s.params, c.instance),
-                                     np.median(c.ofs_mgauss, axis=0), f.mot_per_unit))
+                                     np.median(c.ofs_mgauss, axis=0), f.mot_per_unit,
+                                     gsf_err.get(c.instance, (float("nan"), float("nan")))))
     return FlightResult(s.source, kind, motct, yaw_source, field_source, B0, tuple(results), tuple(warnings))
 
 

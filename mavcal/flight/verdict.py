@@ -107,7 +107,8 @@ def judge(fits: Mapping[int, CompassFit], driver_kind: str, missing: Mapping[int
                    if f.fitted_mot else "motor term not identified (kept)")
         summary = (f"interference {pct[i]:.0f} % of the field at the highest {driver_kind} ({lvl}), "
                    f"{left[i]:.0f} % left with the compensation in force; {mot_txt}; delay {f.delay_s:+.2f} s; "
-                   f"heading error {f.heading_err_before_deg:.1f} -> {f.heading_err_after_deg:.1f} deg")
+                   f"heading error against the EKF yaw {f.heading_err_before_deg:.1f} -> "
+                   f"{f.heading_err_after_deg:.1f} deg")
         out[i] = Verdict(pct[i], left[i], lvl, wrong, tuple(causes), tuple(advice), accepted, why_not, lack, rot,
                          summary)
     return out
