@@ -20,7 +20,7 @@ made right within max(0.3 mGauss/A, 5 %) of the truth per axis and the truth ins
 bounds; compass1 named wrong exactly in the seeds where it was made wrong; mavcal's error
 against MAGFit's.
 
-Run: ``python benchmarks/flight.py [--seeds 1 2 3 4 5 6] [--save]`` (``--save``: into ``benchmarks/results/``)
+Run: ``python benchmarks/flight.py [--seeds 1 ... 8] [--save]`` (``--save``: into ``benchmarks/results/``)
 (root, for SITL's private network namespace; about a minute per seed on a loaded machine).
 """
 from __future__ import annotations
@@ -51,6 +51,8 @@ CASES: dict[int, dict] = {
     4: {"wrong2": None, "big": True},
     5: {"wrong2": None, "big": False},
     6: {"wrong2": "offset", "big": True},
+    7: {"wrong2": "rotation", "big": True},
+    8: {"wrong2": None, "big": False},
 }
 
 WX_STANDIN = '''"""A stand-in wx for running MAGFit's headless main() without wxPython."""
@@ -191,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
             r = one_seed(seed, work, standin)
             print(json.dumps(r), flush=True)
             results.append(r)
-    cmd = "python benchmarks/flight.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    saved = " --save" if OUT.resolve() == (REPO / "benchmarks" / "results").resolve() else ""
+    cmd = "python benchmarks/flight.py" + saved + " " + " ".join(sys.argv[1:] if argv is None else argv)
     text = report(results, cmd.strip())
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "flight.md").write_text(text)

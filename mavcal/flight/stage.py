@@ -108,7 +108,11 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
             x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
             mag = (c.field_mgauss[gk] + (f.matrix_times_scale @ (fit.ofs_mgauss - c.ofs_mgauss[gk]).T).T
                    - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
-            rotation[c.instance], _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
+            _, _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
+            # the rotation on the offsets in force: a rotated compass bends the fitted ones
+            rotation[c.instance] = heading_offset_deg(
+                gref.R[gk], c.field_mgauss[gk] - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
+                gref.B0_ned_mgauss)[0]
             before = heading_offset_deg(gref.R[gk], c.field_mgauss[gk], gref.B0_ned_mgauss)[2]
             if gref.yaw_source == "gsf":
                 gsf_err[c.instance] = (before, after)
