@@ -140,15 +140,20 @@ def _solve(inp: FitInput, x: np.ndarray, fit_ofs: bool, fit_mot: bool, keep: np.
     return J, rhs, p
 
 
+def _solve_normal(JtJ: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """``JtJ^-1 g`` by the normal equations, columns equilibrated (a few parameters, thousands of rows)."""
+    d = np.sqrt(np.clip(np.diag(JtJ), 1e-300, None))
+    return np.linalg.lstsq(JtJ / np.outer(d, d), g / d, rcond=None)[0] / d
+
+
 def _lsq(J: np.ndarray, rhs: np.ndarray, B0: np.ndarray, w_prior: float):
     """Least squares with the prior rows ``w_prior (B - B0)`` (in units of the noise)."""
     p = J.shape[1]
     P = np.zeros((3, p))
     P[:, :3] = np.eye(3) * w_prior
-    Jp = np.vstack([J, P])
-    rp = np.concatenate([rhs, w_prior * B0])
-    theta, *_ = np.linalg.lstsq(Jp, rp, rcond=None)
-    return theta, Jp.T @ Jp
+    JtJ = J.T @ J + P.T @ P
+    theta = _solve_normal(JtJ, J.T @ rhs + P.T @ (w_prior * B0))
+    return theta, JtJ
 
 
 def _tilt_only(R: np.ndarray) -> np.ndarray:
@@ -188,9 +193,8 @@ def _yaw_free(inp: FitInput, T: np.ndarray, x: np.ndarray, keep: np.ndarray, o: 
         p = J.shape[1]
         P = np.zeros((2, p))
         P[0, 0] = P[1, 1] = w
-        Jp = np.vstack([J, P])
-        rp = np.concatenate([r.reshape(-1), [w * (H - H0), w * (D - D0)]])
-        step, *_ = np.linalg.lstsq(Jp, -rp, rcond=None)
+        JtJ = J.T @ J + P.T @ P
+        step = _solve_normal(JtJ, -(J.T @ r.reshape(-1) + P.T @ np.array([w * (H - H0), w * (D - D0)])))
         H, D = H + step[0], D + step[1]
         k = 2
         if fit_ofs:
@@ -198,7 +202,6 @@ def _yaw_free(inp: FitInput, T: np.ndarray, x: np.ndarray, keep: np.ndarray, o: 
             k += 3
         if fit_mot:
             m = m + step[k:k + 3]
-        JtJ = Jp.T @ Jp
         if np.abs(step).max() < 1e-4:
             break
     return o, m, (H, D), JtJ, r
