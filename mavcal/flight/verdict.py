@@ -57,6 +57,7 @@ def judge(fits: Mapping[int, CompassFit], driver_kind: str, missing: Mapping[int
     """The verdicts of the fitted compasses; ``heading_offset_deg``: each compass's mean heading
     minus the compass-independent yaw's (:func:`mavcal.flight.reference.heading_offset_deg`)."""
     unit = "mGauss/A" if driver_kind == "current" else "mGauss per full throttle"
+    at = "the highest current" if driver_kind == "current" else "full throttle"
     pct: dict[int, float] = {}
     left: dict[int, float] = {}
     for i, f in fits.items():
@@ -87,7 +88,7 @@ def judge(fits: Mapping[int, CompassFit], driver_kind: str, missing: Mapping[int
         if left[i] > BAD_PCT and others and min(others) < OK_PCT:
             causes.append(f"a slope with {driver_kind} of {np.linalg.norm(f.mot_per_unit):.2f} {unit} that the "
                           f"other compass{'es' if len(others) > 1 else ''} lack ({left[i]:.0f} % of the field left "
-                          f"uncompensated at the highest {driver_kind})")
+                          f"uncompensated at {at})")
             advice.append("move it away from the power wires (or twist them), or write the fitted compensation")
         lvl = _level(pct[i])
         wrong = bool(causes)
@@ -105,7 +106,7 @@ def judge(fits: Mapping[int, CompassFit], driver_kind: str, missing: Mapping[int
                           "move the compass away from the power wires or twist them, then write the compensation")
         mot_txt = (f"motor term fit {_v(f.mot_per_unit, 2)} +- {_v(f.mot_bound95_per_unit, 2)} {unit}"
                    if f.fitted_mot else "motor term not identified (kept)")
-        summary = (f"interference {pct[i]:.0f} % of the field at the highest {driver_kind} ({lvl}), "
+        summary = (f"interference {pct[i]:.0f} % of the field at {at} ({lvl}), "
                    f"{left[i]:.0f} % left with the compensation in force; {mot_txt}; delay {f.delay_s:+.2f} s; "
                    f"heading error against the EKF yaw {f.heading_err_before_deg:.1f} -> "
                    f"{f.heading_err_after_deg:.1f} deg")
