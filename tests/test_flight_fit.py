@@ -111,3 +111,18 @@ def test_cli_bad_input_is_one_line_with_its_exit_code(tmp_path, content, code):
     assert out.returncode == code, out.stderr
     assert out.stderr.count("\n") == 1 and out.stderr.startswith("mavcal: error:")
     assert "Traceback" not in out.stderr
+
+
+def test_throttle_driven_interference_without_a_current_sensor():
+    """COMPASS_MOTCT 1: the motor term per full throttle (the synthetic throttle is 0.6 * I / I_max)."""
+    s = synth_flight([SynthCompass(interference=MOT)], seed=9)
+    r = analyse(s, driver="throttle")
+    (c,) = r.compasses
+    f = c.fit
+    assert r.driver_kind == "throttle" and f is not None and f.fitted_mot
+    for k in range(3):
+        truth = -MOT[k] * 40.0 / 0.6
+        assert numbers_close(f.mot_per_unit[k], truth, rtol=0.05), (k, f.mot_per_unit, truth)
+        assert abs(f.mot_per_unit[k] - truth) <= f.mot_bound95_per_unit[k]
+    assert param_values(r)["COMPASS_MOTCT"] == 1.0
+    assert "at full throttle" in c.verdict.summary
