@@ -14,18 +14,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from mavcal.ardupilot.paramfile import write_param_file
 from mavcal.commands.common import add_json_argument
 from mavcal.errors import EXIT_PARTIAL, UsageError
-from mavcal.flight.stage import FlightResult, param_values, run_flight
+
+if TYPE_CHECKING:  # the stage (numpy, the field model) is imported when the command runs, not by --help
+    from mavcal.flight.stage import FlightResult
 
 HELP = "fit the compasses' motor/current interference from a flight log and say which compass is wrong"
 
@@ -47,14 +47,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _f(x: Any) -> Any:
-    if isinstance(x, np.ndarray):
-        return [_f(v) for v in x.tolist()]
+    if hasattr(x, "tolist"):
+        return _f(x.tolist())
+    if isinstance(x, (list, tuple)):
+        return [_f(v) for v in x]
     if isinstance(x, float):
-        return x if np.isfinite(x) else None
+        return x if math.isfinite(x) else None
     return x
 
 
 def to_json(r: FlightResult) -> dict[str, Any]:
+    from mavcal.flight.stage import param_values
+
     comp = []
     for c in r.compasses:
         f, v = c.fit, c.verdict
@@ -97,7 +101,7 @@ def summary_text(r: FlightResult) -> str:
                          + (" -> " + "; ".join(v.advice) if v.advice else ""))
         elif v.advice:
             lines.append(f"  advice: {'; '.join(v.advice)}")
-        if np.isfinite(c.gsf_heading_err_deg[0]):
+        if math.isfinite(c.gsf_heading_err_deg[0]):
             lines.append(f"  heading against the compass-independent (GSF) yaw: {c.gsf_heading_err_deg[0]:.1f} -> "
                          f"{c.gsf_heading_err_deg[1]:.1f} deg RMS (logged -> fitted)")
         if not v.accepted:
@@ -131,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{opt.replace('_', '-')} would overwrite the log")
     if args.param_out == "-":
         raise UsageError("--param-out needs a file name")
+    from mavcal.ardupilot.paramfile import write_param_file
+    from mavcal.flight.stage import param_values, run_flight
+
     r = run_flight(args.log, yaw=args.yaw, driver=args.driver)
     doc = to_json(r)
     say = sys.stderr if args.json == "-" else sys.stdout  # JSON alone on stdout with '-'
