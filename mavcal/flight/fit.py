@@ -6,21 +6,29 @@ The firmware's model (ArduPilot ``correct_field``, see :mod:`mavcal.ardupilot.fl
 
     mag_i = A (b_i + o) + m x(t_i - tau)                      (1)
 
-must equal the Earth field seen in the body frame, ``R_i^T B`` (``R_i``: body to NED from the
-EKF's roll and pitch and a yaw independent of the compasses, the EKF-GSF estimator's, where it
-has converged). With ``y_i = A b_i`` (the raw field ``b_i`` recovered from the log) the residual
+must equal the Earth field seen in the body frame, ``R_i^T B`` (``R_i``: body to NED). With
+``y_i = A b_i`` (the raw field ``b_i`` recovered from the log) the residual
 
     e_i = y_i - (R_i^T B - A o - m x_i)                        (2)
 
-is linear in ``theta = (B, o, m)``. Maximum likelihood under white Gaussian noise of one
-standard deviation ``sigma`` per axis is least squares; ``B`` has a prior at the World
-Magnetic Model's field (``sigma_B``, a few percent of the field: the table's accuracy), which
+is linear in ``theta = (B, o, m)``: solved first, for a starting point, the outliers (beyond
+5 sigma) and the field's declination. But ``R_i``'s yaw is the EKF's, which the compasses
+themselves bend, by the very interference fitted (a yaw that follows the current biases ``m``).
+So the estimate is the fit of what no yaw enters: with ``T_i`` the roll and pitch of ``R_i``
+alone and ``c_i = A (b_i + o) + m x_i`` (1),
+
+    r_i = ( (T_i c_i)_D - B_D ,  |(T_i c_i)_NE| - H )          (3)
+
+the field's down component and horizontal length, against ``B_D`` and ``H``. Maximum
+likelihood under white Gaussian noise of one standard deviation ``sigma`` per component is
+least squares (Gauss-Newton on (3), the normal equations); ``B_D`` and ``H`` have a prior at
+the World Magnetic Model's field (``sigma_B``, 3 % of the field: the table's accuracy), which
 keeps the down component apart from the z offset in a level flight. ``tau`` (the delay between
-the current and the field) is chosen on a grid by the smallest residual. The covariance is
-``sigma^2 (J^T J)^-1`` inflated by the residuals' correlation in time (AR(1): ``(1+rho)/(1-rho)``),
-the 95 % bounds ``1.96`` standard deviations. A term the flight does not identify (the driver
-``x`` barely varied; too few headings for the offsets) is kept at its value in force and not
-fitted.
+the current and the field) is chosen on a grid (+-0.5 s, 0.05 s steps) by the smallest
+residual. The covariance is ``sigma^2 (J^T J)^-1`` inflated by the residuals' correlation in
+time (AR(1): ``(1+rho)/(1-rho)``), the 95 % bounds ``1.96`` standard deviations. A term the
+flight does not identify (the driver ``x`` barely varied; under 200 deg of headings for the
+offsets) is kept at its value in force and not fitted.
 """
 from __future__ import annotations
 
