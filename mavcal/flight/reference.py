@@ -1,11 +1,12 @@
 """The reference the compass cannot bend: the attitude along the flight, with a yaw independent
 of the compasses, and the expected Earth field at the flight's place.
 
-Roll and pitch are the EKF's (``ATT``; the compasses barely touch them). The yaw is the
-EKF-GSF yaw estimator's (``XKY0``, built from the IMU and GPS velocity only) where it has
-converged (its own 1-sigma below :data:`GSF_CONVERGED_DEG`); without it, the EKF's yaw
-(``yaw_source`` then says ``ekf``: a heading error the compasses put into the EKF is then
-invisible). The field is the World Magnetic Model table's at the median GPS position
+Roll and pitch are the EKF's (``ATT``; the compasses barely touch them): the fit itself uses
+only them (:mod:`mavcal.flight.fit`, its residual (3)). The yaw serves its start and the
+heading checks: the EKF's (the default), or the EKF-GSF yaw estimator's (``XKY0``, built from
+the IMU and GPS velocity only) where it has converged (its own 1-sigma below
+:data:`GSF_CONVERGED_DEG`); a compass's rotation is always judged against the GSF's when the
+log has it. The field is the World Magnetic Model table's at the median GPS position
 (:mod:`mavcal.sources.wmm`); without a position it is estimated freely (a wide prior).
 """
 from __future__ import annotations
