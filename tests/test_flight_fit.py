@@ -126,3 +126,9 @@ def test_throttle_driven_interference_without_a_current_sensor():
         assert abs(f.mot_per_unit[k] - truth) <= f.mot_bound95_per_unit[k]
     assert param_values(r)["COMPASS_MOTCT"] == 1.0
     assert "at full throttle" in c.verdict.summary
+
+
+def test_reference_rotations_are_ardupilots_euler_convention():
+    from mavcal.flight.reference import check_matrices
+
+    assert check_matrices() < 1e-12
