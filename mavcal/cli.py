@@ -34,6 +34,7 @@ COMMANDS = {
     "apply": "apply",
     "restore": "restore",
     "capture": "capture",
+    "flight": "flight",
 }
 
 

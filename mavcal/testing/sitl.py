@@ -292,6 +292,9 @@ class SitlVehicle:
         SITL's ``--speedup`` (1 = real time; the capture sees time as the vehicle does).
     binary : path, optional
         Default :func:`sitl_binary`.
+    model : str
+        SITL's ``--model``: ``calibration`` (held in place, turned by servos 5-8) or ``quad``
+        (flies; :mod:`mavcal.testing.sitl_flight` flies it; no :meth:`set_pose` then).
     boot_timeout_s : float
         How long to wait for the first heartbeat and SIMSTATE.
     """
@@ -299,7 +302,7 @@ class SitlVehicle:
     def __init__(self, errors: InjectedErrors | None = None, *, wrong_calibration: bool | Mapping[str, float] = True,
                  params: Mapping[str, float] | None = None, relay: bool = False, serial2: str | None = None,
                  home: Home | Sequence[float] = DEFAULT_HOME, speedup: float = 1.0, binary: str | Path | None = None,
-                 boot_timeout_s: float = 60.0, measure_field: bool = True) -> None:
+                 boot_timeout_s: float = 60.0, measure_field: bool = True, model: str = "calibration") -> None:
         self.errors = errors if errors is not None else InjectedErrors()
         if wrong_calibration is True:
             self.calibration_at_boot = dict(WRONG_CALIBRATION)
@@ -312,6 +315,7 @@ class SitlVehicle:
         self.serial2 = serial2
         self.home = home if isinstance(home, Home) else Home(*(float(x) for x in home))
         self.speedup = float(speedup)
+        self.model = model
         self.binary = Path(binary) if binary is not None else sitl_binary()
         self.boot_timeout_s = boot_timeout_s
         self.measure_field = measure_field
@@ -464,7 +468,7 @@ class SitlVehicle:
                                                     source_component=FIXTURE_COMPONENT, dialect="ardupilotmega")
         defaults = f"{self.binary.parent / 'copter.parm'},{self._defaults_file()}"
         serial2 = self.serial2 or (f"udpclient:127.0.0.1:{RELAY_PORT}" if self.relay else "none")
-        argv = [str(self.binary), "--model", "calibration", "--speedup", f"{self.speedup:g}", "--home", self.home.arg(),
+        argv = [str(self.binary), "--model", self.model, "--speedup", f"{self.speedup:g}", "--home", self.home.arg(),
                 "--defaults", defaults, "--serial0", f"udpclient:127.0.0.1:{CONTROL_PORT}",
                 "--serial1", f"udpclient:127.0.0.1:{TOOL_PORT}", "--serial2", serial2, "--serial5", "none",
                 "--serial6", "none", "--serial7", "none", "--serial8", "none", "-I", str(self.instance)]

@@ -1,0 +1,162 @@
+"""``mavcal flight LOG.bin``: the compasses in flight: motor and current interference, and which
+compass is wrong, from an ordinary flight log.
+
+Per compass: the calibration in force undone as logged, the firmware's in-flight model
+(offsets and the motor term per amp or per full throttle) fitted against a
+reference the compass cannot bend (the EKF's roll and pitch, the field's down component and
+horizontal length from the World Magnetic Model), with the delay between current and field
+estimated and 95 % bounds on each term; the verdict in words (:mod:`mavcal.flight.verdict`).
+
+Exit codes: 0 done (every compass accepted or fine); 7 some compass wrong or not accepted
+(the outputs are written); 3 unreadable log; 4 too little data; 2 bad options.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from mavcal.commands.common import add_json_argument
+from mavcal.errors import EXIT_PARTIAL, UsageError
+
+if TYPE_CHECKING:  # the stage (numpy, the field model) is imported when the command runs, not by --help
+    from mavcal.flight.stage import FlightResult
+
+HELP = "fit the compasses' motor/current interference from a flight log and say which compass is wrong"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = ("exit codes:\n  0  every compass fine or accepted   7  a compass wrong or not accepted\n"
+                     "  3  unreadable log   4  too little data   2  bad options   70  internal error")
+    parser.add_argument("log", metavar="LOG", help="DataFlash flight log (.bin)")
+    add_json_argument(parser)
+    parser.add_argument("--param-out", metavar="FILE", default=None,
+                        help="write the motor compensation (its type, the accepted compasses' terms) to this .param")
+    parser.add_argument("--driver", choices=("auto", "current", "throttle"), default="auto",
+                        help="what drives the interference: the battery current or the throttle; "
+                             "auto: the compensation type in force, else the current when logged")
+    parser.add_argument("--yaw", choices=("ekf", "gsf", "auto"), default="ekf",
+                        help="the yaw used for the heading checks: the EKF's, or the EKF-GSF estimator's "
+                             "(compass-independent; samples where it has not converged are left out)")
+
+
+def _f(x: Any) -> Any:
+    if hasattr(x, "tolist"):
+        return _f(x.tolist())
+    if isinstance(x, (list, tuple)):
+        return [_f(v) for v in x]
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    return x
+
+
+def to_json(r: FlightResult) -> dict[str, Any]:
+    from mavcal.flight.stage import param_values
+
+    comp = []
+    for c in r.compasses:
+        f, v = c.fit, c.verdict
+        assert f is not None
+        comp.append({
+            "compass": c.instance, "in_use": c.in_use, "accepted": v.accepted, "wrong": v.wrong,
+            "causes": list(v.causes), "advice": list(v.advice), "not_written_because": v.not_written_because or None,
+            "interference_pct": _f(v.interference_pct), "interference_left_pct": _f(v.interference_left_pct),
+            "level": v.level, "mot_per_unit": _f(f.mot_per_unit), "mot_bound95_per_unit": _f(f.mot_bound95_per_unit),
+            "mot_fitted": f.fitted_mot, "mot_in_force": _f(c.mot_in_force),
+            "ofs_mgauss": _f(f.ofs_mgauss), "ofs_bound95_mgauss": _f(f.ofs_bound95_mgauss), "ofs_fitted": f.fitted_ofs,
+            "ofs_in_force_mgauss": _f(c.ofs_in_force_mgauss), "offset_lack_mgauss": _f(v.offset_lack_mgauss),
+            "rotation_deg": _f(v.rotation_deg), "delay_s": f.delay_s, "sigma_mgauss": _f(f.sigma_mgauss),
+            "bound_inflation": _f(f.inflation), "field_ned_mgauss": _f(f.B_ned_mgauss),
+            "field_bound95_mgauss": _f(f.B_bound95_mgauss), "driver_span": _f(f.driver_span),
+            "driver_max": _f(f.driver_max), "heading_span_deg": _f(f.heading_span_deg),
+            "rms_before_mgauss": _f(f.rms_before_mgauss), "rms_after_mgauss": _f(f.rms_after_mgauss),
+            "heading_error_before_deg": _f(f.heading_err_before_deg),
+            "heading_error_after_deg": _f(f.heading_err_after_deg),
+            "heading_error_vs_gsf_before_deg": _f(c.gsf_heading_err_deg[0]),
+            "heading_error_vs_gsf_after_deg": _f(c.gsf_heading_err_deg[1]), "samples": f.n_samples,
+            "missing_params": list(c.missing_params), "summary": v.summary})
+    return {"source": r.source, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
+            "yaw_source": r.yaw_source, "field_source": r.field_source,
+            "field_model_ned_mgauss": _f(r.B0_ned_mgauss), "compasses": comp, "parameters": param_values(r),
+            "warnings": list(r.warnings)}
+
+
+def summary_text(r: FlightResult) -> str:
+    unit = "A" if r.driver_kind == "current" else "(throttle)"
+    lines = [f"mavcal flight: {r.source}",
+             f"  interference driver: {r.driver_kind}; yaw for the checks: {r.yaw_source}; field: {r.field_source} "
+             f"({', '.join(f'{v:.0f}' for v in r.B0_ned_mgauss)} mGauss NED)"]
+    for c in r.compasses:
+        v, f = c.verdict, c.fit
+        assert f is not None
+        lines.append(f"compass{c.instance}: {v.summary}")
+        if v.wrong:
+            lines.append(f"compass{c.instance}: WRONG in flight: " + "; ".join(v.causes)
+                         + (" -> " + "; ".join(v.advice) if v.advice else ""))
+        elif v.advice:
+            lines.append(f"  advice: {'; '.join(v.advice)}")
+        if math.isfinite(c.gsf_heading_err_deg[0]):
+            lines.append(f"  heading against the compass-independent (GSF) yaw: {c.gsf_heading_err_deg[0]:.1f} -> "
+                         f"{c.gsf_heading_err_deg[1]:.1f} deg RMS (logged -> fitted)")
+        if not v.accepted:
+            lines.append(f"  not written: {v.not_written_because}")
+        lines.append(f"  max {r.driver_kind} {f.driver_max:.3g} {unit}; rms field error {f.rms_before_mgauss:.1f} -> "
+                     f"{f.rms_after_mgauss:.1f} mGauss; offsets fit {', '.join(f'{x:.0f}' for x in f.ofs_mgauss)} "
+                     f"+- {', '.join(f'{x:.0f}' for x in f.ofs_bound95_mgauss)} mGauss")
+    lines += [f"warning: {w}" for w in r.warnings]
+    return "\n".join(lines)
+
+
+def _atomic_write(path: str, write) -> None:
+    p = Path(path)
+    d = p.parent if str(p.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=d)
+    os.close(fd)
+    os.unlink(tmp)
+    try:
+        write(tmp)
+        os.replace(tmp, p)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def run(args: argparse.Namespace) -> int:
+    for opt in ("json", "param_out"):
+        v = getattr(args, opt)
+        if v not in (None, "-") and Path(v).resolve() == Path(args.log).resolve():
+            raise UsageError(f"--{opt.replace('_', '-')} would overwrite the log")
+    if args.param_out == "-":
+        raise UsageError("--param-out needs a file name")
+    from mavcal.ardupilot.paramfile import write_param_file
+    from mavcal.flight.stage import param_values, run_flight
+
+    r = run_flight(args.log, yaw=args.yaw, driver=args.driver)
+    doc = to_json(r)
+    say = sys.stderr if args.json == "-" else sys.stdout  # JSON alone on stdout with '-'
+    print(summary_text(r), file=say)
+    if args.json == "-":
+        print(json.dumps(doc, indent=1))
+    elif args.json:
+        try:
+            _atomic_write(args.json, lambda t: Path(t).write_text(json.dumps(doc, indent=1)))
+        except OSError as exc:
+            raise UsageError(f"cannot write the JSON report: {exc}") from None
+        print(f"JSON report written to {args.json}", file=say)
+    if args.param_out:
+        params = param_values(r)
+        if params:
+            head = [f"mavcal flight {Path(args.log).name}: motor compensation of the accepted compasses"]
+            _atomic_write(args.param_out, lambda t: write_param_file(t, params, header=head, exclusive=True))
+            print(f"wrote {len(params)} parameters to {args.param_out}", file=say)
+        else:
+            print("no compass accepted: nothing written to " + args.param_out, file=say)
+    bad = any(c.verdict.wrong or not c.verdict.accepted for c in r.compasses)
+    return EXIT_PARTIAL if bad else 0

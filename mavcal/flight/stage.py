@@ -1,0 +1,144 @@
+"""The in-flight stage end to end: a flight log -> one :class:`CompassResult` per compass.
+
+Per compass: the calibration in force undone as logged (:mod:`mavcal.ardupilot.flight`), the
+reference (:mod:`mavcal.flight.reference`), the fit (:mod:`mavcal.flight.fit`) and the verdict
+(:mod:`mavcal.flight.verdict`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mavcal.ardupilot import flight as apf
+from mavcal.errors import InsufficientDataError
+from mavcal.flight.fit import CompassFit, FitInput, fit_compass
+from mavcal.flight.reference import heading_offset_deg, reference_at
+from mavcal.flight.verdict import Verdict, judge
+from mavcal.sources.flight_series import FlightSeries, read_flight_series
+
+__all__ = ["CompassResult", "FlightResult", "run_flight", "analyse"]
+
+
+@dataclass(frozen=True)
+class CompassResult:
+    instance: int
+    fit: CompassFit | None
+    verdict: Verdict
+    missing_params: tuple[str, ...]
+    in_use: bool | None
+    ofs_in_force_mgauss: np.ndarray
+    mot_in_force: np.ndarray
+    gsf_heading_err_deg: tuple[float, float]  # RMS against the EKF-GSF yaw: as logged, as fitted (NaN: no GSF)
+
+
+@dataclass(frozen=True)
+class FlightResult:
+    source: str
+    driver_kind: str  # "current" or "throttle"
+    motct_in_force: int | None
+    yaw_source: str
+    field_source: str
+    B0_ned_mgauss: np.ndarray
+    compasses: tuple[CompassResult, ...]
+    warnings: tuple[str, ...]
+
+
+def run_flight(path: str | Path, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
+    return analyse(read_flight_series(path), yaw=yaw, driver=driver)
+
+
+def _driver(s: FlightSeries, params_motct: int | None, driver: str) -> tuple[str, np.ndarray, np.ndarray, list[str]]:
+    warn: list[str] = []
+    has_current = len(s.current_a) > 10 and float(np.ptp(s.current_a)) > 0.0
+    if driver == "auto":
+        if params_motct == apf.COMPENSATION_THROTTLE:
+            driver = "throttle"
+        elif has_current:
+            driver = "current"
+        else:
+            driver = "throttle"
+            warn.append("no battery current logged: the interference is fitted against the throttle")
+    if driver == "current":
+        if not has_current:
+            raise InsufficientDataError(f"{s.source}: no battery current logged (BAT); try --driver throttle")
+        return "current", s.current_time_s, s.current_a, warn
+    if len(s.throttle) < 10:
+        raise InsufficientDataError(f"{s.source}: no throttle logged (CTUN)")
+    return "throttle", s.throttle_time_s, s.throttle, warn
+
+
+def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
+    motct = apf.motor_type(s.params)
+    kind, dt, dx, warnings = _driver(s, motct, driver)
+    kind_code = apf.COMPENSATION_CURRENT if kind == "current" else apf.COMPENSATION_THROTTLE
+    results: list[CompassResult] = []
+    yaw_source = field_source = "-"
+    B0 = np.zeros(3)
+    fits: dict[int, CompassFit] = {}
+    info: dict[int, apf.InForce] = {}
+    rotation: dict[int, float] = {}
+    gsf_err: dict[int, tuple[float, float]] = {}
+    for c in s.compasses:
+        f = apf.in_force(s.params, c.instance)
+        info[c.instance] = f
+        ref = reference_at(s, c.time_s, yaw)
+        yaw_source, field_source, B0 = ref.yaw_source, ref.field_source, ref.B0_ned_mgauss
+        keep = ref.valid & c.healthy
+        if keep.sum() < 30:
+            continue
+        raw = apf.raw_field(f, c.field_mgauss[keep], c.ofs_mgauss[keep], c.motor_ofs_mgauss[keep])
+        ofs_force = np.median(c.ofs_mgauss[keep], axis=0)
+        # the compensation in force applies to the driver the firmware uses; another driver: none of it
+        mot_force = f.mot_per_unit if motct == kind_code else np.zeros(3)
+        inp = FitInput(c.time_s[keep], raw, f.matrix_times_scale, ref.R[keep], dt, dx, kind, ref.B0_ned_mgauss,
+                       ofs_force, mot_force, sigma_B_mgauss=0.03 * float(np.linalg.norm(ref.B0_ned_mgauss))
+                       if ref.field_source == "wmm" else 500.0)
+        try:
+            fit = fits[c.instance] = fit_compass(inp)
+        except ValueError as exc:
+            warnings.append(f"compass{c.instance}: {exc}")
+            continue
+        # the rotation check against the compass-independent yaw where it has converged, on the
+        # field corrected as fitted (offsets and interference bend single headings, not all of them)
+        gref = reference_at(s, c.time_s, "gsf") if len(s.gsf_time_s) > 10 else ref
+        gk = gref.valid & c.healthy
+        if gk.sum() >= 30:
+            x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
+            mag = (c.field_mgauss[gk] + (f.matrix_times_scale @ (fit.ofs_mgauss - c.ofs_mgauss[gk]).T).T
+                   - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
+            _, _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
+            # the rotation on the offsets in force: a rotated compass bends the fitted ones
+            rotation[c.instance] = heading_offset_deg(
+                gref.R[gk], c.field_mgauss[gk] - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
+                gref.B0_ned_mgauss)[0]
+            before = heading_offset_deg(gref.R[gk], c.field_mgauss[gk], gref.B0_ned_mgauss)[2]
+            if gref.yaw_source == "gsf":
+                gsf_err[c.instance] = (before, after)
+    if not fits:
+        raise InsufficientDataError(f"{s.source}: no compass has enough samples in flight with a known attitude")
+    verdicts = judge(fits, kind, {i: info[i].missing for i in fits},
+                     {i: np.median(next(c for c in s.compasses if c.instance == i).ofs_mgauss, axis=0) for i in fits},
+                     {i: (info[i].mot_per_unit if motct == kind_code else np.zeros(3)) for i in fits}, rotation)
+    for c in s.compasses:
+        f = info[c.instance]
+        if c.instance not in fits:
+            continue
+        results.append(CompassResult(c.instance, fits[c.instance], verdicts[c.instance], f.missing,
+                                     apf.compass_in_use(s.params, c.instance),
+                                     np.median(c.ofs_mgauss, axis=0), f.mot_per_unit,
+                                     gsf_err.get(c.instance, (float("nan"), float("nan")))))
+    return FlightResult(s.source, kind, motct, yaw_source, field_source, B0, tuple(results), tuple(warnings))
+
+
+def param_values(r: FlightResult) -> dict[str, float]:
+    """The parameters to write: the driver type and the motor compensation of the accepted compasses."""
+    out: dict[str, float] = {}
+    kind = apf.COMPENSATION_CURRENT if r.driver_kind == "current" else apf.COMPENSATION_THROTTLE
+    for c in r.compasses:
+        if c.fit is not None and c.verdict.accepted:
+            out.update(apf.motor_param_values(c.instance, c.fit.mot_per_unit))
+    if out:
+        out.update(apf.motor_type_value(kind))
+    return out
