@@ -32,7 +32,7 @@ from typing import TypedDict
 
 import numpy as np
 
-from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, is_valid_rotation, rotation_matrix
+from mavcal.autopilot.rotations import CUSTOM_1, CUSTOM_2, is_valid_rotation, rotation_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 
 __all__ = [

@@ -29,10 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.ardupilot.evaluate import attitude_grid
-from mavcal.ardupilot.gates import reason_text
-from mavcal.ardupilot.mapping import accel_frame
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.evaluate import attitude_grid
+from mavcal.autopilot.gates import reason_text
+from mavcal.autopilot.mapping import accel_frame
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.core.accel_fit import candidate_information, tilt_variances
 from mavcal.run import CalibrationRun, Options, Prepared
 

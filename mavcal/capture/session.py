@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reason, tilt_pose_variances
 from mavcal.capture.reach import ReachWatch, reach_plan, reach_plan_extended, reach_tilts
 from mavcal.core.constants import GRAVITY_MPS2
@@ -276,7 +276,7 @@ def heading_gradients(run: CalibrationRun, prob: JointProblem, p) -> np.ndarray:
     estimate along each global parameter (central differences), so ``g_k^T Cov g_k`` is the
     variance of the heading error at attitude k caused by the estimation uncertainty.
     """
-    from mavcal.ardupilot.evaluate import attitude_grid, heading_errors_deg
+    from mavcal.autopilot.evaluate import attitude_grid, heading_errors_deg
     from mavcal.quality import truth_functions
 
     am, cm = run.mapping.accel[0], run.mapping.compass[0]

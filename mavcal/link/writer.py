@@ -19,7 +19,7 @@ section 8):
   (float32-equal after the conversion) confirms a write; anything else is ignored until the
   attempt times out, then the PARAM_SET is sent again.
 * Values go out as float32 (REAL32) to ArduPilot; to PX4 an integer goes byte-wise with its type, and
-  each changed CAL_* vector by a detour (:func:`mavcal.px4.params.detoured_order`).
+  each changed CAL_* vector by a detour (:func:`mavcal.autopilot.detoured_order`).
 
 Sequence of :func:`write_params`:
 
@@ -59,8 +59,9 @@ from typing import Any, NoReturn
 import numpy as np
 from pymavlink import mavutil
 
-from mavcal.ardupilot.limits import check_limits, failing_kinds
-from mavcal.ardupilot.protocol import needs_reboot, valid_param_name, vector_group
+from mavcal.autopilot import detoured_order
+from mavcal.autopilot.limits import check_limits, failing_kinds
+from mavcal.autopilot.protocol import needs_reboot, valid_param_name, vector_group
 from mavcal.errors import (
     LinkError,
     OutOfRangeError,
@@ -79,7 +80,6 @@ from mavcal.link.params import (
     vehicle_param_error,
 )
 from mavcal.link.silence import SETTLE_S, Patience, VehicleSilence
-from mavcal.px4.params import detoured_order
 
 __all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "UnknownParameterError",
            "OutOfRangeError", "expected_stored_value", "FORCE_SAVE_KINDS", "DEFAULT_BUDGET_FACTOR", "result_words",
@@ -528,7 +528,7 @@ class _WriteRun:
 
     def write_each(self, to_write: Sequence[ParamResult]) -> str | None:
         """PARAM_SET every change until its echo confirms it (PX4's detours first, then the changes in
-        their order, see :func:`~mavcal.px4.params.detoured_order`); the failure, or None."""
+        their order, see :func:`~mavcal.autopilot.detoured_order`); the failure, or None."""
         order, detours = detoured_order({r.name: r.requested for r in to_write})
         for name, value in detours.items():
             out, failure = self._set(self.results[name], value)

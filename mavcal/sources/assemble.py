@@ -43,8 +43,8 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_SET_MESSAGE_INTERVAL
+from mavcal.autopilot import firmware as fw
+from mavcal.autopilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_SET_MESSAGE_INTERVAL
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu

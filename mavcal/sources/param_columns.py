@@ -12,7 +12,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mavcal.ardupilot import firmware as fw
+from mavcal.autopilot import firmware as fw
 from mavcal.sources.types import ParamTimeline
 
 __all__ = ["decode_text", "text_codes", "timeline_from_codes", "dataflash_params"]
