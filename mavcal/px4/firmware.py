@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mavcal.autopilot import firmware as apfw
+from mavcal.autopilot import calform as apfw
 from mavcal.autopilot.rotations import CUSTOM_1
 from mavcal.px4 import params as pn
 from mavcal.px4.rotations import euler_deg, sensor_rotation
