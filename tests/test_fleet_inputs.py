@@ -1,0 +1,101 @@
+"""A fleet's inputs: a directory, a glob, @LIST and s3:// (moto's server on 127.0.0.1) give the
+same rows as the same local files (issue 40, item 1)."""
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from mavcal.cli import main
+from mavcal.errors import SourceError, UsageError
+from mavcal.fleet.inputs import expand_sources, is_url
+from mavcal.fleet.run import run_fleet
+from mavcal.fleet.table import read_table
+from mavcal.pipeline import Options
+from mavcal.testing.fleet import assert_same_rows, comparable, make_fleet, moto_s3
+
+FAST = Options(uncertainty_draws=50)
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory, sitl_dir, real_dir):
+    root = tmp_path_factory.mktemp("fleet")
+    logs = make_fleet(root, sitl_dir, real_dir)
+    table = root.parent / "local.csv"
+    run_fleet([str(p) for p in logs], FAST, jobs=2, table=str(table))
+    return root, logs, read_table(table)
+
+
+def test_directory_glob_and_list_expand_to_the_logs(fleet, tmp_path):
+    root, logs, _ = fleet
+    want = [str(p) for p in logs]
+    assert expand_sources([str(root)]) == want  # recursive, by extension; notes.txt left out
+    assert sorted(expand_sources([f"{root}/**/*.tlog"])) == [p for p in want if p.endswith(".tlog")]
+    lst = tmp_path / "paths.txt"
+    rel = [str(p.relative_to(root)) for p in logs]
+    lst.write_text("# the fleet\n\n" + "\n".join(rel[:2]) + f"\n{root}/b\n{rel[0]}\n")
+    (tmp_path / rel[0]).parent.mkdir(parents=True, exist_ok=True)
+    for p, r in zip(logs, rel):  # relative lines are relative to the list file
+        (tmp_path / r).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / r).write_bytes(p.read_bytes())
+    got = expand_sources([f"@{lst}"])
+    assert got[:2] == [str(tmp_path / r) for r in rel[:2]]
+    assert got[2:] == [p for p in want if p.startswith(f"{root}/b/")]  # the duplicate line dropped
+
+
+def test_bad_inputs_say_so_in_one_line(tmp_path):
+    with pytest.raises(SourceError, match="no log file"):
+        expand_sources([str(tmp_path)])
+    with pytest.raises(SourceError, match="no file matches"):
+        expand_sources([f"{tmp_path}/*.tlog"])
+    with pytest.raises(SourceError, match="cannot read the list file"):
+        expand_sources([f"@{tmp_path}/missing.txt"])
+    assert is_url("s3://b/k") and is_url("https://h/x.tlog") and not is_url("udpin:0.0.0.0:14550")
+
+
+def test_url_without_the_fleet_extra_names_it(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "fsspec", None)  # as if not installed
+    with pytest.raises(UsageError, match=r"mavcal\[fleet\]"):
+        expand_sources(["s3://bucket/logs/"])
+    assert main(["calibrate", "s3://bucket/logs/"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install 'mavcal[fleet]'" in err[0]
+
+
+def test_list_file_and_directory_give_the_local_rows(fleet, tmp_path, capsys):
+    root, logs, local = fleet
+    lst = tmp_path / "paths.txt"
+    lst.write_text("\n".join(str(p) for p in logs) + "\n")
+    t1, t2 = tmp_path / "dir.csv", tmp_path / "list.csv"
+    run_fleet(expand_sources([str(root)]), FAST, jobs=1, table=str(t1))
+    run_fleet(expand_sources([f"@{lst}"]), FAST, jobs=2, table=str(t2))
+    want = comparable(local, str(root))
+    assert len(want) == len(logs) and len({r[0] for r in want}) == len(logs)
+    assert_same_rows(comparable(read_table(t1), str(root)), want)
+    assert_same_rows(comparable(read_table(t2), str(root)), want)
+
+
+def test_s3_prefix_gives_the_local_rows(fleet, tmp_path, monkeypatch):
+    pytest.importorskip("moto")
+    import fsspec
+
+    root, logs, local = fleet
+    with moto_s3("fleet") as env:
+        for k, v in env.items():
+            monkeypatch.setenv(k, v)
+        fs = fsspec.filesystem("s3")
+        for p in logs:
+            fs.put_file(str(p), f"fleet/day1/{p.relative_to(root)}")
+        fs.put_file(str(root / "notes.txt"), "fleet/day1/notes.txt")
+        sources = expand_sources(["s3://fleet/day1/"])
+        assert sources == [f"s3://fleet/day1/{p.relative_to(root)}" for p in logs]
+        table = tmp_path / "s3.csv"
+        done = run_fleet(sources, FAST, jobs=2, table=str(table))
+        assert [r.source for r in done.rows] == sources
+        bad = next(r for r in done.rows if r.source.endswith("corrupt.tlog"))
+        assert "s3://fleet/day1/b/corrupt.tlog" in bad.error and "mavcal-fleet-" not in bad.error
+        assert_same_rows(comparable(read_table(table), "s3://fleet/day1"), comparable(local, str(root)))
+        # a glob in a URL, and one object by its key
+        assert expand_sources(["s3://fleet/day1/*/*.tlog"]) == [s for s in sources if s.count("/") == 5
+                                                                and s.endswith(".tlog")]
+        assert expand_sources(["s3://fleet/day1/a/sitl01.tlog"]) == ["s3://fleet/day1/a/sitl01.tlog"]
