@@ -30,6 +30,8 @@ __all__ = ["FleetJob", "FleetResult", "FleetRun", "calibrate_entry", "run_fleet"
 
 #: How many times Dask runs a log's job again after its worker died.
 DASK_RETRIES = 2
+#: Seconds to wait for the Dask scheduler to answer.
+CONNECT_TIMEOUT_S = 20.0
 #: Logs a fork-pool worker handles before it is replaced (as :func:`mavcal.batch.calibrate_many`).
 MAX_TASKS_PER_CHILD = 8
 
@@ -117,20 +119,21 @@ def _on_dask(address: str, job: FleetJob, sources: Sequence[str], take: Callable
         raise UsageError("--scheduler-address needs the fleet extra (dask[distributed]), which is not installed: "
                          "pip install 'mavcal[fleet]'") from None
     try:
-        client = Client(address, timeout="20s", set_as_default=False)
+        client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
         raise UsageError(f"--scheduler-address {address}: cannot reach the Dask scheduler ({exc})") from None
     try:
-        shared = client.scatter(job, broadcast=True)
-        futures = client.map(_dask_entry, list(sources), job=shared, retries=DASK_RETRIES, pure=False)
-        index = {f.key: i for i, f in enumerate(futures)}
-        for fut, res in as_completed(futures, with_results=True, raise_errors=False):
-            i = index[fut.key]
-            if isinstance(res, BaseException):  # its workers died DASK_RETRIES + 1 times (KilledWorker), or a bug
-                exc = WorkerDiedError(f"the Dask job failed: {type(res).__name__}: {res}")
-                res = FleetResult(sources[i], None, None, _failed(sources[i], exc, job.options))
-            take(i, res)
-            fut.release()
+        with client.as_current():
+            shared = client.scatter(job, broadcast=True)
+            futures = client.map(_dask_entry, list(sources), job=shared, retries=DASK_RETRIES, pure=False)
+            index = {f.key: i for i, f in enumerate(futures)}
+            for fut, res in as_completed(futures, with_results=True, raise_errors=False):
+                i = index[fut.key]
+                if isinstance(res, BaseException):  # its workers died DASK_RETRIES + 1 times (KilledWorker), a bug
+                    exc = WorkerDiedError(f"the Dask job failed: {type(res).__name__}: {res}")
+                    res = FleetResult(sources[i], None, None, _failed(sources[i], exc, job.options))
+                take(i, res)
+                fut.release()
     finally:
         client.close()
 
