@@ -102,3 +102,20 @@ def test_drift_over_time_orders_by_time_and_flags_a_moved_vehicle():
     assert "sys 1, compass0(7), accel0(9): 3 logs, MOVED; largest step v1-b -> v1-c: compass 30.0 mG" in text
     assert "sys 2, compass0(7), accel0(9): 2 logs, steady" in text and "sys 3" not in text
     assert drift_text(rows[-1:]) == ""
+
+
+def test_drift_page_is_self_contained_with_a_plot_per_moved_vehicle(fleet_dir, tmp_path, capsys):
+    page = tmp_path / "drift.html"
+    assert main(["calibrate", str(fleet_dir), "-q", "--drift-html", str(page)]) == 0
+    assert f"drift over time written to {page}" in capsys.readouterr().out
+    html = page.read_text()
+    assert html.startswith("<!DOCTYPE html>") and "MOVED" in html
+    assert html.count("<svg") == 2  # one vehicle moved: its compass and accelerometer offsets
+    assert "sitl01.tlog" in html and "sitl02.tlog" in html
+    for external in ("src=", "href=", "<script", "@import", "url("):  # nothing fetched from elsewhere
+        assert external not in html
+    # the same page from rows alone, with a steady vehicle: listed, no plot
+    from mavcal.fleet.drift import drift_html
+
+    steady = drift_html([_row("a", None, (1.0, 0.0, 0.0)), _row("b", None, (2.0, 0.0, 0.0))])
+    assert "<b>steady</b>" in steady and "<svg" not in steady

@@ -89,6 +89,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     fleet.add_argument("--scheduler-address", metavar="tcp://HOST:PORT",
                        help="run the logs on this Dask cluster (default: $DASK_SCHEDULER_ADDRESS, else the "
                             "--jobs processes here); needs mavcal[fleet]")
+    fleet.add_argument("--drift-html", metavar="F",
+                       help="write a self-contained HTML page of drift over time per vehicle (the table's rows "
+                            "with --table, else this run's), a plot per vehicle that moved")
     fit = p.add_argument_group("calibration")
     fit.add_argument("--method", default="ncar", choices=["ncar", "ncdr", "fcar", "dcar"], help="paper variant")
     fit.add_argument("--model", default="auto", choices=["auto", "full", "diag-accel", "ardupilot", "offsets-scales"])
@@ -288,7 +291,7 @@ def _expand_fleet(args) -> None:
     fleety = [s for s in given if s.startswith("@") or is_url(s) or os.path.isdir(s) or any(c in s for c in "*?[")]
     table, sched = getattr(args, "table", None), getattr(args, "scheduler_address", None)
     args.sources = expand_sources(given) if fleety else given
-    args.fleet = len(args.sources) > 1 or bool(fleety or table or sched)
+    args.fleet = len(args.sources) > 1 or bool(fleety or table or sched or getattr(args, "drift_html", None))
     if args.fleet:
         args.scheduler_address = scheduler_from_env(sched)
         if args.scheduler_address and not args.scheduler_address.startswith(("tcp://", "tls://", "inproc://", "ws")):
@@ -363,12 +366,14 @@ def _fleet(args) -> int:
     if args.table:  # the table (and a Parquet table's journal) is no log of the fleet, even under its directory
         import os
 
-        from mavcal.outputs import check_outputs, same_file
+        from mavcal.outputs import same_file
 
         mine = [args.table, f"{args.table}.journal.csv"]
         args.sources = [s for s in args.sources if not any(
             same_file(s, t) or os.path.abspath(s) == os.path.abspath(t) for t in mine)]
-        check_outputs([("--table", args.table), ("--json", args.json)], [])
+    from mavcal.outputs import check_outputs
+
+    check_outputs([("--table", args.table), ("--json", args.json), ("--drift-html", args.drift_html)], args.sources)
     shown = progress_line(sys.stderr, len(args.sources), quiet=getattr(args, "quiet", False))
     try:
         done = run_fleet(list(args.sources), _options(args), jobs=args.jobs or 1, table=args.table,
@@ -381,10 +386,16 @@ def _fleet(args) -> int:
     if done.skipped:
         print(f"{len(done.skipped)} log(s) already in {args.table} (same content, same mavcal version): "
               "skipped, their rows are there", file=out)
-    if args.table:
+    if args.table or args.drift_html:
         text = drift_text(done.table_rows)
         if text:
             print(text, file=out)
+    if args.drift_html:
+        from mavcal.fleet.drift import drift_html
+        from mavcal.outputs import write_atomic
+
+        write_atomic(args.drift_html, drift_html(done.table_rows))
+        print(f"drift over time written to {args.drift_html}", file=out)
     if args.json:
         json_output(args.json, [asdict(r) for r in done.rows])
     by_source = {r["source"]: r for r in done.table_rows}

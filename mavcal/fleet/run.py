@@ -59,7 +59,8 @@ class FleetResult:
 @dataclass
 class FleetRun:
     """What :func:`run_fleet` returns: this run's rows (input order), the logs it skipped (their
-    rows are in the table already), and every row of the table at the end (flat dicts)."""
+    rows are in the table already), and every row of the table at the end (flat dicts; without a
+    table, this run's)."""
 
     rows: list[BatchRow] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
@@ -175,12 +176,10 @@ def run_fleet(sources: Sequence[str], options, *, jobs: int = 1, table: str | No
         got[i] = res
         if res.row is not None:
             log.info("%s: %s", res.source, "ok" if res.row.ok else res.row.error)
-            flat = flat_row(res.row, res.sha256 or "", res.size_bytes or 0, job.version) if writer else None
-            if writer is not None and flat is not None:
-                if res.sha256 is None:  # unreadable: keyed by its name (done_keys)
-                    flat["content_sha256"] = unread_key(res.source)
+            flat = flat_row(res.row, res.sha256 or unread_key(res.source), res.size_bytes or 0, job.version)
+            if writer is not None:
                 writer.append(flat)
-                new_rows.append(flat)
+            new_rows.append(flat)
         if progress is not None:
             progress(res)
 
