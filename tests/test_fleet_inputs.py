@@ -99,3 +99,10 @@ def test_s3_prefix_gives_the_local_rows(fleet, tmp_path, monkeypatch):
         assert expand_sources(["s3://fleet/day1/*/*.tlog"]) == [s for s in sources if s.count("/") == 5
                                                                 and s.endswith(".tlog")]
         assert expand_sources(["s3://fleet/day1/a/sitl01.tlog"]) == ["s3://fleet/day1/a/sitl01.tlog"]
+
+
+def test_a_file_whose_name_looks_like_a_glob_is_that_file(tmp_path):
+    p = tmp_path / "log[1].tlog"
+    p.write_bytes(b"x")
+    assert expand_sources([str(p)]) == [str(p)]
+    assert expand_sources([str(tmp_path)]) == [str(p)]

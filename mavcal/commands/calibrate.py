@@ -288,7 +288,8 @@ def _expand_fleet(args) -> None:
     from mavcal.fleet.run import scheduler_from_env
 
     given = list(args.sources)
-    fleety = [s for s in given if s.startswith("@") or is_url(s) or os.path.isdir(s) or any(c in s for c in "*?[")]
+    fleety = [s for s in given if s.startswith("@") or is_url(s) or os.path.isdir(s)
+              or (any(c in s for c in "*?[") and not os.path.exists(s))]
     table, sched = getattr(args, "table", None), getattr(args, "scheduler_address", None)
     args.sources = expand_sources(given) if fleety else given
     args.fleet = len(args.sources) > 1 or bool(fleety or table or sched or getattr(args, "drift_html", None))

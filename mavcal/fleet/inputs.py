@@ -60,7 +60,7 @@ def _local(spec: str, base: Path | None) -> list[str]:
     p = Path(spec).expanduser()
     if base is not None and not p.is_absolute():
         p = base / p
-    if _GLOB.search(spec):
+    if _GLOB.search(spec) and not p.exists():
         hits = sorted(globmod.glob(str(p), recursive=True))
         out = []
         for h in hits:
@@ -132,7 +132,7 @@ def expand_sources(specs: Sequence[str]) -> list[str]:
             out += _list_file(spec[1:])
         elif is_url(spec):
             out += _remote(spec)
-        elif _GLOB.search(spec) or os.path.isdir(spec):
+        elif os.path.isdir(spec) or (_GLOB.search(spec) and not os.path.exists(spec)):  # "log[1].tlog" is a file
             out += _local(spec, None)
         else:
             out.append(spec)
