@@ -19,7 +19,7 @@ from mavcal.pipeline import Options
 from mavcal.testing.fleet import assert_same_rows, comparable
 
 FAST = Options(uncertainty_draws=50)
-N_COPIES = 3  # of each SITL log, each with other trailing bytes: 6 calibrations + a corrupt log
+N_COPIES = 3  # of each SITL log, each with other trailing bytes: 6 calibrations, a duplicate and a corrupt log
 
 _KILLED_RUN = """
 import sys
@@ -39,6 +39,9 @@ def logs(tmp_path_factory, sitl_dir):
             p = root / f"{k}-{name}"
             p.write_bytes(data + b"\x00" * k)
             out.append(str(p))
+    dup = root / "dup-of-0-sitl02.tlog"  # the content of another log: its own row all the same
+    dup.write_bytes((sitl_dir / "sitl02.tlog").read_bytes())
+    out.append(str(dup))
     bad = root / "corrupt.tlog"
     bad.write_bytes(bytes((i * 37 + 11) % 251 for i in range(3000)).replace(b"\xfd", b"\x00").replace(b"\xfe", b"\x00"))
     return sorted(out + [str(bad)])
@@ -77,7 +80,8 @@ def test_killed_at_half_and_resumed_equals_an_uninterrupted_run(kind, logs, whol
     kept = read_table(table)
     assert half <= len(kept) < len(logs)  # killed at about half: those rows survived it
     done = run_fleet(logs, FAST, jobs=2, table=str(table))
-    assert len(done.skipped) == len(kept) and len(done.rows) == len(logs) - len(kept)
+    # the rest calibrated, or (the duplicate, when its twin was done before the kill) its twin's row copied
+    assert len(done.skipped) == len(kept) and len(done.rows) + len(done.copied) == len(logs) - len(kept)
     rows = read_table(table)
     counts = Counter(r["source"] for r in rows)
     assert sorted(counts) == logs and set(counts.values()) == {1}  # none lost, none twice
@@ -97,6 +101,17 @@ def test_run_again_skips_what_the_table_has_and_redoes_a_changed_log(logs, whole
     third = run_fleet([*logs[:3], str(changed)], FAST, jobs=1, table=str(table))
     assert [r.source for r in third.rows] == [str(changed)]
     assert len(read_table(table)) == 4
+    # a copy under another name, in a later run: its row is the original's under its name, not calibrated again
+    renamed = tmp_path / "renamed.tlog"
+    renamed.write_bytes(open(logs[0], "rb").read())
+    fourth = run_fleet([*logs[:3], str(renamed)], FAST, jobs=1, table=str(table))
+    assert fourth.rows == [] and fourth.copied == [str(renamed)] and sorted(fourth.skipped) == sorted(logs[:3])
+    rows = {r["source"]: r for r in read_table(table)}
+    assert len(rows) == 5
+    def but_name(r: dict) -> dict:  # a copy of the row (no number computed again)
+        return {k: v for k, v in r.items() if k not in ("source", "finished_utc")}
+
+    assert but_name(rows[str(renamed)]) == but_name(rows[logs[0]])
     # another mavcal version: the same content is calibrated again
     job = FleetJob(FAST, version="0.0.0-other", done=frozenset(f"{r['content_sha256']}:{r['mavcal_version']}"
                                                                  for r in read_table(table)))

@@ -387,6 +387,9 @@ def _fleet(args) -> int:
     if done.skipped:
         print(f"{len(done.skipped)} log(s) already in {args.table} (same content, same mavcal version): "
               "skipped, their rows are there", file=out)
+    if done.copied:
+        print(f"{len(done.copied)} log(s) with the content of a log already in {args.table} under another name: "
+              "not calibrated again, its row written under their name", file=out)
     if args.table or args.drift_html:
         text = drift_text(done.table_rows)
         if text:
@@ -401,5 +404,5 @@ def _fleet(args) -> int:
         json_output(args.json, [asdict(r) for r in done.rows])
     by_source = {r["source"]: r for r in done.table_rows}
     earlier = [BatchRow(source=s, ok=bool(by_source[s]["ok"]), exit_code=int(by_source[s]["exit_code"]))
-               for s in done.skipped if s in by_source]
+               for s in done.skipped + done.copied if s in by_source]
     return fleet_exit_code(list(done.rows) + earlier)

@@ -59,12 +59,14 @@ class FleetResult:
 @dataclass
 class FleetRun:
     """What :func:`run_fleet` returns: this run's rows (input order), the logs it skipped (their
-    rows are in the table already), and every row of the table at the end (flat dicts; without a
-    table, this run's)."""
+    rows are in the table already), every row of the table at the end (flat dicts; without a
+    table, this run's), and the logs not calibrated because the table had their content under
+    another name (their row is that one's, under their name)."""
 
     rows: list[BatchRow] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     table_rows: list[dict] = field(default_factory=list)
+    copied: list[str] = field(default_factory=list)  # a log whose content the table had under another name
 
 
 def _failed(source: str, exc: MavcalError, options) -> BatchRow:
@@ -84,6 +86,18 @@ def calibrate_entry(job: FleetJob, source: str) -> FleetResult:
             return FleetResult(source, None, None, None)
         return FleetResult(source, None, None, _failed(source, exc, job.options))
     return FleetResult(source, sha, size, _renamed(row, path, source) if path != source else row)
+
+
+def _copy_row(row: dict, source: str) -> dict:
+    """A table row of a log with the content of ``row``'s log: the same, under its own name."""
+    import time as _time
+
+    from mavcal.fleet.table import utc
+
+    old = row["source"]
+    out = {k: (v.replace(old, source) if isinstance(v, str) else v) for k, v in row.items()}
+    out["finished_utc"] = utc(_time.time())
+    return out
 
 
 def _renamed(row: BatchRow, path: str, source: str) -> BatchRow:
@@ -171,10 +185,21 @@ def run_fleet(sources: Sequence[str], options, *, jobs: int = 1, table: str | No
     got: list[FleetResult | None] = [None] * len(sources)
     new_rows: list[dict] = []
     finished = False
+    by_key = {row_key(r["content_sha256"], r["mavcal_version"]): r for r in had if r.get("content_sha256")}
+    have = {(r["source"], k) for k, r in ((row_key(r["content_sha256"], r["mavcal_version"]), r) for r in had)}
+    copied: list[str] = []
 
     def take(i: int, res: FleetResult) -> None:
         got[i] = res
-        if res.row is not None:
+        key = row_key(res.sha256 or unread_key(res.source), job.version)
+        if res.row is None and (res.source, key) not in have and key in by_key:  # the content, under another name
+            flat = _copy_row(by_key[key], res.source)
+            if writer is not None:
+                writer.append(flat)
+            new_rows.append(flat)
+            have.add((res.source, key))
+            copied.append(res.source)
+        elif res.row is not None:
             log.info("%s: %s", res.source, "ok" if res.row.ok else res.row.error)
             flat = flat_row(res.row, res.sha256 or unread_key(res.source), res.size_bytes or 0, job.version)
             if writer is not None:
@@ -202,6 +227,7 @@ def run_fleet(sources: Sequence[str], options, *, jobs: int = 1, table: str | No
         if writer is not None:
             writer.close(finished=finished)
     out.rows = [r.row for r in got if r is not None and r.row is not None]
-    out.skipped = [r.source for r in got if r is not None and r.row is None]
+    out.copied = copied
+    out.skipped = [r.source for r in got if r is not None and r.row is None and r.source not in set(copied)]
     out.table_rows = had + new_rows
     return out

@@ -28,7 +28,8 @@ from pathlib import Path
 
 from mavcal.errors import SourceError, UsageError
 
-__all__ = ["COLUMNS", "COLUMN_TYPES", "ResultsTable", "flat_row", "row_key", "read_table", "done_keys", "unread_key"]
+__all__ = ["COLUMNS", "COLUMN_TYPES", "ResultsTable", "flat_row", "row_key", "read_table", "done_keys", "unread_key",
+           "utc"]
 
 _XYZ = ("x", "y", "z")
 
@@ -74,7 +75,8 @@ def _one_line(s: str) -> str:
     return " | ".join(part.strip() for part in str(s).splitlines() if part.strip())
 
 
-def _utc(t: float | None) -> str | None:
+def utc(t: float | None) -> str | None:
+    """Unix seconds as an ISO 8601 UTC time (``2024-06-01T12:00:00.000000Z``); None stays None."""
     if t is None:
         return None
     return datetime.fromtimestamp(t, tz=timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
@@ -86,7 +88,7 @@ def flat_row(row, sha256: str, size: int, version: str) -> dict:
     d = row.drift if row.ok else None
     out: dict = {
         "source": row.source, "content_sha256": sha256, "size_bytes": size, "mavcal_version": version,
-        "log_start_utc": _utc(getattr(row, "log_start_unix_s", None)), "finished_utc": _utc(time.time()),
+        "log_start_utc": utc(getattr(row, "log_start_unix_s", None)), "finished_utc": utc(time.time()),
         "ok": row.ok, "exit_code": row.exit_code, "result": row.result,
         "error": None if row.error is None else _one_line(row.error),
         "sysid": row.sysid, "firmware": row.firmware, "compass_instance": row.compass_instance,
