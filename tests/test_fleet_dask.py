@@ -28,6 +28,8 @@ def fleet(tmp_path_factory, sitl_dir, real_dir):
 @pytest.mark.timeout(240)
 def test_separate_scheduler_and_two_workers_give_the_fork_pool_rows(fleet, tmp_path, monkeypatch, capsys):
     root, logs, fork = fleet
+    monkeypatch.setattr(fleet_run, "MIN_WINDOW", 1)  # two jobs on the cluster at a time: the rest wait here
+    monkeypatch.setattr(fleet_run, "WINDOW_PER_WORKER", 1)
     with dask_cluster(workers=2) as address:
         table = tmp_path / "dask.csv"
         done = run_fleet(logs, FAST, table=str(table), scheduler_address=address)

@@ -30,6 +30,9 @@ __all__ = ["FleetJob", "FleetResult", "FleetRun", "calibrate_entry", "run_fleet"
 
 #: How many times Dask runs a log's job again after its worker died.
 DASK_RETRIES = 2
+#: Fewest jobs handed to a Dask cluster at once (else four per worker): more wait here, not on the scheduler.
+MIN_WINDOW = 64
+WINDOW_PER_WORKER = 4
 #: Seconds to wait for the Dask scheduler to answer.
 CONNECT_TIMEOUT_S = 20.0
 #: Logs a fork-pool worker handles before it is replaced (as :func:`mavcal.batch.calibrate_many`).
@@ -140,15 +143,29 @@ def _on_dask(address: str, job: FleetJob, sources: Sequence[str], take: Callable
     try:
         with client.as_current():
             shared = client.scatter(job, broadcast=True)
-            futures = client.map(_dask_entry, list(sources), job=shared, retries=DASK_RETRIES, pure=False)
-            index = {f.key: i for i, f in enumerate(futures)}
-            for fut, res in as_completed(futures, with_results=True, raise_errors=False):
-                i = index[fut.key]
+            # a window of jobs at a time (not a million futures at once): the scheduler holds a few per worker
+            window = max(MIN_WINDOW, WINDOW_PER_WORKER * len(client.scheduler_info().get("workers", {})))
+            todo = iter(enumerate(sources))
+            index: dict = {}
+            running = as_completed(with_results=True, raise_errors=False)
+
+            def submit_next() -> None:
+                for i, source in todo:
+                    fut = client.submit(_dask_entry, source, job=shared, retries=DASK_RETRIES, pure=False)
+                    index[fut.key] = i
+                    running.add(fut)
+                    return
+
+            for _ in range(window):
+                submit_next()
+            for fut, res in running:
+                i = index.pop(fut.key)
                 if isinstance(res, BaseException):  # its workers died DASK_RETRIES + 1 times (KilledWorker), a bug
                     exc = WorkerDiedError(f"the Dask job failed: {type(res).__name__}: {res}")
                     res = FleetResult(sources[i], None, None, _failed(sources[i], exc, job.options))
                 take(i, res)
                 fut.release()
+                submit_next()
     finally:
         client.close()
 
