@@ -313,7 +313,8 @@ def check_flags(args) -> None:
     _expand_fleet(args)
     several = args.fleet
     if several and (args.write or args.dry_run or args.param_out or args.report):
-        raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE")
+        raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE (a log file or a device), "
+                         "without --table, --scheduler-address or --drift-html")
     writes = args.write or args.dry_run
     if several and any(is_device(s) for s in args.sources):
         raise UsageError("a live device is calibrated alone: give it as the only SOURCE")
