@@ -43,6 +43,32 @@ def test_separate_scheduler_and_two_workers_give_the_fork_pool_rows(fleet, tmp_p
         assert len(read_table(tmp_path / "cli.csv")) == 2
 
 
+@pytest.mark.timeout(240)
+def test_a_worker_killed_mid_run_loses_no_row(fleet, tmp_path):
+    """SIGKILL of one of the two worker processes after the first log (it may be running a job then):
+    its jobs run again elsewhere (Dask's retries), every row as the fork pool's."""
+    import os
+    import signal
+
+    from distributed import Client
+
+    root, logs, fork = fleet
+    with dask_cluster(workers=2) as address:
+        with Client(address) as c:
+            pids = sorted(c.run(os.getpid).values())
+        killed: list[int] = []
+
+        def kill_one(res) -> None:
+            if not killed:  # after the first log, while the next ones run
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(pids[0])
+
+        table = tmp_path / "dask.csv"
+        done = run_fleet(logs, FAST, table=str(table), scheduler_address=address, progress=kill_one)
+        assert killed and [r.source for r in done.rows] == logs
+        assert_same_rows(comparable(read_table(table), str(root)), comparable(fork, str(root)))
+
+
 def test_an_unreachable_scheduler_is_one_line(tmp_path, monkeypatch, sitl_dir):
     monkeypatch.setattr(fleet_run, "CONNECT_TIMEOUT_S", 1.0)
     with pytest.raises(UsageError, match="cannot reach the Dask scheduler"):
