@@ -105,3 +105,31 @@ def test_a_file_whose_name_looks_like_a_glob_is_that_file(tmp_path):
     p.write_bytes(b"x")
     assert expand_sources([str(p)]) == [str(p)]
     assert expand_sources([str(tmp_path)]) == [str(p)]
+
+
+def test_https_style_urls_are_read_by_the_worker(fleet, tmp_path):
+    """An http(s) URL per log (here a local http.server on 127.0.0.1): the rows of the local files."""
+    import functools
+    import http.server
+    import threading
+
+    pytest.importorskip("aiohttp")
+    root, logs, local = fleet
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(root))
+    handler.log_message = lambda *a, **k: None  # type: ignore[attr-defined]
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        base = f"http://127.0.0.1:{server.server_address[1]}"
+        picked = [p for p in logs if p.name in ("sitl01.tlog", "corrupt.tlog")]
+        lst = tmp_path / "urls.txt"
+        lst.write_text("".join(f"{base}/{p.relative_to(root)}\n" for p in picked))
+        sources = expand_sources([f"@{lst}"])
+        assert sources == [f"{base}/{p.relative_to(root)}" for p in picked]
+        table = tmp_path / "http.csv"
+        run_fleet(sources, FAST, jobs=1, table=str(table))
+        want = [r for r in comparable(local, str(root)) if r[0] in {str(p.relative_to(root)) for p in picked}]
+        assert_same_rows(comparable(read_table(table), base), want)
+    finally:
+        server.shutdown()
+        server.server_close()
