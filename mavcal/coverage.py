@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mavcal.core.headings import YAW_ORIENTATIONS, ProvisionalHeadings, provisional_headings
 from mavcal.core.held import relaxed_headings, tilts_of
 from mavcal.errors import MavcalError
 from mavcal.segment import Segmentation, axis_label, count_clusters
@@ -39,7 +40,7 @@ __all__ = ["CoverageRule", "SensorCoverage", "accel_coverage", "compass_coverage
            "field_directions", "UNIDENTIFIED_HEADING_DEG", "UNIDENTIFIED_TILT_DEG", "KeptParameter",
            "ReachCoverage", "reach_coverage", "segmentation_reach", "within_reach", "held_priors",
            "REACH_MAX_TILT_DEG", "REACH_FLOWN_TILT_DEG", "REACH_MIN_TILT_DEG",
-           "REACH_MIN_FIELD_DIRECTIONS"]
+           "REACH_MIN_FIELD_DIRECTIONS", "heading_gaps", "headings_text"]
 
 #: a 95 % heading bound this large says the poses did not identify the compass (a heading
 #: error that may be anywhere in a half turn is no estimate at all)
@@ -240,6 +241,32 @@ class ReachCoverage:
     kept: tuple[KeptParameter, ...] = ()
     missing: tuple[str, ...] = ()
     add: str = ""
+    #: each pose's heading (deg, from the first pose's, clockwise seen from above) as the provisional
+    #: fit of :func:`mavcal.core.headings.provisional_headings` sees it (empty when it did not fit)
+    headings_deg: tuple[float, ...] = ()
+    #: the yaw turn (deg) of the compass from its configured mounting that the tilts identify (0: as
+    #: configured; None: not identified, see ``mounting_evidence``) and the evidence in words
+    mounting_turn_deg: float | None = None
+    mounting_evidence: str = ""
+
+    def mounting_text(self) -> str:
+        """What the poses say of the compass's mounting, for a verdict or an abort."""
+        if self.mounting_turn_deg:
+            o = next(k for k, v in YAW_ORIENTATIONS.items() if v == self.mounting_turn_deg)
+            return (f"the compass may be mounted rotated: its readings fit a compass turned "
+                    f"{self.mounting_turn_deg:.0f} deg about the vertical from its configured orientation best "
+                    f"(COMPASS_ORIENT {o} if it is configured 0 now; {self.mounting_evidence}); check how it is "
+                    "mounted and set its orientation")
+        return ""
+
+    def heading_advice(self) -> str:
+        """What to do when the heading bound of these poses is above its gate: the bound counts the
+        uncertainty of the accelerometer calibration kept, which no pose within reach lowers (issue 37)."""
+        return ("within reach the bound counts the uncertainty of the accelerometer's calibration, which is kept "
+                "(poses within reach do not identify it) and which more poses do not lower once the bound stops "
+                "falling: calibrate the accelerometer (its full calibration, or at least a level calibration on "
+                "level ground) and capture again, or write anyway with --force; else turn the vehicle to headings "
+                f"between the {self.n_field_directions} recorded")
 
     def refit_advice(self) -> str:
         """What poses to add when the fit of these poses was not certified (a wrong basin not ruled
@@ -276,23 +303,80 @@ def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
 
 
 def _headings(gravity_dirs: np.ndarray, mag_means: np.ndarray) -> int:
-    """Distinct headings among poses near level: each pose's heading from the compass means and
-    the tilts the gravity directions give (:func:`mavcal.core.held.relaxed_headings`, the linear
-    relaxation of the compass model), in clusters :data:`REACH_HEADING_DEG` apart. (The sphere of
-    :func:`field_directions` is not determined by means near a circle, and a tilt moves the
-    vertical field into the horizontal readings as much as a heading does.)"""
+    """Distinct headings among poses near level (:func:`_heading_count`)."""
+    return _heading_count(gravity_dirs, mag_means)[0]
+
+
+def _heading_count(gravity_dirs: np.ndarray, mag_means: np.ndarray) -> tuple[int, np.ndarray | None]:
+    n, psi, _ = _heading_fit(gravity_dirs, mag_means)
+    return n, psi
+
+
+def _heading_fit(gravity_dirs: np.ndarray, mag_means: np.ndarray
+                 ) -> tuple[int, np.ndarray | None, ProvisionalHeadings | None]:
+    """Distinct headings among poses near level, in clusters :data:`REACH_HEADING_DEG` apart, and
+    each pose's heading (deg, from the first pose's, growing as the vehicle turns clockwise seen
+    from above; None when only the fallback counted): from a provisional fit of the compass
+    (:func:`mavcal.core.headings.provisional_headings`: the offsets, scale, soft iron and dip
+    fitted, the tilts the gravity directions give removed, each yaw mounting of the compass
+    tried), so that neither offsets of any size nor a steep field's vertical share in a tilted
+    pose's readings merge or split headings. When that fit fails (too few poses, no plausible
+    field), the linear relaxation of the compass model (:func:`mavcal.core.held.relaxed_headings`)
+    or the circle the raw means trace, whichever counts more (issue 37: both miscount ordinary
+    offsets and soft iron beside a steep field)."""
     g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
     M = np.asarray(mag_means, dtype=float).reshape(-1, 3)
     ok = np.isfinite(g).all(axis=1) & np.isfinite(M).all(axis=1)
     g, M = g[ok], M[ok]
-    if g.shape[0] < 4:
-        return min(g.shape[0], 1)
+    if g.shape[0] < 3:
+        return min(g.shape[0], 1), (np.zeros(g.shape[0]) if g.shape[0] == 1 else None), None
     try:
-        psi = relaxed_headings(tilts_of(-g), M)[0]  # FRD gravity points down; the specific force up
+        T = tilts_of(-g)  # FRD gravity points down; the specific force up
+    except MavcalError:
+        T = None
+    if T is not None:
+        try:
+            fit = provisional_headings(T, M, tuple(YAW_ORIENTATIONS))
+            psi = fit.psi_rad
+            n = count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
+            return n, np.degrees(psi[0] - psi) % 360.0, fit  # the body sees the field turn the other way
+        except (MavcalError, np.linalg.LinAlgError):
+            pass
+    if g.shape[0] < 4:
+        return 1, None, None
+    try:
+        if T is None:
+            raise MavcalError("upside down")
+        psi = relaxed_headings(T, M)[0]
         n_relaxed = count_clusters(np.c_[np.cos(psi), np.sin(psi), np.zeros(len(psi))], REACH_HEADING_DEG)
     except (MavcalError, np.linalg.LinAlgError):
         n_relaxed = 1
-    return max(n_relaxed, _circle_headings(M))
+    return max(n_relaxed, _circle_headings(M)), None, None
+
+
+def heading_gaps(headings_deg: Sequence[float], step_deg: float = 60.0) -> list[float]:
+    """Headings (deg, as ``headings_deg``) about ``step_deg`` apart that no heading seen comes within
+    :data:`REACH_HEADING_DEG` of: where to turn the vehicle next, the largest gap first."""
+    seen = np.asarray(headings_deg, dtype=float) % 360.0
+    if seen.size == 0:
+        return [0.0]
+    cands = [(float(c), float(np.abs((seen - c + 180.0) % 360.0 - 180.0).min())) for c in np.arange(0.0, 360.0, 15.0)]
+    out: list[float] = []
+    for c, d in sorted(cands, key=lambda t: -t[1]):  # the farthest from every heading seen first
+        if d >= REACH_HEADING_DEG and all(abs((c - o + 180.0) % 360.0 - 180.0) >= step_deg - 1e-9 for o in out):
+            out.append(c)
+    return out
+
+
+def headings_text(headings_deg: Sequence[float]) -> str:
+    """"0, 58, 121 deg": the distinct headings seen (within 10 deg merged), in order."""
+    hs: list[float] = []
+    for h in sorted(float(x) % 360.0 for x in headings_deg):
+        if not hs or h - hs[-1] > 10.0:
+            hs.append(h)
+    if len(hs) > 1 and hs[0] + 360.0 - hs[-1] <= 10.0:
+        hs.pop()
+    return ", ".join(f"{h:.0f}" for h in hs) + " deg"
 
 
 def _circle_headings(M: np.ndarray) -> int:
@@ -322,13 +406,20 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
         return ReachCoverage(False, float("nan"), 0, False)
     tilt = float(np.degrees(np.arccos(np.clip(g[:, 2], -1.0, 1.0))).max())
     applies = tilt <= REACH_MAX_TILT_DEG and not accel_coverage("accel", g, rule).identifiable
-    n_f = _headings(gravity_dirs, mag_means)
+    n_f, psi, fit = _heading_fit(gravity_dirs, mag_means)
+    seen = () if psi is None else tuple(float(x) for x in psi)
+    turn, evidence = _mounting(fit, tilt)
     missing = []
     add = ""
     if n_f < REACH_MIN_FIELD_DIRECTIONS:
         missing.append(f"only {n_f} distinct heading(s), at least {REACH_MIN_FIELD_DIRECTIONS} needed "
-                       "(too few headings)")
-        add = "turn the vehicle to more headings (about 60 deg apart, all the way round)"
+                       f"{REACH_HEADING_DEG:g} deg apart (too few headings" +
+                       (f"; headings seen, from the first pose's, turning clockwise: {headings_text(seen)})"
+                        if seen else ")"))
+        gaps = heading_gaps(seen)[:REACH_MIN_FIELD_DIRECTIONS - n_f] if seen else []
+        add = (f"turn the vehicle to more headings: {', '.join(f'{h:.0f}' for h in sorted(gaps))} deg from the first "
+               "pose's heading (clockwise seen from above)" if gaps else
+               "turn the vehicle to more headings (about 60 deg apart, all the way round)")
     if tilt < REACH_MIN_TILT_DEG:
         missing.append(f"tilts up to {tilt:.1f} deg cannot separate the compass's vertical terms from its "
                        f"vertical offset (at least {REACH_MIN_TILT_DEG:g} deg needed)")
@@ -336,9 +427,35 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
                                              "block, a ramp)")
     kept = [k for a in accels for k in _accel_kept(a, tilt)] if applies else []
     if applies and not missing:
-        kept.append(KeptParameter(compass, "orientation", "turning about the vertical cannot tell a rotation of "
-                                  "the compass from the heading", _BEYOND))
-    return ReachCoverage(applies, tilt, n_f, applies and not missing, tuple(kept), tuple(missing), add)
+        why = ("the tilts confirm the yaw mounting configured, its other turns fit worse" if turn == 0.0 else
+               "turning about the vertical cannot tell a rotation of the compass from the heading, and the tilts "
+               "did not tell the yaw mountings apart")
+        kept.append(KeptParameter(compass, "orientation", f"{why} ({evidence})" if evidence else why, _BEYOND))
+    return ReachCoverage(applies, tilt, n_f, applies and not missing, tuple(kept), tuple(missing), add, seen,
+                         turn, evidence)
+
+
+#: the yaw mounting is identified when the best candidate's RMS residual is this many times smaller
+#: than every other's, the poses tilted at least MOUNTING_MIN_TILT_DEG (from 10-15 deg of tilt the
+#: vertical field moves into the compass's X or Y axis as it is mounted: 3x or more apart in
+#: tests/test_reach_headings.py; at 5 deg they are not told apart)
+MOUNTING_EVIDENCE_RATIO = 3.0
+MOUNTING_MIN_TILT_DEG = 8.0
+
+
+def _mounting(fit: ProvisionalHeadings | None, tilt_deg: float) -> tuple[float | None, str]:
+    """(the yaw turn of the compass identified, or None; the evidence in words)."""
+    if fit is None or len(fit.rms_mgauss) < 2:
+        return None, ""
+    rms = fit.rms_mgauss
+    best = fit.orientation
+    runner = min(v for o, v in rms.items() if o != best)
+    said = ", ".join(f"{YAW_ORIENTATIONS[o]:.0f} deg: {v:.1f}" for o, v in sorted(rms.items()))
+    words = f"RMS residual of a provisional fit, mGauss, by turn: {said}"
+    if tilt_deg < MOUNTING_MIN_TILT_DEG or runner < MOUNTING_EVIDENCE_RATIO * rms[best]:
+        return None, words + (f"; not told apart (tilts up to {tilt_deg:.0f} deg, at least "
+                              f"{MOUNTING_MIN_TILT_DEG:g} deg and a {MOUNTING_EVIDENCE_RATIO:g}x margin needed)")
+    return YAW_ORIENTATIONS[best], words
 
 
 def segmentation_reach(seg: Segmentation, accel_instance: int = 0, mag_instance: int | None = None,

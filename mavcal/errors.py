@@ -16,6 +16,7 @@ Exit codes (CLI contract):
 7   some sensors accepted (written / in the .param), some rejected
 8   the vehicle requires MAVLink 2 signing and no key, or a wrong key, was given
 9   an output file is an input (or another output): refused before any work
+10  ``--connect auto`` found several serial ports that could be the vehicle: choose one
 ==  =========================================================
 """
 from __future__ import annotations
@@ -79,6 +80,18 @@ class SigningError(LinkError):
     a key was given and the vehicle does not sign. Nothing was written."""
 
     exit_code = 8
+
+
+class AmbiguousPortError(LinkError):
+    """``--connect auto`` found several serial ports that could be the vehicle; ``ports`` lists them
+    (nothing was opened). The user chooses one with ``--connect PORT``."""
+
+    exit_code = 10
+
+    def __init__(self, ports: Sequence[str]) -> None:
+        self.ports = list(ports)
+        super().__init__(f"{len(self.ports)} serial ports could be the vehicle: {'; '.join(self.ports)}: "
+                         "choose one with --connect PORT")
 
 
 class InsufficientDataError(MavcalError):

@@ -377,7 +377,8 @@ def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outco
         heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=model_for(prep.log).gate_config(opts.gates),
         fit_converged=cal.converged,
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message,
-        fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice())))
+        fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice(),
+        heading_advice=gates_mod.HEADING_ADVICE if f.reach is None else f.reach.heading_advice())))
     return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=seg,
                           intervals_used=tuple(f.used), calibration=cal, mapping=f.mapping, quality=quality,
                           gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)),

@@ -228,11 +228,12 @@ def test_impossible_field_aborts_with_exit_4(capsys, tmp_path, start_vehicle):
     assert not (tmp_path / "b.param").exists()
 
 
-def test_usage_errors_exit_2(capsys):
+def test_usage_errors_exit_2(capsys, monkeypatch):
     assert cli.main(["capture", "--connect", "udpin:127.0.0.1:1", "--target-deg", "0"]) == 2
-    with pytest.raises(SystemExit) as exc:  # --connect is required (argparse exits)
-        cli.main(["capture"])
-    assert exc.value.code == 2
+    # no --connect is --connect auto (tests/test_serial_autodetect.py): no serial port here -> exit 3
+    monkeypatch.setattr("serial.tools.list_ports.comports", lambda *a, **k: [])
+    assert cli.main(["capture"]) == 3
+    assert "no serial port" in capsys.readouterr().err
 
 
 def test_should_stop_ends_the_capture_as_the_user(vehicle):

@@ -226,12 +226,14 @@ def _could_reach(kind: str, bound_deg: float) -> str:
 
 #: what to do when a fit is not certified (the capture of full poses; poses within reach say their own)
 FIT_ADVICE = "record more, better spread poses"
+#: what to do when the heading bound is above its gate (poses within reach say their own)
+HEADING_ADVICE = "more poses at different headings needed, or steel and magnets nearby disturbed the field"
 
 
 def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_orientations: int = 0,
                   heading_95_deg: float, holdout_mgauss: float, config: GateConfig = GateConfig(),
                   fit_converged: bool = True, fit_message: str = "", coverage=None,
-                  fit_advice: str = FIT_ADVICE) -> list[Gate]:
+                  fit_advice: str = FIT_ADVICE, heading_advice: str = HEADING_ADVICE) -> list[Gate]:
     """The gates of one compass (:class:`~mavcal.ardupilot.mapping.CompassMapping`): its own
     values, and the heading bound and held-out error of its fit with the accelerometer it is
     paired with. The field gate runs only when the field strength is known (WMM or given).
@@ -284,8 +286,7 @@ def compass_gates(cm, params: Mapping[str, float], *, n_intervals: int = 0, n_or
     else:
         add(s, "heading uncertainty", heading_95_deg <= c.heading_95_max_deg, heading_95_deg,
             f"<= {c.heading_95_max_deg} deg (95 %)",
-            f"the heading error {_could_reach('heading', heading_95_deg)}: more poses at different headings "
-            "needed, or steel and magnets nearby disturbed the field")
+            f"the heading error {_could_reach('heading', heading_95_deg)}: {heading_advice}")
     add(s, "held-out error", holdout_mgauss <= c.holdout_mag_max_mgauss, holdout_mgauss,
         f"<= {c.holdout_mag_max_mgauss} mGauss",
         f"a pose left out of the fit is predicted {holdout_mgauss:.1f} mGauss off: magnetic disturbance (steel, "

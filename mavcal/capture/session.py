@@ -37,6 +37,7 @@ import numpy as np
 
 from mavcal.ardupilot.rotations import euler_to_matrix
 from mavcal.capture.progress import SensorProgress, measure, pair_run, stop_reason, tilt_pose_variances
+from mavcal.capture.reach import ReachWatch, reach_plan, reach_plan_extended, reach_tilts
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.models import FORMS, MODEL_CHAIN, MODELS
 from mavcal.core.refine import JointParams, JointProblem, Term
@@ -76,6 +77,9 @@ class CaptureConfig:
     # a vehicle that cannot be turned over: only poses tilted at most this far from level (any
     # heading) are advised; the accelerometers then keep their calibration (None: no limit)
     max_tilt_deg: float | None = None
+    # ... and then the capture ends at this many intervals (or max_intervals, the smaller) with a verdict:
+    # poses within reach add little after the plan and the advice's first rounds (issue 37)
+    max_intervals_reach: int = 25
 
 
 @dataclass(frozen=True)
@@ -170,7 +174,7 @@ def candidate_poses(max_tilt_deg: float | None = None) -> list[tuple[float, floa
     it in 8 directions (one side or a corner on a block), every heading in 45 deg steps."""
     out = []
     if max_tilt_deg is not None:
-        for roll, pitch in _reach_tilts(max_tilt_deg):
+        for roll, pitch in reach_tilts(max_tilt_deg):
             for yaw in range(0, 360, 45):
                 out.append((roll, pitch, float(yaw)))
         return out
@@ -182,30 +186,14 @@ def candidate_poses(max_tilt_deg: float | None = None) -> list[tuple[float, floa
     return out
 
 
-def _reach_tilts(max_tilt_deg: float) -> list[tuple[float, float]]:
-    """(roll, pitch) deg: level, and tilted by half and all of ``max_tilt_deg`` towards the 8
-    points (a corner: roll and pitch each t / sqrt(2), so the tilt stays within the limit)."""
-    out = [(0.0, 0.0)]
-    for t in (0.5 * max_tilt_deg, float(max_tilt_deg)):
-        for k in range(8):
-            a = np.radians(45.0 * k)
-            out.append((round(float(t * np.sin(a)), 1), round(float(t * np.cos(a)), 1)))
-    return out
-
-
-def reach_plan(max_tilt_deg: float) -> list[tuple[float, float, float]]:
-    """The plan before the first fit for a vehicle that cannot be turned over: turned to six
-    headings 60 deg apart, level and tilted by ``max_tilt_deg`` nose up, rolled right, nose down,
-    rolled left, then two corners."""
-    t, d = float(max_tilt_deg), round(float(max_tilt_deg) / np.sqrt(2.0), 1)
-    return [(0.0, 0.0, 0.0), (0.0, t, 60.0), (t, 0.0, 120.0), (0.0, 0.0, 180.0), (0.0, -t, 240.0),
-            (-t, 0.0, 300.0), (d, d, 30.0), (-d, -d, 210.0)]
-
-
 #: poses within reach: a compass bound that fell by less than this fraction over this many new
 #: intervals is at the floor set by the kept accelerometer (CaptureSession._reach_floor)
 REACH_PLATEAU = 0.10
 REACH_PLATEAU_POSES = 3
+
+#: said when the advice repeats a pose: every candidate was held or given up
+ALL_HELD = ("every candidate pose has been held (or given up): the most informative one is advised again, as "
+            "more samples there still lower the bound")
 
 # the plan before the first fit (and until PLAN_FIRST intervals): six faces, then two diagonals
 PLAN_FIRST = 6
@@ -386,6 +374,8 @@ class CaptureSession:
         self._dropped: dict[str, str] = {}  # sensor -> why the capture finishes without it
         self._progress: tuple[SensorProgress, ...] = ()
         self._floors: dict[str, float] = {}  # poses within reach: compass -> the bound's floor reached
+        self._all_held = False  # the last advice repeats a pose: every candidate was held or given up
+        self._reach = ReachWatch(config.max_tilt_deg, self.options)  # poses within reach: what they identify
 
     # ------------------------------------------------------------------ data in
     def add(self, batch: Sequence[SensorSeries]) -> None:
@@ -492,22 +482,23 @@ class CaptureSession:
             except MavcalError as exc:
                 messages.append(f"no fit yet: {exc}")
         run = self._run
-        heading = tilt = None
-        model = None
+        heading = tilt = model = None
         if run is not None and not aborted:
             heading, tilt, model = run.quality.heading_95_deg, run.quality.tilt_95_deg, run.calibration.model
             spread = _field_spread(run) if _paired(run) else 0.0
             if spread > cfg.max_field_spread and n >= n_min + 2:
-                aborted = True
-                reason = (f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses: magnetic "
-                          "disturbance (steel, magnets, currents nearby); move to a clean place and start again")
+                aborted, reason = True, self._reach.spread_reason(spread, prep, n)
+        if not aborted and (turned := self._reach.mounting_abort(prep, n)):
+            aborted, reason = True, turned
         progress = self._progress = self._measure(run if not aborted else None, prep, n)
         done, reason, offer = self._stop_rule(run, n, aborted, reason)
+        messages += [] if aborted else self._reach.messages(prep, n, done)
         advice, target = None, None
         if not done:
             messages += self._stall_check(n, still_now)
             target = self._advice_target() if self._run is not None and n >= PLAN_FIRST else None
             advice = self.next_pose()
+            messages += [ALL_HELD] if self._all_held else []
             messages += [f"{p.sensor} cannot reach its target: {p.blocked}; finish without it (it keeps its current "
                          "values if it is rejected) or keep holding poses" for p in progress if p.sensor in offer]
             messages += [f"{p.sensor}'s bound is at its target but the poses do not identify it yet: {p.needs}"
@@ -550,6 +541,9 @@ class CaptureSession:
                 "accelerometer's uncertainty, which more poses do not lower)" if floors else ""), offer
         if n >= cfg.max_intervals:
             return True, f"{n} intervals: the maximum", offer
+        if cfg.max_tilt_deg is not None and n >= cfg.max_intervals_reach:
+            assert self._prep is not None
+            return True, self._reach.cap_reason(self._prep, n, self._progress), offer
         if offer and all(p.met or p.sensor in offer for p in remaining):
             reason = (f"every other sensor has reached its target; {', '.join(offer)} cannot: finish without "
                       f"{'it' if len(offer) == 1 else 'them'} or keep holding poses")
@@ -625,13 +619,14 @@ class CaptureSession:
         the primary pair's :func:`pose_scores`. Never a pose already recorded (see
         ``CaptureConfig.repeat_deg``) nor one given up after a stall.
         """
+        self._all_held = False
         seg = self._prep.segmentation if self._prep else None
         dirs = np.array([iv.gravity_dir for iv in seg.intervals]) if seg and seg.intervals else np.zeros((0, 3))
         reach = self.config.max_tilt_deg
         if not _paired(self._run) or len(dirs) < PLAN_FIRST:  # no fit yet, or no sensor of the pair accepted
-            if reach is not None:  # every pose near level: the plan by the count of intervals
-                plan = [q for q in reach_plan(reach) if q not in self._given_up] or reach_plan(reach)
-                return _advice(plan[len(dirs) % len(plan)])
+            if reach is not None:  # every pose near level: the plan by the count of intervals, never cycled
+                plan = [q for q in reach_plan_extended(reach) if q not in self._given_up] or reach_plan(reach)
+                return _advice(plan[min(len(dirs), len(plan) - 1)])
             plan = [q for q in INITIAL_PLAN if q not in self._given_up] or INITIAL_PLAN
             for pose in plan:
                 g = euler_matrix(*pose).T @ np.array([0.0, 0.0, 1.0])
@@ -642,6 +637,7 @@ class CaptureSession:
         n_typ = float(np.median([len(self._run.segmentation.intervals[k].accel_mps2[self.options.accel_instance])
                                  for k in self._run.intervals_used]))
         out = self._excluded(poses)
+        self._all_held = bool(out.all())
         ratios = self._predicted_ratios(poses, n_typ, target) if self.config.criterion == "heading" else []
         if ratios:
             R = np.array(ratios)  # (sensors, K)

@@ -27,6 +27,7 @@ from mavcal.commands.common import (
     check_save_tlog,
     json_output,
     parse_location,
+    resolve_device,
     say_tlog_saved,
     signing_key,
     slot_maps,
@@ -209,6 +210,7 @@ def _single(args, source: str) -> int:
         if device:
             from mavcal.link.live import record_device
 
+            source = resolve_device(source)
             log_ = record_device(source, baud=args.baud, duration_s=args.duration, heartbeat_timeout_s=args.timeout,
                                  budget_s=start_budget_s(args), signing_key=signing_key(args), tlog=args.save_tlog,
                                  on_progress=recording_printer(sys.stderr, quiet=getattr(args, "quiet", False)))

@@ -38,6 +38,7 @@ from mavcal.commands.common import (
     check_optional_dependencies,
     check_save_tlog,
     parse_location,
+    resolve_connect,
     say_tlog_saved,
     signing_key,
     start_budget_s,
@@ -57,7 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="stop when every compass's 95 %% heading error bound is below this (default 0.5) ...")
     cap.add_argument("--target-tilt-deg", type=float, default=0.3, metavar="DEG",
                      help="... and every accelerometer's own 95 %% tilt error bound is below this (default 0.3)")
-    cap.add_argument("--max-poses", type=int, default=40, metavar="N", help="stop after N still poses (default 40)")
+    cap.add_argument("--max-poses", type=int, default=None, metavar="N",
+                     help="stop after N still poses (default 40; 25 with --max-tilt)")
     cap.add_argument("--min-poses", type=int, default=8, metavar="N", help="never stop before N poses (default 8)")
     cap.add_argument("--duration", type=float, default=600.0, metavar="S",
                      help="stop after S seconds at the latest (default 600)")
@@ -137,7 +139,7 @@ def check_max_tilt(max_tilt: float | None) -> None:
 def _check(args: argparse.Namespace) -> None:
     if not args.target_deg > 0 or not args.target_tilt_deg > 0:
         raise UsageError("--target-deg and --target-tilt-deg must be > 0")
-    if args.max_poses < 1 or args.min_poses < 1:
+    if (args.max_poses is not None and args.max_poses < 1) or args.min_poses < 1:
         raise UsageError("--max-poses and --min-poses must be at least 1")
     if not args.duration > 0 or not args.hold > 0 or not args.rate > 0:
         raise UsageError("--duration, --hold and --rate must be > 0")
@@ -176,13 +178,15 @@ def _run(args: argparse.Namespace, page=None) -> int:
 
     _check(args)
     check_optional_dependencies(args)
+    resolve_connect(args)
     try:
         still = StillConfig(min_duration_s=args.hold)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     config = CaptureConfig(target_heading_deg=args.target_deg, target_tilt_deg=args.target_tilt_deg,
-                           max_intervals=args.max_poses,
-                           min_intervals=min(args.min_poses, args.max_poses), still=still, max_tilt_deg=args.max_tilt)
+                           max_intervals=args.max_poses or 40, max_intervals_reach=args.max_poses or 25,
+                           min_intervals=min(args.min_poses, args.max_poses or 40), still=still,
+                           max_tilt_deg=args.max_tilt)
     options = Options(still=still, accel_instance=args.accel, mag_instance=args.compass,
                       field_mgauss=args.field_mgauss, location=args.location)
     printer = StatusPrinter(sys.stderr, args.target_deg)

@@ -16,7 +16,8 @@ from mavcal.errors import GateError, SourceError, UsageError
 
 __all__ = ["add_json_argument", "json_output", "BACKUP_HELP",
            "parse_location", "add_link_arguments", "add_still_arguments", "still_config", "write_text_output",
-           "write_outputs", "confirm", "write_with_report", "check_new_backup", "add_device_map_arguments", "slot_maps",
+           "write_outputs", "confirm", "write_with_report", "resolve_device", "resolve_connect",
+           "check_new_backup", "add_device_map_arguments", "slot_maps",
            "add_write_budget_argument", "add_signing_arguments", "signing_key", "start_budget_s",
            "add_save_tlog_argument", "check_save_tlog", "say_tlog_saved"]
 
@@ -77,9 +78,12 @@ def parse_location(text: str) -> tuple:
 
 def add_link_arguments(parser: argparse.ArgumentParser) -> None:
     """The vehicle link and write options (apply, restore, capture)."""
-    parser.add_argument("--connect", required=True, metavar="DEVICE",
-                        help="MAVLink device: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or a serial port")
-    parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    parser.add_argument("--connect", default="auto", metavar="DEVICE",
+                        help="MAVLink device: a serial port (/dev/ttyACM0, COM3), udpin:HOST:PORT, udpout:HOST:PORT, "
+                             "tcp:HOST:PORT, or auto (the default: the one serial port that looks like a flight "
+                             "controller)")
+    parser.add_argument("--baud", type=int, default=115200,
+                        help="serial baud rate (default 115200; telemetry radios usually run at 57600)")
     parser.add_argument("--timeout", type=float, default=5.0, metavar="S",
                         help="seconds to wait for the vehicle's heartbeat (default 5)")
     parser.add_argument("--param-timeout", type=float, default=1.0, metavar="S",
@@ -90,6 +94,24 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
     add_signing_arguments(parser)
     parser.add_argument("--dry-run", action="store_true", help="show what would change; write nothing")
     parser.add_argument("--yes", "-y", action="store_true", help="do not ask for confirmation")
+
+
+def resolve_device(device: str, say: TextIO | None = None) -> str:
+    """``auto``: the serial port that looks like a flight controller (:mod:`mavcal.link.autodetect`),
+    said on ``say`` (stderr); any other device as given."""
+    if device != "auto":
+        return device
+    from mavcal.link.autodetect import find_port
+
+    port = find_port()
+    print(f"mavcal: --connect auto: {port.label()}", file=say or sys.stderr)
+    return port.device
+
+
+def resolve_connect(args: argparse.Namespace) -> None:
+    """``args.connect`` resolved (:func:`resolve_device`) before the command opens it."""
+    if getattr(args, "connect", None) == "auto":
+        args.connect = resolve_device(args.connect)
 
 
 def add_write_budget_argument(parser: Any) -> None:
@@ -435,6 +457,7 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
     from mavcal.report.text import plan_text, write_done_text, write_failed_text
 
     out = out or sys.stdout
+    resolve_connect(args)
     force = bool(getattr(args, "force", False))
     opts = dict(retries=args.retries, timeout_s=args.param_timeout, budget_s=getattr(args, "write_budget", None),
                 allow_out_of_range=force)

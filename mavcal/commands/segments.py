@@ -194,6 +194,10 @@ def _segment(args, cfg):
     from mavcal.sources.reader import is_device, read_log
 
     src = str(args.source)
+    if src == "auto":
+        from mavcal.commands.common import resolve_device
+
+        src = resolve_device(src)
     progress = auto_progress("recording" if is_device(src) else f"reading {Path(src).name}")
     log_ = (open_source(src, baud=args.baud, duration_s=args.duration, progress=progress) if is_device(src)
             else read_log(src, progress=progress, csv_rate_hz=csv_rate(args)))

@@ -37,6 +37,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from mavcal.core.certify import SAMPLE_COST, certificate
+from mavcal.core.headings import provisional_headings
 from mavcal.core.initial import G_UNIT
 from mavcal.core.misfit import INFLATE_P, REWEIGHT_P, cost_name, inflation, joint_terms, misfit_p, reweight_factors
 from mavcal.core.models import MODELS
@@ -236,7 +237,8 @@ def calibrate_held(a: IntervalStats, m: IntervalStats, K_a: np.ndarray, b_a: np.
     if 3 * a.mu.shape[0] < prob.P:
         raise InsufficientDataError(f"{a.mu.shape[0]} still intervals cannot identify the {prob.P} free parameters "
                                     f"(3N >= {prob.P} needed); add poses at new headings")
-    fits = [prob.solve(q, max_iter=max_iter) for q in _starts(p0)]
+    p1 = _provisional_start(a, m, K_a, b_a, h_z if "h_z" in held else None)
+    fits = [prob.solve(q, max_iter=max_iter) for q in _starts(p0) + ([] if p1 is None else [p1])]
     # the proper branch: with the accelerometer's frame held, det K_m < 0 is a mirrored compass (its twin
     # (K_m D, -h_z), D = diag(1, 1, -1), predicts nearly the same readings when the tilts are small)
     fits = [r for r in fits if np.linalg.det(r.params.gains[1]) > 0] or fits
@@ -261,6 +263,22 @@ def calibrate_held(a: IntervalStats, m: IntervalStats, K_a: np.ndarray, b_a: np.
         reason += (f"; {evidence}: the readings scatter more than their noise (motion in the intervals or magnetic "
                    f"disturbance?), so the returned point is the optimum of {name}")
     return _calibration(res, full, cov, cert, (Sa, Sm), a, m, tuple(held), reason)
+
+
+def _provisional_start(a: IntervalStats, m: IntervalStats, K_a, b_a, h_z: float | None) -> JointParams | None:
+    """A second start, from the headings of a provisional fit of the compass
+    (:func:`mavcal.core.headings.provisional_headings`: offsets, scale, soft iron and dip fitted
+    with each pose's tilt removed; issue 37), where the relaxation of :func:`_start` is far off
+    (large offsets and soft iron beside a steep field); None when that fit fails."""
+    try:
+        T = tilts_of(np.linalg.solve(K_a, (a.mu - b_a).T).T)
+        fit = provisional_headings(T, m.mu)
+    except (EstimationError, InsufficientDataError, np.linalg.LinAlgError):
+        return None
+    hz = fit.h_z if h_z is None else float(h_z)
+    R = np.array([T[i] @ _rotz(float(fit.psi_rad[i])) for i in range(T.shape[0])])
+    return JointParams((np.asarray(K_a, float), fit.s_mgauss * np.eye(3)), (np.asarray(b_a, float), fit.b_mgauss),
+                       hz, R)
 
 
 def _starts(p0: JointParams) -> list[JointParams]:

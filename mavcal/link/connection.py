@@ -21,7 +21,9 @@ that the link is lossy.
 
 Device strings are pymavlink's: ``udpin:HOST:PORT`` (listen), ``udpout:HOST:PORT`` (send
 first), ``udp:HOST:PORT`` (= udpin), ``tcp:HOST:PORT`` (client), ``tcpin:HOST:PORT``, or a
-serial device (``/dev/ttyACM0``, ``COM3``) with ``baud``.
+serial device (``/dev/ttyACM0``, ``COM3``, any path to a character device) with ``baud``, opened by
+:mod:`mavcal.link.serial_port` (exclusively; one-line reasons; a pulled cable waited out as a
+silence); ``auto``: the serial port found by :mod:`mavcal.link.autodetect`.
 """
 from __future__ import annotations
 
@@ -36,6 +38,15 @@ from typing import Any, BinaryIO, Callable
 from pymavlink import mavutil
 
 from mavcal.errors import LinkError, SigningError, SourceError
+from mavcal.link.autodetect import AUTO, find_port
+from mavcal.link.serial_port import (
+    GARBAGE_BYTES,
+    SerialConnection,
+    is_serial_device,
+    no_mavlink_reason,
+    open_serial,
+    probe_bauds,
+)
 from mavcal.link.signing import NEEDS_KEY, SigningKey, is_signed, setup_signing, signing_problem
 
 __all__ = ["Link", "open_link", "as_link", "GCS_SYSTEM_ID", "GCS_COMPONENT_ID", "MAV_AUTOPILOT_PX4",
@@ -43,9 +54,13 @@ __all__ = ["Link", "open_link", "as_link", "GCS_SYSTEM_ID", "GCS_COMPONENT_ID", 
 
 log = logging.getLogger(__name__)
 
-#: our own ids: a ground station (255) and MAV_COMP_ID_MISSIONPLANNER (190), as MAVProxy uses
-GCS_SYSTEM_ID = 255
-GCS_COMPONENT_ID = 190
+#: our own ids: never a ground station's (255 / MAV_COMP_ID_MISSIONPLANNER 190, which Mission Planner
+#: and QGroundControl use, MAVProxy 255/0), so that mavcal beside one of them on the same vehicle (a
+#: forwarded link, docs/live-link.md) is a separate peer to the vehicle and to the router, and its
+#: heartbeats never count as the pilot's ground station (ArduPilot's SYSID_MYGCS, the GCS failsafe).
+#: 245 is a system id no vehicle or ground station takes by default; 25 is MAV_COMP_ID_USER1.
+GCS_SYSTEM_ID = 245
+GCS_COMPONENT_ID = 25
 
 Handler = Callable[[Any], None]
 
@@ -310,17 +325,22 @@ def _is_vehicle_heartbeat(m: Any) -> bool:
 
 def _connect(device: str, baud: int, source_system: int, source_component: int,
              signing_key: SigningKey | None) -> Any:
+    if signing_key is not None:
+        # signing is MAVLink 2 only; pymavlink would otherwise start in MAVLink 1 and replace its
+        # encoder (and the signing state with it) on the first MAVLink 2 frame. pymavlink sets
+        # this variable itself at that switch.
+        os.environ["MAVLINK20"] = "1"
+    if is_serial_device(device):  # exclusive, one-line reasons, a pulled cable waited for
+        conn = open_serial(device, baud, source_system=source_system, source_component=source_component)
+        if signing_key is not None:
+            setup_signing(conn, signing_key)
+        return conn
     kwargs: dict[str, Any] = dict(source_system=source_system, source_component=source_component,
                                   dialect="ardupilotmega", autoreconnect=False)
     if device.startswith("tcp:"):
         kwargs["retries"] = 0  # one connect attempt: pymavlink would otherwise sleep and print
     elif not device.startswith(_NETWORK_PREFIXES):
         kwargs["baud"] = baud
-    if signing_key is not None:
-        # signing is MAVLink 2 only; pymavlink would otherwise start in MAVLink 1 and replace its
-        # encoder (and the signing state with it) on the first MAVLink 2 frame. pymavlink sets
-        # this variable itself at that switch.
-        os.environ["MAVLINK20"] = "1"
     try:
         conn = mavutil.mavlink_connection(device, **kwargs)
     except Exception as exc:  # socket / serial errors of many kinds
@@ -330,8 +350,20 @@ def _connect(device: str, baud: int, source_system: int, source_component: int,
     return conn
 
 
+#: a serial port that sent only bytes that never parse is judged (the wrong baud rate) after this long
+_GARBAGE_AFTER_S = 2.0
+
+
+def _garbage_only(link: Link) -> bool:
+    """A serial port that sent :data:`GARBAGE_BYTES` and not one MAVLink message: the wrong baud rate."""
+    conn = link.conn
+    return (isinstance(conn, SerialConnection) and link.messages_received == 0
+            and conn.bytes_received >= GARBAGE_BYTES)
+
+
 def _wait_heartbeat(link: Link, target_system: int | None, timeout_s: float, budget_s: float) -> Any:
-    """The first vehicle HEARTBEAT: wait ``timeout_s``, or ``budget_s`` once the device is heard."""
+    """The first vehicle HEARTBEAT: wait ``timeout_s``, or ``budget_s`` once the device is heard; a
+    serial port that sends only garbage is given up after :data:`_GARBAGE_AFTER_S`."""
     found: list[Any] = []
 
     def on_heartbeat(m: Any) -> None:
@@ -348,6 +380,8 @@ def _wait_heartbeat(link: Link, target_system: int | None, timeout_s: float, bud
             limit = start + (max(timeout_s, budget_s) if heard() else timeout_s)
             remaining = limit - time.monotonic()
             if remaining <= 0:
+                break
+            if time.monotonic() - start >= min(_GARBAGE_AFTER_S, timeout_s) and _garbage_only(link):
                 break
             link.send_gcs_heartbeat()
             link.wait(lambda: bool(found), min(0.5, remaining))
@@ -385,7 +419,8 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
     Parameters
     ----------
     device : str
-        pymavlink device string (see the module docstring).
+        pymavlink device string (see the module docstring); ``"auto"``: the one serial port that looks
+        like a flight controller (:func:`mavcal.link.autodetect.find_port`).
     baud : int
         Serial baud rate (ignored for network links).
     timeout_s : float
@@ -417,6 +452,8 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
     """
     if not device:
         raise LinkError("no device given")
+    if device == AUTO:
+        device = find_port().device
     conn = _connect(device, baud, source_system, source_component, signing_key)
     link = Link(conn, target_system=target_system or 0, target_component=0, device=device)
     if tlog is not None:
@@ -433,6 +470,11 @@ def open_link(device: str, *, baud: int = 115200, timeout_s: float = 5.0,
             if problem is not None:
                 raise SigningError(f"{device}: {problem}")
             waited = max(timeout_s, budget_s) if link.messages_received else timeout_s
+            if isinstance(conn, SerialConnection) and not link.messages_received:
+                garbage = conn.bytes_received > 0  # bytes, never a frame: the wrong rate (few bytes: a slow talker)
+                answered = probe_bauds(conn) if garbage else None
+                raise LinkError(no_mavlink_reason(conn.device, conn.baud, garbage=garbage, waited_s=waited,
+                                                  answered_at=answered))
             raise LinkError(f"no heartbeat from a vehicle on {device} within {waited:g} s")
         link.target_system = hb.get_srcSystem()
         link.target_component = hb.get_srcComponent()

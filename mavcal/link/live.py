@@ -36,7 +36,7 @@ from mavcal.link.connection import Link, open_link
 from mavcal.link.params import download_params
 from mavcal.link.position import POSITION_MESSAGES, PositionWatch, VehiclePosition, read_position, request_position
 from mavcal.link.signing import SigningKey
-from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, start_streams
+from mavcal.link.streams import STREAM_MESSAGE_IDS, needed_stream_ids, send_message_intervals, start_streams
 from mavcal.sources.assemble import IMU_MESSAGES, SCALED_INSTANCE, TLOG_MESSAGES, assemble_tlog, imu_series
 from mavcal.sources.types import ImuLog, SensorSeries
 
@@ -46,6 +46,8 @@ __all__ = ["LiveRecorder", "open_recorder", "record_device", "imu_batch_from_mes
 log = logging.getLogger(__name__)
 
 #: the order of a batch's series: instance 0 from RAW_IMU (SCALED_IMU last: the same data)
+#: REQUEST_DATA_STREAM's stream of the IMU messages (the fallback of :func:`start_streams`)
+_RAW_SENSORS = 1  # MAV_DATA_STREAM_RAW_SENSORS
 _BATCH_ORDER = ("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SCALED_IMU")
 #: a GCS HEARTBEAT this often while recording, as a ground station does
 GCS_HEARTBEAT_PERIOD_S = 1.0
@@ -54,6 +56,13 @@ GCS_HEARTBEAT_PERIOD_S = 1.0
 PROGRESS_PERIOD_S = 0.5
 #: while the vehicle's position is unknown (no GPS fix yet at boot), ask for it this often
 POSITION_ASK_PERIOD_S = 5.0
+#: no IMU sample for this long while the vehicle is heard: the streams are asked for again (a vehicle
+#: that a replugged USB cable rebooted has forgotten them)
+STREAM_REASK_S = 3.0
+#: the first accelerometer's rate received over the first :data:`RATE_CHECK_S` of streaming below
+#: this fraction of the rate asked: the link is too slow for it (a warning; the capture goes on)
+SLOW_LINK_FRACTION = 0.7
+RATE_CHECK_S = 5.0
 
 Batch = tuple[SensorSeries, ...]
 
@@ -106,6 +115,13 @@ class LiveRecorder:
         self._positions = PositionWatch((link.target_system, link.target_component))
         self._position_tokens = [link.add_handler(k, self._positions.feed) for k in POSITION_MESSAGES]
         self._position_asked: float | None = None  # None: not asked for (read_position not called)
+        #: the streams asked for (:meth:`start_streams`): (rate, message ids, method), and their watch
+        self._streams: tuple[float, tuple[int, ...], str] | None = None
+        self._streams_t0 = self._last_imu = self._last_ask = 0.0
+        self._imu_samples = 0
+        self._rate_checked = False
+        #: the first accelerometer's rate received over the first RATE_CHECK_S of streaming (Hz)
+        self.imu_rate_hz: float | None = None
         link.heartbeat_period_s = GCS_HEARTBEAT_PERIOD_S
 
     @property
@@ -149,9 +165,50 @@ class LiveRecorder:
     def start_streams(self, rate_hz: float = 50.0, ack_timeout_s: float = 1.0, data_timeout_s: float = 2.0,
                       message_ids: Sequence[int] = STREAM_MESSAGE_IDS) -> str:
         """:func:`mavcal.link.streams.start_streams` on this link (retried for :attr:`budget_s`):
-        ``"interval"`` or ``"data_stream"``."""
-        return start_streams(self.link, rate_hz, ack_timeout_s=ack_timeout_s, data_timeout_s=data_timeout_s,
-                             message_ids=message_ids, budget_s=self.budget_s)
+        ``"interval"`` or ``"data_stream"``. From then on :meth:`iter_batches` watches the streams:
+        asked for again when they stop while the vehicle is heard, and a warning when the link
+        carries less than :data:`SLOW_LINK_FRACTION` of the rate asked."""
+        method = start_streams(self.link, rate_hz, ack_timeout_s=ack_timeout_s, data_timeout_s=data_timeout_s,
+                               message_ids=message_ids, budget_s=self.budget_s)
+        self._streams = (max(float(rate_hz), 1.0), tuple(message_ids), method)
+        self._streams_t0 = self._last_imu = self._last_ask = time.monotonic()
+        self._imu_samples, self._rate_checked = 0, False
+        return method
+
+    def _watch_streams(self, batch: Batch) -> None:
+        """Ask again for streams that stopped while the vehicle is heard; say once when the link is too slow."""
+        if self._streams is None:
+            return
+        rate_hz, ids, method = self._streams
+        now = time.monotonic()
+        n = sum(len(s.time_s) for s in batch if s.sensor == "accel" and s.instance == 0)
+        if n:
+            if not self._rate_checked and now - self._last_imu > 1.0:  # after a silence: measure from here
+                self._streams_t0, self._imu_samples = now, 0
+            self._last_imu = now
+            if now - self._streams_t0 < RATE_CHECK_S:
+                self._imu_samples += n
+        elif (now - self._last_imu >= STREAM_REASK_S and now - self._last_ask >= STREAM_REASK_S
+              and self.link.silent_for() < GCS_HEARTBEAT_PERIOD_S * 1.5):
+            self._last_ask = now
+            log.warning("no IMU data from %s for %.0f s while it is heard: asking for the streams again",
+                        self.device, now - self._last_imu)
+            try:
+                if method == "interval":
+                    send_message_intervals(self.link.mav, self.target_system, self.target_component, rate_hz, ids)
+                else:
+                    self.link.mav.request_data_stream_send(self.target_system, self.target_component,
+                                                           _RAW_SENSORS, int(round(rate_hz)), 1)
+            except OSError as exc:  # a dead socket: the silence goes on, the capture says so
+                log.debug("stream request not sent: %s", exc)
+        if not self._rate_checked and now - self._streams_t0 >= RATE_CHECK_S and now - self._last_imu < 1.0:
+            self._rate_checked = True
+            self.imu_rate_hz = self._imu_samples / (now - self._streams_t0)
+            if self.imu_rate_hz < SLOW_LINK_FRACTION * rate_hz:
+                w = (f"the link carries the IMU at {self.imu_rate_hz:.0f} Hz of the {rate_hz:g} Hz asked: too slow "
+                     f"for the streams (a 57600-baud radio carries about 5.7 kB/s); the capture goes on, slower")
+                log.warning(w)
+                self.warnings.append(w)
 
     def read_position(self, timeout_s: float = 3.0) -> VehiclePosition | None:
         """Ask the vehicle where it is (:func:`mavcal.link.position.read_position`); kept in
@@ -199,7 +256,9 @@ class LiveRecorder:
             left = batch_s if end is None else min(batch_s, end - time.monotonic())
             self.pump(max(left, 0.0))
             self.current_position()
-            yield self._new_batch()
+            batch = self._new_batch()
+            self._watch_streams(batch)
+            yield batch
 
     def capture(self, duration_s: float, callback: Callable[[Batch], None] | None = None,
                 batch_s: float = 0.2, on_progress: Callable[[RecordingProgress], None] | None = None) -> None:

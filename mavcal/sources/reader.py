@@ -18,7 +18,9 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import os
 import re
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Callable
@@ -185,13 +187,18 @@ _LIVE_PREFIXES = ("udp:", "udpin:", "udpout:", "udpbcast:", "tcp:", "tcpin:", "s
 
 
 def is_device(source: str) -> bool:
-    """True for a pymavlink device string (network address or serial port), not a file."""
+    """True for a pymavlink device string (network address or serial port), not a file: also ``auto``
+    (the serial port found, :mod:`mavcal.link.autodetect`) and any path to a character device, through
+    symlinks too (udev's ``/dev/serial/by-id/...`` names)."""
     s = str(source)
-    if s.lower().startswith(_LIVE_PREFIXES):
+    if s.lower().startswith(_LIVE_PREFIXES) or s == "auto":
         return True
     if s.startswith("/dev/") or re.match(r"^COM\d+$", s, re.I):
         return True
-    return False
+    try:
+        return stat.S_ISCHR(os.stat(s).st_mode)
+    except (OSError, ValueError):
+        return False
 
 
 def _kind_of(path: Path) -> str:

@@ -284,6 +284,9 @@ class SitlVehicle:
         More boot defaults (e.g. ``{"SERIAL2_PROTOCOL": 2}``).
     relay : bool
         Give SERIAL2 a port too (:attr:`relay_device`).
+    serial2 : str, optional
+        SERIAL2 as SITL's own device string instead, e.g. ``uart:/dev/pts/3:57600`` (a serial line:
+        :class:`mavcal.testing.serial_cable.SerialCable`'s ``vehicle_tty``).
     home : Home or (lat, lon, alt, heading)
     speedup : float
         SITL's ``--speedup`` (1 = real time; the capture sees time as the vehicle does).
@@ -294,7 +297,7 @@ class SitlVehicle:
     """
 
     def __init__(self, errors: InjectedErrors | None = None, *, wrong_calibration: bool | Mapping[str, float] = True,
-                 params: Mapping[str, float] | None = None, relay: bool = False,
+                 params: Mapping[str, float] | None = None, relay: bool = False, serial2: str | None = None,
                  home: Home | Sequence[float] = DEFAULT_HOME, speedup: float = 1.0, binary: str | Path | None = None,
                  boot_timeout_s: float = 60.0, measure_field: bool = True) -> None:
         self.errors = errors if errors is not None else InjectedErrors()
@@ -306,6 +309,7 @@ class SitlVehicle:
             self.calibration_at_boot = dict(wrong_calibration)
         self.extra_params = dict(params or {})
         self.relay = relay
+        self.serial2 = serial2
         self.home = home if isinstance(home, Home) else Home(*(float(x) for x in home))
         self.speedup = float(speedup)
         self.binary = Path(binary) if binary is not None else sitl_binary()
@@ -459,7 +463,7 @@ class SitlVehicle:
             self._conn = mavutil.mavlink_connection(self.control_device, source_system=FIXTURE_SYSTEM,
                                                     source_component=FIXTURE_COMPONENT, dialect="ardupilotmega")
         defaults = f"{self.binary.parent / 'copter.parm'},{self._defaults_file()}"
-        serial2 = f"udpclient:127.0.0.1:{RELAY_PORT}" if self.relay else "none"
+        serial2 = self.serial2 or (f"udpclient:127.0.0.1:{RELAY_PORT}" if self.relay else "none")
         argv = [str(self.binary), "--model", "calibration", "--speedup", f"{self.speedup:g}", "--home", self.home.arg(),
                 "--defaults", defaults, "--serial0", f"udpclient:127.0.0.1:{CONTROL_PORT}",
                 "--serial1", f"udpclient:127.0.0.1:{TOOL_PORT}", "--serial2", serial2, "--serial5", "none",
