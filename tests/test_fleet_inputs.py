@@ -133,3 +133,16 @@ def test_https_style_urls_are_read_by_the_worker(fleet, tmp_path):
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_a_storage_error_is_that_log_s_row(tmp_path, monkeypatch, sitl_dir):
+    """No credentials / no such key: a row for that log (exit 3), the others calibrated."""
+    pytest.importorskip("moto")
+    with moto_s3("fleet") as env:
+        for k, v in env.items():
+            monkeypatch.setenv(k, v)
+        with pytest.raises(SourceError, match="s3://nobucket/"):
+            expand_sources(["s3://nobucket/"])
+        done = run_fleet(["s3://fleet/missing.tlog", str(sitl_dir / "sitl02.tlog")], FAST, jobs=1)
+        bad, good = done.rows
+        assert not bad.ok and bad.exit_code == 3 and "s3://fleet/missing.tlog" in bad.error and good.ok

@@ -38,6 +38,10 @@ _GLOB = re.compile(r"[*?\[]")
 _CHUNK = 1 << 20
 
 
+def _line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def is_url(source: str) -> bool:
     """Whether ``source`` is a URL (``scheme://...``), read through fsspec."""
     return bool(_URL.match(source))
@@ -94,8 +98,8 @@ def _remote(url: str) -> list[str]:
             found = sorted(full(p) for p in fs.find(path) if _is_log(p))
         else:
             return [url]
-    except OSError as exc:
-        raise SourceError(f"{url}: {exc}") from None
+    except Exception as exc:  # the storage's own errors (no credentials, access denied, no such bucket)
+        raise SourceError(f"{url}: {type(exc).__name__}: {_line(exc)}") from None
     if not found:
         raise SourceError(f"{url}: no log file ({', '.join(LOG_EXTENSIONS)}) there")
     return found
@@ -174,8 +178,8 @@ def fetch(source: str) -> Iterator[tuple[str, str, int]]:
                     h.update(chunk)
                     size += len(chunk)
                     out.write(chunk)
-        except (OSError, ValueError) as exc:
-            raise SourceError(f"{source}: {exc}") from None
+        except Exception as exc:  # the storage's own errors (no credentials, access denied, gone)
+            raise SourceError(f"{source}: {type(exc).__name__}: {_line(exc)}") from None
         yield tmp, h.hexdigest(), size
     finally:
         try:
