@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
@@ -35,8 +35,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BatchRow", "calibrate_many", "format_fleet_table", "fleet_exit_code", "MAX_TASKS_PER_CHILD",
-           "DRIFT_COMPASS_MGAUSS", "DRIFT_ACCEL_OFS_MPS2", "DRIFT_ACCEL_SCALE"]
+__all__ = ["BatchRow", "calibrate_many", "calibrate_one", "format_fleet_table", "fleet_exit_code",
+           "MAX_TASKS_PER_CHILD", "DRIFT_COMPASS_MGAUSS", "DRIFT_ACCEL_OFS_MPS2", "DRIFT_ACCEL_SCALE"]
 
 #: Logs a worker process handles before it is replaced (bounds fragmentation growth).
 MAX_TASKS_PER_CHILD = 8
@@ -106,6 +106,9 @@ class BatchRow:
     warnings : tuple of str
     elapsed_s : float
         Wall time of this log in its worker.
+    log_start_unix_s : float or None
+        When the log starts (Unix seconds, UTC): a tlog's first timestamp; None when the log
+        does not tell (DataFlash and ULog carry the vehicle's time since boot).
     """
 
     source: str
@@ -141,6 +144,7 @@ class BatchRow:
     n_intervals: int | None = None
     warnings: tuple[str, ...] = ()
     elapsed_s: float = 0.0
+    log_start_unix_s: float | None = None
 
     @property
     def vehicle(self) -> str:
@@ -253,6 +257,21 @@ class _Job:
     csv_rate_hz: float | None = None
 
 
+def _log_start(log_) -> float | None:
+    """A log's first wall-clock time (Unix seconds), when it has one (a tlog's timestamps)."""
+    for s in getattr(log_, "series", ()):
+        t = getattr(s, "log_time_s", None)
+        if t is not None and len(t) and np.isfinite(t[0]) and t[0] > 0:
+            return float(t[0])
+    return None
+
+
+def calibrate_one(source: str, options, csv_rate_hz: float | None = None) -> BatchRow:
+    """The row of one log of a batch: what ``mavcal calibrate SOURCE`` of it alone says, as a
+    small :class:`BatchRow` (a log that cannot be calibrated: a row with the error)."""
+    return _calibrate_one(source, options, csv_rate_hz)
+
+
 def _calibrate_one(source: str, options, csv_rate_hz: float | None = None) -> BatchRow:
     """Calibrate one log and keep only its summary (runs in a worker process).
 
@@ -268,14 +287,16 @@ def _calibrate_one(source: str, options, csv_rate_hz: float | None = None) -> Ba
     t0 = time.perf_counter()
     ident: dict = {}
     prep = None
+    start: float | None = None
     try:
         log_ = read_log(source, csv_rate_hz=DEFAULT_CSV_RATE_HZ if csv_rate_hz is None else csv_rate_hz)
+        start = ident["log_start_unix_s"] = _log_start(log_)
         prep = prepare(log_, options, owned=True)
         del log_
-        ident = _identity(prep.log, prep.log.params.snapshot(), ai, mi)
+        ident = {**_identity(prep.log, prep.log.params.snapshot(), ai, mi), "log_start_unix_s": start}
         run = calibrate_prepared(prep, options)
         prep = None  # what the run does not hold is freed now
-        return _row_from_run(source, run, ai, mi, time.perf_counter() - t0)
+        return replace(_row_from_run(source, run, ai, mi, time.perf_counter() - t0), log_start_unix_s=start)
     except MavcalError as exc:
         log.info("%s: %s", source, exc)
         hint = csv_rate_hint(prep.log if prep is not None else None)

@@ -71,7 +71,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("sources", nargs="*", metavar="SOURCE",
                    help="log file(s) (.tlog, .bin, .log, .ulg, .csv) or one MAVLink device "
-                        "(udpin:..., tcp:..., /dev/ttyACM0)")
+                        "(udpin:..., tcp:..., /dev/ttyACM0); for a fleet also a directory (every log under it), "
+                        "a glob, @LIST (a file with one path/URL per line) and URLs (s3://bucket/prefix/, "
+                        "https://..., needs mavcal[fleet])")
     out = p.add_argument_group("outputs")
     out.add_argument("--param-out", metavar="F",
                      help="write the new parameters as a .param file (MAVProxy/Mission Planner)")
@@ -81,6 +83,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help="parallel processes: with several logs, logs at once (default 1); with one log, its "
                           "sensor fits at once (default: the CPUs, at most 4); more than the CPUs (or than 15) "
                           "is capped, with a note")
+    fleet = p.add_argument_group("many logs (docs/fleet.md)")
+    fleet.add_argument("--table", metavar="F",
+                       help="results table, one row per log written as it finishes (.csv, or .parquet with "
+                            "mavcal[fleet]); run again with the same table, the logs it has are skipped")
+    fleet.add_argument("--scheduler-address", metavar="tcp://HOST:PORT",
+                       help="run the logs on this Dask cluster (default: $DASK_SCHEDULER_ADDRESS, else the "
+                            "--jobs processes here); needs mavcal[fleet]")
+    fleet.add_argument("--drift-html", metavar="F",
+                       help="write a self-contained HTML page of drift over time per vehicle (the table's rows "
+                            "with --table, else this run's), a plot per vehicle that moved")
     fit = p.add_argument_group("calibration")
     fit.add_argument("--method", default="ncar", choices=["ncar", "ncdr", "fcar", "dcar"], help="paper variant")
     fit.add_argument("--model", default="auto", choices=["auto", "full", "diag-accel", "ardupilot", "offsets-scales"])
@@ -268,6 +280,29 @@ def _check_numbers(args) -> None:
         raise UsageError("; ".join(bad))
 
 
+def _expand_fleet(args) -> None:
+    """The fleet's SOURCEs expanded (directories, globs, @LIST, URLs: one entry per log) and
+    ``args.fleet``: whether this is a many-log run (several logs, a fleet SOURCE, --table or a
+    scheduler)."""
+    import os
+
+    from mavcal.fleet.inputs import expand_sources, is_url
+    from mavcal.fleet.run import scheduler_from_env
+
+    given = list(args.sources)
+    fleety = [s for s in given if s.startswith("@") or is_url(s) or os.path.isdir(s)
+              or (any(c in s for c in "*?[") and not os.path.exists(s))]
+    table, sched = getattr(args, "table", None), getattr(args, "scheduler_address", None)
+    args.sources = expand_sources(given) if fleety else given
+    args.fleet = len(args.sources) > 1 or bool(fleety or table or sched or getattr(args, "drift_html", None))
+    if args.fleet:
+        args.scheduler_address = scheduler_from_env(sched)
+        if args.scheduler_address and not args.scheduler_address.startswith(("tcp://", "tls://", "inproc://", "ws")):
+            raise UsageError(f"--scheduler-address {args.scheduler_address}: give tcp://HOST:PORT")
+        if table and not str(table).lower().endswith((".csv", ".parquet")):
+            raise UsageError(f"--table {table}: give a .csv or a .parquet file")
+
+
 def check_flags(args) -> None:
     """Refuse (UsageError, exit 2) every combination of options that cannot work, before the
     source is read: nothing is done and the message names the options the user gave."""
@@ -277,9 +312,11 @@ def check_flags(args) -> None:
     args.sources = json_source_switch(args, list(args.sources))  # `calibrate --json LOG`: LOG, JSON on stdout
     if not args.sources:
         raise UsageError("calibrate needs a SOURCE: a log file, several, or a MAVLink device")
-    several = len(args.sources) > 1
+    _expand_fleet(args)
+    several = args.fleet
     if several and (args.write or args.dry_run or args.param_out or args.report):
-        raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE")
+        raise UsageError("--write, --dry-run, --param-out and --report take a single SOURCE (a log file or a device), "
+                         "without --table, --scheduler-address or --drift-html")
     writes = args.write or args.dry_run
     if several and any(is_device(s) for s in args.sources):
         raise UsageError("a live device is calibrated alone: give it as the only SOURCE")
@@ -317,14 +354,58 @@ def run(args) -> int:
     check_flags(args)
     _cap_jobs(args)
     check_optional_dependencies(args)
-    if len(args.sources) == 1:
+    if not args.fleet:
         return _single(args, args.sources[0])
+    return _fleet(args)
+
+
+def _fleet(args) -> int:
     from dataclasses import asdict
 
-    from mavcal.batch import calibrate_many, fleet_exit_code, format_fleet_table
+    from mavcal.batch import BatchRow, fleet_exit_code, format_fleet_table
+    from mavcal.fleet.drift import drift_text
+    from mavcal.fleet.progress import progress_line
+    from mavcal.fleet.run import run_fleet
 
-    rows = calibrate_many(list(args.sources), _options(args), jobs=args.jobs or 1, csv_rate_hz=csv_rate(args))
-    print(format_fleet_table(rows), file=sys.stderr if args.json == "-" else sys.stdout)  # --json -: JSON alone
+    if args.table:  # the table (and a Parquet table's journal) is no log of the fleet, even under its directory
+        import os
+
+        from mavcal.outputs import same_file
+
+        mine = [args.table, f"{args.table}.journal.csv"]
+        args.sources = [s for s in args.sources if not any(
+            same_file(s, t) or os.path.abspath(s) == os.path.abspath(t) for t in mine)]
+    from mavcal.outputs import check_outputs
+
+    check_outputs([("--table", args.table), ("--json", args.json), ("--drift-html", args.drift_html)], args.sources)
+    shown = progress_line(sys.stderr, len(args.sources), quiet=getattr(args, "quiet", False))
+    try:
+        done = run_fleet(list(args.sources), _options(args), jobs=args.jobs or 1, table=args.table,
+                         scheduler_address=args.scheduler_address, csv_rate_hz=csv_rate(args), progress=shown)
+    finally:
+        if shown is not None:
+            shown.close()
+    out = sys.stderr if args.json == "-" else sys.stdout  # --json -: the JSON alone on stdout
+    print(format_fleet_table(done.rows) if done.rows else "no log calibrated in this run", file=out)
+    if done.skipped:
+        print(f"{len(done.skipped)} log(s) already in {args.table} (same content, same mavcal version): "
+              "skipped, their rows are there", file=out)
+    if done.copied:
+        print(f"{len(done.copied)} log(s) with the content of a log already in {args.table} under another name: "
+              "not calibrated again, its row written under their name", file=out)
+    if args.table or args.drift_html:
+        text = drift_text(done.table_rows)
+        if text:
+            print(text, file=out)
+    if args.drift_html:
+        from mavcal.fleet.drift import drift_html
+        from mavcal.outputs import write_atomic
+
+        write_atomic(args.drift_html, drift_html(done.table_rows))
+        print(f"drift over time written to {args.drift_html}", file=out)
     if args.json:
-        json_output(args.json, [asdict(r) for r in rows])
-    return fleet_exit_code(rows)
+        json_output(args.json, [asdict(r) for r in done.rows])
+    by_source = {r["source"]: r for r in done.table_rows}
+    earlier = [BatchRow(source=s, ok=bool(by_source[s]["ok"]), exit_code=int(by_source[s]["exit_code"]))
+               for s in done.skipped + done.copied if s in by_source]
+    return fleet_exit_code(list(done.rows) + earlier)

@@ -1,0 +1,250 @@
+"""Run a fleet's logs: in the fork pool here, or on a Dask cluster; rows to the table as they come.
+
+:func:`run_fleet` hands each log to a worker (:func:`calibrate_entry`), which reads the log
+itself (a local path or a URL, :func:`mavcal.fleet.inputs.fetch`), hashes its content, skips it
+when the table already has its key (content hash + mavcal version), else calibrates it exactly
+as ``mavcal calibrate LOG`` of it alone (:func:`mavcal.batch.calibrate_one`). Each result comes
+back to this process, which appends its row to the table at once and reports progress.
+
+On one machine the workers are :class:`mavcal.workers.ForkPool`'s (``jobs``); with
+``scheduler_address`` (``tcp://HOST:8786``, or ``DASK_SCHEDULER_ADDRESS`` in the environment)
+the jobs run on that Dask cluster's workers (``dask.distributed``; each worker must have mavcal
+installed and reach the logs), with Dask's retries for a worker that dies mid-job.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+
+from mavcal.batch import BatchRow, calibrate_one
+from mavcal.errors import MavcalError, UsageError
+from mavcal.fleet.inputs import fetch
+from mavcal.fleet.table import ResultsTable, done_keys, flat_row, row_key, unread_key
+from mavcal.workers import ForkPool, Outcome, WorkerDiedError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FleetJob", "FleetResult", "FleetRun", "calibrate_entry", "run_fleet", "DASK_RETRIES"]
+
+#: How many times Dask runs a log's job again after its worker died.
+DASK_RETRIES = 2
+#: Fewest jobs handed to a Dask cluster at once (else four per worker): more wait here, not on the scheduler.
+MIN_WINDOW = 64
+WINDOW_PER_WORKER = 4
+#: Seconds to wait for the Dask scheduler to answer.
+CONNECT_TIMEOUT_S = 20.0
+#: Logs a fork-pool worker handles before it is replaced (as :func:`mavcal.batch.calibrate_many`).
+MAX_TASKS_PER_CHILD = 8
+
+
+@dataclass(frozen=True)
+class FleetJob:
+    """What every log of a fleet run is calibrated with (sent to, or inherited by, the workers)."""
+
+    options: object  # mavcal.pipeline.Options
+    csv_rate_hz: float | None = None
+    version: str = ""
+    done: frozenset[str] = frozenset()  # keys of the rows the table has already
+
+
+@dataclass(frozen=True)
+class FleetResult:
+    """One log's outcome: its row (None when skipped: the table has it), content hash, size."""
+
+    source: str
+    sha256: str | None
+    size_bytes: int | None
+    row: BatchRow | None
+
+
+@dataclass
+class FleetRun:
+    """What :func:`run_fleet` returns: this run's rows (input order), the logs it skipped (their
+    rows are in the table already), every row of the table at the end (flat dicts; without a
+    table, this run's), and the logs not calibrated because the table had their content under
+    another name (their row is that one's, under their name)."""
+
+    rows: list[BatchRow] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    table_rows: list[dict] = field(default_factory=list)
+    copied: list[str] = field(default_factory=list)  # a log whose content the table had under another name
+
+
+def _failed(source: str, exc: MavcalError, options) -> BatchRow:
+    return BatchRow(source=source, ok=False, error=str(exc), exit_code=int(exc.exit_code),
+                    accel_instance=options.accel_instance, compass_instance=options.mag_instance)
+
+
+def calibrate_entry(job: FleetJob, source: str) -> FleetResult:
+    """Read, hash and (unless the table has it) calibrate one log: a worker's job."""
+    try:
+        with fetch(source) as (path, sha, size):
+            if row_key(sha, job.version) in job.done:
+                return FleetResult(source, sha, size, None)
+            row = calibrate_one(path, job.options, job.csv_rate_hz)
+    except MavcalError as exc:  # unreadable (exit 3), or a URL without the fleet extra: keyed by its name
+        if row_key(unread_key(source), job.version) in job.done:
+            return FleetResult(source, None, None, None)
+        return FleetResult(source, None, None, _failed(source, exc, job.options))
+    return FleetResult(source, sha, size, _renamed(row, path, source) if path != source else row)
+
+
+def _copy_row(row: dict, source: str) -> dict:
+    """A table row of a log with the content of ``row``'s log: the same, under its own name."""
+    import time as _time
+
+    from mavcal.fleet.table import utc
+
+    old = row["source"]
+    out = {k: (v.replace(old, source) if isinstance(v, str) else v) for k, v in row.items()}
+    out["finished_utc"] = utc(_time.time())
+    return out
+
+
+def _renamed(row: BatchRow, path: str, source: str) -> BatchRow:
+    """The row of a URL's local copy ``path`` naming the URL, in its messages too."""
+    def r(s: str) -> str:
+        return s.replace(path, source)
+
+    return replace(row, source=source, error=None if row.error is None else r(row.error),
+                   failed_gates=tuple(map(r, row.failed_gates)), warnings=tuple(map(r, row.warnings)),
+                   not_determined_why=r(row.not_determined_why),
+                   sensors=tuple(replace(v, reasons=tuple(map(r, v.reasons))) for v in row.sensors))
+
+
+def _indexed(job: FleetJob, item: tuple[int, str]) -> FleetResult:
+    return calibrate_entry(job, item[1])
+
+
+def _dask_entry(source: str, job: FleetJob) -> FleetResult:
+    import os as _os
+
+    _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return calibrate_entry(job, source)
+
+
+def scheduler_from_env(given: str | None) -> str | None:
+    """The Dask scheduler to use: ``given``, else ``DASK_SCHEDULER_ADDRESS``, else None (here)."""
+    return given or os.environ.get("DASK_SCHEDULER_ADDRESS") or None
+
+
+def _on_dask(address: str, job: FleetJob, sources: Sequence[str], take: Callable[[int, FleetResult], None]) -> None:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise UsageError("--scheduler-address needs the fleet extra (dask[distributed]), which is not installed: "
+                         "pip install 'mavcal[fleet]'") from None
+    try:
+        client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise UsageError(f"--scheduler-address {address}: cannot reach the Dask scheduler ({exc})") from None
+    try:
+        with client.as_current():
+            shared = client.scatter(job, broadcast=True)
+            # a window of jobs at a time (not a million futures at once): the scheduler holds a few per worker
+            window = max(MIN_WINDOW, WINDOW_PER_WORKER * len(client.scheduler_info().get("workers", {})))
+            todo = iter(enumerate(sources))
+            index: dict = {}
+            running = as_completed(with_results=True, raise_errors=False)
+
+            def submit_next() -> None:
+                for i, source in todo:
+                    fut = client.submit(_dask_entry, source, job=shared, retries=DASK_RETRIES, pure=False)
+                    index[fut.key] = i
+                    running.add(fut)
+                    return
+
+            for _ in range(window):
+                submit_next()
+            for fut, res in running:
+                i = index.pop(fut.key)
+                if isinstance(res, BaseException):  # its workers died DASK_RETRIES + 1 times (KilledWorker), a bug
+                    exc = WorkerDiedError(f"the Dask job failed: {type(res).__name__}: {res}")
+                    res = FleetResult(sources[i], None, None, _failed(sources[i], exc, job.options))
+                take(i, res)
+                fut.release()
+                submit_next()
+    finally:
+        client.close()
+
+
+def run_fleet(sources: Sequence[str], options, *, jobs: int = 1, table: str | None = None,
+              scheduler_address: str | None = None, csv_rate_hz: float | None = None,
+              progress: Callable[[FleetResult], None] | None = None) -> FleetRun:
+    """Calibrate every log of ``sources`` (expanded already: :func:`mavcal.fleet.inputs.expand_sources`).
+
+    Parameters
+    ----------
+    sources : sequence of str
+        Local paths and URLs, one per log.
+    options : mavcal.pipeline.Options
+    jobs : int
+        Fork-pool workers on this machine (ignored with a scheduler).
+    table : str, optional
+        The results table (``.csv`` or ``.parquet``): rows appended as the logs finish; the
+        logs it already has (same content, same mavcal version) are skipped.
+    scheduler_address : str, optional
+        A Dask scheduler (``tcp://HOST:PORT``) to run the jobs on.
+    progress : callable, optional
+        Called in this process with each log's :class:`FleetResult` as it finishes.
+    """
+    from mavcal import __version__
+
+    if int(jobs) < 1:
+        raise UsageError(f"jobs must be at least 1, got {jobs}")
+    sources = [str(s) for s in sources]
+    out = FleetRun()
+    writer = ResultsTable(table) if table else None
+    had = writer.open() if writer is not None else []
+    job = FleetJob(options, csv_rate_hz, str(__version__), frozenset(done_keys(had)))
+    got: list[FleetResult | None] = [None] * len(sources)
+    new_rows: list[dict] = []
+    finished = False
+    by_key = {row_key(r["content_sha256"], r["mavcal_version"]): r for r in had if r.get("content_sha256")}
+    have = {(r["source"], k) for k, r in ((row_key(r["content_sha256"], r["mavcal_version"]), r) for r in had)}
+    copied: list[str] = []
+
+    def take(i: int, res: FleetResult) -> None:
+        got[i] = res
+        key = row_key(res.sha256 or unread_key(res.source), job.version)
+        if res.row is None and (res.source, key) not in have and key in by_key:  # the content, under another name
+            flat = _copy_row(by_key[key], res.source)
+            if writer is not None:
+                writer.append(flat)
+            new_rows.append(flat)
+            have.add((res.source, key))
+            copied.append(res.source)
+        elif res.row is not None:
+            log.info("%s: %s", res.source, "ok" if res.row.ok else res.row.error)
+            flat = flat_row(res.row, res.sha256 or unread_key(res.source), res.size_bytes or 0, job.version)
+            if writer is not None:
+                writer.append(flat)
+            new_rows.append(flat)
+        if progress is not None:
+            progress(res)
+
+    try:
+        if scheduler_address:
+            _on_dask(scheduler_address, job, sources, take)
+        else:
+            def then(item: tuple[int, str], outcome: Outcome) -> list:
+                i, source = item
+                ok, res = outcome
+                if not ok:  # its worker process died (out of memory?): this log alone fails
+                    res = FleetResult(source, None, None, _failed(source, res, options))
+                take(i, res)
+                return []
+
+            with ForkPool(job, min(int(jobs), max(1, len(sources))), max_tasks=MAX_TASKS_PER_CHILD) as pool:
+                pool.run(_indexed, list(enumerate(sources)), then)
+        finished = True
+    finally:
+        if writer is not None:
+            writer.close(finished=finished)
+    out.rows = [r.row for r in got if r is not None and r.row is not None]
+    out.copied = copied
+    out.skipped = [r.source for r in got if r is not None and r.row is None and r.source not in set(copied)]
+    out.table_rows = had + new_rows
+    return out
