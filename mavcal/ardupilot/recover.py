@@ -32,7 +32,7 @@ import numpy as np
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import param_history as ph
-from mavcal.ardupilot.protocol import MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_PREFLIGHT_CALIBRATION
+from mavcal.autopilot.mavlink import MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_PREFLIGHT_CALIBRATION
 from mavcal.autopilot.raw import ACCEL_FRAME, MAG_FRAME, RawImu, log_warnings_once
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from mavcal.autopilot.mavlink import MAV_AUTOPILOT_PX4
 from mavcal.sources.types import ImuLog
 
 if TYPE_CHECKING:
@@ -31,7 +32,6 @@ if TYPE_CHECKING:
 __all__ = ["AutopilotModel", "model_for", "model_named", "is_px4", "is_px4_params", "detoured_order",
            "MAV_AUTOPILOT_PX4", "NAMES"]
 
-MAV_AUTOPILOT_PX4 = 12
 
 
 #: the autopilots mavcal knows, by the name their model gives

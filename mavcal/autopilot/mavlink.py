@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import re
 
-__all__ = ["MAV_CMD", "MAV_CMD_PREFLIGHT_CALIBRATION", "MAV_CMD_SET_MESSAGE_INTERVAL", "MAV_CMD_ACCELCAL_VEHICLE_POS",
+__all__ = ["MAV_AUTOPILOT_PX4",
+           "MAV_CMD", "MAV_CMD_PREFLIGHT_CALIBRATION", "MAV_CMD_SET_MESSAGE_INTERVAL", "MAV_CMD_ACCELCAL_VEHICLE_POS",
            "valid_param_name"]
+
+#: HEARTBEAT.autopilot of a PX4 (MAV_AUTOPILOT_PX4, common.xml): the one place that says it
+MAV_AUTOPILOT_PX4 = 12
 
 #: The one table of the MAV_CMD numbers mavcal sends or recognises in logs (common.xml /
 #: ardupilotmega.xml; the same values as pymavlink's ``mavlink.MAV_CMD_*``, kept here so that

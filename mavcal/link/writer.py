@@ -61,7 +61,8 @@ from pymavlink import mavutil
 
 from mavcal.autopilot import detoured_order
 from mavcal.autopilot.limits import check_limits, failing_kinds
-from mavcal.autopilot.protocol import needs_reboot, valid_param_name, vector_group
+from mavcal.autopilot.mavlink import valid_param_name
+from mavcal.autopilot.protocol import needs_reboot, vector_group
 from mavcal.errors import (
     LinkError,
     OutOfRangeError,
