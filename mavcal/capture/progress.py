@@ -6,7 +6,7 @@ accelerometer's own tilt bound (:mod:`mavcal.core.accel_fit`, the bound its verd
 on) ``<= CaptureConfig.target_tilt_deg`` and every compass's heading bound (its fit with the
 primary accelerometer) ``<= CaptureConfig.target_heading_deg``. The next pose is advised for
 the sensor furthest from its target (largest bound / target): a compass by the heading
-criterion of :func:`mavcal.capture.session.pose_scores` on its own pair's fit, an
+criterion of :func:`mavcal.capture.poses.pose_scores` on its own pair's fit, an
 accelerometer by :func:`tilt_pose_scores`.
 
 A sensor that cannot get there is said with the reason, and the person may finish without it
