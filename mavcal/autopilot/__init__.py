@@ -33,7 +33,6 @@ __all__ = ["AutopilotModel", "model_for", "model_named", "is_px4", "is_px4_param
            "MAV_AUTOPILOT_PX4", "NAMES"]
 
 
-
 #: the autopilots mavcal knows, by the name their model gives
 NAMES = ("ArduPilot", "PX4")
 
