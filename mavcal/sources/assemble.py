@@ -48,7 +48,7 @@ from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu
-from mavcal.sources.param_columns import dataflash_params, text_codes, timeline_from_codes
+from mavcal.sources.param_columns import columns_named, dataflash_params, text_codes, timeline_from_codes
 from mavcal.sources.param_columns import decode_text as _text
 from mavcal.sources.types import ImuLog, LogEvent, PackedValues, ParamTimeline, SensorSeries
 
@@ -707,12 +707,6 @@ class _DfRecordTime:
         return np.where(k >= 0, t_val[np.clip(k, 0, None)], t_val[0])
 
 
-def _columns_of(c: Mapping[str, np.ndarray]) -> str:
-    """The column names of a DataFlash message as its FMT record gave them (printable, short)."""
-    names = ",".join(k for k in c if not k.startswith("_"))
-    return "'" + "".join(ch if ch.isprintable() else "?" for ch in names)[:60] + "'"
-
-
 def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
     """Build an ImuLog from DataFlash message columns (fast decoder or DFReader)."""
     warns = list(warnings)
@@ -724,16 +718,12 @@ def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ())
     params = ParamTimeline()
     pm = cols.get("PARM") or {}
     if _n(pm):
-        if not {"Name", "Value"} <= set(pm):  # the PARM format (FMT) record is damaged
-            raise SourceError(f"{source}: damaged DataFlash log: the format (FMT) of its PARM records names no "
-                              f"Name and Value columns (it names {_columns_of(pm)}), so the parameters in force "
-                              "cannot be read")
-        params = dataflash_params(pm, rec_time(pm), warns)
+        params = dataflash_params(pm, rec_time(pm), warns, source)
     events: list[LogEvent] = []
     firmware = None
     msg = cols.get("MSG") or {}
     if _n(msg) and "Message" not in msg:
-        warns.append(f"MSG records ignored: their format (FMT) is damaged (it names {_columns_of(msg)})")
+        warns.append(f"MSG records ignored: their format (FMT) is damaged (it names {columns_named(msg)})")
     elif _n(msg):
         for t, text in zip(rec_time(msg).tolist(), msg["Message"]):
             txt = _text(text)
