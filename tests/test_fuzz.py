@@ -29,6 +29,8 @@ def _bases() -> dict[str, bytes]:
     for name in ("test.BIN", "00000-2021-12-02_13-34-15.bin", "flight.tlog"):
         if (REAL / name).is_file():
             out[name] = (REAL / name).read_bytes()
+    if (REAL.parent / "px4" / "sample_px4_events.ulg").is_file():  # a PX4 ULog (pyulog, issue 35)
+        out["sample_px4_events.ulg"] = (REAL.parent / "px4" / "sample_px4_events.ulg").read_bytes()
     return out
 
 
