@@ -312,7 +312,7 @@ def _write(args, logs, kinds, counts, failures, per_log, cost, elapsed, quiet: b
     rows = []
     lines = ["# Fuzzing the readers: mutants of every bundled and shared log", "",
              f"Produced by `python benchmarks/fuzz_logs.py --set {args.set} --mutants {args.mutants} "
-             f"--workers {args.workers} "
+             f"--min-per-log {args.min_per_log} --workers {args.workers} "
              f"--timeout {args.timeout:g} --seed {args.seed}` in {elapsed / 60:.1f} min. Each mutant ran through "
              "`mavcal -q segments F` and `mavcal -q calibrate F --json J` in a forked child."
              + (f" **Partial: {partial} mutants.**" if partial else ""), "",
