@@ -16,7 +16,7 @@ from mavcal.ardupilot import firmware as fw
 from mavcal.errors import SourceError
 from mavcal.sources.types import ParamTimeline
 
-__all__ = ["decode_text", "text_codes", "timeline_from_codes", "dataflash_params", "columns_named"]
+__all__ = ["decode_text", "text_codes", "timeline_from_codes", "dataflash_params", "columns_named", "with_column"]
 
 _PARAM_NAME_RE = re.compile(r"^[A-Za-z0-9_]{1,16}$")  # ArduPilot: up to 16 letters, digits, _
 
@@ -103,6 +103,15 @@ def columns_named(c: Mapping[str, np.ndarray]) -> str:
     """The column names of a DataFlash message as its FMT record gave them (printable, short)."""
     names = ",".join(k for k in c if not k.startswith("_"))
     return "'" + "".join(ch if ch.isprintable() else "?" for ch in names)[:60] + "'"
+
+
+def with_column(c: Mapping[str, np.ndarray], column: str, message: str, warns: list[str]) -> Mapping[str, np.ndarray]:
+    """``c`` (a DataFlash message's columns), or nothing with a warning when its format (FMT) names no
+    ``column`` (a damaged FMT record: DataFlash has no checksum)."""
+    if not c or column in c:
+        return c
+    warns.append(f"{message} records ignored: their format (FMT) is damaged (it names {columns_named(c)})")
+    return {}
 
 
 def dataflash_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[str],
