@@ -1,21 +1,25 @@
 """Fuzz every bundled and shared log through ``mavcal segments`` and ``mavcal calibrate``.
 
 Each mutant (bit flips, truncation, splice, zeroed run, inserted bytes; see :func:`mutate`) of
-every log in ``sitl_logs/`` and ``../shared/data/real/`` is written to a scratch file and run,
+every log in ``sitl_logs/``, ``../shared/data/real/`` and the PX4 ULogs of ``../shared/data/px4/``
+(``--set`` picks one group) is written to a scratch file and run,
 in a forked child with a time limit, through ``mavcal.cli.main(["-q", "segments", F])`` and
 ``mavcal.cli.main(["-q", "calibrate", F, "--json", J])``. A run is
 
 - a **traceback** when an exception escapes ``main``, or ``main`` returns the last-resort
   "internal error" exit code (:data:`mavcal.cli.EXIT_INTERNAL`), or an exit code outside the
-  documented ones, or an error exit prints anything but one ``mavcal: error:`` line;
+  documented ones, or an error exit prints anything but one ``mavcal: error:`` line, or that
+  line names a Python exception (``KeyError``...: :func:`mavcal.testing.damaged.error_line_problem`);
 - a **hang** when the child outlives ``--timeout`` seconds (it is killed).
 
 Prints a table of tracebacks and hangs per log and mutation kind, writes ``fuzz_logs.md`` and
-``fuzz_logs.json`` (benchmarks/README.md: ``benchmarks/out/`` by default, ``--save`` for
+``fuzz_logs.json`` (``fuzz_logs_px4.*`` / ``fuzz_logs_ardupilot.*`` for ``--set``; benchmarks/README.md: ``benchmarks/out/`` by default, ``--save`` for
 ``benchmarks/results/``) and keeps every failing mutant under ``<out>/fuzz_failures/`` to replay
 with ``mavcal -vv``.
 
     python benchmarks/fuzz_logs.py --mutants 10000 --workers 2          # the issue's bar
+    python benchmarks/fuzz_logs.py --set px4 --mutants 5000 --timeout 60   # issue 35: PX4 ULogs
+    python benchmarks/fuzz_logs.py --set ardupilot --mutants 5000 --timeout 60
     python benchmarks/fuzz_logs.py --mutants 200 --workers 1            # smoke run
 
 The mutants are spread over the logs in inverse proportion to each log's own run time (a log
@@ -46,16 +50,22 @@ OUT = HERE / "out"
 
 KINDS = ("bitflip", "truncate", "splice", "zero", "insert")
 DOCUMENTED = {0, 2, 3, 4, 5, 6, 7}  # mavcal.errors / cli --help
-LOG_SUFFIXES = {".tlog", ".bin", ".log", ".csv"}
+LOG_SUFFIXES = {".tlog", ".bin", ".log", ".csv", ".ulg"}
+SETS = ("all", "ardupilot", "px4")
 
 
-def default_logs() -> list[Path]:
-    """Every bundled log (sitl_logs/*.tlog) and every log in ../shared/data/real/."""
-    logs = sorted((REPO / "sitl_logs").glob("*.tlog"))
-    shared = REPO.parent / "shared" / "data" / "real"
+def default_logs(which: str = "all") -> list[Path]:
+    """The logs of ``which`` set: ``ardupilot`` (the bundled sitl_logs/*.tlog and every log in
+    ../shared/data/real/), ``px4`` (every ULog in ../shared/data/px4/) or ``all``."""
+    shared = REPO.parent / "shared" / "data"
     if not shared.is_dir():
-        shared = Path("/work/shared/data/real")
-    logs += sorted(p for p in shared.glob("*") if p.suffix.lower() in LOG_SUFFIXES)
+        shared = Path("/work/shared/data")
+    logs: list[Path] = []
+    if which in ("all", "ardupilot"):
+        logs += sorted((REPO / "sitl_logs").glob("*.tlog"))
+        logs += sorted(p for p in (shared / "real").glob("*") if p.suffix.lower() in LOG_SUFFIXES)
+    if which in ("all", "px4"):
+        logs += sorted(p for p in (shared / "px4").glob("*.ulg"))
     return logs
 
 
@@ -104,13 +114,17 @@ def _cli_run(argv: list[str]) -> dict:
         res.update(code=None, error=f"{type(exc).__name__}: {exc}"[:300],
                    where=traceback.format_exc().strip().splitlines()[-3].strip()[:200])
         return res
+    from mavcal.testing.damaged import error_line_problem
+
     res["code"] = code
     lines = [x for x in err.getvalue().splitlines() if x.strip()]
     res["stderr"] = lines[-3:]
     if code not in DOCUMENTED:
         res["error"] = (lines[-1] if lines else f"exit code {code}")[:300]
-    elif code not in (0, 7) and not (len(lines) == 1 and lines[0].startswith("mavcal: error:")):
-        res["error"] = f"exit {code} with {len(lines)} stderr lines: " + " | ".join(lines)[:300]
+    else:
+        problem = error_line_problem(code, err.getvalue())
+        if problem:
+            res["error"] = problem
     return res
 
 
@@ -129,8 +143,11 @@ def _warm_up() -> None:
     import mavcal.report.text  # noqa: F401
     import mavcal.sources.fast_dataflash  # noqa: F401
     import mavcal.sources.fast_tlog  # noqa: F401
+    import mavcal.sources.ulog  # noqa: F401
+    import mavcal.testing.damaged  # noqa: F401
     try:
         import pymavlink.mavutil  # noqa: F401
+        import pyulog  # noqa: F401
     except ImportError:  # pragma: no cover
         pass
 
@@ -217,12 +234,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mutants", type=int, default=10000, help="mutants in all (default 10000)")
     ap.add_argument("--min-per-log", type=int, default=60, help="at least this many mutants of each log")
     ap.add_argument("--workers", type=int, default=2, help="forked children at a time (default 2)")
-    ap.add_argument("--timeout", type=float, default=120.0, help="seconds before a child counts as a hang")
+    ap.add_argument("--timeout", type=float, default=60.0, help="seconds before a child counts as a hang")
+    ap.add_argument("--set", choices=SETS, default="all", help="which logs (default all): ardupilot, px4")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--kinds", default=",".join(KINDS), help="mutation kinds (comma separated)")
     ap.add_argument("logs", nargs="*", type=Path, help="logs to mutate (default: sitl_logs and ../shared/data/real)")
     args = ap.parse_args(argv)
-    logs = args.logs or default_logs()
+    logs = args.logs or default_logs(args.set)
     kinds = [k for k in args.kinds.split(",") if k]
     _warm_up()
     t_start = time.monotonic()
@@ -293,7 +311,8 @@ def _write(args, logs, kinds, counts, failures, per_log, cost, elapsed, quiet: b
            partial: str = "") -> int:
     rows = []
     lines = ["# Fuzzing the readers: mutants of every bundled and shared log", "",
-             f"Produced by `python benchmarks/fuzz_logs.py --mutants {args.mutants} --workers {args.workers} "
+             f"Produced by `python benchmarks/fuzz_logs.py --set {args.set} --mutants {args.mutants} "
+             f"--min-per-log {args.min_per_log} --workers {args.workers} "
              f"--timeout {args.timeout:g} --seed {args.seed}` in {elapsed / 60:.1f} min. Each mutant ran through "
              "`mavcal -q segments F` and `mavcal -q calibrate F --json J` in a forked child."
              + (f" **Partial: {partial} mutants.**" if partial else ""), "",
@@ -318,8 +337,9 @@ def _write(args, logs, kinds, counts, failures, per_log, cost, elapsed, quiet: b
     text = "\n".join(lines) + "\n"
     if not quiet:
         print(text)
-    (OUT / "fuzz_logs.md").write_text(text)
-    (OUT / "fuzz_logs.json").write_text(json.dumps({"totals": tot, "rows": rows, "failures": failures,
+    stem = "fuzz_logs" if args.set == "all" and not args.logs else f"fuzz_logs_{args.set}"
+    (OUT / f"{stem}.md").write_text(text)
+    (OUT / f"{stem}.json").write_text(json.dumps({"totals": tot, "rows": rows, "failures": failures,
                                                     "per_log": {p.name: per_log[p] for p in logs},
                                                     "baseline_s": {p.name: round(cost[p], 3) for p in logs}},
                                                    indent=1))

@@ -3,6 +3,7 @@ from pathlib import Path
 
 import pytest
 
+from mavcal.testing.ci import pytest_runtest_makereport  # noqa: F401 - CI=true: a real-log/browser skip fails
 from mavcal.testing.vehicle import TestVehicle
 
 REPO = Path(__file__).resolve().parents[1]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from mavcal.capture import CaptureConfig, CaptureSession, candidate_poses, coverage_map, describe_pose, euler_matrix
+from mavcal.testing.capture_truth import heading_error_vs_truth
 from mavcal.testing.vehicle import CompassTruth, TestVehicle, VehicleTruth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -55,6 +56,9 @@ def test_following_the_advice_reaches_the_target():
     assert "target" in st.reason
     run = sess.result()
     assert run.accepted
+    # the vehicle's truth: the written calibration's heading error, level, within the target
+    assert heading_error_vs_truth(v, run.params_to_write()) <= 0.5  # seen 0.21 (the bound said 0.38)
+    assert heading_error_vs_truth(v, {}) > 10  # the check sees a calibration that is wrong (seen 52)
     # the first advised poses are the six faces, distinct gravity directions
     g = np.array([p.gravity_body for p in sess.poses_advised[:6]])
     assert np.all((g @ g.T - np.eye(6)) < 0.75)  # no two within ~40 deg of each other

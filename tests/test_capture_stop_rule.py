@@ -16,6 +16,7 @@ from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix, status_l
 from mavcal.capture.progress import SensorProgress, stop_reason
 from mavcal.capture.worker import CaptureWorker
 from mavcal.sources.types import SensorSeries
+from mavcal.testing.capture_truth import heading_error_vs_truth
 from mavcal.testing.vehicle import TestVehicle, VehicleTruth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -82,6 +83,9 @@ def test_every_sensor_reaches_its_target_and_is_accepted_with_the_default_settin
     run = sess.result()
     assert {x.sensor: x.accepted for x in run.gates.verdicts()} == dict.fromkeys(ALL, True)
     assert "every sensor's bound/target (deg): accel0 tilt" in status_screen(st)
+    written = run.params_to_write()
+    for k in range(len(v.truth.compasses)):  # the vehicle's truth: every compass within the target, level
+        assert heading_error_vs_truth(v, written, instance=k) <= 0.5, k
 
 
 def test_a_disturbed_compass_is_named_with_the_reason_and_the_capture_can_finish_without_it():

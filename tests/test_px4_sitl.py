@@ -5,6 +5,7 @@ calibration in force (offsets, scales, off-diagonals, a board rotation with a le
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 
 import numpy as np
@@ -103,7 +104,14 @@ def _collect(link, seconds: float) -> dict[str, np.ndarray]:
             "cal_mag": np.mean(rows["cal_mag"], axis=0) * 1000}
 
 
-def test_px4_applies_the_calibration_as_mavcal_models_it(link, tmp_path):
+def _no_failed_parameter_save(px4) -> None:
+    """PX4's own log holds no failed parameter save (its autosave's verify: issue 35, a PARAM_SET of the
+    writer while PX4 exported its parameters failed the verify, and PX4 went silent)."""
+    text = px4.log_tail(10_000_000)
+    assert not re.search(r"invalid BSON value|export.* failed|auto save failed", text), text[-2000:]
+
+
+def test_px4_applies_the_calibration_as_mavcal_models_it(px4, link, tmp_path):
     """PX4 SITL standing still; the streams mavcal asks for; then a non-trivial calibration in force.
     Magnetometer: PX4's calibrated HIGHRES_IMU field equals mavcal's model applied to the raw field of
     SCALED_IMU (within 8 mGauss: 4 s averages of two differently sampled noisy streams, which differ by
@@ -144,6 +152,7 @@ def test_px4_applies_the_calibration_as_mavcal_models_it(link, tmp_path):
     other_order = dataclasses.replace(acc_new, rotation=R @ L)
     assert np.abs(other_order.correct(acc_old.undo(before["acc"])) - after["acc"]).max() > 0.3
     assert np.abs(before["acc"] - after["acc"]).max() > 0.25  # the calibration changed PX4's output
+    _no_failed_parameter_save(px4)
 
 
 def test_apply_and_restore_commands_against_px4(px4, tmp_path):
@@ -175,3 +184,4 @@ def test_apply_and_restore_commands_against_px4(px4, tmp_path):
         link.close()
     assert t2["CAL_MAG0_PRIO"] == (50, 6) and t2["CAL_ACC0_XOFF"][0] != pytest.approx(0.125)
     assert t2["CAL_ACC0_ID"] == (1310988, 6) and t2["CAL_MAG0_ID"] == (197388, 6)
+    _no_failed_parameter_save(px4)

@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from mavcal.autopilot.mavlink import MAV_AUTOPILOT_PX4
+from mavcal.px4.autosave import SaveSchedule  # PX4's parameter autosave, which a write to a PX4 keeps out of
+from mavcal.px4.params import DETOUR_DWELL_S  # how long the vehicle is let see a write's detours
 from mavcal.sources.types import ImuLog
 
 if TYPE_CHECKING:
@@ -29,8 +31,8 @@ if TYPE_CHECKING:
     from mavcal.autopilot.mapping import AccelMapping, ParamMapping
     from mavcal.autopilot.raw import RawImu
 
-__all__ = ["AutopilotModel", "model_for", "model_named", "is_px4", "is_px4_params", "detoured_order",
-           "MAV_AUTOPILOT_PX4", "NAMES"]
+__all__ = ["AutopilotModel", "model_for", "model_named", "is_px4", "is_px4_params", "detoured_order", "DETOUR_DWELL_S",
+           "SaveSchedule", "MAV_AUTOPILOT_PX4", "NAMES"]
 
 
 #: the autopilots mavcal knows, by the name their model gives

@@ -1,48 +1,45 @@
 """The safe parameter writer: write, verify by echo, and undo everything on failure.
 
-Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; research note
-section 8):
+Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; research note section 8):
 
-* PARAM_SET of an unknown name (or NaN/Inf) is silently ignored up to ArduPilot 4.6: only a
-  timeout shows it. So names are checked against the vehicle's own table *before* anything is
-  written. ArduPilot master (PR #31062, 2025-10) answers them with PARAM_ERROR; a write-denied
-  parameter gets STATUSTEXT "Param write denied (NAME)" (since 4.0.4, PR #13823), an echo of the
-  unchanged value, and on master a PARAM_ERROR ``MAV_PARAM_ERROR_PERMISSION_DENIED``. Either
-  ends the attempts at once and the failure is reported in the vehicle's words.
-* Values outside ArduPilot's limits (:mod:`mavcal.ardupilot.limits`) are refused before any
-  write unless ``allow_out_of_range``; a sensor kind whose values fail is never force-saved.
-* Retries are bounded by time (``budget_s`` per parameter / force-save, after at least
-  ``retries`` attempts), not by a fixed count: a lossy link gets as many attempts as fit.
-* The vehicle converts the float to the stored type (integers: +/-0.01 in float32, clamp,
-  truncate) and echoes PARAM_VALUE (``param_index`` 65535) after storing it; setting the X
-  element of a Vector3 echoes all three (Y or Z only themselves). An echo with the right name and the expected value
-  (float32-equal after the conversion) confirms a write; anything else is ignored until the
-  attempt times out, then the PARAM_SET is sent again.
-* Values go out as float32 (REAL32) to ArduPilot; to PX4 an integer goes byte-wise with its type, and
-  each changed CAL_* vector by a detour (:func:`mavcal.autopilot.detoured_order`).
+* PARAM_SET of an unknown name (or NaN/Inf) is silently ignored up to ArduPilot 4.6: only a timeout shows it. So
+  names are checked against the vehicle's own table *before* anything is written. ArduPilot master (PR #31062,
+  2025-10) answers them with PARAM_ERROR; a write-denied parameter gets STATUSTEXT "Param write denied (NAME)"
+  (since 4.0.4, PR #13823), an echo of the unchanged value, and on master a PARAM_ERROR
+  ``MAV_PARAM_ERROR_PERMISSION_DENIED``. Either ends the attempts at once and the failure is reported in the
+  vehicle's words.
+* Values outside ArduPilot's limits (:mod:`mavcal.autopilot.limits`) are refused before any write unless
+  ``allow_out_of_range``; a sensor kind whose values fail is never force-saved.
+* Retries are bounded by time (``budget_s`` per parameter / force-save, after at least ``retries`` attempts), not by
+  a fixed count: a lossy link gets as many attempts as fit.
+* The vehicle converts the float to the stored type (integers: +/-0.01 in float32, clamp, truncate) and echoes
+  PARAM_VALUE (``param_index`` 65535) after storing it; setting the X element of a Vector3 echoes all three (Y or Z
+  only themselves). An echo with the right name and the expected value (float32-equal after the conversion) confirms
+  a write; anything else is ignored until the attempt times out, then the PARAM_SET is sent again.
+* Values go out as float32 (REAL32) to ArduPilot; to PX4 an integer goes byte-wise with its type, and each changed
+  CAL_* vector by a detour (:func:`mavcal.autopilot.detoured_order`).
 
 Sequence of :func:`write_params`:
 
-1. the vehicle's table (fetched, or given) and fresh values of the parameters to change
-   (PARAM_REQUEST_READ); unknown names, non-finite values and values an integer parameter
-   would not store exactly are refused before any write;
-2. a backup ``.param`` of every value about to change, written and fsync'ed before the first
-   PARAM_SET (never overwriting an existing file);
-3. one parameter at a time (PX4's detours first): PARAM_SET, wait for the matching echo, retry.
-   For steps 3-6 the vehicle is kept talking (ATTITUDE at 5 Hz, put back to its default rate at the end) and a
-   silence is measured against a limit derived from the link's observed loss
-   (:mod:`mavcal.link.silence`); while the vehicle is silent nothing is sent and the budget
-   does not run, and the write resumes when it is heard again (within the write budget);
-4. force-save (``MAV_CMD_PREFLIGHT_CALIBRATION`` param2=76 compass, param5=76 accel) so the
-   device ids are stored with the calibration; a missing ACK is reported, not fatal, and a
-   refusal in the COMMAND_ACK's result words;
-5. read every written parameter back once more (PARAM_REQUEST_READ) and compare;
-6. on any failure in 3-5: restore every parameter a PARAM_SET was sent for (including the
-   one in flight) from the backup values - first waiting for a silent vehicle, up to the
-   restore's own allowance ``restore_wait_s`` - verify the restore by echo and read-back, then raise
-   :class:`~mavcal.errors.ParamWriteError` (exit 5) - or
-   :class:`~mavcal.errors.RestoreFailedError` (exit 6) naming the parameters in doubt (and how
-   long the vehicle was unheard when that is why).
+1. the vehicle's table (fetched, or given) and fresh values of the parameters to change (PARAM_REQUEST_READ);
+   unknown names, non-finite values and values an integer parameter would not store exactly are refused before any
+   write;
+2. a backup ``.param`` of every value about to change, written and fsync'ed before the first PARAM_SET (never
+   overwriting an existing file);
+3. one parameter at a time (PX4's detours first, its parameter saves waited out: :mod:`mavcal.link.after_write`):
+   PARAM_SET, wait for the matching echo, retry. For steps 3-6 the vehicle is kept talking (ATTITUDE at 5 Hz, put
+   back to its default rate at the end) and a silence is measured against a limit derived from the link's observed
+   loss (:mod:`mavcal.link.silence`); while the vehicle is silent nothing is sent and the budget does not run, and
+   the write resumes when it is heard again (within the write budget);
+4. force-save (``MAV_CMD_PREFLIGHT_CALIBRATION`` param2=76 compass, param5=76 accel) so the device ids are stored
+   with the calibration; a missing ACK is reported, not fatal, and a refusal in the COMMAND_ACK's result words;
+5. read every written parameter back once more (PARAM_REQUEST_READ) and compare; then the vehicle must still stream
+   (LinkError if it fell silent, :class:`~mavcal.link.after_write.StreamCheck`);
+6. on any failure in 3-5: restore every parameter a PARAM_SET was sent for (including the one in flight) from the
+   backup values - first waiting for a silent vehicle, up to the restore's own allowance ``restore_wait_s`` - verify
+   the restore by echo and read-back, then raise :class:`~mavcal.errors.ParamWriteError` (exit 5) - or
+   :class:`~mavcal.errors.RestoreFailedError` (exit 6) naming the parameters in doubt (and how long the vehicle was
+   unheard when that is why).
 
 The library logs and never prints; the :class:`WriteReport` is data.
 """
@@ -50,14 +47,14 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NoReturn
 
 from pymavlink import mavutil
 
-from mavcal.autopilot import detoured_order
+from mavcal.autopilot import DETOUR_DWELL_S, detoured_order
 from mavcal.autopilot.limits import check_limits, failing_kinds
 from mavcal.autopilot.protocol import needs_reboot, vector_group
 from mavcal.errors import (
@@ -68,6 +65,7 @@ from mavcal.errors import (
     UnknownParameterError,
     UsageError,
 )
+from mavcal.link.after_write import Px4Pacing, StreamCheck
 from mavcal.link.backup import write_backup
 from mavcal.link.connection import Link, as_link, param_to_wire
 from mavcal.link.params import (
@@ -155,7 +153,8 @@ class _SetOutcome:
 
 def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, expected: float,
                      retries: int, timeout_s: float, budget_s: float, wait: Patience,
-                     param_type: int = _A.MAV_PARAM_TYPE_REAL32) -> _SetOutcome:
+                     param_type: int = _A.MAV_PARAM_TYPE_REAL32,
+                     before_send: Callable[[], None] = lambda: None) -> _SetOutcome:
     """PARAM_SET ``name`` until an echo equal to ``expected`` arrives, the vehicle refuses it, or
     at least ``retries`` attempts were sent and ``budget_s`` has passed while the vehicle was heard.
     ArduPilot takes every value as a REAL32; a bytewise vehicle (PX4) gets an integer's bytes with its
@@ -163,7 +162,8 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
 
     While the vehicle is silent (``wait``) no PARAM_SET is sent and the budget does not run: the
     attempts resume when it is heard again, and stop when it stays unheard past the allowance
-    of ``wait`` (the outcome's ``unheard`` says so). Raises LinkError when the connection fails.
+    of ``wait`` (the outcome's ``unheard`` says so); ``before_send()`` before every PARAM_SET (a
+    PX4's save pacing). Raises LinkError when the connection fails.
     """
     attempts = 0
     wire_type = param_type if link.bytewise_params else _A.MAV_PARAM_TYPE_REAL32
@@ -188,6 +188,7 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
             seen = watch.seen.get(name, [])[mark:]
             return _SetOutcome(False, seen[-1] if seen else None, attempts, unheard=str(exc))
         attempts += 1
+        before_send()
         link.mav.param_set_send(link.target_system, link.target_component, name.encode("ascii"),
                                 wire_value, wire_type)
         if link.wait(lambda: confirmed() or refused(), timeout_s) and confirmed():
@@ -265,8 +266,6 @@ def _read_back(link: Link, names: Sequence[str], retries: int, timeout_s: float,
     return got
 
 
-#: seconds PX4 gets to see the detours (a parameter update: it looks at its sensors' rate) before the rest
-DETOUR_DWELL_S = 0.3
 
 
 class _WriteRun:
@@ -288,12 +287,14 @@ class _WriteRun:
         self.force_reasons: list[str] = []
         self.force_skipped: tuple[str, ...] = ()
         self.out_of_range: tuple[str, ...] = ()
+        self.px4: Px4Pacing | None = None  # a PX4's parameter saves, waited out (self._before_send)
 
     def start(self, changes: Mapping[str, float], params: ParamTable | None, force_save: Sequence[str], *,
               dry_run: bool, fetch_timeout_s: float, allow_out_of_range: bool, backup_path: str | None,
               backup_header: Sequence[str] | None, keepalive: bool) -> WriteReport:
         """Steps 1-2 (the table, the plan, the backup), then :meth:`execute` with the vehicle kept
         talking (asked before the backup is written: that gives the stream time to start)."""
+        self.px4 = Px4Pacing(self.link) if self.link.bytewise_params else None  # a PX4: PARAM_SETs out of its saves
         self.table = _vehicle_table(self.link, changes, params, fetch_timeout_s, self.timeout_s,
                                     self.restore_retries, self.budget_s)
         self.plan = plan_changes(changes, self.table)
@@ -313,16 +314,22 @@ class _WriteRun:
     def execute(self, to_write: Sequence[ParamResult], force_save: Sequence[str]) -> WriteReport:
         """Steps 3-6: the report of a complete write, or ParamWriteError / RestoreFailedError."""
         self.watch = _EchoWatch(self.link)
+        streams = StreamCheck(self.link)
         try:
             self.silence.settle(min(self.budget_s, SETTLE_S))
             failure = self.write_each(to_write)
             if failure is None:
                 failure = self.save_and_verify(force_save)
             if failure is None:
+                streams.check(len(self.attempted), str(self.backup), self.px4)  # the vehicle still streams
                 return self.success()
             self.restore(failure)
         finally:
+            streams.close()
             self.watch.close()
+
+    def _before_send(self) -> None:
+        return None if self.px4 is None else self.px4.before_send()
 
     def _final(self) -> tuple[ParamResult, ...]:
         return tuple(self.results[r.name] for r in self.plan)
@@ -335,7 +342,7 @@ class _WriteRun:
         try:
             return _set_and_confirm(self.link, self.watch, r.name, value, expected_stored_value(
                 value, self.table[r.name][1]), self.retries if wait is None else self.restore_retries, self.timeout_s,
-                self.budget_s, wait or self._patience(), self.table[r.name][1]), None
+                self.budget_s, wait or self._patience(), self.table[r.name][1], self._before_send), None
         except LinkError as exc:
             return _SetOutcome(False, self.watch.last.get(r.name), max(1, self.retries)), str(exc)
 
@@ -348,8 +355,7 @@ class _WriteRun:
             if not out.ok:
                 return failure or out.unheard or f"{name}: the detour to {value:g} was not confirmed"
         try:
-            if detours:
-                self.link.pump(DETOUR_DWELL_S)
+            self.link.pump(DETOUR_DWELL_S if detours else 0.0)
         except LinkError as exc:
             return str(exc)
         for name in order:

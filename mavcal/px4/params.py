@@ -20,7 +20,7 @@ import re
 from collections.abc import Container, Mapping
 from typing import TypedDict
 
-__all__ = ["DETOUR_STEP", "calibration_vector", "detoured_order", "MAX_SLOTS", "SCALE_RANGE",
+__all__ = ["DETOUR_STEP", "DETOUR_DWELL_S", "calibration_vector", "detoured_order", "MAX_SLOTS", "SCALE_RANGE",
            "ROT_INTERNAL", "ROT_CUSTOM", "AccelNames", "MagNames", "accel_names",
            "mag_names", "board_names", "is_int32", "find_slot", "free_slot", "device_ids", "is_px4_params",
            "is_calibration",
@@ -42,6 +42,8 @@ _XYZ = ("X", "Y", "Z")
 #: magnetometer offsets and 0.01 for scales and off-diagonals (0.01 for all in older sources), each
 #: vector on its own, the values reading back new either way. The step exceeds twice any of them.
 DETOUR_STEP = 0.1
+#: seconds PX4 gets to see the detours (a parameter update: it looks at its sensors' rate) before the rest
+DETOUR_DWELL_S = 0.3
 _VECTOR = re.compile(r"^(CAL_(?:ACC|MAG)[0-9]_)([XYZ])(OFF|SCALE|ODIAG)$")
 
 Names3 = tuple[str, str, str]

@@ -53,7 +53,13 @@ from mavcal.autopilot.mavlink import (
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu
-from mavcal.sources.param_columns import bytewise_param_values, dataflash_params, text_codes, timeline_from_codes
+from mavcal.sources.param_columns import (
+    bytewise_param_values,
+    dataflash_params,
+    text_codes,
+    timeline_from_codes,
+    with_column,
+)
 from mavcal.sources.param_columns import decode_text as _text
 from mavcal.sources.types import ImuLog, LogEvent, PackedValues, ParamTimeline, SensorSeries
 
@@ -702,10 +708,10 @@ def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ())
     params = ParamTimeline()
     pm = cols.get("PARM") or {}
     if _n(pm):
-        params = dataflash_params(pm, rec_time(pm), warns)
+        params = dataflash_params(pm, rec_time(pm), warns, source)
     events: list[LogEvent] = []
     firmware = None
-    msg = cols.get("MSG") or {}
+    msg = with_column(cols.get("MSG") or {}, "Message", "MSG", warns)  # {} when its FMT is damaged
     if _n(msg):
         for t, text in zip(rec_time(msg).tolist(), msg["Message"]):
             txt = _text(text)

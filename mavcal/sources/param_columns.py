@@ -13,9 +13,11 @@ from collections.abc import Mapping
 import numpy as np
 
 from mavcal.autopilot import firmware as fw
+from mavcal.errors import SourceError
 from mavcal.sources.types import ParamTimeline
 
-__all__ = ["decode_text", "text_codes", "timeline_from_codes", "dataflash_params", "bytewise_param_values"]
+__all__ = ["decode_text", "text_codes", "timeline_from_codes", "dataflash_params", "columns_named", "with_column",
+           "bytewise_param_values"]
 
 _PARAM_NAME_RE = re.compile(r"^[A-Za-z0-9_]{1,16}$")  # ArduPilot: up to 16 letters, digits, _
 
@@ -98,13 +100,32 @@ def _plausible(codes: np.ndarray, labels: list[str], values: np.ndarray, candida
     return out
 
 
-def dataflash_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[str]) -> ParamTimeline:
+def columns_named(c: Mapping[str, np.ndarray]) -> str:
+    """The column names of a DataFlash message as its FMT record gave them (printable, short)."""
+    names = ",".join(k for k in c if not k.startswith("_"))
+    return "'" + "".join(ch if ch.isprintable() else "?" for ch in names)[:60] + "'"
+
+
+def with_column(c: Mapping[str, np.ndarray], column: str, message: str, warns: list[str]) -> Mapping[str, np.ndarray]:
+    """``c`` (a DataFlash message's columns), or nothing with a warning when its format (FMT) names no
+    ``column`` (a damaged FMT record: DataFlash has no checksum)."""
+    if not c or column in c:
+        return c
+    warns.append(f"{message} records ignored: their format (FMT) is damaged (it names {columns_named(c)})")
+    return {}
+
+
+def dataflash_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[str],
+                     source: str = "the log") -> ParamTimeline:
     """PARM records -> ParamTimeline; records with an impossible value or name (a damaged
     log: DataFlash has no checksum) or a non-finite time are skipped and counted in ``warns``.
 
     A name is possible when it is 1 to 16 letters, digits or ``_``; a value when
     :func:`mavcal.ardupilot.firmware.param_value_plausible` says so.
     """
+    if not {"Name", "Value"} <= set(pm):  # the PARM format (FMT) record is damaged
+        raise SourceError(f"{source}: damaged DataFlash log: the format (FMT) of its PARM records names no Name and "
+                          f"Value columns (it names {columns_named(pm)}), so the parameters in force cannot be read")
     codes, labels = text_codes(pm["Name"])
     values = np.asarray(pm["Value"], dtype=float)
     name_ok = np.array([bool(_PARAM_NAME_RE.match(n)) for n in labels], dtype=bool)

@@ -15,13 +15,14 @@ documents the units, conventions and the time base), so their results are identi
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import logging
 import os
 import re
 import stat
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, Callable
 
@@ -123,18 +124,28 @@ def read_csv(path: str, *, rate_hz: float = DEFAULT_CSV_RATE_HZ) -> ImuLog:
         raise SourceError(f"invalid CSV sample rate {rate_hz!r}")
     with open(path, newline="", errors="replace") as fh:
         text = fh.read()
-    reader = csv.reader(io.StringIO(text))
+    # a lone carriage return (a damaged file) is a line end, not an error of the csv module
+    reader = csv.reader(io.StringIO(text.replace("\r\n", "\n").replace("\r", "\n")))
     try:
         header = [h.strip().lower() for h in next(reader)]
     except StopIteration:
         raise SourceError(f"empty CSV file {path}") from None
+    except csv.Error as exc:
+        raise SourceError(f"CSV {path}: its header line cannot be read as CSV ({exc})") from None
     col = {h: i for i, h in enumerate(header)}
     if not all(k in col for k in ("ax", "ay", "az")):
         raise SourceError(f"CSV {path} has no ax,ay,az header (found: {','.join(header[:8])})")
     tcol = next((col[k] for k in ("time_s", "t", "time", "timestamp") if k in col), None)
     rows = []
     bad = 0
-    for r in reader:
+    while True:
+        try:
+            r = next(reader)
+        except StopIteration:
+            break
+        except csv.Error:  # e.g. a NUL byte or a quote left open: that line is not CSV
+            bad += 1
+            continue
         if not r or all(not x.strip() for x in r):
             continue
         try:
@@ -262,13 +273,13 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
     if p.stat().st_size == 0:
         raise SourceError(f"empty file: {src}")
     kw: dict[str, Any] = {"chunk_size": chunk_size} if chunk_size else {}
-    try:
+    try:  # mavcal's own readers raise SourceError naming what is wrong; anything else is a bug in them
         if kind == "csv":
             return read_csv(src, rate_hz=csv_rate_hz)
         if kind == "ulog":
             from mavcal.sources.ulog import read_ulog
 
-            return read_ulog(src)
+            return read_ulog(src)  # wraps pyulog's failures itself
         if kind == "tlog":
             if fast:
                 from mavcal.sources.fast_tlog import decode_tlog
@@ -282,7 +293,8 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
                 cols, stats = decode_tlog(src, TLOG_MESSAGES, progress=progress, **kw)
                 _check_tlog(src, stats)
                 return assemble_tlog(cols, src, stats.warnings())
-            cols, warns = pymavlink_tlog_columns(src)
+            with _third_party("pymavlink", src):
+                cols, warns = pymavlink_tlog_columns(src)
             return assemble_tlog(cols, src, warns)
         if kind == "dataflash" and fast:
             from mavcal.sources.fast_dataflash import decode_dataflash
@@ -291,13 +303,23 @@ def read_log(path, *, progress: ProgressFn | None = None, fast: bool = True, csv
             if df_stats.records == 0:
                 raise SourceError(f"no DataFlash records in {src}: not a DataFlash log, or corrupt")
             return assemble_dataflash(df_cols, src, df_stats.warnings())
-        return assemble_dataflash(pymavlink_dataflash_columns(src), src)
-    except MavcalError:
-        raise
+        with _third_party("pymavlink", src):
+            df_ref = pymavlink_dataflash_columns(src)
+        return assemble_dataflash(df_ref, src)
     except MemoryError:
         raise SourceError(f"out of memory reading {src}") from None
     except OSError as exc:
         raise SourceError(f"cannot read {src}: {exc.strerror or exc}") from None
-    except Exception as exc:  # corrupt input that a parser did not anticipate: one line, no traceback
-        log.debug("reading %s failed", src, exc_info=True)
-        raise SourceError(f"cannot read {src}: corrupt or unsupported ({type(exc).__name__}: {exc})") from None
+
+
+@contextlib.contextmanager
+def _third_party(parser: str, src: str) -> Iterator[None]:
+    """A third-party parser's failure on a damaged file as one line naming the parser (never the
+    Python exception's class: that is in the debug log)."""
+    try:
+        yield
+    except (MavcalError, MemoryError, OSError):
+        raise
+    except Exception:  # noqa: BLE001 - corrupt input the parser did not anticipate
+        log.debug("%s failed on %s", parser, src, exc_info=True)
+        raise SourceError(f"{parser} could not parse {src}: the file is damaged or not a log of its kind") from None

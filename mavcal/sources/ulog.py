@@ -24,7 +24,11 @@ Only this module (and :mod:`mavcal.link`) imports pyulog.
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
+import mmap
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -45,15 +49,113 @@ _RAW = (("sensor_accel", "accel", 1.0), ("sensor_gyro", "gyro", 1.0), ("sensor_m
 _GPS = ("vehicle_gps_position", "sensor_gps")
 
 
+#: the first bytes of every ULog (magic and version byte aside: ``ULog`` 0x01 0x12 0x35)
+_MAGIC = b"ULog\x01\x12\x35"
+_HEADER_BYTES = 16
+#: message types of the definitions section (pyulog reads them in ``_read_file_definitions``):
+#: FLAG_BITS, FORMAT, INFO, INFO_MULTIPLE, PARAMETER, PARAMETER_DEFAULT
+_DEFINITION_TYPES = frozenset(b"BFIMPQ")
+#: the types that end it (the data section begins): ADD_LOGGED_MSG, LOGGING, LOGGING_TAGGED
+_DATA_START_TYPES = frozenset(b"ALC")
+#: pyulog calls a header of an unknown type corrupt, and steps one byte, when its type is 0, its
+#: size 0 or its size above this (``ULog._check_packet_corruption``)
+_CORRUPT_SIZE = 10000
+#: read calls pyulog may make per byte of the file, and on top (it reads a message with two calls, a
+#: damaged stretch byte by byte with two calls per byte and a sync search) before its read is
+#: called endless: the read of any file ends within a number of steps that grows with its size
+_READS_PER_BYTE = 8
+_READS_FIXED = 10_000
+
+
+def _check_definitions(path: str, data) -> None:
+    """Walk a ULog's header and definitions section the way pyulog 1.3 does (``ULog._read_file_header``
+    and ``_read_file_definitions``), and refuse what pyulog cannot read or would read forever.
+
+    pyulog steps one byte past a header of an unknown type that it calls corrupt (type 0, size 0 or
+    above 10,000 bytes) by seeking back from where its read of the message's payload ended; when that
+    payload runs past the end of the file the read is short and the seek lands *before* the header, and
+    the walk repeats forever. Every message of the definitions section must end inside the file.
+    """
+    size = len(data)
+    if size < _HEADER_BYTES or bytes(data[:7]) != _MAGIC:
+        raise SourceError(f"{path}: not a ULog (its first bytes are not a ULog file header)")
+    p = _HEADER_BYTES
+    while p + 3 <= size:
+        msg_size = data[p] | (data[p + 1] << 8)
+        msg_type = data[p + 2]
+        if msg_type in _DATA_START_TYPES:
+            return
+        if p + 3 + msg_size > size:
+            raise SourceError(f"{path}: damaged ULog: the message at byte {p} of its definitions section declares "
+                              f"{msg_size} bytes, past the end of the file ({size} bytes): the file is cut or corrupt "
+                              "before its data")
+        if msg_type in _DEFINITION_TYPES or not (msg_type == 0 or msg_size == 0 or msg_size > _CORRUPT_SIZE):
+            p += 3 + msg_size
+        else:  # pyulog's recovery: one byte on
+            p += 1
+    raise SourceError(f"{path}: damaged ULog: the file ends inside its definitions section (byte {size}): "
+                      "it holds no data")
+
+
+class _BoundedFile:
+    """The file as pyulog sees it (``read``, ``seek``, ``tell``, ``close``), which ends a read that
+    makes more read calls than :data:`_READS_PER_BYTE` per byte of the file: whatever pyulog does on
+    a damaged file, the read ends, with the byte it had reached."""
+
+    def __init__(self, path: str, size: int) -> None:
+        self._fh = open(path, "rb")  # noqa: SIM115 - closed by pyulog, or by close() below
+        self.path, self.size = path, size
+        self.reads = 0
+        self.budget = _READS_FIXED + _READS_PER_BYTE * size
+        self.at = 0  # where the last read began
+
+    def read(self, n: int = -1) -> bytes:
+        self.reads += 1
+        self.at = self._fh.tell()
+        if self.reads > self.budget:
+            raise SourceError(f"{self.path}: damaged ULog: pyulog makes no progress at byte {self.at} of {self.size} "
+                              f"(more than {self.budget} reads): the file is corrupt there")
+        return self._fh.read(n)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._fh.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._fh.tell()
+
+    def close(self) -> None:
+        self._fh.close()
+
+
 def _load(path: str, topics: list[str]):
+    """pyulog's ``ULog`` of ``path`` (only ``topics``' data), after :func:`_check_definitions`, through a
+    :class:`_BoundedFile`; pyulog's own printing goes to the debug log. Its failure is a
+    :class:`SourceError` naming pyulog and the byte it had reached, never a Python exception's name."""
     try:
         from pyulog import ULog
     except ImportError:  # pragma: no cover - a core dependency
         raise SourceError("reading a PX4 .ulg log needs pyulog (pip install pyulog)") from None
+    size = os.path.getsize(path)
+    with open(path, "rb") as fh:
+        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            _check_definitions(path, data)
+    f = _BoundedFile(path, size)
+    said = io.StringIO()
     try:
-        return ULog(path, message_name_filter_list=topics, disable_str_exceptions=True)
-    except (ValueError, IndexError, KeyError, TypeError, AssertionError, UnicodeDecodeError) as exc:
-        raise SourceError(f"cannot read {path}: not a ULog, or corrupt ({type(exc).__name__}: {exc})") from None
+        with contextlib.redirect_stdout(said):
+            return ULog(f, message_name_filter_list=topics, disable_str_exceptions=True)
+    except SourceError:
+        raise
+    except MemoryError:
+        raise SourceError(f"out of memory reading {path}") from None
+    except Exception as exc:  # noqa: BLE001 - a third-party parser's failure on a damaged file: one line
+        log.debug("pyulog failed on %s", path, exc_info=True)
+        reason = str(exc) if exc.__class__.__name__.startswith("ULog") else "the file is damaged there"
+        raise SourceError(f"pyulog could not parse {path} (at byte {f.at} of {size}): {reason}") from None
+    finally:
+        f.close()
+        if said.getvalue().strip():
+            log.debug("pyulog on %s: %s", path, " | ".join(said.getvalue().split("\n"))[:500])
 
 
 def _start_us(ulog) -> int:
@@ -92,10 +194,20 @@ def _raw_series(ulog) -> list[SensorSeries]:
     return out
 
 
-def _params(ulog, t0: float) -> ParamTimeline:
+def _number(path: str, name: str, value) -> float:
+    """A parameter's value as a float; pyulog hands over the raw bytes of a value whose type (``int32_t``
+    / ``float``) is damaged, and such a log cannot say which calibration was in force: refused."""
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        return float(value)
+    shown = "".join(c if c.isprintable() else "?" for c in str(name))[:40]
+    raise SourceError(f"{path}: damaged ULog: parameter '{shown}' holds no number (its type is damaged), so the "
+                      "parameters in force are not known")
+
+
+def _params(ulog, t0: float, path: str = "") -> ParamTimeline:
     changes: dict[str, tuple[list[float], list[float]]] = {}
     for name, value in ulog.initial_parameters.items():
-        changes[name] = ([t0], [float(value)])
+        changes[name] = ([t0], [_number(path, name, value)])
     start = _start_us(ulog)
     for ts, name, value in ulog.changed_parameters:
         tl, vl = changes.setdefault(name, ([], []))
@@ -103,7 +215,7 @@ def _params(ulog, t0: float) -> ParamTimeline:
         if tl and t < tl[-1]:
             t = tl[-1]
         tl.append(t)
-        vl.append(float(value))
+        vl.append(_number(path, name, value))
     return ParamTimeline({n: (np.array(t, dtype=float), np.array(v, dtype=float)) for n, (t, v) in changes.items()})
 
 
@@ -182,7 +294,7 @@ def read_ulog(path: str) -> ImuLog:
     ignored = getattr(ulog, "dropouts", None)
     if ignored:
         warnings.append(f"the log has {len(ignored)} dropouts (messages lost while logging)")
-    return ImuLog(source=str(path), kind="ulog", series=tuple(series), params=_params(ulog, t0),
+    return ImuLog(source=str(path), kind="ulog", series=tuple(series), params=_params(ulog, t0, path),
                   position=_position(ulog), vehicle=_vehicle(ulog), warnings=tuple(warnings))
 
 

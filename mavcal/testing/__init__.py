@@ -23,6 +23,10 @@
 * :mod:`mavcal.testing.installed` -- CI's check of an installed wheel (``.ci/wheel``): mavcal
   imported from site-packages, and ``mavcal capture --ui`` against the loopback vehicle serving
   the installed package's page, script and style.
+* :mod:`mavcal.testing.damaged` -- damaged inputs: the ULog pyulog 1.3 loops on, and the check that
+  an error line names no Python exception; :mod:`mavcal.testing.capture_truth` -- a capture's result
+  against the test vehicle's truth; :mod:`mavcal.testing.ci` -- under ``CI=true`` a skipped real-log
+  or browser test fails.
 
 Two conventions for a sensor's truth exist, and the class names say which:
 :class:`~mavcal.testing.vehicle_sensors.AccelCalTruth` states the truth as the ideal
