@@ -179,6 +179,10 @@ def test_a_hop_below_the_hover_throttle_is_no_flight():
     assert code == 4, err
     assert "WRONG" not in out + err and "no flight in this log" in err
     assert "hover throttle" in err and len(err.strip().splitlines()) == 1
+    # the line docs/flight.md shows is this log's
+    shown = next(x for x in (ROOT / "docs" / "flight.md").read_text().splitlines()
+                 if x.startswith("mavcal: error: LOG.bin: no flight"))
+    assert err.strip().replace(str(real("00000-2021-12-02_13-34-15.bin")), "LOG.bin") == shown
 
 
 def test_a_sub_or_a_bench_never_armed_is_no_flight(flight_bin, tmp_path):
@@ -207,6 +211,11 @@ def test_without_a_compass_independent_yaw_a_rotated_compass_is_not_called_wrong
     assert "no compass-independent yaw in this log" in out and "disagree by up to" in out
     d = float(out.split("disagree by up to ")[1].split(" deg")[0])
     assert 35.0 <= d <= 55.0  # the 45 deg turned into the compass, seen against the other
+    # neither is written: which one is turned, no independent yaw says
+    assert code == 7 and out.count("not written: the compasses' headings disagree by") == 2
+    pout = tmp_path / "m.param"
+    code, out, _ = run(no_gsf, "--param-out", pout)
+    assert "no compass accepted" in out and not pout.exists()
 
 
 # --- item 4: WRONG only with a stated false-alarm rate -----------------------------------------

@@ -8,7 +8,8 @@ horizontal length from the World Magnetic Model), with the delay between current
 estimated and 95 % bounds on each term; the verdict in words (:mod:`mavcal.flight.verdict`).
 
 Exit codes: 0 done (every compass accepted or fine); 7 some compass wrong or not accepted
-(the outputs are written); 3 unreadable log; 4 too little data; 2 bad options.
+(the outputs are written); 3 unreadable log; 4 too little data (no flight in the log, no
+current sensor); 2 bad options.
 """
 from __future__ import annotations
 
@@ -40,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the motor compensation (its type, the accepted compasses' terms) to this .param")
     parser.add_argument("--driver", choices=("auto", "current", "throttle"), default="auto",
                         help="what drives the interference: the battery current or the throttle; "
-                             "auto: the compensation type in force, else the current when logged")
+                             "auto: the compensation type in force, else the current (a log without a current "
+                             "sensor is refused: the throttle only when asked)")
     parser.add_argument("--yaw", choices=("ekf", "gsf", "auto"), default="ekf",
                         help="the yaw used for the heading checks: the EKF's, or the EKF-GSF estimator's "
                              "(compass-independent; samples where it has not converged are left out)")

@@ -6,7 +6,7 @@ reference (:mod:`mavcal.flight.reference`), the fit (:mod:`mavcal.flight.fit`) a
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +16,7 @@ from mavcal.errors import InsufficientDataError
 from mavcal.flight.airborne import judge_flight
 from mavcal.flight.fit import CompassFit, FitInput, fit_compass
 from mavcal.flight.reference import heading_offset_deg, reference_at
-from mavcal.flight.verdict import Verdict, judge
+from mavcal.flight.verdict import ROTATION_WRONG_DEG, Verdict, judge
 from mavcal.sources.flight_series import FlightSeries, read_flight_series
 
 __all__ = ["CompassResult", "FlightResult", "run_flight", "analyse"]
@@ -100,13 +100,18 @@ def _require_flight(s: FlightSeries) -> None:
                                     f"flight ({flight.why}; the stage needs a flight, armed and airborne)")
 
 
+def _disagreement_deg(against_ekf: dict[int, float]) -> float:
+    """The largest heading difference between two compasses (deg; 0 with fewer than two)."""
+    return max((abs(float(np.angle(np.exp(1j * np.radians(a - b)), deg=True)))
+                for a in against_ekf.values() for b in against_ekf.values()), default=0.0)
+
+
 def _no_independent_yaw(against_ekf: dict[int, float]) -> str:
     """What is said without a compass-independent yaw: no rotation verdict, how far the compasses
     disagree with each other (each against the EKF yaw, which is fused from them)."""
     spread = ""
     if len(against_ekf) > 1:
-        d = max(abs(float(np.angle(np.exp(1j * np.radians(a - b)), deg=True)))
-                for a in against_ekf.values() for b in against_ekf.values())
+        d = _disagreement_deg(against_ekf)
         spread = (f"; the compasses' headings disagree by up to {d:.0f} deg ("
                   + ", ".join(f"compass{i} {v:+.0f}" for i, v in sorted(against_ekf.items()))
                   + " deg against the EKF yaw, which is fused from them)")
@@ -179,6 +184,12 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
     verdicts = judge(fits, kind, {i: info[i].missing for i in fits},
                      {i: np.median(next(c for c in s.compasses if c.instance == i).ofs_mgauss, axis=0) for i in fits},
                      {i: (info[i].mot_per_unit if motct == kind_code else np.zeros(3)) for i in fits}, rotation)
+    split = _disagreement_deg(against_ekf) if not rotation else 0.0
+    if split > ROTATION_WRONG_DEG:  # one of them is turned, and no independent yaw says which: none written
+        why = (f"the compasses' headings disagree by {split:.0f} deg and no compass-independent yaw (XKY0) "
+               "says which is right")
+        verdicts = {i: replace(v, accepted=False, not_written_because=v.not_written_because or why)
+                    for i, v in verdicts.items()}
     for c in s.compasses:
         if c.instance not in fits:
             continue
