@@ -62,6 +62,7 @@ FORMATS = {  # name: (type, format, columns) as ArduPilot 4.x logs them
     "ARM": (36, "QBIBB", "TimeUS,ArmState,ArmChecks,Forced,Method"),
     "MSG": (37, "QZ", "TimeUS,Message"),
     "PARM": (38, "QNff", "TimeUS,Name,Value,Default"),
+    "FMTU": (39, "QBNN", "TimeUS,FmtType,UnitIds,MultIds"),
 }
 PACK = {"Q": "Q", "B": "B", "h": "h", "H": "H", "I": "I", "f": "f", "c": "h", "C": "H", "L": "i", "e": "i",
         "Z": "64s", "N": "16s"}
@@ -69,7 +70,9 @@ SCALE = {"c": 100, "C": 100, "L": 1e7, "e": 100}
 
 
 def write_flight_bin(path: Path, s: FlightSeries, *, gsf: bool = True, firmware: str = "ArduCopter V4.5.7",
-                     armed: bool = True, hover: float = 0.35) -> Path:
+                     armed: bool = True, hover: float = 0.35, gsf_unit: str | None = "h") -> Path:
+    """``gsf_unit``: the GSF yaw's unit as ``FMTU`` says ("h": deg as 4.2 on, "r": rad as 4.0/4.1,
+    None: no FMTU for it)."""
     out = bytearray()
     for name, (ty, fmt, cols) in FORMATS.items():
         body = struct.pack("<BB4s16s64s", ty, 3 + struct.calcsize("<" + "".join(PACK[c] for c in fmt)),
@@ -89,6 +92,9 @@ def write_flight_bin(path: Path, s: FlightSeries, *, gsf: bool = True, firmware:
         out.extend(b"\xa3\x95" + bytes([ty]) + struct.pack("<" + "".join(PACK[c] for c in fmt), *vals))
 
     rec("MSG", 1000, firmware)
+    if gsf_unit is not None:
+        rec("FMTU", 1000, FORMATS["XKY0"][0], f"s#{gsf_unit}d{gsf_unit * 5}-----", "F-000000000000")
+    per = 1.0 if gsf_unit != "r" else np.radians(1.0)
     for k, v in s.params.items():
         rec("PARM", 2000, k, v, 0.0)
     t0 = 5.0
@@ -106,7 +112,7 @@ def write_flight_bin(path: Path, s: FlightSeries, *, gsf: bool = True, firmware:
         if k % 2 == 0:
             rec("GPS", us, 0, 6, 0, 0, 12, 0.8, -35.363, 149.165, 600.0, 4.0, 0.0, 0.0, 0.0, 1)
         if gsf:
-            rec("XKY0", us, 0, s.gsf_yaw_deg[k], s.gsf_yaw_sigma_deg[k], *([0.0] * 10))  # deg, as 4.x logs
+            rec("XKY0", us, 0, s.gsf_yaw_deg[k] * per, s.gsf_yaw_sigma_deg[k] * per, *([0.0] * 10))
     if armed:
         rec("ARM", int((s.att_time_s[-1] + t0 + 1) * 1e6), 0, 0, 0, 0)
     path.write_bytes(bytes(out))
@@ -202,6 +208,12 @@ def test_without_a_compass_independent_yaw_a_rotated_compass_is_not_called_wrong
     with_gsf = write_flight_bin(tmp_path / "gsf.bin", s, gsf=True)
     code, out, _ = run(with_gsf)
     assert code == 7 and "compass1: WRONG in flight: its heading is" in out  # independent evidence: named
+    in_rad = write_flight_bin(tmp_path / "rad.bin", s, gsf=True, gsf_unit="r")  # ArduPilot 4.0/4.1's unit
+    code, out, _ = run(in_rad)
+    assert code == 7 and "compass1: WRONG in flight: its heading is" in out and "compass0: WRONG" not in out
+    unknown = write_flight_bin(tmp_path / "nounit.bin", s, gsf=True, gsf_unit=None)  # the unit unknown: not used
+    code, out, _ = run(unknown)
+    assert "WRONG" not in out and "rotation judged against: nothing" in out
     no_gsf = write_flight_bin(tmp_path / "nogsf.bin", s, gsf=False)
     code, out, err = run(no_gsf)
     assert code in (0, 7), err

@@ -17,7 +17,7 @@ from mavcal.sources.fast_dataflash import decode_dataflash
 
 __all__ = ["CompassSeries", "FlightEvidence", "FlightSeries", "read_flight_series"]
 
-MESSAGES = ("MAG", "BAT", "ATT", "XKQ", "XKY0", "GPS", "CTUN", "PARM", "ARM", "EV", "MSG")
+MESSAGES = ("MAG", "BAT", "ATT", "XKQ", "XKY0", "GPS", "CTUN", "PARM", "ARM", "EV", "MSG", "FMTU")
 #: the ``EV`` ids of ArduPilot's ``LogEvent`` that arm and disarm (``AP_Logger``: ARMED 10,
 #: DISARMED 11, AUTO_ARMED 15) and that the land detector raises (NOT_LANDED 28, LAND_COMPLETE 18)
 EV_ARMED, EV_DISARMED, EV_AUTO_ARMED, EV_LAND_COMPLETE, EV_NOT_LANDED = 10, 11, 15, 18, 28
@@ -112,7 +112,7 @@ def read_flight_series(path: str | Path) -> FlightSeries:
     if p.suffix.lower() not in (".bin", ".log") and not _looks_dataflash(p):
         raise SourceError(f"{path}: not a DataFlash .bin (the in-flight stage reads .bin logs)")
     try:
-        cols, _, _ = decode_dataflash(str(p), MESSAGES)
+        cols, formats, _ = decode_dataflash(str(p), MESSAGES)
     except (OSError, ValueError) as exc:
         raise SourceError(f"{path}: cannot read: {exc}") from None
     mag = cols.get("MAG")
@@ -154,6 +154,11 @@ def read_flight_series(path: str | Path) -> FlightSeries:
     if xky is not None and len(xky["TimeUS"]) and all(k in xky for k in ("YC", "YCS")):
         c0 = np.asarray(xky.get("C", np.zeros(len(xky["TimeUS"])))) == 0
         gt, gy, gs = _t(xky)[c0], np.asarray(xky["YC"], float)[c0], np.asarray(xky["YCS"], float)[c0]
+        per_deg = _yaw_unit_deg(cols, formats, "XKY0", "YC")
+        if per_deg is None:  # the unit is not logged: no compass-independent yaw rather than a wrong one
+            gt, gy, gs = _empty(), _empty(), _empty()
+        else:
+            gy, gs = gy * per_deg, gs * per_deg
     else:
         gt, gy, gs = _empty(), _empty(), _empty()
     lat = lon = None
@@ -210,6 +215,25 @@ def _evidence(cols: dict[str, dict[str, np.ndarray]]) -> FlightEvidence:
     return FlightEvidence(firmware, np.asarray(arm_t, dtype=float)[order], np.asarray(armed, dtype=bool)[order],
                           not_landed, ct, cc("ThO"), cc("ThH"), cc("Alt"), gt,
                           spd if spd is not None and len(spd) == len(gt) else np.full(len(gt), np.nan))
+
+
+def _yaw_unit_deg(cols: dict[str, dict[str, np.ndarray]], formats: dict, name: str, column: str) -> float | None:
+    """Degrees per logged unit of ``name.column`` from the ``FMTU`` record of its type: the GSF
+    yaw is logged in radians by ArduPilot 4.0/4.1 (unit ``r``) and in degrees later (``h``/``d``);
+    None when the log does not say."""
+    fmt = next((f for f in formats.values() if getattr(f, "name", None) == name), None)
+    fmtu = cols.get("FMTU")
+    if fmt is None or fmtu is None or not all(k in fmtu for k in ("FmtType", "UnitIds")) \
+            or column not in fmt.columns:
+        return None
+    k = fmt.columns.index(column)
+    for ty, units in zip(np.asarray(fmtu["FmtType"]), fmtu["UnitIds"]):
+        if int(ty) != fmt.type:
+            continue
+        u = bytes(units).split(b"\0", 1)[0].decode("ascii", "replace")
+        if k < len(u):
+            return {"r": float(np.degrees(1.0)), "h": 1.0, "d": 1.0}.get(u[k])
+    return None
 
 
 def _looks_dataflash(p: Path) -> bool:
