@@ -75,8 +75,8 @@ def test_a_slope_with_current_the_other_compass_lacks_is_named():
 
 def test_current_that_barely_varies_keeps_the_motor_term():
     s = synth_flight([SynthCompass(interference=MOT, mot_in_force=(-1.0, 1.0, -1.0))], seed=6, current_max_a=0.0)
-    # a flight without current: the driver is the throttle (constant too here) -> nothing identified
-    r = analyse(s)
+    # a flight without a current sensor: the throttle when asked (constant too here) -> nothing identified
+    r = analyse(s, driver="throttle")
     (c,) = r.compasses
     assert c.fit is not None and not c.fit.fitted_mot
     assert not c.verdict.accepted and "barely varied" in c.verdict.not_written_because

@@ -8,7 +8,8 @@ horizontal length from the World Magnetic Model), with the delay between current
 estimated and 95 % bounds on each term; the verdict in words (:mod:`mavcal.flight.verdict`).
 
 Exit codes: 0 done (every compass accepted or fine); 7 some compass wrong or not accepted
-(the outputs are written); 3 unreadable log; 4 too little data; 2 bad options.
+(the outputs are written); 3 unreadable log; 4 too little data (no flight in the log, no
+current sensor); 2 bad options.
 """
 from __future__ import annotations
 
@@ -40,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the motor compensation (its type, the accepted compasses' terms) to this .param")
     parser.add_argument("--driver", choices=("auto", "current", "throttle"), default="auto",
                         help="what drives the interference: the battery current or the throttle; "
-                             "auto: the compensation type in force, else the current when logged")
+                             "auto: the compensation type in force, else the current (a log without a current "
+                             "sensor is refused: the throttle only when asked)")
     parser.add_argument("--yaw", choices=("ekf", "gsf", "auto"), default="ekf",
                         help="the yaw used for the heading checks: the EKF's, or the EKF-GSF estimator's "
                              "(compass-independent; samples where it has not converged are left out)")
@@ -82,7 +84,7 @@ def to_json(r: FlightResult) -> dict[str, Any]:
             "heading_error_vs_gsf_after_deg": _f(c.gsf_heading_err_deg[1]), "samples": f.n_samples,
             "missing_params": list(c.missing_params), "summary": v.summary})
     return {"source": r.source, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
-            "yaw_source": r.yaw_source, "field_source": r.field_source,
+            "yaw_source": r.yaw_source, "field_source": r.field_source, "rotation_reference": r.rotation_reference,
             "field_model_ned_mgauss": _f(r.B0_ned_mgauss), "compasses": comp, "parameters": param_values(r),
             "warnings": list(r.warnings)}
 
@@ -90,8 +92,12 @@ def to_json(r: FlightResult) -> dict[str, Any]:
 def summary_text(r: FlightResult) -> str:
     unit = "A" if r.driver_kind == "current" else "(throttle)"
     lines = [f"mavcal flight: {r.source}",
-             f"  interference driver: {r.driver_kind}; yaw for the checks: {r.yaw_source}; field: {r.field_source} "
-             f"({', '.join(f'{v:.0f}' for v in r.B0_ned_mgauss)} mGauss NED)"]
+             f"  interference driver: {r.driver_kind}; yaw for the checks: {r.yaw_source}"
+             + (" (fused from the compasses: not independent)" if r.yaw_source == "ekf" else " (compass-independent)")
+             + "; rotation judged against: "
+             + ("the EKF-GSF yaw (compass-independent)" if r.rotation_reference == "gsf" else
+                "nothing (no compass-independent yaw in the log)")
+             + f"; field: {r.field_source} ({', '.join(f'{v:.0f}' for v in r.B0_ned_mgauss)} mGauss NED)"]
     for c in r.compasses:
         v, f = c.verdict, c.fit
         assert f is not None

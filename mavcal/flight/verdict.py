@@ -6,12 +6,16 @@
   bad (ArduPilot's compassmot guidance). The interference *left* is the same with the
   compensation in force subtracted.
 * **Wrong in flight** (a compass disagreeing with the reference, and so with the good ones):
-  a rotation (its heading differs from the compass-independent yaw by more than
-  :data:`ROTATION_WRONG_DEG` on average over every heading: a wrong orientation or board
-  rotation; its offsets are then not judged, being bent by it); a constant offset its
-  calibration lacks (the fitted offsets differ from those in force by more than
-  :data:`OFFSET_WRONG_MGAUSS` and their bound); a slope with current the others lack (interference left above 60 %
-  while another compass's is below 30 %).
+  a rotation (its heading differs from the compass-independent yaw, the EKF-GSF's, by more
+  than :data:`ROTATION_WRONG_DEG` on average over every heading: a wrong orientation or board
+  rotation; its offsets are then not judged, being bent by it; never judged against the EKF's
+  yaw, which is fused from the compasses); a constant offset its calibration lacks (the fitted
+  offsets differ from those in force by more than :data:`OFFSET_WRONG_MGAUSS` and, on one axis
+  at least, by more than :data:`Z_WRONG` standard deviations); a slope with current the others
+  lack (the interference left, each axis shrunk by :data:`Z_WRONG` standard deviations, above
+  60 % while another compass's is below 30 %). Each test's false-alarm rate under the fit's
+  noise model is at most :data:`FALSE_ALARM` per compass (the union bound over the 3 axes); the
+  rotation's threshold is 6.7 times the largest 1-sigma the GSF yaw is admitted with (3 deg).
 * **Accepted** (its motor compensation goes into ``--param-out``): the motor term was
   identified, the calibration in force is known, and the compass is not wrong by offset or
   rotation (a fit against a wrongly calibrated compass would hide the cause).
@@ -25,11 +29,25 @@ import numpy as np
 
 from mavcal.flight.fit import CompassFit
 
-__all__ = ["Verdict", "judge", "OK_PCT", "BAD_PCT", "OFFSET_WRONG_MGAUSS", "ROTATION_WRONG_DEG"]
+__all__ = ["Verdict", "judge", "OK_PCT", "BAD_PCT", "OFFSET_WRONG_MGAUSS", "ROTATION_WRONG_DEG", "FALSE_ALARM",
+           "Z_WRONG", "pct_text"]
 
 OK_PCT, BAD_PCT = 30.0, 60.0
 OFFSET_WRONG_MGAUSS = 40.0
 ROTATION_WRONG_DEG = 20.0
+#: the false-alarm rate of each WRONG test, per compass, under the fit's noise model: a term is
+#: called different from the one in force only if one of its 3 axes is beyond Z_WRONG standard
+#: deviations (two-sided, the union bound over the axes: 3 x 2 x (1 - Phi(Z_WRONG)) <= FALSE_ALARM,
+#: whatever the axes' correlation)
+FALSE_ALARM = 0.001
+Z_WRONG = 3.588  # Phi^-1(1 - FALSE_ALARM / 6)
+Z95 = 1.959963984540054
+
+
+def pct_text(x: float) -> str:
+    """A percentage as printed: never '-0'."""
+    v = round(abs(float(x))) if abs(float(x)) < 0.5 else round(float(x))
+    return f"{v:.0f}"
 
 
 @dataclass(frozen=True)
@@ -62,7 +80,7 @@ def judge(fits: Mapping[int, CompassFit], driver_kind: str, missing: Mapping[int
     left: dict[int, float] = {}
     for i, f in fits.items():
         B = float(np.linalg.norm(f.B_ned_mgauss)) or 1.0
-        xmax = f.driver_max if driver_kind == "current" else 1.0
+        xmax = abs(f.driver_max) if driver_kind == "current" else 1.0
         pct[i] = float(np.linalg.norm(f.mot_per_unit)) * xmax / B * 100.0
         before = np.zeros(3) if mot_in_force is None else np.asarray(mot_in_force[i])
         left[i] = float(np.linalg.norm(f.mot_per_unit - before)) * xmax / B * 100.0
@@ -78,16 +96,23 @@ def judge(fits: Mapping[int, CompassFit], driver_kind: str, missing: Mapping[int
             advice.append("check how it is mounted and its orientation parameter, calibrate it again; or disable it")
         lack = f.ofs_mgauss - np.asarray(ofs_in_force[i]) if f.fitted_ofs else np.zeros(3)
         nlack = float(np.linalg.norm(lack))
-        limit = max(OFFSET_WRONG_MGAUSS, float(np.linalg.norm(f.ofs_bound95_mgauss)))
-        if not rotated and f.fitted_ofs and nlack > limit:
+        sd = np.asarray(f.ofs_bound95_mgauss, dtype=float) / Z95
+        beyond = bool(np.any(np.abs(lack) > Z_WRONG * sd)) and bool(np.all(np.isfinite(sd)))
+        if not rotated and f.fitted_ofs and nlack > OFFSET_WRONG_MGAUSS and beyond:
             causes.append(f"a constant {nlack:.0f} mGauss offset in flight that its calibration lacks "
                           f"(offsets {_v(f.ofs_mgauss)} fit the flight, {_v(ofs_in_force[i])} are in force)")
             advice.append("calibrate it again away from metal, or take the fitted offsets; if it keeps "
                           "disagreeing, disable it")
         others = [left[j] for j in fits if j != i]
-        if left[i] > BAD_PCT and others and min(others) < OK_PCT:
+        before = np.zeros(3) if mot_in_force is None else np.asarray(mot_in_force[i], dtype=float)
+        msd = np.asarray(f.mot_bound95_per_unit, dtype=float) / Z95
+        shrunk = np.maximum(np.abs(f.mot_per_unit - before) - Z_WRONG * msd, 0.0)  # its lower bound, axis by axis
+        xmax_i = abs(f.driver_max) if driver_kind == "current" else 1.0
+        left_low = float(np.linalg.norm(shrunk)) * xmax_i / (float(np.linalg.norm(f.B_ned_mgauss)) or 1.0) * 100.0
+        if f.fitted_mot and left_low > BAD_PCT and others and min(others) < OK_PCT:
             causes.append(f"a slope with {driver_kind} of {np.linalg.norm(f.mot_per_unit):.2f} {unit} that the "
-                          f"other compass{'es' if len(others) > 1 else ''} lack ({left[i]:.0f} % of the field left "
+                          f"other compass{'es' if len(others) > 1 else ''} lack "
+                          f"({pct_text(left[i])} % of the field left "
                           f"uncompensated at {at})")
             advice.append("move it away from the power wires (or twist them), or write the fitted compensation")
         lvl = _level(pct[i])
@@ -106,8 +131,9 @@ def judge(fits: Mapping[int, CompassFit], driver_kind: str, missing: Mapping[int
                           "move the compass away from the power wires or twist them, then write the compensation")
         mot_txt = (f"motor term fit {_v(f.mot_per_unit, 2)} +- {_v(f.mot_bound95_per_unit, 2)} {unit}"
                    if f.fitted_mot else "motor term not identified (kept)")
-        summary = (f"interference {pct[i]:.0f} % of the field at {at} ({lvl}), "
-                   f"{left[i]:.0f} % left with the compensation in force; {mot_txt}; delay {f.delay_s:+.2f} s; "
+        summary = (f"interference {pct_text(pct[i])} % of the field at {at} ({lvl}), "
+                   f"{pct_text(left[i])} % left with the compensation in force; {mot_txt}; "
+                   f"delay {round(f.delay_s, 2) + 0.0:+.2f} s; "
                    f"heading error against the EKF yaw {f.heading_err_before_deg:.1f} -> "
                    f"{f.heading_err_after_deg:.1f} deg")
         out[i] = Verdict(pct[i], left[i], lvl, wrong, tuple(causes), tuple(advice), accepted, why_not, lack, rot,
