@@ -6,9 +6,9 @@ pairs' and calls :func:`judge_accels` once the primary pair's verdict is known.
 """
 from __future__ import annotations
 
-from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import AccelMapping, combine
+from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
+from mavcal.autopilot.mapping import AccelMapping, combine
 from mavcal.core.accel_fit import AccelFit, fit_accel, holdout_accel_mps2
 from mavcal.coverage import sensor_coverages
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError

@@ -24,14 +24,14 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from mavcal.ardupilot import firmware as fw
+from mavcal.autopilot import firmware as fw
 from mavcal.autopilot import model_for
 from mavcal.determined import determined, joint_unidentified, unidentified
 from mavcal.errors import EXIT_PARTIAL, GateError, MavcalError, UsageError
 from mavcal.workers import ForkPool, Outcome
 
 if TYPE_CHECKING:
-    from mavcal.ardupilot.gates import SensorVerdict
+    from mavcal.autopilot.gates import SensorVerdict
 
 log = logging.getLogger(__name__)
 

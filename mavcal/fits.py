@@ -17,10 +17,10 @@ import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
 from mavcal.accel_judging import accel_only, accel_own, died_gate, judge_accels
-from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, combine, field_magnitude
+from mavcal.autopilot import firmware as fw
+from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
+from mavcal.autopilot.mapping import AccelMapping, ParamMapping, combine, field_magnitude
 from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
 from mavcal.core.held import calibrate_held

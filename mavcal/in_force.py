@@ -9,7 +9,7 @@ values that were in force. They come from
   ULog's parameters), or the vehicle itself on a live link;
 * a parameter file saved from the vehicle when the log was recorded, given with
   ``--params FILE`` (:func:`with_param_file`): Mission Planner's ``NAME,VALUE`` and MAVProxy's
-  ``NAME VALUE`` .param files (:mod:`mavcal.ardupilot.paramfile`).
+  ``NAME VALUE`` .param files (:mod:`mavcal.autopilot.paramfile`).
 
 Each sensor's origin is in :attr:`mavcal.ardupilot.recover.RawImu.cal_origin`. A sensor whose
 calibration in force is not known (no parameters at all, or only some of its names) is still
@@ -27,8 +27,8 @@ from typing import Union
 
 import numpy as np
 
-from mavcal.ardupilot.gates import CAUSE_IN_FORCE, Gate
-from mavcal.ardupilot.recover import RawImu
+from mavcal.autopilot.gates import CAUSE_IN_FORCE, Gate
+from mavcal.autopilot.raw import RawImu
 from mavcal.sources.types import ImuLog, ParamTimeline
 
 __all__ = ["with_param_file", "in_force_gates", "not_known_reason", "HOW_TO_RECORD", "GATE_NAME"]
@@ -90,7 +90,7 @@ def with_param_file(log_: ImuLog, params: PathLike | Mapping[str, float], origin
     log_ : ImuLog
         The recording as read.
     params : path or mapping of str to float
-        A .param file (:func:`mavcal.ardupilot.paramfile.read_param_file`) or the values.
+        A .param file (:func:`mavcal.autopilot.paramfile.read_param_file`) or the values.
     origin : str, optional
         How the file is named in the report (default ``"--params <file name>"``).
 
@@ -105,7 +105,7 @@ def with_param_file(log_: ImuLog, params: PathLike | Mapping[str, float], origin
     ParamFileError
         The file cannot be read or has a malformed line (exit code 3).
     """
-    from mavcal.ardupilot.paramfile import read_param_file
+    from mavcal.autopilot.paramfile import read_param_file
 
     # (values as the vehicle holds them, float32: a .param file's "0.001" stands for float32(0.001), the
     # value a PARAM_VALUE / PARM record carries)

@@ -8,7 +8,7 @@
   old file whole (or no file), never a part of the new one.
 
 Every file mavcal writes for the user goes through :func:`write_atomic` (.param files and
-backups by :func:`mavcal.ardupilot.paramfile.write_param_file`, JSON, HTML reports).
+backups by :func:`mavcal.autopilot.paramfile.write_param_file`, JSON, HTML reports).
 """
 from __future__ import annotations
 

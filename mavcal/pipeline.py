@@ -13,8 +13,8 @@ from __future__ import annotations
 import logging
 from dataclasses import replace
 
-from mavcal.ardupilot.recover import RawImu
 from mavcal.autopilot import model_for
+from mavcal.autopilot.raw import RawImu
 from mavcal.errors import UsageError
 from mavcal.fit_inputs import coverage_rule
 from mavcal.fits import fit_recording, refusal_verdicts
@@ -257,7 +257,7 @@ def calibrate_prepared(prep: Prepared, options: Options = Options(), *, progress
 def with_in_force_gates(run: CalibrationRun) -> CalibrationRun:
     """``run`` with a failed gate for every fitted sensor whose calibration in force is not known
     (:func:`mavcal.in_force.in_force_gates`): judged, never accepted, never written."""
-    from mavcal.ardupilot.gates import GateReport
+    from mavcal.autopilot.gates import GateReport
     from mavcal.in_force import in_force_gates
 
     fitted = set(run.gates.by_sensor())

@@ -20,9 +20,9 @@ from typing import Callable
 
 import numpy as np
 
-from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import GridErrors, attitude_errors, attitude_grid
-from mavcal.ardupilot.mapping import AccelMapping, CompassMapping, accel_frame
+from mavcal.autopilot import firmware as fw
+from mavcal.autopilot.evaluate import GridErrors, attitude_errors, attitude_grid
+from mavcal.autopilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel
 from mavcal.core.calibrate import calibrate
 from mavcal.core.constants import GRAVITY_MPS2

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mavcal.ardupilot import gates as gates_mod
-from mavcal.ardupilot.mapping import ParamMapping
-from mavcal.ardupilot.recover import RawImu
+from mavcal.autopilot import gates as gates_mod
+from mavcal.autopilot.mapping import ParamMapping
+from mavcal.autopilot.raw import RawImu
 from mavcal.core.accel_fit import AccelFit
 from mavcal.core.types import Calibration
 from mavcal.coverage import KeptParameter
@@ -236,7 +236,7 @@ class CalibrationRun:
         SourceError
             The file cannot be written.
         """
-        from mavcal.ardupilot.paramfile import write_param_file
+        from mavcal.autopilot.paramfile import write_param_file
         from mavcal.outputs import check_outputs
 
         check_outputs([("the .param file", str(path))], [self.source])  # never over the log it came from

@@ -31,7 +31,7 @@ import pytest
 from test_live_capture import AdviceHand
 
 from mavcal import cli
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.capture.web import THREAD_NAME
 from mavcal.testing.browser import headless_chromium, missing, page_text, wait_for
 from mavcal.testing.vehicle import VehicleTruth

@@ -8,7 +8,7 @@ import time
 import pytest
 from pymavlink import mavutil
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.cli import main
 from mavcal.testing.relay import LossRelay
 

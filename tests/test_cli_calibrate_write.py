@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.cli import main
 
 

@@ -25,7 +25,7 @@ import pytest
 import test_cli_golden
 import test_golden_real
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.testing.numbers import GOLDEN_RTOL, text_differences
 
 REPO = Path(__file__).resolve().parents[1]

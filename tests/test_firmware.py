@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import rotation_matrix
+from mavcal.autopilot.rotations import rotation_matrix
 
 
 def test_param_names():

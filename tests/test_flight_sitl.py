@@ -18,7 +18,7 @@ import sys
 
 import pytest
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.testing.numbers import numbers_close
 from mavcal.testing.sitl import SitlVehicle, require_sitl
 from mavcal.testing.sitl_flight import flight_params, fly

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.cli import main
 from mavcal.testing.numbers import text_differences
 

@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mavcal.ardupilot.paramfile import read_param_file, write_param_file
+from mavcal.autopilot.paramfile import read_param_file, write_param_file
 from mavcal.cli import main
 from mavcal.in_force import GATE_NAME, with_param_file
 from mavcal.pipeline import Options, calibrate_prepared, calibrate_source, prepare
@@ -230,7 +230,7 @@ def test_params_option_is_checked_before_any_work(stripped, tmp_path, capsys):
 
 
 def test_qgroundcontrols_parameter_file_is_read(tmp_path):
-    from mavcal.ardupilot.paramfile import parse_param_text
+    from mavcal.autopilot.paramfile import parse_param_text
 
     text = ("# Onboard parameters for Vehicle 1\n#\n# Vehicle-Id Component-Id Name Value Type\n"
             "1\t1\tCOMPASS_OFS_X\t-141.250000000000000000\t4\n1\t1\tAHRS_ORIENTATION\t0\t2\n")

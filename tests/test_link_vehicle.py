@@ -13,7 +13,7 @@ import pytest
 from pymavlink import mavutil
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import rotation_matrix
+from mavcal.autopilot.rotations import rotation_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.testing.vehicle import AccelCalTruth, CompassTruth, TestVehicle, VehicleTruth
 

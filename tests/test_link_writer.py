@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.errors import LinkError, ParamWriteError, RestoreFailedError, UnknownParameterError, UsageError
 from mavcal.link.connection import as_link, open_link
 from mavcal.link.params import fetch_all_params

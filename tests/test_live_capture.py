@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mavcal import cli
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.capture import CaptureConfig
 from mavcal.capture import live as live_capture
 from mavcal.link.connection import Link, open_link

@@ -4,7 +4,7 @@ import pytest
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.mapping import map_accel, map_compass
-from mavcal.ardupilot.rotations import euler_to_matrix, rotation_matrix
+from mavcal.autopilot.rotations import euler_to_matrix, rotation_matrix
 from mavcal.errors import ParameterMappingError
 
 G0 = fw.GRAVITY_MSS

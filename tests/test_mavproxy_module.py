@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from test_live_capture import AdviceHand
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.testing.vehicle import VehicleTruth
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,

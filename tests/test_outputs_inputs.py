@@ -12,7 +12,7 @@ import shutil
 
 import pytest
 
-from mavcal.ardupilot.paramfile import read_param_file, write_param_file
+from mavcal.autopilot.paramfile import read_param_file, write_param_file
 from mavcal.cli import main
 from mavcal.errors import OutputIsInputError, UsageError
 from mavcal.outputs import check_outputs, write_atomic

@@ -6,14 +6,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mavcal.ardupilot.paramfile import (
+from mavcal.ardupilot.protocol import force_save_kinds, needs_reboot, vector_group
+from mavcal.autopilot.paramfile import (
     ParamFileError,
     format_param_value,
     parse_param_text,
     read_param_file,
     write_param_file,
 )
-from mavcal.ardupilot.protocol import force_save_kinds, needs_reboot, vector_group
 from mavcal.errors import SourceError, UsageError
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.cli import main
 from mavcal.pipeline import calibrate_source
 from mavcal.testing.sitl_truth import load_truth

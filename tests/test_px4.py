@@ -57,7 +57,7 @@ def test_slot_is_found_by_device_id_not_instance():
 
 
 def test_rotation_table_matches_ardupilot_where_px4_agrees():
-    from mavcal.ardupilot.rotations import rotation_matrix as ap_matrix
+    from mavcal.autopilot.rotations import rotation_matrix as ap_matrix
 
     for v in range(0, 38):  # PX4 and ArduPilot share 0..37; 38 differs (whole degrees in PX4)
         assert np.allclose(rotation_matrix(v), ap_matrix(v), atol=1e-12), v
@@ -112,7 +112,7 @@ def test_misrotated_external_magnetometer_gets_its_rotation():
 
 def test_external_magnetometer_off_by_degrees_gets_custom_euler_angles():
     """7 deg off any standard rotation: ROT 100 with CAL_MAG0_ROLL/PITCH/YAW (PX4's custom Euler angles)."""
-    from mavcal.ardupilot.rotations import euler_to_matrix
+    from mavcal.autopilot.rotations import euler_to_matrix
 
     truth = dataclasses.replace(random_truth(6, mag_rot=0), mag_rotation=euler_to_matrix(*np.radians([4.0, -3.0, 5.0])))
     run = calibrate_source(simulate_px4(truth, seed=6), FAST)
@@ -242,7 +242,7 @@ def test_hardware_log_proves_the_rotation_order(px4_logs):
     and accel offsets up to 0.16 m/s^2. mavcal's ``L @ R(rot)`` with OFF/SCALE reproduces PX4's output;
     the rotation without the level adjustment, or applied in the other order, and the uncalibrated
     readings do not."""
-    from mavcal.ardupilot.rotations import euler_to_matrix
+    from mavcal.autopilot.rotations import euler_to_matrix
 
     def wrong_order(p):
         return rotation_matrix(int(p["SENS_BOARD_ROT"])) @ euler_to_matrix(*np.radians(

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.px4.firmware import accel_cal_from_params, mag_cal_from_params
 from mavcal.px4.rotations import rotation_matrix
 
@@ -50,7 +50,7 @@ def link(px4):
 
 
 def test_int32_parameters_round_trip_bytewise_through_the_writer(link, tmp_path):
-    from mavcal.ardupilot.paramfile import read_param_file
+    from mavcal.autopilot.paramfile import read_param_file
     from mavcal.link.params import fetch_all_params
     from mavcal.link.writer import write_params
 

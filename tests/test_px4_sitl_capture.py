@@ -230,7 +230,7 @@ def test_a_small_change_is_taken_into_use_through_the_detour(tmp_path, monkeypat
     from scipy.spatial.transform import Rotation
 
     import mavcal.link.writer as writer
-    from mavcal.ardupilot.rotations import euler_to_matrix
+    from mavcal.autopilot.rotations import euler_to_matrix
     from mavcal.link.connection import open_link
     from mavcal.link.params import fetch_all_params
     from mavcal.link.streams import PX4_STREAM_MESSAGES, start_streams

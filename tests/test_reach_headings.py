@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import rotation_matrix
+from mavcal.autopilot.rotations import rotation_matrix
 from mavcal.capture import euler_matrix
 from mavcal.core.headings import provisional_headings
 from mavcal.core.held import tilts_of

@@ -8,7 +8,7 @@ import pytest
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.recover import ACCEL_FRAME, MAG_FRAME, recover_raw
-from mavcal.ardupilot.rotations import rotation_matrix
+from mavcal.autopilot.rotations import rotation_matrix
 from mavcal.sources import read_log
 from mavcal.sources.types import ImuLog, LogEvent, ParamTimeline, SensorSeries
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from mavcal.ardupilot import rotations as rot
+from mavcal.autopilot import rotations as rot
 
 
 def test_yaw_90_maps_x_to_y():

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.testing.sitl import CALIBRATION_NAMES, SitlVehicle, require_sitl
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.testing import sitl as sitl_mod
 from mavcal.testing.sitl import WRONG_CALIBRATION, InjectedErrors, SitlVehicle, require_sitl
 

@@ -7,7 +7,7 @@ import pytest
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.gates import Gate, GateReport, accel_gates
-from mavcal.ardupilot.paramfile import read_param_file, write_param_file
+from mavcal.autopilot.paramfile import read_param_file, write_param_file
 from mavcal.cli import main
 
 pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)

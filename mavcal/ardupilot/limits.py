@@ -28,7 +28,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import is_valid_rotation
+from mavcal.autopilot.rotations import is_valid_rotation
 
 __all__ = ["ACCEL_OFFSET_MAX_MPS2", "ACCEL_SCALE_RANGE", "COMPASS_OFFSET_MAX_DEFAULT_MGAUSS", "COMPASS_OFFS_MAX",
            "COMPASS_OFFS_MAX_RANGE", "DIA_RANGE", "ODI_MAX", "FIELD_RANGE_MGAUSS", "COMPASS_SCALE_RANGE",

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import (
+from mavcal.autopilot.rotations import (
     CUSTOM_1,
     CUSTOM_2,
     matrix_to_euler,

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_PREFLIGHT_CALIBRATION
+from mavcal.autopilot.mavlink import MAV_CMD, MAV_CMD_PREFLIGHT_CALIBRATION
 from mavcal.sources.types import LogEvent, ParamTimeline
 
 __all__ = ["ChangeEvent", "KnownValues", "change_events", "known_values", "accel_cal_events", "scope_of"]

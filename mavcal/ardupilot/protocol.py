@@ -17,29 +17,16 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 
+from mavcal.autopilot.mavlink import (  # noqa: F401  (re-exported)
+    MAV_CMD,
+    MAV_CMD_ACCELCAL_VEHICLE_POS,
+    MAV_CMD_PREFLIGHT_CALIBRATION,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    valid_param_name,
+)
+
 __all__ = ["vector_group", "needs_reboot", "force_save_kinds", "valid_param_name", "CUSTOM_ROTATIONS", "MAV_CMD",
            "MAV_CMD_PREFLIGHT_CALIBRATION", "MAV_CMD_SET_MESSAGE_INTERVAL", "MAV_CMD_ACCELCAL_VEHICLE_POS"]
-
-#: The one table of the MAV_CMD numbers mavcal sends or recognises in logs (common.xml /
-#: ardupilotmega.xml; the same values as pymavlink's ``mavlink.MAV_CMD_*``, kept here so that
-#: modules that must not import pymavlink can name them).
-MAV_CMD = {
-    "MAV_CMD_PREFLIGHT_CALIBRATION": 241,
-    "MAV_CMD_PREFLIGHT_SET_SENSOR_OFFSETS": 242,
-    "MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN": 246,
-    "MAV_CMD_SET_MESSAGE_INTERVAL": 511,
-    "MAV_CMD_FIXED_MAG_CAL_YAW": 42006,
-    "MAV_CMD_DO_START_MAG_CAL": 42424,
-    "MAV_CMD_DO_ACCEPT_MAG_CAL": 42425,
-    "MAV_CMD_DO_CANCEL_MAG_CAL": 42426,
-    "MAV_CMD_ACCELCAL_VEHICLE_POS": 42429,
-}
-MAV_CMD_PREFLIGHT_CALIBRATION = MAV_CMD["MAV_CMD_PREFLIGHT_CALIBRATION"]
-MAV_CMD_SET_MESSAGE_INTERVAL = MAV_CMD["MAV_CMD_SET_MESSAGE_INTERVAL"]
-MAV_CMD_ACCELCAL_VEHICLE_POS = MAV_CMD["MAV_CMD_ACCELCAL_VEHICLE_POS"]
-
-#: names ArduPilot accepts: at most 16 characters (AP_MAX_NAME_SIZE), upper case, digits, '_'
-_NAME_RE = re.compile(r"^[A-Z0-9_]{1,16}$")
 
 # Vector3f parameters (prefix before _X/_Y/_Z) that hold calibration or geometry values.
 _VECTOR_PREFIX_RE = re.compile(
@@ -61,11 +48,6 @@ _REBOOT_RE = re.compile(
     r"^(?:COMPASS_PRIO[1-3]_ID|COMPASS_ENABLE|COMPASS_DISBLMSK|CUST_ROT_ENABLE|CUST_ROT[12]_(?:ROLL|PITCH|YAW))$"
 )
 _ORIENT_RE = re.compile(r"^(?:COMPASS_ORIENT[23]?|AHRS_ORIENTATION)$")
-
-
-def valid_param_name(name: str) -> bool:
-    """True if ``name`` is a syntactically valid ArduPilot parameter name (<= 16, ``[A-Z0-9_]``)."""
-    return bool(_NAME_RE.match(name))
 
 
 def vector_group(name: str) -> tuple[str, str, str] | None:

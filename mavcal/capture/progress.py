@@ -6,7 +6,7 @@ accelerometer's own tilt bound (:mod:`mavcal.core.accel_fit`, the bound its verd
 on) ``<= CaptureConfig.target_tilt_deg`` and every compass's heading bound (its fit with the
 primary accelerometer) ``<= CaptureConfig.target_heading_deg``. The next pose is advised for
 the sensor furthest from its target (largest bound / target): a compass by the heading
-criterion of :func:`mavcal.capture.session.pose_scores` on its own pair's fit, an
+criterion of :func:`mavcal.capture.poses.pose_scores` on its own pair's fit, an
 accelerometer by :func:`tilt_pose_scores`.
 
 A sensor that cannot get there is said with the reason, and the person may finish without it
@@ -29,10 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.ardupilot.evaluate import attitude_grid
-from mavcal.ardupilot.gates import reason_text
-from mavcal.ardupilot.mapping import accel_frame
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.evaluate import attitude_grid
+from mavcal.autopilot.gates import reason_text
+from mavcal.autopilot.mapping import accel_frame
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.core.accel_fit import candidate_information, tilt_variances
 from mavcal.run import CalibrationRun, Options, Prepared
 

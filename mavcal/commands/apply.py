@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.commands.common import BACKUP_HELP, add_link_arguments, check_new_backup, write_with_report
 from mavcal.errors import UsageError
 

@@ -339,7 +339,7 @@ def check_flags(args) -> None:
         raise UsageError("--save-tlog keeps a live recording: SOURCE is a log file already; nothing was done")
     _check_numbers(args)
     if args.params:  # read before any work: a bad file is refused at once (exit 3)
-        from mavcal.ardupilot.paramfile import read_param_file
+        from mavcal.autopilot.paramfile import read_param_file
 
         read_param_file(args.params)
     check_save_tlog(args.save_tlog)

@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{opt.replace('_', '-')} would overwrite the log")
     if args.param_out == "-":
         raise UsageError("--param-out needs a file name")
-    from mavcal.ardupilot.paramfile import write_param_file
+    from mavcal.autopilot.paramfile import write_param_file
     from mavcal.flight.stage import param_values, run_flight
 
     r = run_flight(args.log, yaw=args.yaw, driver=args.driver)

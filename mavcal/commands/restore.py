@@ -10,7 +10,7 @@ import argparse
 import time
 from pathlib import Path
 
-from mavcal.ardupilot.paramfile import read_param_file
+from mavcal.autopilot.paramfile import read_param_file
 from mavcal.commands.common import add_link_arguments, check_new_backup, write_with_report
 from mavcal.errors import UsageError
 

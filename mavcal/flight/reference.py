@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.sources.flight_series import FlightSeries
 from mavcal.sources.wmm import field_ned
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mavcal.ardupilot import flight as apf
+from mavcal.autopilot import flight as apf
 from mavcal.errors import InsufficientDataError
 from mavcal.flight.airborne import judge_flight
 from mavcal.flight.fit import CompassFit, FitInput, fit_compass

@@ -15,9 +15,9 @@ import logging
 import time
 import weakref
 
+from mavcal.autopilot import SaveSchedule
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link
-from mavcal.px4.autosave import SaveSchedule
 
 __all__ = ["STREAM_CHECK_S", "IMU_TYPES", "Px4Pacing", "StreamCheck"]
 

@@ -7,7 +7,7 @@ import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from mavcal.ardupilot.paramfile import write_param_file
+from mavcal.autopilot.paramfile import write_param_file
 from mavcal.link.connection import Link
 
 __all__ = ["write_backup", "default_backup_path"]

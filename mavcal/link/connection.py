@@ -37,6 +37,7 @@ from typing import Any, BinaryIO, Callable
 
 from pymavlink import mavutil
 
+from mavcal.autopilot.mavlink import MAV_AUTOPILOT_PX4  # a PX4, whose integer parameters travel bytewise
 from mavcal.errors import LinkError, SigningError, SourceError
 from mavcal.link.autodetect import AUTO, find_port
 from mavcal.link.serial_port import (
@@ -64,8 +65,6 @@ GCS_COMPONENT_ID = 25
 
 Handler = Callable[[Any], None]
 
-#: HEARTBEAT.autopilot of PX4, whose integer parameters travel bytewise
-MAV_AUTOPILOT_PX4 = 12
 #: MAV_PARAM_TYPE of the integer types -> (struct format, bytes)
 _INT_TYPES = {1: ("<B", 1), 2: ("<b", 1), 3: ("<H", 2), 4: ("<h", 2), 5: ("<I", 4), 6: ("<i", 4)}
 

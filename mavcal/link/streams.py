@@ -20,7 +20,7 @@ from typing import Any
 
 from pymavlink import mavutil
 
-from mavcal.ardupilot import firmware as fw
+from mavcal.autopilot import firmware as fw
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link
 
@@ -64,7 +64,7 @@ def needed_stream_ids(params: Mapping[str, float] | None) -> tuple[int, ...]:
     """
     if params is None:
         return STREAM_MESSAGE_IDS
-    from mavcal.px4.params import is_px4_params
+    from mavcal.autopilot import is_px4_params
 
     if is_px4_params(params):  # a PX4: no RAW_IMU (refused), SCALED_IMU* and HIGHRES_IMU
         return tuple(PX4_STREAM_MESSAGES.values())

@@ -8,7 +8,7 @@ Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; rese
   (since 4.0.4, PR #13823), an echo of the unchanged value, and on master a PARAM_ERROR
   ``MAV_PARAM_ERROR_PERMISSION_DENIED``. Either ends the attempts at once and the failure is reported in the
   vehicle's words.
-* Values outside ArduPilot's limits (:mod:`mavcal.ardupilot.limits`) are refused before any write unless
+* Values outside ArduPilot's limits (:mod:`mavcal.autopilot.limits`) are refused before any write unless
   ``allow_out_of_range``; a sensor kind whose values fail is never force-saved.
 * Retries are bounded by time (``budget_s`` per parameter / force-save, after at least ``retries`` attempts), not by
   a fixed count: a lossy link gets as many attempts as fit.
@@ -17,7 +17,7 @@ Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; rese
   only themselves). An echo with the right name and the expected value (float32-equal after the conversion) confirms
   a write; anything else is ignored until the attempt times out, then the PARAM_SET is sent again.
 * Values go out as float32 (REAL32) to ArduPilot; to PX4 an integer goes byte-wise with its type, and each changed
-  CAL_* vector by a detour (:func:`mavcal.px4.params.detoured_order`).
+  CAL_* vector by a detour (:func:`mavcal.autopilot.detoured_order`).
 
 Sequence of :func:`write_params`:
 
@@ -46,18 +46,17 @@ The library logs and never prints; the :class:`WriteReport` is data.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, NoReturn
 
-import numpy as np
 from pymavlink import mavutil
 
-from mavcal.ardupilot.limits import check_limits, failing_kinds
-from mavcal.ardupilot.protocol import needs_reboot, valid_param_name, vector_group
+from mavcal.autopilot import DETOUR_DWELL_S, detoured_order
+from mavcal.autopilot.limits import check_limits, failing_kinds
+from mavcal.autopilot.protocol import needs_reboot, vector_group
 from mavcal.errors import (
     LinkError,
     OutOfRangeError,
@@ -77,7 +76,7 @@ from mavcal.link.params import (
     vehicle_param_error,
 )
 from mavcal.link.silence import SETTLE_S, Patience, VehicleSilence
-from mavcal.px4.params import DETOUR_DWELL_S, detoured_order
+from mavcal.link.write_plan import ParamResult, WriteReport, expected_stored_value, plan_changes, same_stored
 
 __all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "UnknownParameterError",
            "OutOfRangeError", "expected_stored_value", "FORCE_SAVE_KINDS", "DEFAULT_BUDGET_FACTOR", "result_words",
@@ -86,11 +85,6 @@ __all__ = ["ParamResult", "WriteReport", "write_params", "plan_changes", "Unknow
 log = logging.getLogger(__name__)
 
 _A = mavutil.mavlink
-_INT_RANGE = {_A.MAV_PARAM_TYPE_INT8: (-128, 127), _A.MAV_PARAM_TYPE_INT16: (-32768, 32767),
-              _A.MAV_PARAM_TYPE_INT32: (-2147483648, 2147483647)}
-_TYPE_NAMES = {_A.MAV_PARAM_TYPE_INT8: "INT8", _A.MAV_PARAM_TYPE_INT16: "INT16",
-               _A.MAV_PARAM_TYPE_INT32: "INT32", _A.MAV_PARAM_TYPE_REAL32: "REAL32"}
-
 #: kind -> (param2, param5) of MAV_CMD_PREFLIGHT_CALIBRATION that force-saves it
 FORCE_SAVE_KINDS = {"compass": (76.0, 0.0), "accel": (0.0, 76.0)}
 #: default time budget per PARAM_SET / force-save, in units of the per-attempt timeout
@@ -106,187 +100,6 @@ def result_words(result: int) -> str:
     """A MAV_RESULT in MAVLink's words, e.g. ``"MAV_RESULT_DENIED"``."""
     entry = _A.enums.get("MAV_RESULT", {}).get(int(result))
     return entry.name if entry is not None else f"MAV_RESULT {int(result)}"
-
-
-@dataclass(frozen=True)
-class ParamResult:
-    """The fate of one parameter.
-
-    Attributes
-    ----------
-    name : str
-    old : float
-        Value on the vehicle before the write (the backup value).
-    requested : float
-        Value asked for.
-    expected : float
-        What the vehicle stores for ``requested`` (float32 rounding, integer conversion).
-    echoed : float or None
-        Last value the vehicle reported for it (echo or read-back); None if never heard.
-    ok : bool
-        True if the vehicle holds ``expected`` (confirmed), or nothing had to change.
-    attempts : int
-        PARAM_SETs sent for the new value (0: unchanged, not written).
-    restored : bool or None
-        None if no restore touched it; True if restored to ``old`` and verified; False if the
-        restore could not be verified (value in doubt).
-    restore_attempts : int
-        PARAM_SETs sent to restore it.
-    """
-
-    name: str
-    old: float
-    requested: float
-    expected: float
-    echoed: float | None
-    ok: bool
-    attempts: int
-    restored: bool | None = None
-    restore_attempts: int = 0
-
-    @property
-    def changed(self) -> bool:
-        """True if the value differs from the old one (something had to be written)."""
-        return not _same(self.old, self.expected)
-
-
-@dataclass(frozen=True)
-class WriteReport:
-    """What :func:`write_params` did. Frozen; built once at the end.
-
-    Attributes
-    ----------
-    results : tuple of ParamResult
-        One per requested parameter, in request order.
-    backup_path : str or None
-        The backup written before the first PARAM_SET (None for a dry run or no change).
-    complete : bool
-        Every change written and verified by read-back.
-    restored : bool
-        A failure happened and every attempted parameter was restored and verified.
-    in_doubt : tuple of str
-        Parameters whose value on the vehicle is unknown (restore not verified).
-    reboot_required : tuple of str
-        Changed parameters that only take effect after a reboot.
-    force_saved : tuple of str
-        Force-saves acknowledged by the vehicle (``"compass"``, ``"accel"``).
-    force_save_failed : tuple of str
-        Force-saves not acknowledged (or refused: the words are in ``message``).
-    force_save_skipped : tuple of str
-        Force-saves not sent because that sensor kind's values break a limit.
-    out_of_range : tuple of str
-        One line per value outside its limit that was written anyway (``allow_out_of_range``).
-    dry_run : bool
-        Nothing was written.
-    message : str
-        One-line summary.
-    """
-
-    results: tuple[ParamResult, ...]
-    backup_path: str | None
-    complete: bool
-    restored: bool = False
-    in_doubt: tuple[str, ...] = ()
-    reboot_required: tuple[str, ...] = ()
-    force_saved: tuple[str, ...] = ()
-    force_save_failed: tuple[str, ...] = ()
-    dry_run: bool = False
-    message: str = ""
-    force_save_skipped: tuple[str, ...] = ()
-    out_of_range: tuple[str, ...] = ()
-
-    @property
-    def needs_reboot(self) -> bool:
-        """True if some changed parameter needs a reboot to take effect."""
-        return bool(self.reboot_required)
-
-    @property
-    def changed(self) -> tuple[ParamResult, ...]:
-        """Results of the parameters whose value had to change."""
-        return tuple(r for r in self.results if r.changed)
-
-    @property
-    def total_attempts(self) -> int:
-        """PARAM_SETs sent in total (writes and restores)."""
-        return sum(r.attempts + r.restore_attempts for r in self.results)
-
-
-# ----------------------------------------------------------------------------------------------
-# value semantics
-# ----------------------------------------------------------------------------------------------
-def expected_stored_value(value: float, param_type: int) -> float:
-    """The value ArduPilot stores for a PARAM_SET of ``value`` (``AP_Param::set_float``).
-
-    Integer types: add 0.01 (-0.01 for negatives) in float32, clamp to the type's range, and
-    truncate toward zero. Everything else: float32 rounding.
-    """
-    if param_type in _INT_RANGE:
-        v = np.float32(value)
-        v = np.float32(v + (np.float32(-0.01) if v < 0 else np.float32(0.01)))
-        lo, hi = _INT_RANGE[param_type]
-        return float(int(min(max(float(v), lo), hi)))
-    return float(np.float32(value))
-
-
-def _same(a: float | None, b: float | None) -> bool:
-    """Equal as float32 values (the wire format), within one float32 ulp."""
-    if a is None or b is None:
-        return False
-    fa, fb = np.float32(a), np.float32(b)
-    if fa == fb:
-        return True
-    return bool(abs(float(fa) - float(fb)) <= float(np.spacing(np.abs(fb))))
-
-
-def _check_values(changes: Mapping[str, float], table: ParamTable) -> None:
-    bad = []
-    for name, value in changes.items():
-        v = float(value)
-        if not math.isfinite(v):
-            bad.append(f"{name}={value!r} is not finite")
-            continue
-        ptype = table[name][1]
-        if ptype in _INT_RANGE:
-            lo, hi = _INT_RANGE[ptype]
-            stored = expected_stored_value(v, ptype)
-            if not (lo <= v <= hi) or abs(stored - v) > 1e-3 * max(1.0, abs(v)):
-                bad.append(f"{name} is {_TYPE_NAMES[ptype]}: {v!r} would be stored as {stored:g}")
-        elif abs(v) > float(np.finfo(np.float32).max):
-            bad.append(f"{name}={v!r} does not fit a float32")
-    if bad:
-        raise UsageError("refusing to write (nothing was written): " + "; ".join(bad))
-
-
-def plan_changes(changes: Mapping[str, float], table: ParamTable) -> list[ParamResult]:
-    """Check ``changes`` against the vehicle's ``table`` and describe each change.
-
-    Returns
-    -------
-    list of ParamResult
-        Not yet written (``attempts`` 0; ``ok`` True only where nothing changes).
-
-    Raises
-    ------
-    UnknownParameterError
-        A name is not in ``table``.
-    UsageError
-        A bad name, a non-finite value, or a value an integer parameter cannot hold.
-    """
-    badnames = [n for n in changes if not valid_param_name(n)]
-    if badnames:
-        raise UsageError("bad parameter name " + ", ".join(repr(n) for n in badnames))
-    unknown = [n for n in changes if n not in table]
-    if unknown:
-        raise UnknownParameterError(unknown)
-    _check_values(changes, table)
-    plan = []
-    for name, value in changes.items():
-        old, ptype = table[name]
-        exp = expected_stored_value(float(value), ptype)
-        unchanged = _same(old, exp)
-        plan.append(ParamResult(name=name, old=float(old), requested=float(value), expected=exp,
-                                echoed=float(old) if unchanged else None, ok=unchanged, attempts=0))
-    return plan
 
 
 # ----------------------------------------------------------------------------------------------
@@ -360,7 +173,7 @@ def _set_and_confirm(link: Link, watch: _EchoWatch, name: str, value: float, exp
     start, unheard0 = time.monotonic(), wait.silence.unheard_s()
 
     def confirmed() -> bool:
-        return any(_same(v, expected) for v in watch.seen.get(name, [])[mark:])
+        return any(same_stored(v, expected) for v in watch.seen.get(name, [])[mark:])
 
     def refused() -> bool:
         return len(watch.refused.get(name, [])) > rmark
@@ -535,7 +348,7 @@ class _WriteRun:
 
     def write_each(self, to_write: Sequence[ParamResult]) -> str | None:
         """PARAM_SET every change until its echo confirms it (PX4's detours first, then the changes in
-        their order, see :func:`~mavcal.px4.params.detoured_order`); the failure, or None."""
+        their order, see :func:`~mavcal.autopilot.detoured_order`); the failure, or None."""
         order, detours = detoured_order({r.name: r.requested for r in to_write})
         for name, value in detours.items():
             out, failure = self._set(self.results[name], value)
@@ -575,7 +388,7 @@ class _WriteRun:
         for name in self.attempted:
             r = self.results[name]
             if name in back:
-                self.results[name] = replace(r, echoed=back[name][0], ok=_same(back[name][0], r.expected))
+                self.results[name] = replace(r, echoed=back[name][0], ok=same_stored(back[name][0], r.expected))
             else:
                 self.results[name] = replace(r, ok=False)
         bad = [n for n in self.attempted if not self.results[n].ok]
@@ -642,7 +455,7 @@ class _WriteRun:
             back, self.restore_problem = {}, str(exc)
         for n in confirmed:
             r = self.results[n]
-            good = n in back and _same(back[n][0], expected_stored_value(r.old, self.table[n][1]))
+            good = n in back and same_stored(back[n][0], expected_stored_value(r.old, self.table[n][1]))
             self.results[n] = replace(r, restored=good, echoed=back[n][0] if n in back else r.echoed)
 
     def restore(self, failure: str) -> NoReturn:

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mavcal.ardupilot import firmware as apfw
-from mavcal.ardupilot.rotations import CUSTOM_1
+from mavcal.autopilot import calform as apfw
+from mavcal.autopilot.rotations import CUSTOM_1
 from mavcal.px4 import params as pn
 from mavcal.px4.rotations import euler_deg, sensor_rotation
 

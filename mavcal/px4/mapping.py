@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mavcal.ardupilot.mapping import (
+from mavcal.autopilot.mapping import (
     AccelMapping,
     CompassMapping,
     ParamMapping,
@@ -36,7 +36,7 @@ from mavcal.ardupilot.mapping import (
     field_magnitude,
     map_accel,
 )
-from mavcal.ardupilot.rotations import rotation_angle_deg
+from mavcal.autopilot.rotations import rotation_angle_deg
 from mavcal.errors import ParameterMappingError
 from mavcal.px4 import params as pn
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal, board_level_deg

@@ -11,9 +11,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from mavcal.ardupilot.gates import GateConfig
-from mavcal.ardupilot.mapping import AccelMapping, ParamMapping
-from mavcal.ardupilot.recover import RawImu
+from mavcal.autopilot.gates import GateConfig
+from mavcal.autopilot.mapping import AccelMapping, ParamMapping
+from mavcal.autopilot.raw import RawImu
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal
 from mavcal.px4.mapping import map_accel_px4, map_calibration_px4
 from mavcal.px4.recover import cal_of, device_id_of, recover_raw

@@ -25,7 +25,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mavcal.ardupilot.recover import RawImu, log_warnings_once
+from mavcal.autopilot.raw import RawImu, log_warnings_once
 from mavcal.px4 import params as pn
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal, accel_cal_from_params, mag_cal_from_params
 from mavcal.sources.types import ImuLog, SensorSeries

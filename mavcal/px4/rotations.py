@@ -2,7 +2,7 @@
 
 PX4 builds each rotation as ``Dcmf(Eulerf(roll, pitch, yaw))`` from the degrees of its
 ``rot_lookup`` table (``rotation.cpp``, ``get_rot_matrix``): ``Rz(yaw) Ry(pitch) Rx(roll)``, the
-convention of :func:`mavcal.ardupilot.rotations.euler_to_matrix`. PX4's values are not
+convention of :func:`mavcal.autopilot.rotations.euler_to_matrix`. PX4's values are not
 ArduPilot's beyond 37 (38 is (90, 68, 293) in whole degrees; 39.. differ), hence this table.
 Every sensor rotation is preceded by the level adjustment ``SENS_BOARD_{X,Y,Z}_OFF``
 (``Dcmf(GetSensorLevelAdjustment()) * get_rot_matrix(rotation)`` in the sensor_calibration
@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mavcal.ardupilot.rotations import euler_to_matrix, matrix_to_euler, rotation_angle_deg
+from mavcal.autopilot.rotations import euler_to_matrix, matrix_to_euler, rotation_angle_deg
 
 __all__ = ["ROT_LOOKUP_DEG", "WRITABLE_MAX", "rotation_matrix", "sensor_rotation", "nearest_rotation",
            "euler_deg", "rotation_angle_deg"]

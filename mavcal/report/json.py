@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 import mavcal
-from mavcal.ardupilot.gates import Gate, GateReport
-from mavcal.ardupilot.mapping import ParamMapping
+from mavcal.autopilot.gates import Gate, GateReport
+from mavcal.autopilot.mapping import ParamMapping
 from mavcal.core.types import Calibration, SensorModel
 from mavcal.determined import determined, joint_unidentified
 from mavcal.errors import SourceError, UsageError

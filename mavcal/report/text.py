@@ -10,7 +10,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from mavcal.ardupilot.paramfile import format_param_value
+from mavcal.autopilot.paramfile import format_param_value
 from mavcal.determined import bound_phrase, joint_unidentified
 
 __all__ = ["summary_text", "holdout_text", "verdict_lines", "kept_lines", "next_step", "param_rows", "format_value",
@@ -187,7 +187,7 @@ def next_step(run, *, force_hint: str = CLI_HINTS["force_hint"], write_hint: str
 
 def _field_flag(cm) -> str:
     """" -- IMPLAUSIBLE: ..." when a compass not scaled to a known field measures one Earth never has."""
-    from mavcal.ardupilot.gates import EARTH_FIELD_MGAUSS
+    from mavcal.autopilot.gates import EARTH_FIELD_MGAUSS
 
     lo, hi = EARTH_FIELD_MGAUSS
     if cm.field_checked or lo <= cm.field_mgauss <= hi:

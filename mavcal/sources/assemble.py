@@ -43,12 +43,23 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.protocol import MAV_CMD, MAV_CMD_ACCELCAL_VEHICLE_POS, MAV_CMD_SET_MESSAGE_INTERVAL
+from mavcal.autopilot import firmware as fw
+from mavcal.autopilot.mavlink import (
+    MAV_AUTOPILOT_PX4,
+    MAV_CMD,
+    MAV_CMD_ACCELCAL_VEHICLE_POS,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+)
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu
-from mavcal.sources.param_columns import dataflash_params, text_codes, timeline_from_codes, with_column
+from mavcal.sources.param_columns import (
+    bytewise_param_values,
+    dataflash_params,
+    text_codes,
+    timeline_from_codes,
+    with_column,
+)
 from mavcal.sources.param_columns import decode_text as _text
 from mavcal.sources.types import ImuLog, LogEvent, PackedValues, ParamTimeline, SensorSeries
 
@@ -405,27 +416,6 @@ def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _Series
                 continue
             mm = m & ~(v == 0).all(axis=1) & np.isfinite(v).all(axis=1)
             out.add(sensor, inst, "HIGHRES_IMU", t[mm], v[mm], lt[mm])
-
-
-#: MAV_PARAM_TYPE of the integer types -> (numpy type of its bytes, bytes)
-_INT_PARAM_TYPES = {1: (np.uint8, 1), 2: (np.int8, 1), 3: (np.uint16, 2), 4: (np.int16, 2), 5: (np.uint32, 4),
-                    6: (np.int32, 4)}
-MAV_AUTOPILOT_PX4 = 12
-
-
-def bytewise_param_values(values_f32: np.ndarray, param_types: np.ndarray) -> np.ndarray:
-    """PARAM_VALUE values of a vehicle that sends integers bytewise (PX4): an integer type's value is
-    the integer in the low bytes of the float field, reinterpreted; the others are the floats."""
-    f = np.ascontiguousarray(values_f32, dtype="<f4")
-    out = f.astype(float)
-    bits = f.view("<u4")
-    types = np.asarray(param_types).astype(int)
-    for t, (dtype, n) in _INT_PARAM_TYPES.items():
-        m = types == t
-        if m.any():
-            low = bits[m] & np.uint32((1 << (8 * n)) - 1)
-            out[m] = low.astype({1: np.uint8, 2: np.uint16, 4: np.uint32}[n]).view(dtype).astype(float)
-    return out
 
 
 def _is_px4(cols: Columns, sysid: int) -> bool:

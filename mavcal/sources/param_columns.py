@@ -12,11 +12,12 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mavcal.ardupilot import firmware as fw
+from mavcal.autopilot import firmware as fw
 from mavcal.errors import SourceError
 from mavcal.sources.types import ParamTimeline
 
-__all__ = ["decode_text", "text_codes", "timeline_from_codes", "dataflash_params", "columns_named", "with_column"]
+__all__ = ["decode_text", "text_codes", "timeline_from_codes", "dataflash_params", "columns_named", "with_column",
+           "bytewise_param_values"]
 
 _PARAM_NAME_RE = re.compile(r"^[A-Za-z0-9_]{1,16}$")  # ArduPilot: up to 16 letters, digits, _
 
@@ -136,3 +137,23 @@ def dataflash_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[st
                      f"({', '.join(bad)}): corrupt records")
     keep = np.flatnonzero(ok)
     return timeline_from_codes(codes[keep], labels, t[keep], values[keep])
+
+
+#: MAV_PARAM_TYPE of the integer types -> (numpy type of its bytes, bytes)
+_INT_PARAM_TYPES = {1: (np.uint8, 1), 2: (np.int8, 1), 3: (np.uint16, 2), 4: (np.int16, 2), 5: (np.uint32, 4),
+                    6: (np.int32, 4)}
+
+
+def bytewise_param_values(values_f32: np.ndarray, param_types: np.ndarray) -> np.ndarray:
+    """PARAM_VALUE values of a vehicle that sends integers bytewise (PX4): an integer type's value is
+    the integer in the low bytes of the float field, reinterpreted; the others are the floats."""
+    f = np.ascontiguousarray(values_f32, dtype="<f4")
+    out = f.astype(float)
+    bits = f.view("<u4")
+    types = np.asarray(param_types).astype(int)
+    for t, (dtype, n) in _INT_PARAM_TYPES.items():
+        m = types == t
+        if m.any():
+            low = bits[m] & np.uint32((1 << (8 * n)) - 1)
+            out[m] = low.astype({1: np.uint8, 2: np.uint16, 4: np.uint32}[n]).view(dtype).astype(float)
+    return out

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mavcal.autopilot.mavlink import MAV_AUTOPILOT_PX4
 from mavcal.errors import SourceError
 from mavcal.sources.types import ImuLog, ParamTimeline, SensorSeries
 
@@ -41,7 +42,6 @@ __all__ = ["read_ulog", "calibrated_topics", "CalibratedTopic", "MAV_AUTOPILOT_P
 
 log = logging.getLogger(__name__)
 
-MAV_AUTOPILOT_PX4 = 12
 #: how the refusal of a log without raw sensor topics begins
 NO_RAW_TOPICS = "no raw sensor_accel/sensor_mag topics"
 

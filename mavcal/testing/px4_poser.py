@@ -25,7 +25,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 from scipy.spatial.transform import Rotation
 
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.testing.px4_sim import FIELD_NED_MGAUSS, Px4Truth, raw_at
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.px4 import params as pn
 from mavcal.px4.firmware import accel_cal_from_params, mag_cal_from_params

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import euler_to_matrix, rotation_matrix
+from mavcal.autopilot.rotations import euler_to_matrix, rotation_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.testing.logwriters import DataFlashWriter, TlogWriter
 

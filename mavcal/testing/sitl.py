@@ -109,7 +109,7 @@ import numpy as np
 from pymavlink import mavutil
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.testing.netns import NamespaceError, enter, launch_argv, require, start_keeper
 from mavcal.testing.netns import stop_pid as _stop_pid
 from mavcal.testing.sitl_truth import InjectedErrors, Score, SitlTruth, score

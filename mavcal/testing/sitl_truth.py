@@ -25,7 +25,7 @@ import numpy as np
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.evaluate import AttitudeErrors, attitude_errors
-from mavcal.ardupilot.rotations import rotation_matrix
+from mavcal.autopilot.rotations import rotation_matrix
 
 
 @dataclass(frozen=True, eq=False)

@@ -83,7 +83,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from mavcal.ardupilot.rotations import euler_to_matrix
+from mavcal.autopilot.rotations import euler_to_matrix
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.testing.vehicle_params import ParamStore
 from mavcal.testing.vehicle_sensors import AccelCalTruth, CompassTruth, Motion, SensorModel, VehicleTruth

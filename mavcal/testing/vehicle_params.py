@@ -36,7 +36,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.rotations import CUSTOM_1, CUSTOM_2, ROTATIONS
+from mavcal.autopilot.rotations import CUSTOM_1, CUSTOM_2, ROTATIONS
 
 __all__ = ["INT8", "INT16", "INT32", "REAL32", "ParamRow", "ParamStore", "SetOutcome", "ap_set_float",
            "default_param_table", "calibration_param_names", "COMPASS_DEV_IDS", "N_COMPASS_SLOTS", "N_IMUS",

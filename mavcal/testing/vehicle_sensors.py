@@ -11,7 +11,7 @@ the current parameters. Two boot-time behaviours are kept on top of that: custom
 firmware does not know acts as NONE.
 
 :class:`Motion` is the hand holding the vehicle: still, tumbling, or visiting a script of
-poses. Attitudes are body-to-NED DCMs (:func:`mavcal.ardupilot.rotations.euler_to_matrix`).
+poses. Attitudes are body-to-NED DCMs (:func:`mavcal.autopilot.rotations.euler_to_matrix`).
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot import rotations
+from mavcal.autopilot import rotations
 from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.testing.vehicle_params import COMPASS_DEV_IDS, N_COMPASS_SLOTS, N_IMUS, calibration_param_names
 

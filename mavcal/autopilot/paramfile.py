@@ -25,7 +25,7 @@ from typing import Union
 
 import numpy as np
 
-from mavcal.ardupilot.protocol import valid_param_name
+from mavcal.autopilot.mavlink import valid_param_name
 from mavcal.errors import SourceError, UsageError
 from mavcal.outputs import write_atomic
 
