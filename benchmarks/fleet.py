@@ -157,7 +157,7 @@ def write_results(doc: dict, out_dir: Path) -> None:
     """``fleet.json`` and ``fleet.md`` in ``out_dir``."""
     (out_dir / "fleet.json").write_text(json.dumps(doc, indent=1) + "\n")
     lines = ["# Fleet: logs per second and memory (benchmarks/fleet.py)", "",
-             f"{doc['n_logs']} logs, 2 workers, {doc['machine']['cpus']} CPUs shared with other work: the "
+             f"{doc['n_logs']} logs, 2 workers, {doc['machine']['cpus']} CPUs: the "
              "worker s/log column (a log's wall time in its worker) shows how loaded the machine was.", "",
              "| configuration | wall s | logs/s | worker s/log | start-up s | max worker RSS MB | parent RSS MB |",
              "|---|---|---|---|---|---|---|"]
