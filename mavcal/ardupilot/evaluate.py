@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
+from mavcal.autopilot.rotations import euler_to_matrix
 
 G0 = fw.GRAVITY_MSS
 
@@ -34,18 +35,7 @@ def attitude_grid(step_deg: float = 15.0, max_tilt_deg: float = 45.0) -> np.ndar
     pitches = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
     yaws = np.radians(np.arange(0.0, 360.0, step_deg))
     r, p, y = [a.ravel() for a in np.meshgrid(rolls, pitches, yaws, indexing="ij")]
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    C = np.empty((len(r), 3, 3))
-    C[:, 0, 0] = cp * cy
-    C[:, 0, 1] = sr * sp * cy - cr * sy
-    C[:, 0, 2] = cr * sp * cy + sr * sy
-    C[:, 1, 0] = cp * sy
-    C[:, 1, 1] = sr * sp * sy + cr * cy
-    C[:, 1, 2] = cr * sp * sy - sr * cy
-    C[:, 2, 0] = -sp
-    C[:, 2, 1] = sr * cp
-    C[:, 2, 2] = cr * cp
-    return C
+    return euler_to_matrix(r, p, y)
 
 
 @dataclass(frozen=True)

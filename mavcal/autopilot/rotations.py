@@ -95,27 +95,26 @@ ROTATIONS: dict[int, tuple[float, float, float]] = {k: (float(v[1]), float(v[2])
                                                     for k, v in _TABLE.items()}
 
 
-def euler_to_matrix(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+def euler_to_matrix(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
     """ArduPilot ``Matrix3::from_euler``: ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
 
     Parameters
     ----------
-    roll_rad, pitch_rad, yaw_rad : float
-        Angles in radians.
+    roll_rad, pitch_rad, yaw_rad : float or array
+        Angles in radians; arrays (broadcast together) give one matrix per element.
 
     Returns
     -------
-    (3, 3) array
+    (3, 3) array, or (..., 3, 3) for array angles
         Rotation matrix; ``R @ v`` rotates a body vector to the reference frame.
     """
     cr, sr = np.cos(roll_rad), np.sin(roll_rad)
     cp, sp = np.cos(pitch_rad), np.sin(pitch_rad)
     cy, sy = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([
-        [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
-        [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
-        [-sp, sr * cp, cr * cp],
-    ])
+    rows = ((cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy),
+            (cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy),
+            (-sp, sr * cp, cr * cp))
+    return np.stack([np.stack(np.broadcast_arrays(*row), axis=-1) for row in rows], axis=-2).astype(float)
 
 
 def matrix_to_euler(R: np.ndarray) -> tuple[float, float, float]:

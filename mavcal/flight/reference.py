@@ -42,19 +42,8 @@ def _interp_angle_deg(t: np.ndarray, ts: np.ndarray, a: np.ndarray) -> np.ndarra
 
 
 def _matrices(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    r, p, y = (np.radians(v) for v in (roll, pitch, yaw))
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    R = np.empty((len(r), 3, 3))
-    R[:, 0, 0] = cp * cy
-    R[:, 0, 1] = sr * sp * cy - cr * sy
-    R[:, 0, 2] = cr * sp * cy + sr * sy
-    R[:, 1, 0] = cp * sy
-    R[:, 1, 1] = sr * sp * sy + cr * cy
-    R[:, 1, 2] = cr * sp * sy - sr * cy
-    R[:, 2, 0] = -sp
-    R[:, 2, 1] = sr * cp
-    R[:, 2, 2] = cr * cp
-    return R
+    """Body-to-NED rotations, (n, 3, 3), from angles in degrees."""
+    return euler_to_matrix(np.radians(roll), np.radians(pitch), np.radians(yaw))
 
 
 def check_matrices() -> float:
