@@ -1,17 +1,19 @@
 """The in-flight stage end to end: a flight log -> one :class:`CompassResult` per compass.
 
-Per compass: the calibration in force undone as logged (:mod:`mavcal.ardupilot.flight`), the
+Per compass: the calibration in force undone as logged (the autopilot's in-flight model,
+:mod:`mavcal.autopilot.flight`, from the registry: ArduPilot's or PX4's), the
 reference (:mod:`mavcal.flight.reference`), the fit (:mod:`mavcal.flight.fit`) and the verdict
 (:mod:`mavcal.flight.verdict`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from mavcal.autopilot import flight as apf
+from mavcal.autopilot import model_named
 from mavcal.errors import InsufficientDataError
 from mavcal.flight.airborne import judge_flight
 from mavcal.flight.fit import CompassFit, FitInput, fit_compass
@@ -32,6 +34,7 @@ class CompassResult:
     ofs_in_force_mgauss: np.ndarray
     mot_in_force: np.ndarray
     gsf_heading_err_deg: tuple[float, float]  # RMS against the EKF-GSF yaw: as logged, as fitted (NaN: no GSF)
+    compensation: dict[str, float] = field(default_factory=dict)  # its parameters as fitted (written if accepted)
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,8 @@ class FlightResult:
     compasses: tuple[CompassResult, ...]
     warnings: tuple[str, ...]
     rotation_reference: str = "gsf"  # "gsf": the rotation judged against the compass-independent yaw; "none"
+    autopilot: str = "ArduPilot"
+    type_values: dict[str, float] = field(default_factory=dict)  # the parameter selecting the driver, as fitted
 
 
 #: a battery current below this (A) is no current sensor's reading
@@ -69,6 +74,23 @@ def run_flight(path: str | Path, *, yaw: str = "ekf", driver: str = "auto") -> F
     return analyse(read_flight_series(path), yaw=yaw, driver=driver)
 
 
+def _current(s: FlightSeries, battery: int) -> FlightSeries:
+    """``s`` with the current of battery ``battery`` (the one the firmware compensates with) as its current."""
+    if battery == 0 or battery not in s.battery_currents:
+        return s
+    t, a = s.battery_currents[battery]
+    return replace(s, current_time_s=t, current_a=a)
+
+
+def _in_force_driver(s: FlightSeries, motct: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """The series the compensation in force was driven by (empty when none is in force)."""
+    if motct == apf.COMPENSATION_CURRENT:
+        return s.current_time_s, s.current_a
+    if motct == apf.COMPENSATION_THROTTLE:
+        return s.throttle_time_s, s.throttle
+    return np.zeros(0), np.zeros(0)
+
+
 def _driver(s: FlightSeries, params_motct: int | None, driver: str) -> tuple[str, np.ndarray, np.ndarray, list[str]]:
     warn: list[str] = []
     no_sensor = no_current_sensor(s)
@@ -86,7 +108,7 @@ def _driver(s: FlightSeries, params_motct: int | None, driver: str) -> tuple[str
     if no_sensor:
         warn.append(f"{no_sensor}: the interference is fitted against the throttle")
     if len(s.throttle) < 10:
-        raise InsufficientDataError(f"{s.source}: no throttle logged (CTUN)")
+        raise InsufficientDataError(f"{s.source}: no throttle logged ({s.throttle_message})")
     return "throttle", s.throttle_time_s, s.throttle, warn
 
 
@@ -121,9 +143,13 @@ def _no_independent_yaw(against_ekf: dict[int, float]) -> str:
 
 def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
     _require_flight(s)
-    motct = apf.motor_type(s.params)
+    model = model_named(s.autopilot).flight()
+    s = _current(s, model.battery_instance(s.params))
+    motct = model.motor_type(s.params)
     kind, dt, dx, warnings = _driver(s, motct, driver)
-    kind_code = apf.COMPENSATION_CURRENT if kind == "current" else apf.COMPENSATION_THROTTLE
+    kind_code = apf.kind_code(kind)
+    ft, fx = _in_force_driver(s, motct)
+    applied: dict[int, apf.AsApplied] = {}
     results: list[CompassResult] = []
     yaw_source = field_source = "-"
     B0 = np.zeros(3)
@@ -134,18 +160,19 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
     against_ekf: dict[int, float] = {}  # heading minus the EKF yaw's (not independent: fused from the compasses)
     for c in s.compasses:
         try:
-            f = apf.in_force(s.params, c.instance)
+            f = model.in_force(s.params, c)
         except ValueError as exc:  # an instance the firmware does not have (a damaged log)
             warnings.append(f"compass{c.instance}: left out: {exc}")
             continue
         info[c.instance] = f
+        a = applied[c.instance] = model.as_applied(f, c, s.params, ft, fx)
         ref = reference_at(s, c.time_s, yaw)
         yaw_source, field_source, B0 = ref.yaw_source, ref.field_source, ref.B0_ned_mgauss
         keep = ref.valid & c.healthy
         if keep.sum() < 30:
             continue
-        raw = apf.raw_field(f, c.field_mgauss[keep], c.ofs_mgauss[keep], c.motor_ofs_mgauss[keep])
-        ofs_force = np.median(c.ofs_mgauss[keep], axis=0)
+        raw = a.raw_mgauss[keep]
+        ofs_force = np.median(a.ofs_mgauss[keep], axis=0)
         # the compensation in force applies to the driver the firmware uses; another driver: none of it
         mot_force = f.mot_per_unit if motct == kind_code else np.zeros(3)
         inp = FitInput(c.time_s[keep], raw, f.matrix_times_scale, ref.R[keep], dt, dx, kind, ref.B0_ned_mgauss,
@@ -162,18 +189,18 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
         gk = gref.valid & c.healthy
         if gk.sum() >= 30:
             x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
-            mag = (c.field_mgauss[gk] + (f.matrix_times_scale @ (fit.ofs_mgauss - c.ofs_mgauss[gk]).T).T
-                   - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
+            mag = (a.field_mgauss[gk] + (f.A @ (fit.ofs_mgauss - a.ofs_mgauss[gk]).T).T
+                   - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
             _, _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
             # the rotation on the offsets in force: a rotated compass bends the fitted ones
             off = heading_offset_deg(
-                gref.R[gk], c.field_mgauss[gk] - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
+                gref.R[gk], a.field_mgauss[gk] - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
                 gref.B0_ned_mgauss)[0]
             if gref.yaw_source == "gsf":
                 rotation[c.instance] = off
             elif np.isfinite(off):
                 against_ekf[c.instance] = off
-            before = heading_offset_deg(gref.R[gk], c.field_mgauss[gk], gref.B0_ned_mgauss)[2]
+            before = heading_offset_deg(gref.R[gk], a.field_mgauss[gk], gref.B0_ned_mgauss)[2]
             if gref.yaw_source == "gsf":
                 gsf_err[c.instance] = (before, after)
     if not fits:
@@ -182,7 +209,7 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
     if not rotation:
         warnings.append(_no_independent_yaw(against_ekf))
     verdicts = judge(fits, kind, {i: info[i].missing for i in fits},
-                     {i: np.median(next(c for c in s.compasses if c.instance == i).ofs_mgauss, axis=0) for i in fits},
+                     {i: np.median(applied[i].ofs_mgauss, axis=0) for i in fits},
                      {i: (info[i].mot_per_unit if motct == kind_code else np.zeros(3)) for i in fits}, rotation)
     split = _disagreement_deg(against_ekf) if not rotation else 0.0
     if split > ROTATION_WRONG_DEG:  # one of them is turned, and no independent yaw says which: none written
@@ -195,20 +222,20 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
             continue
         f = info[c.instance]
         results.append(CompassResult(c.instance, fits[c.instance], verdicts[c.instance], f.missing,
-                                     apf.compass_in_use(s.params, c.instance),
-                                     np.median(c.ofs_mgauss, axis=0), f.mot_per_unit,
-                                     gsf_err.get(c.instance, (float("nan"), float("nan")))))
+                                     model.compass_in_use(s.params, f),
+                                     np.median(applied[c.instance].ofs_mgauss, axis=0), f.mot_per_unit,
+                                     gsf_err.get(c.instance, (float("nan"), float("nan"))),
+                                     model.param_values(f, kind_code, fits[c.instance].mot_per_unit)))
     return FlightResult(s.source, kind, motct, yaw_source, field_source, B0, tuple(results), tuple(warnings),
-                        rot_ref)
+                        rot_ref, model.name, model.type_values(kind_code, s.params))
 
 
 def param_values(r: FlightResult) -> dict[str, float]:
     """The parameters to write: the driver type and the motor compensation of the accepted compasses."""
     out: dict[str, float] = {}
-    kind = apf.COMPENSATION_CURRENT if r.driver_kind == "current" else apf.COMPENSATION_THROTTLE
     for c in r.compasses:
         if c.fit is not None and c.verdict.accepted:
-            out.update(apf.motor_param_values(c.instance, c.fit.mot_per_unit))
+            out.update(c.compensation)
     if out:
-        out.update(apf.motor_type_value(kind))
+        out.update(r.type_values)
     return out
