@@ -19,7 +19,8 @@ from mavcal.flight.airborne import judge_flight
 from mavcal.flight.fit import CompassFit, FitInput, fit_compass
 from mavcal.flight.reference import heading_offset_deg, reference_at
 from mavcal.flight.verdict import ROTATION_WRONG_DEG, Verdict, judge
-from mavcal.sources.flight_series import FlightSeries, read_flight_series
+from mavcal.sources.flight_logs import read_flight_log
+from mavcal.sources.flight_series import FlightSeries
 
 __all__ = ["CompassResult", "FlightResult", "run_flight", "analyse"]
 
@@ -62,7 +63,7 @@ def no_current_sensor(s: FlightSeries) -> str:
     """Why the log has no usable current sensor ("" when it has one)."""
     c = s.current_a[np.isfinite(s.current_a)] if len(s.current_a) else s.current_a
     if len(c) <= 10:
-        return "no battery current logged (BAT)"
+        return f"no battery current logged ({s.current_message})"
     if float(np.median(c)) < NEGATIVE_CURRENT_A:
         return f"no current sensor: the battery current reads {float(np.median(c)):.1f} A (negative)"
     if float(np.ptp(c)) < MIN_CURRENT_SPAN_A:
@@ -71,7 +72,7 @@ def no_current_sensor(s: FlightSeries) -> str:
 
 
 def run_flight(path: str | Path, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
-    return analyse(read_flight_series(path), yaw=yaw, driver=driver)
+    return analyse(read_flight_log(path), yaw=yaw, driver=driver)
 
 
 def _current(s: FlightSeries, battery: int) -> FlightSeries:

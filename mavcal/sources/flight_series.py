@@ -82,7 +82,8 @@ class FlightSeries:
     evidence: FlightEvidence | None = None  # None: not read from a log (a synthetic flight)
     autopilot: str = "ArduPilot"  # whose model the compasses follow (mavcal.autopilot.NAMES)
     battery_currents: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # more batteries: (t, A)
-    throttle_message: str = "CTUN"  # where the throttle was read from (said when it is missing)
+    throttle_message: str = "CTUN"  # where the throttle and the current are read from (said when missing)
+    current_message: str = "BAT"
 
 
 def _t(cols: dict[str, np.ndarray]) -> np.ndarray:
