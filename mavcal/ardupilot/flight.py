@@ -88,6 +88,11 @@ class ArduPilotFlight:
 
     name = "ArduPilot"
     type_param = MOTCT
+    #: SYSID_THISMAV became MAV_SYSID in ArduPilot 4.7 (GCS_MAVLink's MAV_ namespace)
+    sysid_params: tuple[str, ...] = ("MAV_SYSID", "SYSID_THISMAV")
+
+    def id_name(self, slot: int) -> str:
+        return fw.compass_param_names(slot)["dev_id"] if slot >= 0 else ""
 
     def motor_type(self, params: Mapping[str, float]) -> int | None:
         return motor_type(params)

@@ -77,6 +77,11 @@ class FlightModel(Protocol):
     name: str
     #: the parameter that says what drives the compensation (``COMPASS_MOTCT``, ``CAL_MAG_COMP_TYP``)
     type_param: str
+    #: the names the vehicle's MAVLink system id parameter has had (``MAV_SYSID`` / ``SYSID_THISMAV``, ``MAV_SYS_ID``)
+    sysid_params: tuple[str, ...]
+
+    def id_name(self, slot: int) -> str:
+        """The parameter holding the device id of the compass whose parameters are in ``slot`` ("" : none)."""
 
     def motor_type(self, params: Mapping[str, float]) -> int | None:
         """The compensation kind in force (:data:`COMPENSATION_OFF`, ``_THROTTLE``, ``_CURRENT``); None: unknown."""

@@ -36,6 +36,7 @@ class CompassResult:
     mot_in_force: np.ndarray
     gsf_heading_err_deg: tuple[float, float]  # RMS against the EKF-GSF yaw: as logged, as fitted (NaN: no GSF)
     compensation: dict[str, float] = field(default_factory=dict)  # its parameters as fitted (written if accepted)
+    id_name: str = ""  # the parameter holding its device id ("": none known)
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,8 @@ class FlightResult:
     rotation_reference: str = "gsf"  # "gsf": the rotation judged against the compass-independent yaw; "none"
     autopilot: str = "ArduPilot"
     type_values: dict[str, float] = field(default_factory=dict)  # the parameter selecting the driver, as fitted
+    identity: dict[str, float] = field(default_factory=dict)  # the log's system id and compass device ids
+    sysid_param: str = ""  # which of ``identity`` is the system id
 
 
 #: a battery current below this (A) is no current sensor's reading
@@ -226,9 +229,13 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
                                      model.compass_in_use(s.params, f),
                                      np.median(applied[c.instance].ofs_mgauss, axis=0), f.mot_per_unit,
                                      gsf_err.get(c.instance, (float("nan"), float("nan"))),
-                                     model.param_values(f, kind_code, fits[c.instance].mot_per_unit)))
+                                     model.param_values(f, kind_code, fits[c.instance].mot_per_unit),
+                                     model.id_name(f.slot)))
+    sysid = next((n for n in model.sysid_params if n in s.params), "")
+    ident = [sysid] + [c.id_name for c in results if c.id_name]
     return FlightResult(s.source, kind, motct, yaw_source, field_source, B0, tuple(results), tuple(warnings),
-                        rot_ref, model.name, model.type_values(kind_code, s.params))
+                        rot_ref, model.name, model.type_values(kind_code, s.params),
+                        {n: float(s.params[n]) for n in ident if n in s.params}, sysid)
 
 
 def param_values(r: FlightResult) -> dict[str, float]:

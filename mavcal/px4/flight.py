@@ -61,6 +61,10 @@ class Px4Flight:
 
     name = "PX4"
     type_param = pn.MAG_COMP_TYPE
+    sysid_params: tuple[str, ...] = ("MAV_SYS_ID",)
+
+    def id_name(self, slot: int) -> str:
+        return pn.mag_names(slot)["id"] if slot >= 0 else ""
 
     def motor_type(self, params: Mapping[str, float]) -> int | None:
         v = params.get(pn.MAG_COMP_TYPE)
