@@ -83,8 +83,9 @@ def offset_names(instance: int) -> tuple[str, str, str]:
 class ArduPilotFlight:
     """ArduPilot's in-flight compass model (:class:`mavcal.autopilot.flight.FlightModel`): the
     ``MAG`` message logs the corrected field, the offsets and the motor offset, so the raw field
-    is recovered from the log with only ``DIA``, ``ODI`` and ``SCALE`` from the parameters; the
-    motor term ``COMPASS_MOTn`` is added in the body frame, as fitted."""
+    is recovered from the log with only ``DIA``, ``ODI`` and ``SCALE`` from the parameters (a tlog
+    logs the corrected field alone: the offsets and the motor compensation are then those in
+    force); the motor term ``COMPASS_MOTn`` is added in the body frame, as fitted."""
 
     name = "ArduPilot"
     type_param = MOTCT
@@ -105,8 +106,17 @@ class ArduPilotFlight:
 
     def as_applied(self, f: InForce, c: CompassSeries, params: Mapping[str, float],
                    driver_time_s: np.ndarray, driver: np.ndarray) -> AsApplied:
-        return AsApplied(c.field_mgauss, c.ofs_mgauss, c.motor_ofs_mgauss,
-                         raw_field(f, c.field_mgauss, c.ofs_mgauss, c.motor_ofs_mgauss))
+        ofs, mo = c.ofs_mgauss, c.motor_ofs_mgauss
+        n = len(c.time_s)
+        if not np.isfinite(ofs).all():  # not logged (a tlog): the offsets in force
+            ofs = np.tile([float(params.get(x, 0.0)) for x in offset_names(f.slot)], (n, 1))
+        if not np.isfinite(mo).all():  # not logged: the compensation in force at the driver's values
+            kind = motor_type(params)
+            if kind in (COMPENSATION_CURRENT, COMPENSATION_THROTTLE) and len(driver) > 1:
+                mo = np.interp(c.time_s, driver_time_s, driver)[:, None] * f.mot_per_unit[None, :]
+            else:
+                mo = np.zeros((n, 3))
+        return AsApplied(c.field_mgauss, ofs, mo, raw_field(f, c.field_mgauss, ofs, mo))
 
     def compass_in_use(self, params: Mapping[str, float], f: InForce) -> bool | None:
         return compass_in_use(params, f.instance)

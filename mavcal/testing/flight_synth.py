@@ -18,7 +18,7 @@ import numpy as np
 
 from mavcal.sources.flight_series import CompassSeries, FlightSeries
 
-__all__ = ["SynthCompass", "synth_flight", "write_flight_bin"]
+__all__ = ["SynthCompass", "synth_flight", "write_flight_bin", "write_flight_tlog"]
 
 
 @dataclass(frozen=True)
@@ -150,4 +150,41 @@ def write_flight_bin(path: str | Path, s: FlightSeries, *, gsf: bool = True, fir
         rec("ARM", int((s.att_time_s[-1] + t0 + 1) * 1e6), 0, 0, 0, 0)
     path = Path(path)
     path.write_bytes(bytes(out))
+    return path
+
+
+def write_flight_tlog(path: str | Path, s: FlightSeries, *, every: int = 1, current: bool = True,
+                      autopilot: int = 3, params: bool = True) -> Path:
+    """Write the synthetic flight ``s`` as a tlog, as an ArduPilot ground station records it: the
+    corrected field of compasses 0-2 in ``RAW_IMU`` / ``SCALED_IMU2`` / ``SCALED_IMU3``, ``ATTITUDE``,
+    ``SYS_STATUS`` (current in cA; -1 without ``current``), ``VFR_HUD`` (throttle %, altitude),
+    ``GPS_RAW_INT``, an armed ``HEARTBEAT`` (``autopilot`` 3 ArduPilot, 12 PX4) and the parameters
+    (``PARAM_VALUE``). ``every``: keep every n-th sample (a slower stream)."""
+    from mavcal.testing.logwriters import TlogWriter
+
+    t_unix = 1.7e9
+    path = Path(path)
+    with TlogWriter(path) as w:
+        d = w.dialect
+        w.heartbeat(t_unix, autopilot=autopilot, base_mode=81 | 128)
+        if params:
+            for k, (name, v) in enumerate(s.params.items()):
+                w.param_value(t_unix + 0.001 * k, name, v, index=k, count=len(s.params))
+        for k in range(0, len(s.att_time_s), every):
+            t = t_unix + 5.0 + float(s.att_time_s[k])
+            ms = int(float(s.att_time_s[k]) * 1000) + 5000
+            for c in s.compasses:
+                if c.instance == 0:
+                    w.raw_imu(t, ms * 1000, (0, 0, -1000), (0, 0, 0), c.field_mgauss[k])
+                else:
+                    w.scaled_imu(c.instance + 1, t, ms, (0, 0, -1000), (0, 0, 0), c.field_mgauss[k])
+            w.attitude(t, ms, *np.radians([s.roll_deg[k], s.pitch_deg[k], s.yaw_deg[k]]))
+            cur = int(round(s.current_a[k] * 100)) if current else -1
+            w.write(t, d.MAVLink_sys_status_message(0, 0, 0, 0, 16000, cur, 80, 0, 0, 0, 0, 0, 0))
+            alt = 600.0 + min(10.0, 2.0 * float(s.att_time_s[k]))
+            w.write(t, d.MAVLink_vfr_hud_message(0.0, 4.0, 0, int(round(100 * s.throttle[k])), alt, 0.0))
+            if k % 5 == 0:
+                w.heartbeat(t, autopilot=autopilot, base_mode=81 | 128)
+                w.write(t, d.MAVLink_gps_raw_int_message(int(t * 1e6), 3, int(-35.363e7), int(149.165e7), 600000,
+                                                         80, 120, 400, 0, 12))
     return path
