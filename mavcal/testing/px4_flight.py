@@ -76,6 +76,7 @@ def write_px4_flight(path: str | Path, compasses: Sequence[Px4SynthCompass], *, 
         w.info("ver_sw", "synthetic")
         w.param(pn.MAG_COMP_TYPE, comp_type, int32=True)
         w.param(pn.board_names()[0], 0, int32=True)
+        w.param("MAV_SYS_ID", 1, int32=True)
         raws = []
         for k, c in enumerate(compasses):
             slot = k if c.slot is None else c.slot
