@@ -132,7 +132,7 @@ def _disagreement_deg(against_ekf: dict[int, float]) -> float:
                 for a in against_ekf.values() for b in against_ekf.values()), default=0.0)
 
 
-def _no_independent_yaw(against_ekf: dict[int, float]) -> str:
+def _no_independent_yaw(against_ekf: dict[int, float], gsf_message: str = "XKY0") -> str:
     """What is said without a compass-independent yaw: no rotation verdict, how far the compasses
     disagree with each other (each against the EKF yaw, which is fused from them)."""
     spread = ""
@@ -141,8 +141,29 @@ def _no_independent_yaw(against_ekf: dict[int, float]) -> str:
         spread = (f"; the compasses' headings disagree by up to {d:.0f} deg ("
                   + ", ".join(f"compass{i} {v:+.0f}" for i, v in sorted(against_ekf.items()))
                   + " deg against the EKF yaw, which is fused from them)")
-    return ("no compass-independent yaw in this log (no converged EKF-GSF yaw, XKY0): "
+    return (f"no compass-independent yaw in this log (no converged EKF-GSF yaw, {gsf_message}): "
             "a wrong rotation is not judged" + spread)
+
+
+def _heading_checks(s: FlightSeries, c, a: apf.AsApplied, f: apf.InForce, fit: CompassFit, ref, dt: np.ndarray,
+                    dx: np.ndarray) -> tuple[str, float, tuple[float, float]] | None:
+    """The rotation check against the compass-independent yaw where it has converged (else the
+    reference's yaw), on the field corrected as fitted (offsets and interference bend single
+    headings, not all of them): (the yaw's source, the mean heading offset with the offsets in force
+    (a rotated compass bends the fitted ones), the RMS heading error as logged and as fitted);
+    None with too few samples."""
+    gref = reference_at(s, c.time_s, "gsf") if len(s.gsf_time_s) > 10 else ref
+    gk = gref.valid & c.healthy
+    if gk.sum() < 30:
+        return None
+    x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
+    mag = (a.field_mgauss[gk] + (f.A @ (fit.ofs_mgauss - a.ofs_mgauss[gk]).T).T
+           - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
+    after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)[2]
+    off = heading_offset_deg(gref.R[gk], a.field_mgauss[gk] - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
+                             gref.B0_ned_mgauss)[0]
+    before = heading_offset_deg(gref.R[gk], a.field_mgauss[gk], gref.B0_ned_mgauss)[2]
+    return gref.yaw_source, off, (before, after)
 
 
 def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
@@ -187,37 +208,24 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
         except ValueError as exc:
             warnings.append(f"compass{c.instance}: {exc}")
             continue
-        # the rotation check against the compass-independent yaw where it has converged, on the
-        # field corrected as fitted (offsets and interference bend single headings, not all of them)
-        gref = reference_at(s, c.time_s, "gsf") if len(s.gsf_time_s) > 10 else ref
-        gk = gref.valid & c.healthy
-        if gk.sum() >= 30:
-            x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
-            mag = (a.field_mgauss[gk] + (f.A @ (fit.ofs_mgauss - a.ofs_mgauss[gk]).T).T
-                   - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
-            _, _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
-            # the rotation on the offsets in force: a rotated compass bends the fitted ones
-            off = heading_offset_deg(
-                gref.R[gk], a.field_mgauss[gk] - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
-                gref.B0_ned_mgauss)[0]
-            if gref.yaw_source == "gsf":
-                rotation[c.instance] = off
+        checked = _heading_checks(s, c, a, f, fit, ref, dt, dx)
+        if checked is not None:
+            source, off, before_after = checked
+            if source == "gsf":
+                rotation[c.instance], gsf_err[c.instance] = off, before_after
             elif np.isfinite(off):
                 against_ekf[c.instance] = off
-            before = heading_offset_deg(gref.R[gk], a.field_mgauss[gk], gref.B0_ned_mgauss)[2]
-            if gref.yaw_source == "gsf":
-                gsf_err[c.instance] = (before, after)
     if not fits:
         raise InsufficientDataError(f"{s.source}: no compass has enough samples in flight with a known attitude")
     rot_ref = "gsf" if rotation else "none"
     if not rotation:
-        warnings.append(_no_independent_yaw(against_ekf))
+        warnings.append(_no_independent_yaw(against_ekf, s.gsf_message))
     verdicts = judge(fits, kind, {i: info[i].missing for i in fits},
                      {i: np.median(applied[i].ofs_mgauss, axis=0) for i in fits},
                      {i: (info[i].mot_per_unit if motct == kind_code else np.zeros(3)) for i in fits}, rotation)
     split = _disagreement_deg(against_ekf) if not rotation else 0.0
     if split > ROTATION_WRONG_DEG:  # one of them is turned, and no independent yaw says which: none written
-        why = (f"the compasses' headings disagree by {split:.0f} deg and no compass-independent yaw (XKY0) "
+        why = (f"the compasses' headings disagree by {split:.0f} deg and no compass-independent yaw ({s.gsf_message}) "
                "says which is right")
         verdicts = {i: replace(v, accepted=False, not_written_because=v.not_written_because or why)
                     for i, v in verdicts.items()}

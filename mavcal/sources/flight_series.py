@@ -84,6 +84,7 @@ class FlightSeries:
     battery_currents: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # more batteries: (t, A)
     throttle_message: str = "CTUN"  # where the throttle and the current are read from (said when missing)
     current_message: str = "BAT"
+    gsf_message: str = "XKY0"
 
 
 def _t(cols: dict[str, np.ndarray]) -> np.ndarray:

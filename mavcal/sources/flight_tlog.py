@@ -126,7 +126,8 @@ def read_flight_tlog(path: str | Path) -> FlightSeries:
     ev = FlightEvidence("", arm_t, armed, 0, thr_t, thr, np.full(len(thr_t), np.nan), alt, gps_t, gps_spd)
     return FlightSeries(src, tuple(compasses), cur_t, cur, thr_t, thr, at, deg[0], deg[1], deg[2],
                         _empty(), _empty(), _empty(), lat, lon, _params(cols, sysid), ev,
-                        throttle_message="VFR_HUD", current_message=cur_msg)
+                        throttle_message="VFR_HUD", current_message=cur_msg,
+                        gsf_message="which a tlog does not carry")
 
 
 def _current(cols, sysid: int, t0: float) -> tuple[np.ndarray, np.ndarray, str]:

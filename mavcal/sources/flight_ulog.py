@@ -123,7 +123,7 @@ def read_flight_ulog(path: str | Path) -> FlightSeries:
                    thr_t, thr, gps_t, gps_spd, times)
     return FlightSeries(src, tuple(compasses), cur_t, cur, thr_t, thr, att_t, roll, pitch, yaw, gt, gy, gs, lat, lon,
                         params, ev, autopilot="PX4", battery_currents=batteries, throttle_message=thr_msg,
-                        current_message="battery_status")
+                        current_message="battery_status", gsf_message="yaw_estimator_status")
 
 
 def _throttle(thrust, controls, times) -> tuple[np.ndarray, np.ndarray, str]:
