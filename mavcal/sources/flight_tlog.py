@@ -42,7 +42,10 @@ def _empty() -> np.ndarray:
 
 
 def _rate_hz(t: np.ndarray) -> float:
-    return (len(t) - 1) / max(float(t[-1] - t[0]), 1e-9) if len(t) > 1 else 0.0
+    """The stream's rate: one over the median interval (a gap in the link does not lower it)."""
+    d = np.diff(t)
+    d = d[d > 0]
+    return 1.0 / float(np.median(d)) if len(d) else 0.0
 
 
 def _vehicle(cols: dict[str, dict[str, np.ndarray]]) -> int | None:
