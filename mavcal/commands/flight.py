@@ -135,7 +135,7 @@ def to_json(r: FlightResult) -> dict[str, Any]:
             "heading_error_vs_gsf_before_deg": _f(c.gsf_heading_err_deg[0]),
             "heading_error_vs_gsf_after_deg": _f(c.gsf_heading_err_deg[1]), "samples": f.n_samples,
             "missing_params": list(c.missing_params), "summary": v.summary})
-    return {"source": r.source, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
+    return {"source": r.source, "autopilot": r.autopilot, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
             "yaw_source": r.yaw_source, "field_source": r.field_source, "rotation_reference": r.rotation_reference,
             "field_model_ned_mgauss": _f(r.B0_ned_mgauss), "compasses": comp, "parameters": param_values(r),
             "warnings": list(r.warnings)}
