@@ -100,6 +100,7 @@ def vehicle_is_the_logs(link, r: FlightResult, id_names: list[str], args: argpar
         raise WrongVehicleError("the connected vehicle is not the one the log comes from: it has "
                                 + "; ".join(diff) + "; nothing written")
 
+
 def _f(x: Any) -> Any:
     if hasattr(x, "tolist"):
         return _f(x.tolist())
