@@ -7,6 +7,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
+from mavcal.ardupilot.flight import ArduPilotFlight
 from mavcal.ardupilot.gates import GateConfig
 from mavcal.ardupilot.mapping import AccelMapping, ParamMapping, map_accel, map_calibration
 from mavcal.ardupilot.recover import RawImu, recover_raw
@@ -44,6 +45,10 @@ class ArduPilotModel:
         except ValueError:
             compass = None
         return accel, compass
+
+    def flight(self) -> ArduPilotFlight:
+        """ArduPilot's in-flight compass model (:mod:`mavcal.ardupilot.flight`)."""
+        return ArduPilotFlight()
 
     def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
         return map_accel(K_a, b_a, fw.accel_cal_from_params(params, instance), instance)

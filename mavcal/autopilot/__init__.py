@@ -27,6 +27,7 @@ from mavcal.px4.params import DETOUR_DWELL_S  # how long the vehicle is let see 
 from mavcal.sources.types import ImuLog
 
 if TYPE_CHECKING:
+    from mavcal.autopilot.flight import FlightModel
     from mavcal.autopilot.gates import GateConfig
     from mavcal.autopilot.mapping import AccelMapping, ParamMapping
     from mavcal.autopilot.raw import RawImu
@@ -57,6 +58,8 @@ class AutopilotModel(Protocol):
 
     def device_ids(self, log_: ImuLog, params: Mapping[str, float], accel_instance: int,
                    mag_instance: int) -> tuple[float | None, float | None]: ...
+
+    def flight(self) -> FlightModel: ...
 
 
 def is_px4(log_: ImuLog) -> bool:
