@@ -78,10 +78,11 @@ class ReachWatch:
         r = self.coverage(prep, n) if self._planned(n) and not done else None
         return [f"poses within reach: {'; '.join(r.missing)}; {r.add}"] if r is not None and r.missing else []
 
-    def mounting_abort(self, prep: Prepared, n: int) -> str:
+    def mounting_abort(self, prep: Prepared, n: int, fitted: bool = False) -> str:
         """The reason to abort when, the plan's poses held, the compass's readings fit a turned yaw
-        mounting: no fit of these poses with the mounting configured can be right ("" otherwise)."""
-        r = self.coverage(prep, n) if self._planned(n) else None
+        mounting that the fit could not take (``fitted``: the fit turned the compass and will write its
+        orientation, issue 37): no fit of these poses with the mounting configured can be right ("" otherwise)."""
+        r = self.coverage(prep, n) if self._planned(n) and not fitted else None
         return f"{r.mounting_text()}; then start again" if r is not None and r.mounting_text() else ""
 
     def cap_reason(self, prep: Prepared, n: int, progress: Sequence[SensorProgress]) -> str:
