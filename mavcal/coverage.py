@@ -207,6 +207,9 @@ REACH_FLOWN_TILT_DEG = 15.0
 #: trace as the vehicle turns) the poses must hold: about 6 headings 60 deg apart
 REACH_MIN_FIELD_DIRECTIONS = 5
 REACH_HEADING_DEG = 40.0
+#: a provisional fit of the compass (any yaw mounting) with an RMS residual at most this explains its
+#: readings (a magnetic disturbance that moves the field between poses leaves tens of mGauss or more)
+EXPLAINED_RMS_MGAUSS = 10.0
 
 _BEYOND = "the vehicle on its side (gravity along X or Y) or upside down: the full capture without --max-tilt"
 
@@ -249,6 +252,13 @@ class ReachCoverage:
     #: configured; None: not identified, see ``mounting_evidence``) and the evidence in words
     mounting_turn_deg: float | None = None
     mounting_evidence: str = ""
+    #: the smallest RMS residual (mGauss) of the provisional fit over the yaw mountings tried (None: no fit)
+    best_rms_mgauss: float | None = None
+
+    def explained(self) -> bool:
+        """Some yaw mounting of the compass explains its readings (the provisional fit's RMS residual at
+        most :data:`EXPLAINED_RMS_MGAUSS`): a field that disagrees between poses is then no disturbance."""
+        return self.best_rms_mgauss is not None and self.best_rms_mgauss <= EXPLAINED_RMS_MGAUSS
 
     def mounting_text(self) -> str:
         """What the poses say of the compass's mounting, for a verdict or an abort."""
@@ -443,7 +453,7 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
                "did not tell the yaw mountings apart")
         kept.append(KeptParameter(compass, "orientation", f"{why} ({evidence})" if evidence else why, _BEYOND))
     return ReachCoverage(applies, tilt, n_f, applies and not missing, tuple(kept), tuple(missing), add, seen,
-                         turn, evidence)
+                         turn, evidence, min(fit.rms_mgauss.values()) if fit is not None and fit.rms_mgauss else None)
 
 
 #: the yaw mounting is identified only from poses tilted at least this much (below it the vertical field

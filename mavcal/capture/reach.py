@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mavcal.capture.progress import SensorProgress
-from mavcal.coverage import ReachCoverage, headings_text, reach_coverage
+from mavcal.coverage import MOUNTING_MIN_TILT_DEG, ReachCoverage, headings_text, reach_coverage
 from mavcal.run import Options, Prepared
 
 __all__ = ["ReachWatch", "reach_plan", "reach_plan_extended"]
@@ -110,5 +110,10 @@ class ReachWatch:
         said = f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses"
         if r is not None and r.mounting_text():
             return f"{said}: {r.mounting_text()}; then start again"
+        if r is not None and r.explained():  # a disturbance only when no candidate mounting explains the field
+            return (f"{said} with the compass as configured, but a compass turned about the vertical explains its "
+                    f"readings ({r.mounting_evidence}): the compass may be mounted rotated; check how it is mounted "
+                    "and set its orientation (or tilt the vehicle further, at least "
+                    f"{MOUNTING_MIN_TILT_DEG:g} deg, so that the tilts tell the turn), then start again")
         return (f"{said}: magnetic disturbance (steel, magnets, currents nearby); move to a clean place and start "
                 "again" + (f" ({r.mounting_evidence})" if r is not None and r.mounting_evidence else ""))
