@@ -25,13 +25,13 @@ the values it would have written give (``would``) against that bound.
 
 ``--full`` adds ``mavcal capture`` without a limit (every side) and ``--max-tilt 5`` per seed.
 
-**Honesty** (``--honesty N``, default 10 per accelerometer state): simulated captures at ``--max-tilt 15``
+**Honesty** (``--honesty N``, default 6 per accelerometer state): simulated captures at ``--max-tilt 15``
 (:class:`mavcal.testing.vehicle.TestVehicle`, the benchmark hand of ``capture_guidance.py``), each
 vehicle's accelerometer calibration in force off its truth by a draw from the prior the fit assumes for
 its state (:data:`mavcal.coverage.HELD_ACCEL_SD`): the measured max heading error over tilts up to
 15 deg against the 95 % bound, or the refusal with its reason.
 
-    python benchmarks/large_vehicle.py [--seeds 301 302 ... issue] [--honesty 10] [--no-sitl] [--full] [--save]
+    python benchmarks/large_vehicle.py [--seeds 301 302 ... issue] [--honesty 6] [--no-sitl] [--full] [--save]
 """
 from __future__ import annotations
 
@@ -133,6 +133,7 @@ def mavcal_run(sitl: SitlVehicle, errors: InjectedErrors, seed: int, args: list[
     proposed = {n: p["new"] for n, p in rep.get("parameters", {}).items() if p.get("new") is not None}
     would = score_params({**before, **proposed}, errors, sitl.field_ned_mgauss) if proposed else {}
     return dict(rc=g.rc, seconds=round(g.took_s, 1), poses=len(g.hand.poses),
+                intervals=len(rep.get("intervals", [])) or None,
                 compass_accepted=bool(c0.get("accepted")), reasons=c0.get("reasons", [refusal] if refusal else []),
                 bound_deg=rep.get("quality", {}).get("heading_95_deg"), kept_unchanged=unchanged,
                 would={k: v for k, v in would.items()}, **s)
@@ -260,9 +261,17 @@ LABELS = {"reach15": "mavcal --max-tilt 15", "reach5": "mavcal --max-tilt 5", "f
           "fixed_yaw": "ArduPilot fixed yaw (true heading, right orientation given)"}
 
 
+def _poses(x: dict) -> str:
+    """Poses the hand held (it may start one or two more while the capture, at its cap, computes its
+    verdict) and the still intervals the capture counted."""
+    if "poses" not in x:
+        return "-"
+    return f"{x['poses']} ({x['intervals']})" if x.get("intervals") else str(x["poses"])
+
+
 def sitl_table(rows: list[dict]) -> str:
     head = ("| seed | accelerometer | site (dip) | SIM orient | offsets from in force (mGauss) | method | compass "
-            "accepted | poses | time (s) | heading level (deg) | heading <=30 deg tilt (deg) | tilt (deg) | offsets "
+            "accepted | poses held (intervals) | time (s) | heading level (deg) | heading <=30 deg tilt (deg) | tilt (deg) | offsets "
             "(mGauss) | COMPASS_ORIENT read back | 95 % bound (deg) | would-be <=15 deg (deg) | accel kept |\n|"
             + "---|" * 17)
     lines = [head]
@@ -276,7 +285,7 @@ def sitl_table(rows: list[dict]) -> str:
             lines.append(
                 f"| {r['seed']} | {r['accel'].split(' ')[0]} | {r['site']} ({r['inclination_deg']:.0f}) | {r['mag_orient']} "
                 f"| {r['offsets_from_in_force_mgauss']:.0f} | {LABELS[m]} "
-                f"| {('yes' if x['compass_accepted'] else 'no') if mav else '-'} | {x.get('poses', '-')} "
+                f"| {('yes' if x['compass_accepted'] else 'no') if mav else '-'} | {_poses(x)} "
                 f"| {_f(x.get('seconds'), '.0f')} | {_f(x['heading_level_deg'])} | {_f(x['heading_tilt30_deg'])} "
                 f"| {_f(x['tilt_deg'])} | {_f(x['offsets_mgauss'], '.1f')} | {x['orient']} | {_f(x.get('bound_deg'))} "
                 f"| {_f(w.get('heading_tilt15_deg')) if mav else '-'} "
@@ -306,17 +315,11 @@ def honesty_table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", nargs="+", default=[*map(str, SEEDS), "issue"])
-    ap.add_argument("--honesty", type=int, default=10, metavar="N", help="simulated captures per accelerometer state")
+    ap.add_argument("--honesty", type=int, default=6, metavar="N", help="simulated captures per accelerometer state")
     ap.add_argument("--no-sitl", action="store_true", help="the honesty check alone")
     ap.add_argument("--full", action="store_true", help="also --max-tilt 5 and the full capture per seed")
     args = ap.parse_args(argv)
     t0 = time.time()
-    honest = []
-    for state in ("calibrated", "level", "never"):
-        for k in range(args.honesty):
-            r = honesty_capture(1000 + k, state)
-            honest.append(r)
-            print(f"honesty {state} {k}: {r}", flush=True)
     rows = []
     reason = None if args.no_sitl else unavailable_reason()
     if not args.no_sitl and reason is None:
@@ -324,6 +327,12 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(run_seed(seed if seed == "issue" else int(seed), args.full))
     elif reason:
         print(f"large_vehicle: SITL unavailable: {reason}", file=sys.stderr)
+    honest = []
+    for state in ("calibrated", "level", "never"):
+        for k in range(args.honesty):
+            r = honesty_capture(1000 + k, state)
+            honest.append(r)
+            print(f"honesty {state} {k}: {r}", flush=True)
     n_ok = sum(1 for r in honest if r.get("within") or r["outcome"] == "refused")
     cmd = "python benchmarks/large_vehicle.py " + " ".join(sys.argv[1:])
     md = (f"# A vehicle that cannot be turned over (issues 27, 37)\n\nProduced by `{cmd.strip()}` "
