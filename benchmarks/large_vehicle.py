@@ -153,7 +153,7 @@ def _num(seed: int | str) -> int:
 
 def run_seed(seed: int | str, full: bool = False) -> dict:
     if seed == "issue":
-        errors, state, site = ISSUE, "as the issue's (0.05 m/s^2, 1 % off its truth's 0.43 m/s^2, 3 %)", "CMAC"
+        errors, state, site = ISSUE, "issue's (in force 0.43 m/s^2 and 3 % off its truth)", "CMAC"
         boot = dict(WRONG_CALIBRATION)
     else:
         state, site, _ = CASES[int(seed)]
