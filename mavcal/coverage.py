@@ -40,7 +40,8 @@ __all__ = ["CoverageRule", "SensorCoverage", "accel_coverage", "compass_coverage
            "field_directions", "UNIDENTIFIED_HEADING_DEG", "UNIDENTIFIED_TILT_DEG", "KeptParameter",
            "ReachCoverage", "reach_coverage", "segmentation_reach", "within_reach", "held_priors",
            "REACH_MAX_TILT_DEG", "REACH_FLOWN_TILT_DEG", "REACH_MIN_TILT_DEG",
-           "REACH_MIN_FIELD_DIRECTIONS", "heading_gaps", "headings_text"]
+           "REACH_MIN_FIELD_DIRECTIONS", "heading_gaps", "headings_text", "accel_state", "mounting_ratio",
+           "HELD_ACCEL_SD", "ACCEL_STATE_WORDS"]
 
 #: a 95 % heading bound this large says the poses did not identify the compass (a heading
 #: error that may be anywhere in a half turn is no estimate at all)
@@ -206,6 +207,9 @@ REACH_FLOWN_TILT_DEG = 15.0
 #: trace as the vehicle turns) the poses must hold: about 6 headings 60 deg apart
 REACH_MIN_FIELD_DIRECTIONS = 5
 REACH_HEADING_DEG = 40.0
+#: a provisional fit of the compass (any yaw mounting) with an RMS residual at most this explains its
+#: readings (a magnetic disturbance that moves the field between poses leaves tens of mGauss or more)
+EXPLAINED_RMS_MGAUSS = 10.0
 
 _BEYOND = "the vehicle on its side (gravity along X or Y) or upside down: the full capture without --max-tilt"
 
@@ -248,6 +252,13 @@ class ReachCoverage:
     #: configured; None: not identified, see ``mounting_evidence``) and the evidence in words
     mounting_turn_deg: float | None = None
     mounting_evidence: str = ""
+    #: the smallest RMS residual (mGauss) of the provisional fit over the yaw mountings tried (None: no fit)
+    best_rms_mgauss: float | None = None
+
+    def explained(self) -> bool:
+        """Some yaw mounting of the compass explains its readings (the provisional fit's RMS residual at
+        most :data:`EXPLAINED_RMS_MGAUSS`): a field that disagrees between poses is then no disturbance."""
+        return self.best_rms_mgauss is not None and self.best_rms_mgauss <= EXPLAINED_RMS_MGAUSS
 
     def mounting_text(self) -> str:
         """What the poses say of the compass's mounting, for a verdict or an abort."""
@@ -259,14 +270,20 @@ class ReachCoverage:
                     "mounted and set its orientation")
         return ""
 
-    def heading_advice(self) -> str:
+    def heading_advice(self, accel: str = "") -> str:
         """What to do when the heading bound of these poses is above its gate: the bound counts the
-        uncertainty of the accelerometer calibration kept, which no pose within reach lowers (issue 37)."""
-        return ("within reach the bound counts the uncertainty of the accelerometer's calibration, which is kept "
-                "(poses within reach do not identify it) and which more poses do not lower once the bound stops "
-                "falling: calibrate the accelerometer (its full calibration, or at least a level calibration on "
-                "level ground) and capture again, or write anyway with --force; else turn the vehicle to headings "
-                f"between the {self.n_field_directions} recorded")
+        uncertainty of the accelerometer calibration kept, which no pose within reach lowers (issue 37);
+        ``accel``: the state of that calibration (:func:`accel_state`), named as the limit."""
+        said = ACCEL_STATE_WORDS.get(accel)
+        what = {"never": "calibrate the accelerometer (its full 6-side calibration, or at least ArduPilot's simple "
+                         "or level calibration with the vehicle level on level ground)",
+                "level": "calibrate the accelerometer fully (its 6-side calibration: the scales)"}.get(
+            accel, "calibrate the accelerometer (its full calibration, or at least a level calibration on level "
+                   "ground)")
+        return ("the limit is the accelerometer" + (f", {said}" if said else "") + ": within reach the bound counts "
+                "the uncertainty of its calibration, which is kept (poses within reach do not identify it) and which "
+                f"more poses do not lower once the bound stops falling: {what} and capture again, or write anyway "
+                f"with --force; else turn the vehicle to headings between the {self.n_field_directions} recorded")
 
     def refit_advice(self) -> str:
         """What poses to add when the fit of these poses was not certified (a wrong basin not ruled
@@ -283,6 +300,10 @@ class ReachCoverage:
         if self.compass_identified:
             out = [head + "the compass's offsets and soft-iron terms are identified (fitted with the "
                    "accelerometer held)"]
+            if self.mounting_turn_deg:
+                out.append(f"the compass's yaw mounting is identified by the tilts: turned "
+                           f"{self.mounting_turn_deg:.0f} deg about the vertical from its configured orientation "
+                           f"({self.mounting_evidence}); fitted so")
         else:
             out = [head + "the compass is not identified: " + "; ".join(self.missing) + f"; {self.add}"]
         return out + [k.text() for k in self.kept]
@@ -408,7 +429,7 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
     applies = tilt <= REACH_MAX_TILT_DEG and not accel_coverage("accel", g, rule).identifiable
     n_f, psi, fit = _heading_fit(gravity_dirs, mag_means)
     seen = () if psi is None else tuple(float(x) for x in psi)
-    turn, evidence = _mounting(fit, tilt)
+    turn, evidence = _mounting(fit, tilt, g.shape[0])
     missing = []
     add = ""
     if n_f < REACH_MIN_FIELD_DIRECTIONS:
@@ -426,24 +447,42 @@ def reach_coverage(gravity_dirs: np.ndarray, mag_means: np.ndarray, accels: Sequ
         add = (add + "; " if add else "") + ("tilt the vehicle a few degrees at some headings (one side on a "
                                              "block, a ramp)")
     kept = [k for a in accels for k in _accel_kept(a, tilt)] if applies else []
-    if applies and not missing:
+    if applies and not missing and not turn:  # a turn found is fitted and written (mavcal.fits), or kept there
         why = ("the tilts confirm the yaw mounting configured, its other turns fit worse" if turn == 0.0 else
                "turning about the vertical cannot tell a rotation of the compass from the heading, and the tilts "
                "did not tell the yaw mountings apart")
         kept.append(KeptParameter(compass, "orientation", f"{why} ({evidence})" if evidence else why, _BEYOND))
     return ReachCoverage(applies, tilt, n_f, applies and not missing, tuple(kept), tuple(missing), add, seen,
-                         turn, evidence)
+                         turn, evidence, min(fit.rms_mgauss.values()) if fit is not None and fit.rms_mgauss else None)
 
 
-#: the yaw mounting is identified when the best candidate's RMS residual is this many times smaller
-#: than every other's, the poses tilted at least MOUNTING_MIN_TILT_DEG (from 10-15 deg of tilt the
-#: vertical field moves into the compass's X or Y axis as it is mounted: 3x or more apart in
-#: tests/test_reach_headings.py; at 5 deg they are not told apart)
-MOUNTING_EVIDENCE_RATIO = 3.0
+#: the yaw mounting is identified only from poses tilted at least this much (below it the vertical field
+#: moves too little into the compass's X or Y axis to tell the turns apart)
 MOUNTING_MIN_TILT_DEG = 8.0
+#: the false-alarm rate of the choice of a yaw mounting over another (the configured one included): a
+#: candidate is chosen only when its provisional fit's cost is lower than every other candidate's by a
+#: factor that noise alone exceeds with at most this probability (:func:`mounting_ratio`)
+MOUNTING_FALSE_ALARM = 1e-3
+#: ... and never by less than this factor of the RMS residuals (the provisional fit is a model of the
+#: compass, not its exact noise: its residual is not pure noise)
+MOUNTING_EVIDENCE_RATIO = 3.0
 
 
-def _mounting(fit: ProvisionalHeadings | None, tilt_deg: float) -> tuple[float | None, str]:
+def mounting_ratio(n_poses: int) -> float:
+    """The factor of RMS residuals by which a yaw mounting must fit better than every other one to be
+    chosen. The provisional fit of each candidate has the same unknowns (:mod:`mavcal.core.headings`:
+    offsets, scale, dip, soft iron; d = 2N - 11 degrees of freedom, 2N - 5 with fewer than 5 poses);
+    if two candidates fitted equally well in truth, the ratio of their costs would be F(d, d)
+    distributed, so a candidate is chosen over another only when its cost ratio exceeds the
+    ``1 - MOUNTING_FALSE_ALARM`` quantile of F(d, d): the probability that noise alone makes a wrong
+    turn fit that much better (a false alarm) is at most :data:`MOUNTING_FALSE_ALARM`."""
+    from scipy.stats import f as f_dist
+
+    d = max(2 * n_poses - (11 if n_poses >= 5 else 5), 1)
+    return max(MOUNTING_EVIDENCE_RATIO, float(np.sqrt(f_dist.isf(MOUNTING_FALSE_ALARM, d, d))))
+
+
+def _mounting(fit: ProvisionalHeadings | None, tilt_deg: float, n_poses: int = 0) -> tuple[float | None, str]:
     """(the yaw turn of the compass identified, or None; the evidence in words)."""
     if fit is None or len(fit.rms_mgauss) < 2:
         return None, ""
@@ -452,10 +491,13 @@ def _mounting(fit: ProvisionalHeadings | None, tilt_deg: float) -> tuple[float |
     runner = min(v for o, v in rms.items() if o != best)
     said = ", ".join(f"{YAW_ORIENTATIONS[o]:.0f} deg: {v:.1f}" for o, v in sorted(rms.items()))
     words = f"RMS residual of a provisional fit, mGauss, by turn: {said}"
-    if tilt_deg < MOUNTING_MIN_TILT_DEG or runner < MOUNTING_EVIDENCE_RATIO * rms[best]:
+    need = mounting_ratio(n_poses)
+    if tilt_deg < MOUNTING_MIN_TILT_DEG or runner < need * rms[best]:
         return None, words + (f"; not told apart (tilts up to {tilt_deg:.0f} deg, at least "
-                              f"{MOUNTING_MIN_TILT_DEG:g} deg and a {MOUNTING_EVIDENCE_RATIO:g}x margin needed)")
-    return YAW_ORIENTATIONS[best], words
+                              f"{MOUNTING_MIN_TILT_DEG:g} deg and a {need:.2g}x margin needed)")
+    return YAW_ORIENTATIONS[best], words + (f"; {runner / max(rms[best], 1e-12):.3g}x better than the next, "
+                                            f"{need:.2g}x needed: false-alarm rate at most "
+                                            f"{100 * MOUNTING_FALSE_ALARM:g} %")
 
 
 def segmentation_reach(seg: Segmentation, accel_instance: int = 0, mag_instance: int | None = None,
@@ -490,21 +532,46 @@ def within_reach(cov: SensorCoverage, reach: ReachCoverage) -> SensorCoverage:
     return SensorCoverage(cov.sensor, True, cov.n_intervals, cov.n_orientations, reach.n_field_directions, rule)
 
 
-#: the held accelerometer values' assumed 1-sigma errors: (offset m/s^2, relative scale) when the
-#: accelerometer has been calibrated (INS_ACC offsets or scales not at their defaults) and when not
+#: the held accelerometer values' assumed 1-sigma errors (offset m/s^2, relative scale), by the state of
+#: its calibration in force (:func:`accel_state`): a full calibration (offsets and scales set); a level
+#: ("simple") calibration only (offsets set from one level pose, scales all exactly 1: the scales keep their
+#: factory error, up to +-5 %, uniform: 2.9 % sd); never calibrated (offsets 0, scales 1: factory biases up
+#: to 0.5 m/s^2, uniform: 0.29 m/s^2 sd, and scales up to +-5 %)
 HELD_ACCEL_SD_CALIBRATED = (0.05, 0.005)
-HELD_ACCEL_SD_DEFAULT = (0.3, 0.02)
+HELD_ACCEL_SD_LEVEL = (0.05, 0.03)
+HELD_ACCEL_SD_DEFAULT = (0.3, 0.03)
+HELD_ACCEL_SD = {"calibrated": HELD_ACCEL_SD_CALIBRATED, "level": HELD_ACCEL_SD_LEVEL, "never": HELD_ACCEL_SD_DEFAULT}
+#: the state of an accelerometer's calibration in force, in words (the verdict's)
+ACCEL_STATE_WORDS = {
+    "calibrated": "calibrated (offsets and scales set)",
+    "level": "level-calibrated only (offsets set from a level pose, scales at 1: their factory error, up to "
+             "+-5 %, remains)",
+    "never": "never calibrated (offsets 0, scales 1: factory biases up to 0.5 m/s^2 and scales up to +-5 % "
+             "remain)",
+}
+
+
 #: the World Magnetic Model's inclination error assumed, deg (1 sigma; its stated global error
 #: is about 0.2 deg, local crustal anomalies add to it)
 WMM_INCLINATION_SD_DEG = 0.5
 
 
-def held_priors(K_a: np.ndarray, calibrated: bool, inclination_deg: float | None) -> dict[str, float]:
+def accel_state(ofs_mps2: Sequence[float], scale: Sequence[float]) -> str:
+    """"calibrated", "level" or "never": the state of an accelerometer's calibration in force from its
+    offsets and scales (ArduPilot's simple/level calibration sets the offsets and leaves every scale 1)."""
+    o, k = np.asarray(ofs_mps2, float), np.asarray(scale, float)
+    if np.all(o == 0.0) and np.all(k == 1.0):
+        return "never"
+    return "level" if np.all(k == 1.0) else "calibrated"
+
+
+def held_priors(K_a: np.ndarray, calibrated: bool | str, inclination_deg: float | None) -> dict[str, float]:
     """The prior standard deviations of the held parameters (engine names, :mod:`mavcal.core.held`):
-    the accelerometer's diagonal gain ``K_a`` and offsets (``calibrated``: its current values
-    came from a calibration) and the field dip h_z = tan(inclination) when held at the World
-    Magnetic Model's ``inclination_deg``."""
-    ofs, rel = HELD_ACCEL_SD_CALIBRATED if calibrated else HELD_ACCEL_SD_DEFAULT
+    the accelerometer's diagonal gain ``K_a`` and offsets (``calibrated``: the state of its calibration
+    in force, :func:`accel_state`; True / False: "calibrated" / "never") and the field dip
+    h_z = tan(inclination) when held at the World Magnetic Model's ``inclination_deg``."""
+    state = calibrated if isinstance(calibrated, str) else ("calibrated" if calibrated else "never")
+    ofs, rel = HELD_ACCEL_SD[state]
     out = {f"K_a[{j}{j}]": rel * abs(float(K_a[j - 1, j - 1])) for j in (1, 2, 3)}
     out.update({f"b_a[{c}]": ofs for c in "xyz"})
     if inclination_deg is not None:

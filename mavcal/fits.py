@@ -21,16 +21,21 @@ from mavcal.autopilot import firmware as fw
 from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
 from mavcal.autopilot.mapping import AccelMapping, ParamMapping, combine, field_magnitude
+from mavcal.autopilot.rotations import euler_to_matrix, nearest_rotation
 from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
-from mavcal.core.held import calibrate_held
+from mavcal.core.held import calibrate_held, turn_compass, turned_stats
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.stats import IntervalStats, interval_means
 from mavcal.core.types import Calibration
 from mavcal.coverage import (
+    ACCEL_STATE_WORDS,
+    HELD_ACCEL_SD,
     REACH_FLOWN_TILT_DEG,
     WMM_INCLINATION_SD_DEG,
+    KeptParameter,
     ReachCoverage,
+    accel_state,
     held_priors,
     segmentation_reach,
     sensor_coverages,
@@ -335,10 +340,25 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
     used = _intervals_of_pair(prep, ai, mi, opts)
     params_now = log_.params.snapshot()
     reach = reach_of(prep, opts)
+    turn = None if reach is None else reach_turn(reach, params_now, mi)
+    if reach is not None and (state := _accel_state_of(params_now, ai)) != "calibrated":
+        sd = HELD_ACCEL_SD[state]
+        reach = replace(reach, kept=reach.kept + (KeptParameter(
+            f"accel{ai}", "calibration in force", f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry "
+            f"that uncertainty (1 sigma: offsets {sd[0]:g} m/s^2, scales {100 * sd[1]:g} %)",
+            "its full calibration: " + _BEYOND_WORDS),))
+    if reach is not None and reach.mounting_turn_deg and turn is None and reach.compass_identified:
+        reach = replace(reach, kept=reach.kept + (KeptParameter(
+            f"compass{mi}", "orientation", f"{reach.mounting_text()} (its orientation cannot be written here: an "
+            "internal compass follows AHRS_ORIENTATION)", "COMPASS_EXTERN set for an external compass"),))
     try:
         sa, sm = stats_of(prep, stats, "accel", ai, used), stats_of(prep, stats, "mag", mi, used)
-        cal = (calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
-               if reach is None else _fit_within_reach(prep, opts, reach, sa, sm, params_now))
+        if reach is None:
+            cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
+        elif turn is None:
+            cal = _fit_within_reach(prep, opts, reach, sa, sm, params_now)
+        else:  # the compass turned as the tilts say (issue 37): fitted so, its orientation then written
+            cal = turn_compass(_fit_within_reach(prep, opts, reach, sa, turned_stats(sm, turn), params_now), turn)
     except (InsufficientDataError, EstimationError) as exc:
         raise with_blind_cal(prep, exc) from None
     if not params_now:
@@ -378,7 +398,8 @@ def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outco
         fit_converged=cal.converged,
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message,
         fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice(),
-        heading_advice=gates_mod.HEADING_ADVICE if f.reach is None else f.reach.heading_advice())))
+        heading_advice=gates_mod.HEADING_ADVICE if f.reach is None else f.reach.heading_advice(
+            _accel_state_of(f.params_now, opts.accel_instance)))))
     return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=seg,
                           intervals_used=tuple(f.used), calibration=cal, mapping=f.mapping, quality=quality,
                           gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)),
@@ -397,6 +418,32 @@ def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
     return segmentation_reach(seg, opts.accel_instance, opts.mag_instance, coverage_rule(opts, seg), accels)
 
 
+_BEYOND_WORDS = "the vehicle on each side and upside down (the full capture without --max-tilt)"
+
+
+def _accel_state_of(params: dict[str, float], instance: int) -> str:
+    """The state of accelerometer ``instance``'s calibration in force (:func:`mavcal.coverage.accel_state`)."""
+    a = fw.accel_cal_from_params(params, instance)
+    return accel_state(a.ofs_mps2, a.scale)
+
+
+def reach_turn(reach: ReachCoverage, params_now: dict[str, float], mag_instance: int) -> np.ndarray | None:
+    """The yaw turn (3 x 3, compass -> body, from its configured mounting) of a compass whose turn the
+    tilts identify (:attr:`mavcal.coverage.ReachCoverage.mounting_turn_deg`, not 0), when its orientation
+    can be written: an external compass (COMPASS_ORIENT applies) whose turned mounting is a standard
+    orientation; None otherwise (the verdict then says it may be mounted rotated)."""
+    if not reach.mounting_turn_deg or not reach.compass_identified:
+        return None
+    names = fw.compass_param_names(mag_instance)
+    old = fw.compass_cal_from_params(params_now, mag_instance)
+    ext = params_now.get(names["external"])
+    board = int(round(params_now.get(fw.board_param_names()["orientation"], 0) or 0))
+    if not (bool(ext) if ext is not None else old.orient != board):
+        return None
+    Q = euler_to_matrix(0.0, 0.0, np.radians(reach.mounting_turn_deg))
+    return Q if nearest_rotation(Q @ old.mount_matrix)[1] <= 1.0 else None
+
+
 def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: IntervalStats, sm: IntervalStats,
                       params_now: dict[str, float]) -> Calibration:
     """The compass fitted with the accelerometer held at its current calibration
@@ -412,7 +459,7 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
                                     "the accelerometer in the board frame); capture the six sides instead")
     scale = np.asarray(old.scale, float)
     K_a, b_a = np.diag(fw.GRAVITY_MSS / scale), np.asarray(old.ofs_mps2, float)
-    calibrated = bool(np.any(b_a != 0.0) or np.any(scale != 1.0))
+    calibrated = accel_state(b_a, scale)  # the held values' prior: full, level-only or no calibration
     # b_a[z] is fitted, not held: only K_a[33] + b_a[z] (the level reading) is identified, and a held pair that
     # misses it by more than the noise would be a misfit of the whole cost; it is kept all the same (not written)
     held = [f"K_a[{j}{j}]" for j in (1, 2, 3)] + ["b_a[x]", "b_a[y]"]

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mavcal.capture.progress import SensorProgress
-from mavcal.coverage import ReachCoverage, headings_text, reach_coverage
+from mavcal.coverage import MOUNTING_MIN_TILT_DEG, ReachCoverage, headings_text, reach_coverage
 from mavcal.run import Options, Prepared
 
 __all__ = ["ReachWatch", "reach_plan", "reach_plan_extended"]
@@ -78,10 +78,11 @@ class ReachWatch:
         r = self.coverage(prep, n) if self._planned(n) and not done else None
         return [f"poses within reach: {'; '.join(r.missing)}; {r.add}"] if r is not None and r.missing else []
 
-    def mounting_abort(self, prep: Prepared, n: int) -> str:
+    def mounting_abort(self, prep: Prepared, n: int, fitted: bool = False) -> str:
         """The reason to abort when, the plan's poses held, the compass's readings fit a turned yaw
-        mounting: no fit of these poses with the mounting configured can be right ("" otherwise)."""
-        r = self.coverage(prep, n) if self._planned(n) else None
+        mounting that the fit could not take (``fitted``: the fit turned the compass and will write its
+        orientation, issue 37): no fit of these poses with the mounting configured can be right ("" otherwise)."""
+        r = self.coverage(prep, n) if self._planned(n) and not fitted else None
         return f"{r.mounting_text()}; then start again" if r is not None and r.mounting_text() else ""
 
     def cap_reason(self, prep: Prepared, n: int, progress: Sequence[SensorProgress]) -> str:
@@ -109,5 +110,10 @@ class ReachWatch:
         said = f"the calibrated field magnitude differs by {100 * spread:.0f} % between poses"
         if r is not None and r.mounting_text():
             return f"{said}: {r.mounting_text()}; then start again"
+        if r is not None and r.explained():  # a disturbance only when no candidate mounting explains the field
+            return (f"{said} with the compass as configured, but a compass turned about the vertical explains its "
+                    f"readings ({r.mounting_evidence}): the compass may be mounted rotated; check how it is mounted "
+                    "and set its orientation (or tilt the vehicle further, at least "
+                    f"{MOUNTING_MIN_TILT_DEG:g} deg, so that the tilts tell the turn), then start again")
         return (f"{said}: magnetic disturbance (steel, magnets, currents nearby); move to a clean place and start "
                 "again" + (f" ({r.mounting_evidence})" if r is not None and r.mounting_evidence else ""))

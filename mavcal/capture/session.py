@@ -302,7 +302,7 @@ class CaptureSession:
             spread = _field_spread(run) if _paired(run) else 0.0
             if spread > cfg.max_field_spread and n >= n_min + 2:
                 aborted, reason = True, self._reach.spread_reason(spread, prep, n)
-        if not aborted and (turned := self._reach.mounting_abort(prep, n)):
+        if not aborted and (turned := self._reach.mounting_abort(prep, n, _orientation_fitted(run))):
             aborted, reason = True, turned
         progress = self._progress = self._measure(run if not aborted else None, prep, n)
         done, reason, offer = self._stop_rule(run, n, aborted, reason)
@@ -530,6 +530,11 @@ class CaptureSession:
                                                                   location=self.options.location,
                                                                   field_mgauss=self.options.field_mgauss),
                                   progress=progress)
+
+
+def _orientation_fitted(run: CalibrationRun | None) -> bool:
+    """True when ``run`` writes a new orientation of its primary compass (a turn the tilts identified)."""
+    return _paired(run) and any(k.endswith("ORIENT") for k in run.mapping.compass[0].extra_params)  # type: ignore[union-attr]
 
 
 def _paired(run: CalibrationRun | None) -> bool:

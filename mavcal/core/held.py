@@ -33,6 +33,7 @@ and the heading and tilt bounds drawn from it count the held values' uncertainty
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -40,7 +41,7 @@ from mavcal.core.certify import SAMPLE_COST, certificate
 from mavcal.core.headings import provisional_headings
 from mavcal.core.initial import G_UNIT
 from mavcal.core.misfit import INFLATE_P, REWEIGHT_P, cost_name, inflation, joint_terms, misfit_p, reweight_factors
-from mavcal.core.models import MODELS
+from mavcal.core.models import FORMS, MODELS
 from mavcal.core.refine import (
     JointParams,
     JointProblem,
@@ -53,7 +54,8 @@ from mavcal.core.stats import IntervalStats, chi2_sf
 from mavcal.core.types import Calibration, SensorModel
 from mavcal.errors import EstimationError, InsufficientDataError
 
-__all__ = ["HeldProblem", "calibrate_held", "held_covariance", "relaxed_headings", "tilts_of", "HELD_MODEL", "WEAK_P"]
+__all__ = ["HeldProblem", "calibrate_held", "turn_compass", "turned_stats", "held_covariance", "relaxed_headings",
+           "tilts_of", "HELD_MODEL", "TURNED_MODEL", "WEAK_P"]
 
 HELD_MODEL = "ardupilot"  # diagonal K_a (ArduPilot's INS_ACC*), symmetric K_m (COMPASS_DIA/ODI)
 WEAK_P = 1e-3  # a single start with a chi2 p-value below this is not trusted (as the full fit's search)
@@ -325,3 +327,54 @@ def _calibration(res: RefineResult, full: JointProblem, cov, cert, S: tuple[np.n
         model_reason=reason, param_names=full.names, param_cov=cov, n_accel=a.n, n_mag=m.n,
         refine_iterations=int(res.iterations), dof=int(res.dof), certificate=cert, held=held,
         noise_inflation=(inflation(Sa, a), inflation(Sm, m)), cost_name=cost_name(Sa, Sm, a, m))
+
+
+def turned_stats(m: IntervalStats, Q: np.ndarray) -> IntervalStats:
+    """The compass's statistics of the readings turned by ``Q`` (Q mu_hat[i], Q Sigma Q^T): those of
+    a compass whose yaw mounting is ``Q`` from the one the readings were recovered with."""
+    Q = np.asarray(Q, dtype=float)
+    sc = None if m.interval_scatter is None else np.einsum("ij,njk,lk->nil", Q, m.interval_scatter, Q)
+    return replace(m, mu=m.mu @ Q.T, scatter=Q @ m.scatter @ Q.T, sigma_hat=Q @ m.sigma_hat @ Q.T,
+                   interval_scatter=sc)
+
+
+#: the model of a held fit turned back by :func:`turn_compass`: the accelerometer's diagonal held values
+#: and a general compass matrix (K_m = Q^T K', a symmetric matrix turned)
+TURNED_MODEL = "diag-accel"
+FORMS_FULL_LABELS = FORMS[MODELS[TURNED_MODEL].mag_form].labels  # K_m[11], K_m[12], ... all nine
+
+
+def turn_compass(cal: Calibration, Q: np.ndarray) -> Calibration:
+    """A held fit of the readings turned by ``Q`` (:func:`turned_stats`: K', b' of the ``ardupilot``
+    model) expressed for the readings themselves: K_m = Q^T K', b_m = Q^T b', Sigma_m = Q^T Sigma' Q,
+    the covariance carried through that linear map (model :data:`TURNED_MODEL`, K_m general), so that
+    the mapping finds the turn Q as the compass's rotation (and writes it as its orientation) and the
+    bounds draw the same compasses as the fit's covariance."""
+    from mavcal.core.uncertainty import param_value
+
+    Q = np.asarray(Q, dtype=float)
+    names = tuple([n for n in cal.param_names if n.startswith(("K_a", "b_a"))]
+                  + [f"K_m[{lab}]" for lab in FORMS_FULL_LABELS] + ["b_m[x]", "b_m[y]", "b_m[z]", "h_z"])
+
+    def new_theta(theta: np.ndarray) -> np.ndarray:  # the held model's parameters (K_a diagonal, K_m symmetric)
+        K_a, b_a, K_m, b_m, h_z = np.zeros((3, 3)), np.zeros(3), np.zeros((3, 3)), np.zeros(3), 0.0
+        for name, v in zip(cal.param_names, theta):
+            if name == "h_z":
+                h_z = float(v)
+                continue
+            sym, lab = name.rstrip("]").split("[")
+            if sym in ("K_a", "K_m"):
+                K = K_a if sym == "K_a" else K_m
+                r, c = int(lab[0]) - 1, int(lab[1]) - 1
+                K[r, c] = K[c, r] = v
+            else:
+                (b_a if sym == "b_a" else b_m)["xyz".index(lab)] = v
+        return np.array([param_value(K_a, b_a, Q.T @ K_m, Q.T @ b_m, h_z, n) for n in names])
+
+    theta = np.array([param_value(cal.accel.gain, cal.accel.bias, cal.mag.gain, cal.mag.bias, cal.h_z, n)
+                      for n in cal.param_names])
+    J = np.array([new_theta(e) for e in np.eye(len(theta))]).T  # linear: theta' = J theta
+    cov = None if cal.param_cov is None else J @ np.asarray(cal.param_cov) @ J.T
+    mag = replace(cal.mag, gain=Q.T @ cal.mag.gain, bias=Q.T @ cal.mag.bias, noise_cov=Q.T @ cal.mag.noise_cov @ Q)
+    return replace(cal, mag=mag, param_names=names, param_cov=cov, model=TURNED_MODEL)
+
