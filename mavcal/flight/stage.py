@@ -17,7 +17,7 @@ from mavcal.flight.airborne import judge_flight
 from mavcal.flight.fit import CompassFit, FitInput, fit_compass
 from mavcal.flight.reference import heading_offset_deg, reference_at
 from mavcal.flight.verdict import ROTATION_WRONG_DEG, Verdict, judge
-from mavcal.sources.flight_series import FlightSeries, read_flight_series
+from mavcal.sources.flight_series import CompassSeries, FlightSeries, read_flight_series
 
 __all__ = ["CompassResult", "FlightResult", "run_flight", "analyse"]
 
@@ -119,6 +119,27 @@ def _no_independent_yaw(against_ekf: dict[int, float]) -> str:
             "a wrong rotation is not judged" + spread)
 
 
+def _heading_checks(s: FlightSeries, c: CompassSeries, f: apf.InForce, fit: CompassFit, dt: np.ndarray, dx: np.ndarray
+                    ) -> tuple[bool, float, float, float] | None:
+    """The rotation check against the compass-independent yaw where it has converged (else the
+    EKF's), on the field corrected as fitted (offsets and interference bend single headings, not
+    all of them): (the yaw is the GSF's, the heading offset on the offsets in force, the RMS
+    heading error as logged, as fitted); None with too few samples."""
+    gref = reference_at(s, c.time_s, "gsf") if len(s.gsf_time_s) > 10 else reference_at(s, c.time_s, "ekf")
+    gk = gref.valid & c.healthy
+    if gk.sum() < 30:
+        return None
+    x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
+    mag = (c.field_mgauss[gk] + (f.matrix_times_scale @ (fit.ofs_mgauss - c.ofs_mgauss[gk]).T).T
+           - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
+    _, _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
+    # the rotation on the offsets in force: a rotated compass bends the fitted ones
+    off = heading_offset_deg(gref.R[gk], c.field_mgauss[gk] - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
+                             gref.B0_ned_mgauss)[0]
+    before = heading_offset_deg(gref.R[gk], c.field_mgauss[gk], gref.B0_ned_mgauss)[2]
+    return gref.yaw_source == "gsf", off, before, after
+
+
 def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
     _require_flight(s)
     motct = apf.motor_type(s.params)
@@ -156,26 +177,14 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
         except ValueError as exc:
             warnings.append(f"compass{c.instance}: {exc}")
             continue
-        # the rotation check against the compass-independent yaw where it has converged, on the
-        # field corrected as fitted (offsets and interference bend single headings, not all of them)
-        gref = reference_at(s, c.time_s, "gsf") if len(s.gsf_time_s) > 10 else ref
-        gk = gref.valid & c.healthy
-        if gk.sum() >= 30:
-            x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
-            mag = (c.field_mgauss[gk] + (f.matrix_times_scale @ (fit.ofs_mgauss - c.ofs_mgauss[gk]).T).T
-                   - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
-            _, _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
-            # the rotation on the offsets in force: a rotated compass bends the fitted ones
-            off = heading_offset_deg(
-                gref.R[gk], c.field_mgauss[gk] - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
-                gref.B0_ned_mgauss)[0]
-            if gref.yaw_source == "gsf":
+        checked = _heading_checks(s, c, f, fit, dt, dx)
+        if checked is not None:
+            independent, off, before, after = checked
+            if independent:
                 rotation[c.instance] = off
+                gsf_err[c.instance] = (before, after)
             elif np.isfinite(off):
                 against_ekf[c.instance] = off
-            before = heading_offset_deg(gref.R[gk], c.field_mgauss[gk], gref.B0_ned_mgauss)[2]
-            if gref.yaw_source == "gsf":
-                gsf_err[c.instance] = (before, after)
     if not fits:
         raise InsufficientDataError(f"{s.source}: no compass has enough samples in flight with a known attitude")
     rot_ref = "gsf" if rotation else "none"
