@@ -76,3 +76,18 @@ def test_html_refuses_to_overwrite_the_log_and_needs_a_file(flight):
                              capture_output=True, text=True, timeout=60)
         assert out.returncode == 2 and out.stderr.startswith("mavcal: error:"), out.stderr
         assert "Traceback" not in out.stderr
+
+
+def test_without_a_gsf_yaw_the_heading_panel_says_so(flight, tmp_path):
+    from dataclasses import replace
+
+    from mavcal.report.flight_html import write_flight_html
+
+    s, _ = flight
+    e = np.zeros(0)
+    s = replace(s, gsf_time_s=e, gsf_yaw_deg=e, gsf_yaw_sigma_deg=e)
+    r = analyse(s)
+    assert all(len(compass_curves(s, r, c).heading_time_s) == 0 for c in r.compasses)
+    page = write_flight_html(s, r, tmp_path / "nogsf.html").read_text()
+    assert page.count("<img ") == len(r.compasses)
+    assert "rotation judged against: nothing" in page
