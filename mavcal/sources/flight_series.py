@@ -130,7 +130,7 @@ def read_flight_series(path: str | Path) -> FlightSeries:
             del cols[name]  # an optional message without a time: as if not logged
     inst = np.asarray(mag.get("I", np.zeros(len(mag["TimeUS"]), dtype=np.uint8)))
     compasses = []
-    for i in np.flatnonzero(np.bincount(inst.astype(np.int64))):  # the instances (np.unique: numpy.ma, 20 ms)
+    for i in np.unique(inst):
         m = inst == i
         def v3(a: str, b: str, c: str, m: np.ndarray = m) -> np.ndarray:
             return np.column_stack([np.asarray(mag[k], dtype=np.float64)[m] for k in (a, b, c)])
