@@ -198,6 +198,13 @@ def _yaw_free(inp: FitInput, T: np.ndarray, x: np.ndarray, keep: np.ndarray, o: 
     w = sigma / inp.sigma_B_mgauss
     JtJ = np.eye(2)
     r = np.zeros((len(xs), 2))
+    # d r / d theta, (n, 2, p): the columns of H and B_D are constant, the others refilled per step
+    p = 2 + 3 * int(fit_ofs) + 3 * int(fit_mot)
+    J3 = np.zeros((len(xs), 2, p))
+    J3[:, 1, 0] = J3[:, 0, 1] = -1.0
+    J = J3.reshape(2 * len(xs), p)
+    P = np.zeros((2, p))
+    P[0, 0] = P[1, 1] = w
     for _ in range(iters):
         c = (A @ (b + o).T).T + xs[:, None] * m
         wv = np.einsum("nij,nj->ni", Tk, c)
@@ -205,16 +212,10 @@ def _yaw_free(inp: FitInput, T: np.ndarray, x: np.ndarray, keep: np.ndarray, o: 
         r = np.column_stack([wv[:, 2] - D, h - H])
         u = (wv[:, 0, None] * Tk[:, 0, :] + wv[:, 1, None] * Tk[:, 1, :]) / h[:, None]  # d|h|/dc
         g = np.stack([Tk[:, 2, :], u], axis=1)  # (n, 2, 3): d r / d c
-        cols = [np.stack([np.zeros(len(xs)), -np.ones(len(xs))], axis=1)[:, :, None],  # dH
-                np.stack([-np.ones(len(xs)), np.zeros(len(xs))], axis=1)[:, :, None]]  # dD
         if fit_ofs:
-            cols.append(g @ A)
+            J3[:, :, 2:5] = g @ A
         if fit_mot:
-            cols.append(g * xs[:, None, None])
-        J = np.concatenate(cols, axis=2).reshape(2 * len(xs), -1)
-        p = J.shape[1]
-        P = np.zeros((2, p))
-        P[0, 0] = P[1, 1] = w
+            J3[:, :, p - 3:] = g * xs[:, None, None]
         JtJ = J.T @ J + P.T @ P
         step = _solve_normal(JtJ, -(J.T @ r.reshape(-1) + P.T @ np.array([w * (H - H0), w * (D - D0)])))
         H, D = H + step[0], D + step[1]
