@@ -58,7 +58,7 @@ class CompassCurves:
     time_s: np.ndarray
     norm_before_mgauss: np.ndarray
     norm_after_mgauss: np.ndarray
-    field_norm_mgauss: float
+    field_norm_mgauss: float  # the World Magnetic Model's at the flight's place, else the fitted field's
     driver: np.ndarray  # at the compass's samples with the fitted delay, where the attitude is known
     error_mgauss: np.ndarray  # (n, 3) field without the motor term minus R^T B, those samples
     slope_per_unit: np.ndarray  # the fitted interference: -mot (mGauss per unit of the driver)
@@ -95,8 +95,10 @@ def compass_curves(s: FlightSeries, r: FlightResult, c: CompassResult) -> Compas
     err = bare[k] - np.einsum("nji,j->ni", ref.R[k], B)
     independent = ref.yaw_source == "gsf"
     hk = k if independent else np.zeros(len(k), dtype=bool)
+    # the Earth field's length: the field model's where the flight's place is known, else the fitted one
+    field = r.B0_ned_mgauss if r.field_source == "wmm" else B
     return CompassCurves(cs.time_s, np.linalg.norm(cs.field_mgauss, axis=1), np.linalg.norm(after, axis=1),
-                         float(np.linalg.norm(B)), x[k], err, -np.asarray(fit.mot_per_unit, float),
+                         float(np.linalg.norm(field)), x[k], err, -np.asarray(fit.mot_per_unit, float),
                          cs.time_s[hk], _heading_deg(ref.R[hk], cs.field_mgauss[hk], ref.B0_ned_mgauss),
                          _heading_deg(ref.R[hk], after[hk], ref.B0_ned_mgauss), ref.yaw_source)
 
@@ -113,7 +115,8 @@ def fig_compass(Figure, r: FlightResult, c: CompassResult, cv: CompassCurves):
     d = _every(len(cv.time_s))
     ax_m.plot(cv.time_s[d], cv.norm_before_mgauss[d], color=_BEFORE, lw=0.8, label="as logged")
     ax_m.plot(cv.time_s[d], cv.norm_after_mgauss[d], color=_AFTER, lw=0.8, label="as fitted")
-    ax_m.axhline(cv.field_norm_mgauss, color=_FIELD, ls="--", lw=1.0, label="Earth field")
+    ax_m.axhline(cv.field_norm_mgauss, color=_FIELD, ls="--", lw=1.0,
+                 label="Earth field (WMM)" if r.field_source == "wmm" else "Earth field (fitted)")
     ax_m.set_xlabel("time since boot (s)")
     ax_m.set_ylabel("|B| (mGauss)")
     ax_m.set_title("field magnitude along the flight", fontsize=10)
