@@ -78,7 +78,7 @@ def test_html_refuses_to_overwrite_the_log_and_needs_a_file(flight):
         assert "Traceback" not in out.stderr
 
 
-def test_without_a_gsf_yaw_the_heading_panel_says_so(flight, tmp_path):
+def test_without_a_gsf_yaw_the_heading_panel_says_so_and_a_throttle_driver_is_drawn(flight, tmp_path):
     from dataclasses import replace
 
     from mavcal.report.flight_html import write_flight_html
@@ -86,8 +86,12 @@ def test_without_a_gsf_yaw_the_heading_panel_says_so(flight, tmp_path):
     s, _ = flight
     e = np.zeros(0)
     s = replace(s, gsf_time_s=e, gsf_yaw_deg=e, gsf_yaw_sigma_deg=e)
-    r = analyse(s)
-    assert all(len(compass_curves(s, r, c).heading_time_s) == 0 for c in r.compasses)
+    r = analyse(s, driver="throttle")
+    assert r.driver_kind == "throttle"
+    for c in r.compasses:
+        cv = compass_curves(s, r, c)
+        assert len(cv.heading_time_s) == 0
+        assert 0.0 <= cv.driver.min() and cv.driver.max() <= 1.0  # the throttle, 0..1
     page = write_flight_html(s, r, tmp_path / "nogsf.html").read_text()
     assert page.count("<img ") == len(r.compasses)
-    assert "rotation judged against: nothing" in page
+    assert "rotation judged against: nothing" in page and "field error against the throttle" in page
