@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="what drives the interference: the battery current or the throttle; "
                              "auto: the compensation type in force, else the current (a log without a current "
                              "sensor is refused: the throttle only when asked)")
+    parser.add_argument("--html", metavar="FILE", default=None,
+                        help="write a self-contained HTML report with pictures per compass (needs matplotlib: "
+                             "pip install 'mavcal[plots]')")
     parser.add_argument("--yaw", choices=("ekf", "gsf", "auto"), default="ekf",
                         help="the yaw used for the heading checks: the EKF's, or the EKF-GSF estimator's "
                              "(compass-independent; samples where it has not converged are left out)")
@@ -187,8 +190,26 @@ def _atomic_write(path: str, write) -> None:
         raise
 
 
+def _run_with_html(args: argparse.Namespace) -> FlightResult:
+    """The stage on the log, and its HTML report written to ``--html`` (matplotlib checked first)."""
+    if args.html == "-":
+        raise UsageError("--html needs a file name")
+    from mavcal.report.flight_html import missing_dependencies, write_flight_html
+
+    if missing_dependencies():
+        raise UsageError("--html needs matplotlib: pip install 'mavcal[plots]'")
+    from mavcal.flight.stage import analyse
+    from mavcal.sources.flight_logs import read_flight_log
+
+    s = read_flight_log(args.log)
+    r = analyse(s, yaw=args.yaw, driver=args.driver)
+    write_flight_html(s, r, args.html)
+    print(f"HTML report written to {args.html}", file=sys.stderr if args.json == "-" else sys.stdout)
+    return r
+
+
 def run(args: argparse.Namespace) -> int:
-    for opt in ("json", "param_out"):
+    for opt in ("json", "param_out", "html"):
         v = getattr(args, opt)
         if v not in (None, "-") and Path(v).resolve() == Path(args.log).resolve():
             raise UsageError(f"--{opt.replace('_', '-')} would overwrite the log")
@@ -197,9 +218,13 @@ def run(args: argparse.Namespace) -> int:
     if args.write and args.dry_run:
         raise UsageError("--dry-run shows what --write would change without writing: give one of them")
     from mavcal.autopilot.paramfile import write_param_file
-    from mavcal.flight.stage import param_values, run_flight
+    from mavcal.flight.stage import param_values
 
-    r = run_flight(args.log, yaw=args.yaw, driver=args.driver)
+    r = _run_with_html(args) if args.html else None
+    if r is None:
+        from mavcal.flight.stage import run_flight
+
+        r = run_flight(args.log, yaw=args.yaw, driver=args.driver)
     doc = to_json(r)
     say = sys.stderr if args.json == "-" else sys.stdout  # JSON alone on stdout with '-'
     print(summary_text(r), file=say)

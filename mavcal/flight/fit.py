@@ -26,7 +26,8 @@ least squares (Gauss-Newton on (3), the normal equations); ``B_D`` and ``H`` hav
 the World Magnetic Model's field (``sigma_B``, 3 % of the field: the table's accuracy), which
 keeps the down component apart from the z offset in a level flight. ``tau`` (the delay between
 the current and the field) is chosen on a grid (+-0.5 s, 0.05 s steps) by the smallest
-residual. The covariance is ``sigma^2 (J^T J)^-1`` inflated by the residuals' correlation in
+residual (on at most :data:`GRID_SAMPLES` of a long flight's samples, every k-th; the fit at the
+chosen delay on all of them). The covariance is ``sigma^2 (J^T J)^-1`` inflated by the residuals' correlation in
 time (AR(1): ``(1+rho)/(1-rho)``), the 95 % bounds ``1.96`` standard deviations. A term the
 flight does not identify (the driver ``x`` barely varied; under 200 deg of headings for the
 offsets) is kept at its value in force and not fitted.
@@ -43,6 +44,19 @@ Z95 = 1.959963984540054
 DELAY_GRID_S = np.round(np.arange(-0.5, 0.5001, 0.05), 3)
 MIN_DRIVER_SPAN = {"current": 8.0, "throttle": 0.15}  # A / throttle fraction: less is not identified
 MIN_HEADING_SPAN_DEG = 200.0
+#: the delay grid is searched on at most this many samples (every k-th of a longer flight), the
+#: fit at the delay chosen on all of them: a long flight costs one fit more, not a grid more
+GRID_SAMPLES = 3000
+
+
+def _thin(keep: np.ndarray) -> np.ndarray:
+    """``keep`` with every k-th of its samples only, at most :data:`GRID_SAMPLES` of them (itself when fewer)."""
+    idx = np.flatnonzero(keep)
+    if len(idx) <= GRID_SAMPLES:
+        return keep
+    out = np.zeros_like(keep)
+    out[idx[::int(np.ceil(len(idx) / GRID_SAMPLES))]] = True
+    return out
 
 
 @dataclass(frozen=True)
@@ -185,6 +199,13 @@ def _yaw_free(inp: FitInput, T: np.ndarray, x: np.ndarray, keep: np.ndarray, o: 
     w = sigma / inp.sigma_B_mgauss
     JtJ = np.eye(2)
     r = np.zeros((len(xs), 2))
+    # d r / d theta, (n, 2, p): the columns of H and B_D are constant, the others refilled per step
+    p = 2 + 3 * int(fit_ofs) + 3 * int(fit_mot)
+    J3 = np.zeros((len(xs), 2, p))
+    J3[:, 1, 0] = J3[:, 0, 1] = -1.0
+    J = J3.reshape(2 * len(xs), p)
+    P = np.zeros((2, p))
+    P[0, 0] = P[1, 1] = w
     for _ in range(iters):
         c = (A @ (b + o).T).T + xs[:, None] * m
         wv = np.einsum("nij,nj->ni", Tk, c)
@@ -192,16 +213,10 @@ def _yaw_free(inp: FitInput, T: np.ndarray, x: np.ndarray, keep: np.ndarray, o: 
         r = np.column_stack([wv[:, 2] - D, h - H])
         u = (wv[:, 0, None] * Tk[:, 0, :] + wv[:, 1, None] * Tk[:, 1, :]) / h[:, None]  # d|h|/dc
         g = np.stack([Tk[:, 2, :], u], axis=1)  # (n, 2, 3): d r / d c
-        cols = [np.stack([np.zeros(len(xs)), -np.ones(len(xs))], axis=1)[:, :, None],  # dH
-                np.stack([-np.ones(len(xs)), np.zeros(len(xs))], axis=1)[:, :, None]]  # dD
         if fit_ofs:
-            cols.append(g @ A)
+            J3[:, :, 2:5] = g @ A
         if fit_mot:
-            cols.append(g * xs[:, None, None])
-        J = np.concatenate(cols, axis=2).reshape(2 * len(xs), -1)
-        p = J.shape[1]
-        P = np.zeros((2, p))
-        P[0, 0] = P[1, 1] = w
+            J3[:, :, p - 3:] = g * xs[:, None, None]
         JtJ = J.T @ J + P.T @ P
         step = _solve_normal(JtJ, -(J.T @ r.reshape(-1) + P.T @ np.array([w * (H - H0), w * (D - D0)])))
         H, D = H + step[0], D + step[1]
@@ -216,6 +231,17 @@ def _yaw_free(inp: FitInput, T: np.ndarray, x: np.ndarray, keep: np.ndarray, o: 
     return o, m, (H, D), JtJ, r
 
 
+def _linear_at(inp: FitInput, x: np.ndarray, tau: float, fit_ofs: bool, fit_mot: bool, keep: np.ndarray,
+               sigma: float, best):
+    """(2) at the delay ``tau`` (driver ``x``) on the samples ``keep``: ``best`` or this one, whichever
+    has the smaller residual (rss, tau, theta, J^T J, residuals, x)."""
+    J, rhs, _ = _solve(inp, x, fit_ofs, fit_mot, keep)
+    theta, JtJ = _lsq(J, rhs, inp.B0_ned_mgauss, sigma / inp.sigma_B_mgauss)
+    e = (rhs - J @ theta).reshape(-1, 3)
+    rss = float((e * e).sum())
+    return (rss, tau, theta, JtJ, e, x) if best is None or rss < best[0] else best
+
+
 def _linear_start(inp: FitInput, driver_at, grid: np.ndarray, fit_ofs: bool, fit_mot: bool):
     """(2) on the delay grid, dropping outliers (> 5 sigma) twice at most: the starting point, the
     samples kept and the noise. Returns ((rss, tau, theta, J^T J, residuals, x), keep, sigma)."""
@@ -225,15 +251,13 @@ def _linear_start(inp: FitInput, driver_at, grid: np.ndarray, fit_ofs: bool, fit
     lin = None
     for _ in range(3):
         lin = None
+        sub = _thin(keep)
         for tau in grid:
             x = driver_at(float(tau))
-            J, rhs, _ = _solve(inp, x, fit_ofs, fit_mot, keep)
-            theta, JtJ = _lsq(J, rhs, inp.B0_ned_mgauss, sigma / inp.sigma_B_mgauss)
-            e = (rhs - J @ theta).reshape(-1, 3)
-            rss = float((e * e).sum())
-            if lin is None or rss < lin[0]:
-                lin = (rss, float(tau), theta, JtJ, e, x)
+            lin = _linear_at(inp, x, float(tau), fit_ofs, fit_mot, sub, sigma, lin)
         assert lin is not None
+        if sub is not keep:  # the delay chosen on the thinned samples: the fit at it on all of them
+            lin = _linear_at(inp, lin[5], lin[1], fit_ofs, fit_mot, keep, sigma, None)
         rss, tau, theta, JtJ, e, x = lin
         sigma = float(np.sqrt(rss / max(1, e.size - len(theta))))
         Jall, rhs_all, _ = _solve(inp, x, fit_ofs, fit_mot, np.ones(n, dtype=bool))
@@ -286,13 +310,18 @@ def fit_compass(inp: FitInput, *, fit_ofs: bool | None = None, fit_mot: bool | N
     else:
         T = _tilt_only(inp.R)
         best = None
+        sub = _thin(keep)
         for tau_g in grid:
             xg = driver_at(float(tau_g))
-            o, m, (H, D), JtJ2, r = _yaw_free(inp, T, xg, keep, o0, m0, fit_ofs, fit_mot, sigma)
+            o, m, (H, D), JtJ2, r = _yaw_free(inp, T, xg, sub, o0, m0, fit_ofs, fit_mot, sigma)
             rss2 = float((r * r).sum())
             if best is None or rss2 < best[0]:
                 best = (rss2, float(tau_g), o, m, H, D, JtJ2, r, xg)
         assert best is not None
+        if sub is not keep:  # the delay chosen on the thinned samples: the fit at it on all of them
+            tau_b, xg = best[1], best[8]
+            o, m, (H, D), JtJ2, r = _yaw_free(inp, T, xg, keep, best[2], best[3], fit_ofs, fit_mot, sigma)
+            best = (float((r * r).sum()), tau_b, o, m, H, D, JtJ2, r, xg)
         rss2, tau, ofs, mot, H, D, JtJ2, r, x = best
         sig2 = float(np.sqrt(rss2 / max(1, r.size - JtJ2.shape[0])))
         infl = _ar1(r)

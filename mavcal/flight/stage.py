@@ -86,7 +86,7 @@ def _current(s: FlightSeries, battery: int) -> FlightSeries:
     return replace(s, current_time_s=t, current_a=a)
 
 
-def _in_force_driver(s: FlightSeries, motct: int | None) -> tuple[np.ndarray, np.ndarray]:
+def in_force_driver(s: FlightSeries, motct: int | None) -> tuple[np.ndarray, np.ndarray]:
     """The series the compensation in force was driven by (empty when none is in force)."""
     if motct == apf.COMPENSATION_CURRENT:
         return s.current_time_s, s.current_a
@@ -173,7 +173,7 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
     motct = model.motor_type(s.params)
     kind, dt, dx, warnings = _driver(s, motct, driver)
     kind_code = apf.kind_code(kind)
-    ft, fx = _in_force_driver(s, motct)
+    ft, fx = in_force_driver(s, motct)
     applied: dict[int, apf.AsApplied] = {}
     results: list[CompassResult] = []
     yaw_source = field_source = "-"

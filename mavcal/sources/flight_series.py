@@ -1,7 +1,7 @@
 """The series of a flight that the in-flight compass stage needs, read from a DataFlash .bin.
 
 One pass of the vectorised decoder (:mod:`mavcal.sources.fast_dataflash`) over ``MAG``,
-``BAT``, ``ATT``, ``XKQ``, ``XKY0``, ``GPS``, ``CTUN``, ``RCOU`` and ``PARM``; the result is
+``BAT``, ``ATT``, ``XKY0``, ``GPS``, ``CTUN``, ``PARM``, ``ARM``, ``EV``, ``MSG`` and ``FMTU``; the result is
 plain numpy columns with units in their names (:class:`FlightSeries`). Nothing here knows what
 a parameter means: the parameters are the first logged value of each name.
 """
@@ -17,7 +17,7 @@ from mavcal.sources.fast_dataflash import decode_dataflash
 
 __all__ = ["CompassSeries", "FlightEvidence", "FlightSeries", "read_flight_series"]
 
-MESSAGES = ("MAG", "BAT", "ATT", "XKQ", "XKY0", "GPS", "CTUN", "PARM", "ARM", "EV", "MSG", "FMTU")
+MESSAGES = ("MAG", "BAT", "ATT", "XKY0", "GPS", "CTUN", "PARM", "ARM", "EV", "MSG", "FMTU")
 #: the ``EV`` ids of ArduPilot's ``LogEvent`` that arm and disarm (``AP_Logger``: ARMED 10,
 #: DISARMED 11, AUTO_ARMED 15) and that the land detector raises (NOT_LANDED 28, LAND_COMPLETE 18)
 EV_ARMED, EV_DISARMED, EV_AUTO_ARMED, EV_LAND_COMPLETE, EV_NOT_LANDED = 10, 11, 15, 18, 28
