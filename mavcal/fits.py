@@ -17,12 +17,12 @@ import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
 from mavcal.accel_judging import accel_only, accel_own, died_gate, judge_accels
-from mavcal.autopilot import firmware as fw
 from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
 from mavcal.autopilot.mapping import AccelMapping, ParamMapping, combine, field_magnitude
 from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
+from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.held import calibrate_held
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.stats import IntervalStats, interval_means
@@ -372,9 +372,10 @@ def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outco
                            compasses=[opts.mag_instance])[0]
     if f.reach is not None:  # the rule of poses within reach identified it (else the fit was refused)
         cov = within_reach(cov, f.reach)
+    model = model_for(prep.log)
     report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
-        cm, f.params_now, coverage=cov,
-        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=model_for(prep.log).gate_config(opts.gates),
+        cm, f.params_now, model=model, coverage=cov,
+        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=model.gate_config(opts.gates),
         fit_converged=cal.converged,
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message,
         fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice(),
@@ -406,12 +407,13 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     if not reach.compass_identified:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach (tilts up to {reach.max_tilt_deg:.1f} "
                                     f"deg): {'; '.join(reach.missing)}; {reach.add}")
-    old = fw.accel_cal_from_params(params_now, opts.accel_instance)
+    model = model_for(prep.log)
+    old = model.accel_cal(params_now, opts.accel_instance)
     if old.board_orient != 0:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach need AHRS_ORIENTATION 0 (the fit holds "
                                     "the accelerometer in the board frame); capture the six sides instead")
     scale = np.asarray(old.scale, float)
-    K_a, b_a = np.diag(fw.GRAVITY_MSS / scale), np.asarray(old.ofs_mps2, float)
+    K_a, b_a = np.diag(GRAVITY_MPS2 / scale), np.asarray(old.ofs_mps2, float)
     calibrated = bool(np.any(b_a != 0.0) or np.any(scale != 1.0))
     # b_a[z] is fitted, not held: only K_a[33] + b_a[z] (the level reading) is identified, and a held pair that
     # misses it by more than the noise would be a misfit of the whole cost; it is kept all the same (not written)
@@ -423,7 +425,7 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     loc = opts.location or prep.log.position
     if loc is None:
         return replace(cal, model_reason=cal.model_reason + " (no position known)")
-    incl = field_magnitude(np.empty((0, 3)), fw.compass_cal_from_params(params_now, opts.mag_instance),
+    incl = field_magnitude(np.empty((0, 3)), model.compass_cal(params_now, opts.mag_instance),
                            location=loc)[2]
     sd_incl = _inclination_sd_deg(cal)
     if incl is None or sd_incl <= WMM_INCLINATION_SD_DEG:

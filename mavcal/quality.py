@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
+from mavcal.autopilot import calform as fw
 from mavcal.autopilot.evaluate import GridErrors, attitude_errors, attitude_grid
 from mavcal.autopilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel

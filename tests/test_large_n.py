@@ -167,7 +167,7 @@ def test_non_converging_large_n_fit_has_bounded_lm_work():
 def test_quality_draws_equal_per_draw_attitude_errors_to_the_last_bit():
     """quality_of evaluates its uncertainty draws in chunks (max_errors_deg); the numbers are
     those of attitude_errors draw by draw, exactly (printed results unchanged)."""
-    from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+    from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
     from mavcal.core.uncertainty import sample_parameters
     from mavcal.pipeline import calibrate_source
     from mavcal.quality import quality_of, truth_functions

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors
+from mavcal.autopilot.evaluate import attitude_errors
 from mavcal.errors import UsageError
 from mavcal.pipeline import Options, calibrate_source
 from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session

@@ -131,7 +131,7 @@ class LiveAttitude:
             since = self._still_since
             cals = self._compass_cals
         if m is not None and cals is not None:
-            from mavcal.autopilot.firmware import apply_compass, undo_compass
+            from mavcal.autopilot.calform import apply_compass, undo_compass
 
             m = np.asarray(apply_compass(cals[1], undo_compass(cals[0], m, sensor_frame=True)), float).reshape(3)
         C = attitude_matrix(a, m)

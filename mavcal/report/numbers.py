@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
+from mavcal.autopilot import calform as fw
 from mavcal.core.constants import GRAVITY_MPS2
 
 __all__ = ["IntervalNumbers", "interval_numbers", "corrected_after", "rms_deviation"]

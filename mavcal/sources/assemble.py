@@ -43,7 +43,6 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
 from mavcal.autopilot.mavlink import (
     MAV_AUTOPILOT_PX4,
     MAV_CMD,
@@ -639,11 +638,14 @@ _DF_MAG_KEYS = ("MagX", "MagY", "MagZ", "OfsX", "OfsY", "OfsZ", "MOX", "MOY", "M
 
 def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
     """IMU/ACC/GYR -> accel and gyro, MAG -> mag (with offsets, motor offsets and health)."""
+    from mavcal.autopilot import model_named
+
+    most = model_named("ArduPilot").max_instances  # a DataFlash log is ArduPilot's
     for name in DF_IMU_NAMES:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c, fw.MAX_IMUS, out.warns, _DF_TIME_KEYS + _DF_ACC + _DF_GYR):
+        for inst, ci in _df_instances(name, c, most["accel"], out.warns, _DF_TIME_KEYS + _DF_ACC + _DF_GYR):
             t = _df_time(ci)
             if all(k in ci for k in _DF_ACC):
                 _df_add(out, "accel", inst, name, t, _vec(ci, _DF_ACC))
@@ -653,7 +655,7 @@ def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
         c = cols.get(name) or {}
         if not _n(c):
             continue
-        for inst, ci in _df_instances(name, c, fw.MAX_COMPASSES, out.warns, _DF_TIME_KEYS + _DF_MAG_KEYS):
+        for inst, ci in _df_instances(name, c, most["mag"], out.warns, _DF_TIME_KEYS + _DF_MAG_KEYS):
             if not all(k in ci for k in ("MagX", "MagY", "MagZ")):
                 continue
             extra = {}
