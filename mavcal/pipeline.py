@@ -1,9 +1,9 @@
-"""From a log or a live link to ArduPilot parameters; this module only chains the stages:
+"""From a log or a live link to an autopilot's parameters; this module only chains the stages:
 
     open_source (:mod:`mavcal.sources.reader` / :mod:`mavcal.link.live`)
-    -> prepare (untruncate, :mod:`mavcal.ardupilot.recover`, :mod:`mavcal.segment`)
-    -> calibrate (:mod:`mavcal.core`) -> map (:mod:`mavcal.ardupilot.mapping`)
-    -> quality (:mod:`mavcal.quality`) -> gates (:mod:`mavcal.ardupilot.gates`).
+    -> prepare (untruncate, the autopilot model's ``recover_raw``, :mod:`mavcal.segment`)
+    -> calibrate (:mod:`mavcal.core`) -> map (the model's ``map_calibration``)
+    -> quality (:mod:`mavcal.quality`) -> gates (:mod:`mavcal.autopilot.gates`).
 
 :func:`calibrate_source` is what ``mavcal calibrate``, the capture command and the
 MAVProxy module call. It never writes to a vehicle (that is :mod:`mavcal.link.writer`).

@@ -143,8 +143,8 @@ DRAW_CHUNK = 16  # draws evaluated together: fewer calls, arrays still small eno
 def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
                  B_ned: np.ndarray, grid: np.ndarray) -> tuple[list[float], list[float]]:
     """Max heading and max tilt error over ``grid`` for every draw: what
-    :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
-    ``DRAW_CHUNK`` draws at a time by :class:`mavcal.ardupilot.evaluate.GridErrors` (the grid's
+    :func:`mavcal.autopilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
+    ``DRAW_CHUNK`` draws at a time by :class:`mavcal.autopilot.evaluate.GridErrors` (the grid's
     truth once for all chunks, the accelerometer's readings at its distinct specific forces)."""
     max_errors = GridErrors(am.new, cm.new, B_ned, grid)
     f_unique, B_body = max_errors.f_unique, max_errors.B_body

@@ -718,7 +718,7 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     ----------
     data : RawImu, ImuLog, or sequence of SensorSeries
         Accel (m/s^2), mag (mGauss) and optional gyro (rad/s) series of any instances.
-        Raw data from :func:`mavcal.ardupilot.recover.recover_raw` is the usual input.
+        Raw data from the autopilot model's ``recover_raw`` is the usual input.
         Non-finite samples (e.g. readings whose calibration was unknown) are left out.
     config : StillConfig
     board_rotation : (3, 3) array, optional

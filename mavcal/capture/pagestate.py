@@ -77,7 +77,7 @@ class LiveAttitude:
     def use_compass_fit(self, old: Any, new: Any) -> None:
         """Correct the compass readings (sent corrected by ``old``, the calibration in force) by
         the fit so far (``new``) before taking the heading: the raw compass of an uncalibrated
-        vehicle can be tens of degrees off. ``old``/``new``: :class:`~mavcal.ardupilot.firmware.CompassCal`."""
+        vehicle can be tens of degrees off. ``old``/``new``: :class:`~mavcal.autopilot.calform.CompassCal`."""
         with self._lock:
             self._compass_cals = (old, new)
 

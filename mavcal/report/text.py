@@ -359,7 +359,7 @@ def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
 def forced_limits_text(violations: Sequence[str], unsaved_kinds: Sequence[str], *, override: str = "--force",
                        prefix: str = "mavcal: ") -> str:
     """The loud warning of a write forced past ArduPilot's limits: one line per value
-    (:attr:`mavcal.ardupilot.limits.LimitViolation.message`) and the sensor kinds that will not
+    (:attr:`mavcal.autopilot.limits.LimitViolation.message`) and the sensor kinds that will not
     be marked calibrated; "" when there is none."""
     lines = [f"WARNING: {override}: writing {v}" for v in violations]
     if unsaved_kinds:
