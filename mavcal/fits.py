@@ -1,8 +1,9 @@
-"""The fits of one prepared recording, sensor by sensor, and each sensor's verdict.
+"""The fits of one prepared recording, sensor by sensor, handed to the judging: the orchestration.
 
-Every compass is fitted jointly with the primary accelerometer (:func:`mavcal.core.calibrate.calibrate`),
-mapped onto ArduPilot's parameters, checked (held-out error, heading/tilt bounds) and
-gated; every accelerometer is judged on its own fit (:mod:`mavcal.accel_judging`). What the
+Every compass is fitted jointly with the primary accelerometer (:func:`mavcal.core.calibrate.calibrate`)
+and mapped onto its autopilot's parameters (the model's ``map_calibration``), then judged
+(:mod:`mavcal.judging.compass`: held-out error, heading bound, gates); every accelerometer is
+judged on its own fit (:mod:`mavcal.judging.accel`). What the
 fits take from the recording (readings, noise floors, the interval statistics computed once)
 is :mod:`mavcal.fit_inputs`. The fits are independent of each other, so :func:`fit_recording` hands them to worker
 processes (:class:`mavcal.workers.ForkPool`, ``Options.workers``); with one worker they run
@@ -11,15 +12,14 @@ here, in the same order, with the same results to the bit.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
-from mavcal.accel_judging import accel_only, accel_own, died_gate, judge_accels
 from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
-from mavcal.autopilot.mapping import AccelMapping, ParamMapping, combine, field_magnitude
+from mavcal.autopilot.mapping import AccelMapping, combine, field_magnitude
 from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
 from mavcal.core.constants import GRAVITY_MPS2
@@ -33,8 +33,6 @@ from mavcal.coverage import (
     ReachCoverage,
     held_priors,
     segmentation_reach,
-    sensor_coverages,
-    within_reach,
 )
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
 from mavcal.fit_inputs import (
@@ -48,8 +46,10 @@ from mavcal.fit_inputs import (
     wanted_instances,
     with_blind_cal,
 )
+from mavcal.judging.accel import accel_only, accel_own, died_gate, judge_accels
+from mavcal.judging.compass import PairFit, judge_compass
 from mavcal.memory import release_free_memory
-from mavcal.quality import holdout_part, holdout_rms, quality_of
+from mavcal.quality import holdout_part, quality_of
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.segment import Segmentation
 from mavcal.sources.progress import report
@@ -118,7 +118,7 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     runs: list[CalibrationRun | MavcalError] = []
     for j, o in enumerate(jobs):
         ok, r = got["pair", j]
-        runs.append(_finish_pair(prep, o, r, [h for _, h in sorted(slices[j], key=lambda kh: kh[0])],
+        runs.append(judge_compass(prep, o, r, [h for _, h in sorted(slices[j], key=lambda kh: kh[0])],
                                  got["quality", j]) if ok else r)
     if isinstance(runs[0], MavcalError):
         raise runs[0]
@@ -197,7 +197,7 @@ _Shared = tuple[Prepared, StatsCache]  # what the fit jobs share (inherited by f
 def _job(shared: _Shared, item: tuple[str, int, tuple]):
     """One fit job of :func:`fit_recording` (``item``: kind, pair or accelerometer index, arguments):
     a pair's joint fit and mapping (:func:`_fit_pair`), an accelerometer's own fit
-    (:func:`mavcal.accel_judging.accel_own`), a slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`)
+    (:func:`mavcal.judging.accel.accel_own`), a slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`)
     or a pair's uncertainty bounds (:func:`mavcal.quality.quality_of`, the held-out numbers left NaN)."""
     prep, stats = shared
     kind, _, arg = item
@@ -314,19 +314,7 @@ def _intervals_of_pair(prep: Prepared, ai: int, mi: int, opts: Options = Options
     return used
 
 
-@dataclass(frozen=True, eq=False)
-class _PairFit:
-    """A pair's joint fit and mapping (what a worker sends back: no readings)."""
-
-    used: list[int]
-    cal: Calibration
-    mapping: ParamMapping
-    params_now: dict[str, float]
-    warnings: list[str]
-    reach: ReachCoverage | None = None  # poses within reach: what they identify (the accelerometer held)
-
-
-def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
+def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
     """calibrate -> map for one accelerometer/compass pair (``stats``: the run's interval
     statistics, :func:`mavcal.fit_inputs.stats_of`)."""
     log_ = prep.log
@@ -355,35 +343,7 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
         am = replace(am, new=am.old, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
                      dropped_magnitude_mps2=0.0, kept=True)
         mapping = combine([am], mapping.compass, params_now, mapping.notes)
-    return _PairFit(used, cal, mapping, params_now, warnings, reach)
-
-
-def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outcome], quality_out: Outcome
-                 ) -> CalibrationRun | MavcalError:
-    """The pair's run from its fit and its later jobs' outcomes (the held-out slices in order,
-    the bounds): the held-out error, the compass gates."""
-    bad = next((r for ok, r in holdout + [quality_out] if not ok), None)
-    if bad is not None:
-        return bad
-    ho = holdout_rms([r for _, r in holdout]) if opts.holdout else (float("nan"), float("nan"))
-    quality = replace(quality_out[1], holdout_accel_mps2=ho[0], holdout_mag_mgauss=ho[1])
-    cal, cm, seg = f.cal, f.mapping.compass[0], prep.segmentation
-    cov = sensor_coverages(seg, opts.accel_instance, coverage_rule(opts, seg), accels=[],
-                           compasses=[opts.mag_instance])[0]
-    if f.reach is not None:  # the rule of poses within reach identified it (else the fit was refused)
-        cov = within_reach(cov, f.reach)
-    model = model_for(prep.log)
-    report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
-        cm, f.params_now, model=model, coverage=cov,
-        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=model.gate_config(opts.gates),
-        fit_converged=cal.converged,
-        fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message,
-        fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice(),
-        heading_advice=gates_mod.HEADING_ADVICE if f.reach is None else f.reach.heading_advice())))
-    return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=seg,
-                          intervals_used=tuple(f.used), calibration=cal, mapping=f.mapping, quality=quality,
-                          gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)),
-                          kept=f.reach.kept if f.reach is not None else ())
+    return PairFit(used, cal, mapping, params_now, warnings, reach)
 
 
 def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:

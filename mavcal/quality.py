@@ -2,7 +2,7 @@
 
 * :func:`truth_functions`: raw-reading functions of an estimated sensor model (the
   paper's Eq. ``sensor_reading_model``, ``u = K R g + b``) in the engine frame, so that
-  the written ArduPilot parameters can be judged against it;
+  the written parameters (in the common form, :mod:`mavcal.autopilot.calform`) can be judged against it;
 * :func:`quality_of`: the 95 % bounds of the heading and tilt error over the flight
   envelope, propagating the parameter covariance (draws of
   :func:`mavcal.core.uncertainty.sample_parameters`);

@@ -2,7 +2,8 @@
 held-out error, which values are written (its joint fit's with the primary compass, or its
 own), its tilt bounds and its gates; and the accelerometers calibrated alone, for a log
 without compass data. :mod:`mavcal.fits` runs the own fits (:func:`accel_own`) beside the
-pairs' and calls :func:`judge_accels` once the primary pair's verdict is known.
+pairs' and calls :func:`judge_accels` once the primary pair's verdict is known. The compasses'
+judging is beside it, :mod:`mavcal.judging.compass`.
 """
 from __future__ import annotations
 
