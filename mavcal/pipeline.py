@@ -2,8 +2,9 @@
 
     open_source (:mod:`mavcal.sources.reader` / :mod:`mavcal.link.live`)
     -> prepare (untruncate, the autopilot model's ``recover_raw``, :mod:`mavcal.segment`)
-    -> calibrate (:mod:`mavcal.core`) -> map (the model's ``map_calibration``)
-    -> quality (:mod:`mavcal.quality`) -> gates (:mod:`mavcal.autopilot.gates`).
+    -> coverage (:mod:`mavcal.coverage`) -> fit (:mod:`mavcal.fits`, :mod:`mavcal.core`)
+    -> map (the model's ``map_calibration``) -> judge (:mod:`mavcal.judging`: the numbers of
+    :mod:`mavcal.quality`, the gates of :mod:`mavcal.autopilot.gates`) -> verdict (:class:`CalibrationRun`).
 
 :func:`calibrate_source` is what ``mavcal calibrate``, the capture command and the
 MAVProxy module call. It never writes to a vehicle (that is :mod:`mavcal.link.writer`).
@@ -171,7 +172,7 @@ def calibrate_source(source, options: Options = Options(), *, progress=None, par
     """Calibrate from a log or a live vehicle: the whole chain, without writing anything.
 
     read -> undo truncation -> raw recovery -> still intervals -> joint fit (paper's
-    algorithm, refinement, model selection, uncertainty) -> ArduPilot parameters ->
+    algorithm, refinement, model selection, uncertainty) -> the autopilot's parameters ->
     quality numbers -> quality gates. This is what ``mavcal calibrate`` runs.
 
     Parameters
