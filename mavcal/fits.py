@@ -351,7 +351,7 @@ def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
     for the compass ``opts.mag_instance`` paired with accelerometer ``opts.accel_instance``; None
     when the rule does not apply (the poses identify the accelerometer, or go beyond a small tilt; a
     PX4 recording: the held accelerometer is read in ArduPilot's terms, so PX4 takes the full fit)."""
-    if opts.sensors == "accel" or model_for(prep.log).name != "ArduPilot":  # held values in ArduPilot's terms only
+    if opts.sensors == "accel" or not model_for(prep.log).holds_accel_within_reach:
         return None
     seg = prep.segmentation
     accels = prep.raw.accel_instances() if opts.sensors == "both" else []

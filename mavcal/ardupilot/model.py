@@ -31,6 +31,7 @@ class ArduPilotModel:
     name = NAME
     max_instances: Mapping[str, int] = {"accel": fw.MAX_IMUS, "mag": fw.MAX_COMPASSES}
     detour_dwell_s = 0.0  # no detours
+    holds_accel_within_reach = True
 
     # ------------------------------------------------------------------ readings and calibration
 

@@ -45,6 +45,9 @@ class AutopilotModel(Protocol):
     max_instances: Mapping[str, int]
     #: how long the vehicle is let see a write's detours (s; 0: it takes none)
     detour_dwell_s: float
+    #: poses within reach may hold its accelerometer at the calibration in force (``accel_cal``,
+    #: :func:`mavcal.fits.reach_of`); False: its recordings take the full fit
+    holds_accel_within_reach: bool
 
     def recover_raw(self, log_: ImuLog) -> RawImu: ...
 

@@ -42,6 +42,7 @@ class Px4Model:
     name = NAME
     max_instances: Mapping[str, int] = {"accel": pn.MAX_SLOTS, "mag": pn.MAX_SLOTS}
     detour_dwell_s = pn.DETOUR_DWELL_S
+    holds_accel_within_reach = False  # the held accelerometer is read in ArduPilot's terms: PX4 takes the full fit
 
     def __init__(self, log_: ImuLog) -> None:
         self._series: dict[tuple[str, int], SensorSeries] = {(s.sensor, s.instance): s for s in log_.series
