@@ -48,8 +48,8 @@ from mavcal.fit_inputs import (
 )
 from mavcal.judging.accel import accel_only, accel_own, died_gate, judge_accels
 from mavcal.judging.compass import PairFit, judge_compass
+from mavcal.judging.quality import holdout_part, quality_of
 from mavcal.memory import release_free_memory
-from mavcal.quality import holdout_part, quality_of
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.segment import Segmentation
 from mavcal.sources.progress import report
@@ -197,8 +197,9 @@ _Shared = tuple[Prepared, StatsCache]  # what the fit jobs share (inherited by f
 def _job(shared: _Shared, item: tuple[str, int, tuple]):
     """One fit job of :func:`fit_recording` (``item``: kind, pair or accelerometer index, arguments):
     a pair's joint fit and mapping (:func:`_fit_pair`), an accelerometer's own fit
-    (:func:`mavcal.judging.accel.accel_own`), a slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`)
-    or a pair's uncertainty bounds (:func:`mavcal.quality.quality_of`, the held-out numbers left NaN)."""
+    (:func:`mavcal.judging.accel.accel_own`), a slice of a pair's held-out refits
+    (:func:`mavcal.judging.quality.holdout_part`) or a pair's uncertainty bounds
+    (:func:`mavcal.judging.quality.quality_of`, the held-out numbers left NaN)."""
     prep, stats = shared
     kind, _, arg = item
     if kind == "pair":

@@ -4,7 +4,7 @@
     -> prepare (untruncate, the autopilot model's ``recover_raw``, :mod:`mavcal.segment`)
     -> coverage (:mod:`mavcal.coverage`) -> fit (:mod:`mavcal.fits`, :mod:`mavcal.core`)
     -> map (the model's ``map_calibration``) -> judge (:mod:`mavcal.judging`: the numbers of
-    :mod:`mavcal.quality`, the gates of :mod:`mavcal.autopilot.gates`) -> verdict (:class:`CalibrationRun`).
+    :mod:`mavcal.judging.quality`, the gates of :mod:`mavcal.autopilot.gates`) -> verdict (:class:`CalibrationRun`).
 
 :func:`calibrate_source` is what ``mavcal calibrate``, the capture command and the
 MAVProxy module call. It never writes to a vehicle (that is :mod:`mavcal.link.writer`).
@@ -19,8 +19,8 @@ from mavcal.autopilot.raw import RawImu
 from mavcal.errors import UsageError
 from mavcal.fit_inputs import coverage_rule
 from mavcal.fits import fit_recording, refusal_verdicts
+from mavcal.judging.quality import Quality
 from mavcal.memory import release_free_memory
-from mavcal.quality import Quality
 from mavcal.run import STAGE_FIT, STAGE_RECOVER, STAGE_SEGMENT, CalibrationRun, Options, Prepared
 from mavcal.segment import find_still_intervals
 from mavcal.sources.progress import ProgressFn, report

@@ -12,7 +12,7 @@ from mavcal.core.accel_fit import AccelFit
 from mavcal.core.types import Calibration
 from mavcal.coverage import KeptParameter
 from mavcal.errors import EXIT_PARTIAL, GateError
-from mavcal.quality import Quality
+from mavcal.judging.quality import Quality
 from mavcal.segment import Segmentation, StillConfig
 from mavcal.sources.types import ImuLog
 
@@ -131,7 +131,7 @@ class CalibrationRun:
         log under the same names (None when unknown); ``mapping.changed()`` only the names
         whose value changes; ``mapping.notes`` what was decided and why, in words.
     quality : Quality
-        The primary pair's quality numbers (:class:`mavcal.quality.Quality`):
+        The primary pair's quality numbers (:class:`mavcal.judging.quality.Quality`):
         ``heading_95_deg`` / ``tilt_95_deg`` (95 % bound of the worst heading/tilt error the
         written parameters leave over the flight envelope, degrees),
         ``holdout_accel_mps2`` / ``holdout_mag_mgauss`` (held-out error, NaN when not

@@ -13,7 +13,7 @@ from mavcal.core.accel_fit import HOLDOUT_POOL_MAX, holdout_accel_mps2
 from mavcal.core.reconstruct import estimate_orientations, orientations_from_means
 from mavcal.core.stats import interval_means, interval_stats, stats_subset
 from mavcal.errors import EstimationError
-from mavcal.quality import holdout_errors
+from mavcal.judging.quality import holdout_errors
 from mavcal.sim.paper import simulate
 from mavcal.testing.numbers import assert_close
 
@@ -223,7 +223,7 @@ def test_accel_tilt_bounds_equal_the_draw_by_draw_form():
     from mavcal.autopilot.mapping import accel_frame
     from mavcal.core.accel_fit import fit_accel, sample_accel
     from mavcal.core.constants import GRAVITY_MPS2
-    from mavcal.quality import accel_tilt_bounds
+    from mavcal.judging.quality import accel_tilt_bounds
 
     sim = simulate(20, seed=6, samples=(50, 80))
     fit = fit_accel(sim.accel_sets)

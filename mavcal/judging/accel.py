@@ -22,7 +22,7 @@ from mavcal.fit_inputs import (
     wanted_instances,
     with_blind_cal,
 )
-from mavcal.quality import Quality, accel_tilt_bounds
+from mavcal.judging.quality import Quality, accel_tilt_bounds
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.sources.progress import report
 from mavcal.workers import Outcome, WorkerDiedError

@@ -1,5 +1,5 @@
 """Each compass judged on its fit with the primary accelerometer (:class:`PairFit`, fitted and mapped by
-:mod:`mavcal.fits`): its held-out error, its 95 % heading bound (:mod:`mavcal.quality`), its own
+:mod:`mavcal.fits`): its held-out error, its 95 % heading bound (:mod:`mavcal.judging.quality`), its own
 still intervals (:mod:`mavcal.coverage`) and its gates (:func:`mavcal.autopilot.gates.compass_gates`,
 with its autopilot's limits): :func:`judge_compass`. The accelerometers' judging is beside it,
 :mod:`mavcal.judging.accel`.
@@ -15,7 +15,7 @@ from mavcal.core.types import Calibration
 from mavcal.coverage import ReachCoverage, sensor_coverages, within_reach
 from mavcal.errors import MavcalError
 from mavcal.fit_inputs import coverage_rule
-from mavcal.quality import holdout_rms
+from mavcal.judging.quality import holdout_rms
 from mavcal.run import CalibrationRun, Options, Prepared
 from mavcal.workers import Outcome
 

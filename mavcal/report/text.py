@@ -204,7 +204,7 @@ def _not_certified(run) -> str:
 
 
 def holdout_text(run) -> str:
-    """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
+    """The held-out error, or why it was not run (NaN from :func:`mavcal.judging.quality.holdout_errors`)."""
     q = run.quality
     if np.isfinite(q.holdout_accel_mps2) and np.isfinite(q.holdout_mag_mgauss):
         return f"held-out error: accel {q.holdout_accel_mps2:.4f} m/s^2, compass {q.holdout_mag_mgauss:.2f} mGauss"
