@@ -17,6 +17,7 @@ Exit codes (CLI contract):
 8   the vehicle requires MAVLink 2 signing and no key, or a wrong key, was given
 9   an output file is an input (or another output): refused before any work
 10  ``--connect auto`` found several serial ports that could be the vehicle: choose one
+11  the connected vehicle is not the one the log comes from (system id or device ids differ)
 ==  =========================================================
 """
 from __future__ import annotations
@@ -92,6 +93,13 @@ class AmbiguousPortError(LinkError):
         self.ports = list(ports)
         super().__init__(f"{len(self.ports)} serial ports could be the vehicle: {'; '.join(self.ports)}: "
                          "choose one with --connect PORT")
+
+
+class WrongVehicleError(MavcalError):
+    """The connected vehicle is not the one the log comes from: its system id or a compass's device
+    id differs from the log's. Nothing is written."""
+
+    exit_code = 11
 
 
 class InsufficientDataError(MavcalError):

@@ -18,8 +18,6 @@ PKG = Path(__file__).resolve().parents[1] / "mavcal"
 AUTOPILOTS = ("ardupilot", "px4")
 #: the one module outside the autopilot folders (and the fixtures) that names them
 REGISTRY = Path("autopilot") / "registry.py"
-#: the compass in flight (issue 39) still names ArduPilot's in-flight model: reworded there
-IN_FLIGHT = {Path("autopilot") / "flight.py", Path("flight") / "fit.py", Path("flight") / "stage.py"}
 
 
 def _imports(path: Path) -> set[str]:
@@ -47,7 +45,7 @@ def test_only_the_registry_imports_an_autopilot():
                  or imp.startswith(f"mavcal.{ap}.")}
         if folder in AUTOPILOTS:
             cross += [f"{path.relative_to(PKG)} -> {ap}" for ap in named if ap != folder]
-        elif folder != "testing" and path.relative_to(PKG) not in {REGISTRY} | IN_FLIGHT and named:
+        elif folder != "testing" and path.relative_to(PKG) != REGISTRY and named:
             offenders.append(f"{path.relative_to(PKG)} -> {sorted(named)}")
     assert not offenders, offenders
     assert not cross, cross
@@ -60,7 +58,7 @@ def test_only_the_registry_names_an_autopilot_folder():
     hits = []
     for path in sorted(PKG.rglob("*.py")):
         rel = path.relative_to(PKG)
-        if _folder(path) in AUTOPILOTS + ("testing",) or rel in {REGISTRY} | IN_FLIGHT:
+        if _folder(path) in AUTOPILOTS + ("testing",) or rel == REGISTRY:
             continue
         hits += [f"{rel}:{n}: {line.strip()}" for n, line in
                  enumerate(path.read_text(encoding="utf-8").splitlines(), 1) if pattern.search(line)]
@@ -69,11 +67,8 @@ def test_only_the_registry_names_an_autopilot_folder():
 
 
 def test_no_transitional_re_export_is_left():
-    """Every module of the neutral layer is neutral code: none re-exports an autopilot's (the
-    in-flight one excepted until issue 39)."""
+    """Every module of the neutral layer is neutral code: none re-exports an autopilot's."""
     for path in (PKG / "autopilot").glob("*.py"):
-        if path.relative_to(PKG) in IN_FLIGHT:
-            continue
         assert "Transitional" not in path.read_text(encoding="utf-8"), path.name
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from mavcal.ardupilot import devices, protocol
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot import limits as L
+from mavcal.ardupilot.flight import ArduPilotFlight
 from mavcal.ardupilot.mapping import map_accel, map_calibration
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.autopilot.calform import AccelCal, CompassCal
@@ -84,6 +85,10 @@ class ArduPilotModel:
         except ValueError:
             compass = None
         return accel, compass
+
+    def flight(self) -> ArduPilotFlight:
+        """ArduPilot's in-flight compass model (:mod:`.flight`)."""
+        return ArduPilotFlight()
 
     def vector_names(self, sensor: str, instance: int) -> Mapping[str, tuple[str, str, str]] | None:
         """The names of a sensor's calibration vectors by instance: a compass's ``ofs``, an

@@ -6,7 +6,8 @@ the calibration form (:mod:`~mavcal.autopilot.calform`), the mapping's results
 (:mod:`~mavcal.autopilot.mapping`), the gates (:mod:`~mavcal.autopilot.gates`,
 :mod:`~mavcal.autopilot.verdicts`), the attitude judging (:mod:`~mavcal.autopilot.evaluate`),
 rotations, MAVLink commands, parameter files, and the write rules each autopilot answers for
-(:mod:`~mavcal.autopilot.limits`, :mod:`~mavcal.autopilot.devices`, :mod:`~mavcal.autopilot.protocol`).
+(:mod:`~mavcal.autopilot.protocol`, :mod:`~mavcal.autopilot.limits`), the in-flight compass model
+(:mod:`~mavcal.autopilot.flight`).
 ArduPilot's and PX4's models are sibling implementations; the registry
 (:mod:`~mavcal.autopilot.registry`) is the one place that names them and decides which autopilot a
 recording or a vehicle is.

@@ -13,6 +13,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from mavcal.autopilot.calform import AccelCal, CompassCal
+    from mavcal.autopilot.flight import FlightModel
     from mavcal.autopilot.gates import GateConfig
     from mavcal.autopilot.limits import LimitViolation
     from mavcal.autopilot.mapping import AccelMapping, ParamMapping
@@ -30,10 +31,10 @@ class AutopilotModel(Protocol):
     (``map_calibration``, ``map_accel``), its own gate limits (``gate_config``, ``compass_offset_max``,
     ``compass_slot_gate``), the device ids of a sensor's slot (``device_ids``), its slots
     (``max_instances``, ``slot_limit``, ``vector_names``), the plausibility of a logged value
-    (``param_value_plausible``).
+    (``param_value_plausible``), its in-flight compass model (``flight``: :mod:`mavcal.autopilot.flight`).
 
-    Writes, each autopilot answering for the parameter names it knows (:mod:`mavcal.autopilot.limits`,
-    :mod:`mavcal.autopilot.devices`, :mod:`mavcal.autopilot.protocol` ask every model): value limits
+    Writes, each autopilot answering for the parameter names it knows (:mod:`mavcal.autopilot.protocol`
+    asks every model): value limits
     (``check_limits``, ``failing_kinds``, ``related_names``), device ids (``id_names``,
     ``device_id_problems``, ``remap_changes``), the write rules (``vector_group``, ``needs_reboot``,
     ``force_save_kinds``, ``detoured_order`` and ``detour_dwell_s``) and its parameter autosave
@@ -68,6 +69,8 @@ class AutopilotModel(Protocol):
 
     def device_ids(self, log_: ImuLog, params: Mapping[str, float], accel_instance: int,
                    mag_instance: int) -> tuple[float | None, float | None]: ...
+
+    def flight(self) -> FlightModel: ...
 
     def vector_names(self, sensor: str, instance: int) -> Mapping[str, tuple[str, str, str]] | None: ...
 

@@ -71,6 +71,5 @@ def model_named(name: str) -> AutopilotModel:
 @lru_cache(maxsize=1)
 def models() -> tuple[AutopilotModel, ...]:
     """One model of every autopilot, in the order of :data:`NAMES`: the write rules ask each of them
-    about the parameter names it knows (:mod:`mavcal.autopilot.limits`, :mod:`mavcal.autopilot.devices`,
-    :mod:`mavcal.autopilot.protocol`)."""
+    about the parameter names it knows (:mod:`mavcal.autopilot.protocol`)."""
     return tuple(model_named(n) for n in NAMES)

@@ -440,13 +440,15 @@ def _vehicle_values(link, args: argparse.Namespace, names: list) -> dict:
 
 
 def write_with_report(args: argparse.Namespace, changes: dict, backup: str | None, what: str,
-                      out: TextIO | None = None, log_params: dict | None = None) -> int:
+                      out: TextIO | None = None, log_params: dict | None = None, vehicle_check=None) -> int:
     """Connect to ``args.connect``, show the diff, confirm, write with the safe writer
     (:func:`mavcal.link.writer.write_params`) and print the outcome (:mod:`mavcal.report.text`).
 
     ``log_params``: the parameters of the log the calibration comes from; its compasses and
     IMUs must be the vehicle's by device id (``--map-compass`` / ``--map-imu`` to override).
     Values outside ArduPilot's limits are refused before any write unless ``args.force``.
+    ``vehicle_check(link, table)``: called once the vehicle's values are read, before anything is
+    shown or written; it raises to refuse the vehicle.
     """
     from mavcal.autopilot.protocol import force_save_kinds
     from mavcal.errors import ParamWriteError
@@ -464,6 +466,8 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
                      signing_key=signing_key(args))
     try:
         table = _vehicle_values(link, args, list(changes))
+        if vehicle_check is not None:
+            vehicle_check(link, table)
         changes = _matched_changes(args, changes, log_params, table)
         if set(changes) - set(table):
             table.update(_vehicle_values(link, args, list(changes)))

@@ -9,7 +9,8 @@ estimated and 95 % bounds on each term; the verdict in words (:mod:`mavcal.fligh
 
 Exit codes: 0 done (every compass accepted or fine); 7 some compass wrong or not accepted
 (the outputs are written); 3 unreadable log; 4 too little data (no flight in the log, no
-current sensor); 2 bad options.
+current sensor); 2 bad options; with ``--write``: 5/6 the write failed (restored / not), 11 the
+connected vehicle is not the log's.
 """
 from __future__ import annotations
 
@@ -34,8 +35,10 @@ HELP = "fit the compasses' motor/current interference from a flight log and say 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = ("exit codes:\n  0  every compass fine or accepted   7  a compass wrong or not accepted\n"
-                     "  3  unreadable log   4  too little data   2  bad options   70  internal error")
-    parser.add_argument("log", metavar="LOG", help="DataFlash flight log (.bin)")
+                     "  3  unreadable log   4  too little data   2  bad options   70  internal error\n"
+                     "  5  write failed, vehicle restored   6  write and restore failed\n"
+                     "  11 the connected vehicle is not the log's (nothing written)")
+    parser.add_argument("log", metavar="LOG", help="flight log: ArduPilot DataFlash (.bin), PX4 ULog (.ulg) or tlog")
     add_json_argument(parser)
     parser.add_argument("--param-out", metavar="FILE", default=None,
                         help="write the motor compensation (its type, the accepted compasses' terms) to this .param")
@@ -46,6 +49,56 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--yaw", choices=("ekf", "gsf", "auto"), default="ekf",
                         help="the yaw used for the heading checks: the EKF's, or the EKF-GSF estimator's "
                              "(compass-independent; samples where it has not converged are left out)")
+    add_write_arguments(parser)
+
+
+def add_write_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--write`` with the vehicle link's options: the accepted compasses' compensation written to
+    the vehicle through the safe writer (as ``mavcal calibrate --write``)."""
+    from mavcal.commands.common import BACKUP_HELP, add_link_arguments
+
+    w = parser.add_argument_group("writing to the vehicle")
+    w.add_argument("--write", action="store_true",
+                   help="write the accepted compasses' compensation to the vehicle (--connect; backup, read-back, "
+                        "restore on failure); refused when the vehicle is not the log's (system id, device ids)")
+    w.add_argument("--backup", metavar="F", default=None, help=BACKUP_HELP)
+    add_link_arguments(w)  # type: ignore[arg-type]
+
+
+def write_to_vehicle(args: argparse.Namespace, r: FlightResult, say) -> int:
+    """Write ``param_values(r)`` to ``args.connect`` with the safe writer, once the vehicle is
+    found to be the log's (:func:`vehicle_is_the_logs`)."""
+    from mavcal.commands.common import check_new_backup, write_with_report
+    from mavcal.flight.stage import param_values
+
+    params = param_values(r)
+    if not params:
+        print("no compass accepted: nothing to write to the vehicle", file=say)
+        return 0
+    check_new_backup(args.backup)
+    written = [c.id_name for c in r.compasses if c.id_name and c.verdict.accepted and c.compensation]
+    return write_with_report(args, params, args.backup, "in-flight compensation write", out=say,
+                             vehicle_check=lambda link, table: vehicle_is_the_logs(link, r, written, args))
+
+
+def vehicle_is_the_logs(link, r: FlightResult, id_names: list[str], args: argparse.Namespace) -> None:
+    """:class:`WrongVehicleError` when the connected vehicle's system id (its heartbeat) or the device
+    id of a compass to be written differs from the log's; a value the log lacks is not compared."""
+    from mavcal.errors import WrongVehicleError
+    from mavcal.link.writer import fetch_for_write
+
+    diff = []
+    sysid_name = r.sysid_param
+    if sysid_name in r.identity and int(r.identity[sysid_name]) != int(link.target_system):
+        diff.append(f"system id {int(link.target_system)} (the log's {sysid_name} is {int(r.identity[sysid_name])})")
+    names = [n for n in id_names if n in r.identity]
+    have = fetch_for_write(link, [], context=names, timeout_s=args.param_timeout) if names else {}
+    for n in names:
+        if n in have and int(have[n][0]) & 0xFFFFFFFF != int(r.identity[n]) & 0xFFFFFFFF:
+            diff.append(f"{n} {int(have[n][0])} (the log's {int(r.identity[n])})")
+    if diff:
+        raise WrongVehicleError("the connected vehicle is not the one the log comes from: it has "
+                                + "; ".join(diff) + "; nothing written")
 
 
 def _f(x: Any) -> Any:
@@ -83,7 +136,7 @@ def to_json(r: FlightResult) -> dict[str, Any]:
             "heading_error_vs_gsf_before_deg": _f(c.gsf_heading_err_deg[0]),
             "heading_error_vs_gsf_after_deg": _f(c.gsf_heading_err_deg[1]), "samples": f.n_samples,
             "missing_params": list(c.missing_params), "summary": v.summary})
-    return {"source": r.source, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
+    return {"source": r.source, "autopilot": r.autopilot, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
             "yaw_source": r.yaw_source, "field_source": r.field_source, "rotation_reference": r.rotation_reference,
             "field_model_ned_mgauss": _f(r.B0_ned_mgauss), "compasses": comp, "parameters": param_values(r),
             "warnings": list(r.warnings)}
@@ -141,6 +194,8 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--{opt.replace('_', '-')} would overwrite the log")
     if args.param_out == "-":
         raise UsageError("--param-out needs a file name")
+    if args.write and args.dry_run:
+        raise UsageError("--dry-run shows what --write would change without writing: give one of them")
     from mavcal.autopilot.paramfile import write_param_file
     from mavcal.flight.stage import param_values, run_flight
 
@@ -164,5 +219,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"wrote {len(params)} parameters to {args.param_out}", file=say)
         else:
             print("no compass accepted: nothing written to " + args.param_out, file=say)
+    if args.write or args.dry_run:
+        write_to_vehicle(args, r, say)
     bad = any(c.verdict.wrong or not c.verdict.accepted for c in r.compasses)
     return EXIT_PARTIAL if bad else 0

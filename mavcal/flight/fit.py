@@ -1,8 +1,9 @@
 """The in-flight fit of one compass: offsets and motor interference against a reference the
 compass cannot bend.
 
-The firmware's model (ArduPilot ``correct_field``, see :mod:`mavcal.ardupilot.flight`), with
-``A = M(DIA, ODI) · SCALE`` kept as in force::
+The firmware's model in the neutral form of :mod:`mavcal.autopilot.flight` (ArduPilot's
+``correct_field``: ``A = M(DIA, ODI) · SCALE``; PX4's ``Correct``: ``A = R S``, the motor term
+``A · COMP``), with ``A`` kept as in force::
 
     mag_i = A (b_i + o) + m x(t_i - tau)                      (1)
 

@@ -1,23 +1,26 @@
 """The in-flight stage end to end: a flight log -> one :class:`CompassResult` per compass.
 
-Per compass: the calibration in force undone as logged (:mod:`mavcal.ardupilot.flight`), the
+Per compass: the calibration in force undone as logged (the autopilot's in-flight model,
+:mod:`mavcal.autopilot.flight`, from the registry: ArduPilot's or PX4's), the
 reference (:mod:`mavcal.flight.reference`), the fit (:mod:`mavcal.flight.fit`) and the verdict
 (:mod:`mavcal.flight.verdict`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from mavcal.autopilot import flight as apf
+from mavcal.autopilot import model_named
 from mavcal.errors import InsufficientDataError
 from mavcal.flight.airborne import judge_flight
 from mavcal.flight.fit import CompassFit, FitInput, fit_compass
 from mavcal.flight.reference import heading_offset_deg, reference_at
 from mavcal.flight.verdict import ROTATION_WRONG_DEG, Verdict, judge
-from mavcal.sources.flight_series import FlightSeries, read_flight_series
+from mavcal.sources.flight_logs import read_flight_log
+from mavcal.sources.flight_series import FlightSeries
 
 __all__ = ["CompassResult", "FlightResult", "run_flight", "analyse"]
 
@@ -32,6 +35,8 @@ class CompassResult:
     ofs_in_force_mgauss: np.ndarray
     mot_in_force: np.ndarray
     gsf_heading_err_deg: tuple[float, float]  # RMS against the EKF-GSF yaw: as logged, as fitted (NaN: no GSF)
+    compensation: dict[str, float] = field(default_factory=dict)  # its parameters as fitted (written if accepted)
+    id_name: str = ""  # the parameter holding its device id ("": none known)
 
 
 @dataclass(frozen=True)
@@ -45,6 +50,10 @@ class FlightResult:
     compasses: tuple[CompassResult, ...]
     warnings: tuple[str, ...]
     rotation_reference: str = "gsf"  # "gsf": the rotation judged against the compass-independent yaw; "none"
+    autopilot: str = "ArduPilot"
+    type_values: dict[str, float] = field(default_factory=dict)  # the parameter selecting the driver, as fitted
+    identity: dict[str, float] = field(default_factory=dict)  # the log's system id and compass device ids
+    sysid_param: str = ""  # which of ``identity`` is the system id
 
 
 #: a battery current below this (A) is no current sensor's reading
@@ -57,7 +66,7 @@ def no_current_sensor(s: FlightSeries) -> str:
     """Why the log has no usable current sensor ("" when it has one)."""
     c = s.current_a[np.isfinite(s.current_a)] if len(s.current_a) else s.current_a
     if len(c) <= 10:
-        return "no battery current logged (BAT)"
+        return f"no battery current logged ({s.current_message})"
     if float(np.median(c)) < NEGATIVE_CURRENT_A:
         return f"no current sensor: the battery current reads {float(np.median(c)):.1f} A (negative)"
     if float(np.ptp(c)) < MIN_CURRENT_SPAN_A:
@@ -66,7 +75,24 @@ def no_current_sensor(s: FlightSeries) -> str:
 
 
 def run_flight(path: str | Path, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
-    return analyse(read_flight_series(path), yaw=yaw, driver=driver)
+    return analyse(read_flight_log(path), yaw=yaw, driver=driver)
+
+
+def _current(s: FlightSeries, battery: int) -> FlightSeries:
+    """``s`` with the current of battery ``battery`` (the one the firmware compensates with) as its current."""
+    if battery == 0 or battery not in s.battery_currents:
+        return s
+    t, a = s.battery_currents[battery]
+    return replace(s, current_time_s=t, current_a=a)
+
+
+def _in_force_driver(s: FlightSeries, motct: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """The series the compensation in force was driven by (empty when none is in force)."""
+    if motct == apf.COMPENSATION_CURRENT:
+        return s.current_time_s, s.current_a
+    if motct == apf.COMPENSATION_THROTTLE:
+        return s.throttle_time_s, s.throttle
+    return np.zeros(0), np.zeros(0)
 
 
 def _driver(s: FlightSeries, params_motct: int | None, driver: str) -> tuple[str, np.ndarray, np.ndarray, list[str]]:
@@ -86,7 +112,7 @@ def _driver(s: FlightSeries, params_motct: int | None, driver: str) -> tuple[str
     if no_sensor:
         warn.append(f"{no_sensor}: the interference is fitted against the throttle")
     if len(s.throttle) < 10:
-        raise InsufficientDataError(f"{s.source}: no throttle logged (CTUN)")
+        raise InsufficientDataError(f"{s.source}: no throttle logged ({s.throttle_message})")
     return "throttle", s.throttle_time_s, s.throttle, warn
 
 
@@ -106,7 +132,7 @@ def _disagreement_deg(against_ekf: dict[int, float]) -> float:
                 for a in against_ekf.values() for b in against_ekf.values()), default=0.0)
 
 
-def _no_independent_yaw(against_ekf: dict[int, float]) -> str:
+def _no_independent_yaw(against_ekf: dict[int, float], gsf_message: str = "XKY0") -> str:
     """What is said without a compass-independent yaw: no rotation verdict, how far the compasses
     disagree with each other (each against the EKF yaw, which is fused from them)."""
     spread = ""
@@ -115,15 +141,40 @@ def _no_independent_yaw(against_ekf: dict[int, float]) -> str:
         spread = (f"; the compasses' headings disagree by up to {d:.0f} deg ("
                   + ", ".join(f"compass{i} {v:+.0f}" for i, v in sorted(against_ekf.items()))
                   + " deg against the EKF yaw, which is fused from them)")
-    return ("no compass-independent yaw in this log (no converged EKF-GSF yaw, XKY0): "
+    return (f"no compass-independent yaw in this log (no converged EKF-GSF yaw, {gsf_message}): "
             "a wrong rotation is not judged" + spread)
+
+
+def _heading_checks(s: FlightSeries, c, a: apf.AsApplied, f: apf.InForce, fit: CompassFit, ref, dt: np.ndarray,
+                    dx: np.ndarray) -> tuple[str, float, tuple[float, float]] | None:
+    """The rotation check against the compass-independent yaw where it has converged (else the
+    reference's yaw), on the field corrected as fitted (offsets and interference bend single
+    headings, not all of them): (the yaw's source, the mean heading offset with the offsets in force
+    (a rotated compass bends the fitted ones), the RMS heading error as logged and as fitted);
+    None with too few samples."""
+    gref = reference_at(s, c.time_s, "gsf") if len(s.gsf_time_s) > 10 else ref
+    gk = gref.valid & c.healthy
+    if gk.sum() < 30:
+        return None
+    x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
+    mag = (a.field_mgauss[gk] + (f.A @ (fit.ofs_mgauss - a.ofs_mgauss[gk]).T).T
+           - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
+    after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)[2]
+    off = heading_offset_deg(gref.R[gk], a.field_mgauss[gk] - a.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
+                             gref.B0_ned_mgauss)[0]
+    before = heading_offset_deg(gref.R[gk], a.field_mgauss[gk], gref.B0_ned_mgauss)[2]
+    return gref.yaw_source, off, (before, after)
 
 
 def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> FlightResult:
     _require_flight(s)
-    motct = apf.motor_type(s.params)
+    model = model_named(s.autopilot).flight()
+    s = _current(s, model.battery_instance(s.params))
+    motct = model.motor_type(s.params)
     kind, dt, dx, warnings = _driver(s, motct, driver)
-    kind_code = apf.COMPENSATION_CURRENT if kind == "current" else apf.COMPENSATION_THROTTLE
+    kind_code = apf.kind_code(kind)
+    ft, fx = _in_force_driver(s, motct)
+    applied: dict[int, apf.AsApplied] = {}
     results: list[CompassResult] = []
     yaw_source = field_source = "-"
     B0 = np.zeros(3)
@@ -134,18 +185,19 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
     against_ekf: dict[int, float] = {}  # heading minus the EKF yaw's (not independent: fused from the compasses)
     for c in s.compasses:
         try:
-            f = apf.in_force(s.params, c.instance)
+            f = model.in_force(s.params, c)
         except ValueError as exc:  # an instance the firmware does not have (a damaged log)
             warnings.append(f"compass{c.instance}: left out: {exc}")
             continue
         info[c.instance] = f
+        a = applied[c.instance] = model.as_applied(f, c, s.params, ft, fx)
         ref = reference_at(s, c.time_s, yaw)
         yaw_source, field_source, B0 = ref.yaw_source, ref.field_source, ref.B0_ned_mgauss
         keep = ref.valid & c.healthy
         if keep.sum() < 30:
             continue
-        raw = apf.raw_field(f, c.field_mgauss[keep], c.ofs_mgauss[keep], c.motor_ofs_mgauss[keep])
-        ofs_force = np.median(c.ofs_mgauss[keep], axis=0)
+        raw = a.raw_mgauss[keep]
+        ofs_force = np.median(a.ofs_mgauss[keep], axis=0)
         # the compensation in force applies to the driver the firmware uses; another driver: none of it
         mot_force = f.mot_per_unit if motct == kind_code else np.zeros(3)
         inp = FitInput(c.time_s[keep], raw, f.matrix_times_scale, ref.R[keep], dt, dx, kind, ref.B0_ned_mgauss,
@@ -156,37 +208,24 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
         except ValueError as exc:
             warnings.append(f"compass{c.instance}: {exc}")
             continue
-        # the rotation check against the compass-independent yaw where it has converged, on the
-        # field corrected as fitted (offsets and interference bend single headings, not all of them)
-        gref = reference_at(s, c.time_s, "gsf") if len(s.gsf_time_s) > 10 else ref
-        gk = gref.valid & c.healthy
-        if gk.sum() >= 30:
-            x = np.interp(c.time_s[gk] - fit.delay_s, dt, dx)
-            mag = (c.field_mgauss[gk] + (f.matrix_times_scale @ (fit.ofs_mgauss - c.ofs_mgauss[gk]).T).T
-                   - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit)
-            _, _, after = heading_offset_deg(gref.R[gk], mag, gref.B0_ned_mgauss)
-            # the rotation on the offsets in force: a rotated compass bends the fitted ones
-            off = heading_offset_deg(
-                gref.R[gk], c.field_mgauss[gk] - c.motor_ofs_mgauss[gk] + x[:, None] * fit.mot_per_unit,
-                gref.B0_ned_mgauss)[0]
-            if gref.yaw_source == "gsf":
-                rotation[c.instance] = off
+        checked = _heading_checks(s, c, a, f, fit, ref, dt, dx)
+        if checked is not None:
+            source, off, before_after = checked
+            if source == "gsf":
+                rotation[c.instance], gsf_err[c.instance] = off, before_after
             elif np.isfinite(off):
                 against_ekf[c.instance] = off
-            before = heading_offset_deg(gref.R[gk], c.field_mgauss[gk], gref.B0_ned_mgauss)[2]
-            if gref.yaw_source == "gsf":
-                gsf_err[c.instance] = (before, after)
     if not fits:
         raise InsufficientDataError(f"{s.source}: no compass has enough samples in flight with a known attitude")
     rot_ref = "gsf" if rotation else "none"
     if not rotation:
-        warnings.append(_no_independent_yaw(against_ekf))
+        warnings.append(_no_independent_yaw(against_ekf, s.gsf_message))
     verdicts = judge(fits, kind, {i: info[i].missing for i in fits},
-                     {i: np.median(next(c for c in s.compasses if c.instance == i).ofs_mgauss, axis=0) for i in fits},
+                     {i: np.median(applied[i].ofs_mgauss, axis=0) for i in fits},
                      {i: (info[i].mot_per_unit if motct == kind_code else np.zeros(3)) for i in fits}, rotation)
     split = _disagreement_deg(against_ekf) if not rotation else 0.0
     if split > ROTATION_WRONG_DEG:  # one of them is turned, and no independent yaw says which: none written
-        why = (f"the compasses' headings disagree by {split:.0f} deg and no compass-independent yaw (XKY0) "
+        why = (f"the compasses' headings disagree by {split:.0f} deg and no compass-independent yaw ({s.gsf_message}) "
                "says which is right")
         verdicts = {i: replace(v, accepted=False, not_written_because=v.not_written_because or why)
                     for i, v in verdicts.items()}
@@ -195,20 +234,24 @@ def analyse(s: FlightSeries, *, yaw: str = "ekf", driver: str = "auto") -> Fligh
             continue
         f = info[c.instance]
         results.append(CompassResult(c.instance, fits[c.instance], verdicts[c.instance], f.missing,
-                                     apf.compass_in_use(s.params, c.instance),
-                                     np.median(c.ofs_mgauss, axis=0), f.mot_per_unit,
-                                     gsf_err.get(c.instance, (float("nan"), float("nan")))))
+                                     model.compass_in_use(s.params, f),
+                                     np.median(applied[c.instance].ofs_mgauss, axis=0), f.mot_per_unit,
+                                     gsf_err.get(c.instance, (float("nan"), float("nan"))),
+                                     model.param_values(f, kind_code, fits[c.instance].mot_per_unit),
+                                     model.id_name(f.slot)))
+    sysid = next((n for n in model.sysid_params if n in s.params), "")
+    ident = [sysid] + [c.id_name for c in results if c.id_name]
     return FlightResult(s.source, kind, motct, yaw_source, field_source, B0, tuple(results), tuple(warnings),
-                        rot_ref)
+                        rot_ref, model.name, model.type_values(kind_code, s.params),
+                        {n: float(s.params[n]) for n in ident if n in s.params}, sysid)
 
 
 def param_values(r: FlightResult) -> dict[str, float]:
     """The parameters to write: the driver type and the motor compensation of the accepted compasses."""
     out: dict[str, float] = {}
-    kind = apf.COMPENSATION_CURRENT if r.driver_kind == "current" else apf.COMPENSATION_THROTTLE
     for c in r.compasses:
         if c.fit is not None and c.verdict.accepted:
-            out.update(apf.motor_param_values(c.instance, c.fit.mot_per_unit))
+            out.update(c.compensation)
     if out:
-        out.update(apf.motor_type_value(kind))
+        out.update(r.type_values)
     return out

@@ -20,6 +20,7 @@ from mavcal.autopilot.raw import RawImu
 from mavcal.px4 import params as pn
 from mavcal.px4.autosave import SaveSchedule
 from mavcal.px4.firmware import Px4AccelCal, Px4MagCal
+from mavcal.px4.flight import Px4Flight
 from mavcal.px4.mapping import map_accel_px4, map_calibration_px4
 from mavcal.px4.recover import cal_of, device_id_of, recover_raw
 from mavcal.sources.types import ImuLog, SensorSeries
@@ -92,6 +93,10 @@ class Px4Model:
             s = self._series.get((sensor, i))
             out.append(None if s is None else (device_id_of(s, params)[0] or None))
         return out[0], out[1]
+
+    def flight(self) -> Px4Flight:
+        """PX4's in-flight compass model (:mod:`mavcal.px4.flight`)."""
+        return Px4Flight()
 
     def map_accel(self, K_a: np.ndarray, b_a: np.ndarray, params: Mapping[str, float], instance: int) -> AccelMapping:
         old = self._cal("accel", instance, params)

@@ -26,7 +26,9 @@ EV_ARMED, EV_DISARMED, EV_AUTO_ARMED, EV_LAND_COMPLETE, EV_NOT_LANDED = 10, 11, 
 @dataclass(frozen=True)
 class CompassSeries:
     """One compass as logged (``MAG`` with instance ``I``): the corrected field the firmware used
-    (body frame, mGauss), the offsets it applied and the motor offset it added."""
+    (body frame, mGauss), the offsets it applied and the motor offset it added. A PX4 log holds
+    the raw reading instead (``raw_mgauss``, the sensor frame, and the ``device_id`` its calibration
+    slot is found by); its corrected field, offsets and motor offset are then NaN (not logged)."""
 
     instance: int
     time_s: np.ndarray
@@ -34,6 +36,8 @@ class CompassSeries:
     ofs_mgauss: np.ndarray  # (n, 3)
     motor_ofs_mgauss: np.ndarray  # (n, 3)
     healthy: np.ndarray  # (n,) bool
+    raw_mgauss: np.ndarray | None = None  # (n, 3) the raw reading (PX4's sensor_mag), None when not logged
+    device_id: int | None = None
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,11 @@ class FlightSeries:
     lon_deg: float | None
     params: dict[str, float] = field(default_factory=dict)
     evidence: FlightEvidence | None = None  # None: not read from a log (a synthetic flight)
+    autopilot: str = "ArduPilot"  # whose model the compasses follow (mavcal.autopilot.NAMES)
+    battery_currents: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # more batteries: (t, A)
+    throttle_message: str = "CTUN"  # where the throttle and the current are read from (said when missing)
+    current_message: str = "BAT"
+    gsf_message: str = "XKY0"
 
 
 def _t(cols: dict[str, np.ndarray]) -> np.ndarray:

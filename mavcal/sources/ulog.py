@@ -38,7 +38,8 @@ from mavcal.autopilot.mavlink import MAV_AUTOPILOT_PX4
 from mavcal.errors import SourceError
 from mavcal.sources.types import ImuLog, ParamTimeline, SensorSeries
 
-__all__ = ["read_ulog", "calibrated_topics", "CalibratedTopic", "MAV_AUTOPILOT_PX4", "NO_RAW_TOPICS"]
+__all__ = ["read_ulog", "calibrated_topics", "CalibratedTopic", "MAV_AUTOPILOT_PX4", "NO_RAW_TOPICS", "load_topics",
+           "start_us", "is_ulog"]
 
 log = logging.getLogger(__name__)
 
@@ -338,3 +339,23 @@ def calibrated_topics(path: str) -> list[CalibratedTopic]:
             dev = np.asarray(data["accel_device_id"], dtype=np.float64)
             out.append(CalibratedTopic(d.name, d.multi_id, "accel", t[ok], dv[ok] / dt[ok, None], dev[ok], dt[ok]))
     return out
+
+
+def load_topics(path: str, topics: list[str]):
+    """pyulog's ``ULog`` of ``path`` with only ``topics``' data, checked as :func:`read_ulog` does
+    (:class:`SourceError` in one line when it cannot be read)."""
+    return _load(path, topics)
+
+
+def start_us(ulog) -> int:
+    """The log's start (microseconds): the times of :func:`read_ulog` are seconds from it."""
+    return _start_us(ulog)
+
+
+def is_ulog(path: str) -> bool:
+    """Whether the file begins with the ULog magic."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(_MAGIC)) == _MAGIC
+    except OSError:
+        return False

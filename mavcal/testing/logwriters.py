@@ -78,6 +78,11 @@ class TlogWriter(_FileWriter):
         self.path = Path(path)
         self.count = 0
 
+    @property
+    def dialect(self):
+        """The pymavlink dialect module the messages are made with (for :meth:`write`)."""
+        return self._d
+
     # -- plumbing
     def write(self, t_unix_s: float, msg, from_gcs: bool = False) -> None:
         """Write one pymavlink message object at receive time ``t_unix_s`` (seconds)."""
