@@ -27,7 +27,7 @@ from mavcal.ardupilot.mapping import map_accel
 from mavcal.core.accel_fit import FORM_ALPHA, fit_accel
 from mavcal.core.constants import GRAVITY_MPS2 as G
 from mavcal.core.stats import chi2_sf, interval_stats
-from mavcal.quality import accel_tilt_bounds
+from mavcal.judging.quality import accel_tilt_bounds
 from mavcal.testing.sitl_hand import SPREAD_POSES
 from mavcal.testing.vehicle import euler_to_matrix
 

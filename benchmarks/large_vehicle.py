@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
 from mavcal.coverage import HELD_ACCEL_SD, REACH_FLOWN_TILT_DEG
 from mavcal.errors import MavcalError
 from mavcal.testing.sitl import (

@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
 from mavcal.autopilot import model_for
 from mavcal.determined import determined, joint_unidentified, unidentified
 from mavcal.errors import EXIT_PARTIAL, GateError, MavcalError, UsageError
@@ -210,17 +209,17 @@ def _row_from_run(source: str, run, ai: int, mi: int, elapsed: float) -> BatchRo
     am = run.mapping.accel[0] if run.mapping.accel else None
     cm = run.mapping.compass[0] if run.mapping.compass else None
     old = dict(run.mapping.old)
-    # the calibration in force: ArduPilot's parameters as logged (None when the log lacks them); a PX4
-    # vehicle's CAL_* in the ArduPilot form the mapping compares (its slot found by device id)
-    px4 = model_for(run.log).name != "ArduPilot"
+    # the calibration in force: the parameters as logged by instance (None when the log lacks them); where
+    # a slot follows the device id (PX4) the mapping's old values in the common form
+    model = model_for(run.log)
     c_old = c_new = a_old = a_new = s_old = s_new = None
     if cm is not None:
-        cn = fw.compass_param_names(cm.instance)
-        c_old, c_new = _vec(cm.old.ofs_mgauss) if px4 else _old_vec(old, cn["ofs"]), _vec(cm.new.ofs_mgauss)
+        cn = model.vector_names("compass", cm.instance)
+        c_old, c_new = _vec(cm.old.ofs_mgauss) if cn is None else _old_vec(old, cn["ofs"]), _vec(cm.new.ofs_mgauss)
     if am is not None:
-        an = fw.accel_param_names(am.instance)
-        a_old, a_new = _vec(am.old.ofs_mps2) if px4 else _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
-        s_old, s_new = _vec(am.old.scale) if px4 else _old_vec(old, an["scale"]), _vec(am.new.scale)
+        an = model.vector_names("accel", am.instance)
+        a_old, a_new = _vec(am.old.ofs_mps2) if an is None else _old_vec(old, an["ofs"]), _vec(am.new.ofs_mps2)
+        s_old, s_new = _vec(am.old.scale) if an is None else _old_vec(old, an["scale"]), _vec(am.new.scale)
     verdicts = tuple(run.verdicts)  # the single log's own (the data's cause alone when it applies)
     why_a, why_m = joint_unidentified(run)
     q = run.quality

@@ -34,7 +34,8 @@ import numpy as np
 from mavcal.core.headings import YAW_ORIENTATIONS, ProvisionalHeadings, provisional_headings
 from mavcal.core.held import relaxed_headings, tilts_of
 from mavcal.errors import MavcalError
-from mavcal.segment import Segmentation, axis_label, count_clusters
+from mavcal.gravity_spread import axis_label, count_clusters
+from mavcal.segment import Segmentation
 
 __all__ = ["CoverageRule", "SensorCoverage", "accel_coverage", "compass_coverage", "sensor_coverages",
            "field_directions", "UNIDENTIFIED_HEADING_DEG", "UNIDENTIFIED_TILT_DEG", "KeptParameter",

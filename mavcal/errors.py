@@ -50,7 +50,7 @@ class UnknownParameterError(UsageError):
 
 class OutOfRangeError(UsageError):
     """Some values break ArduPilot's limits (nothing was written); ``violations`` lists them
-    (each with a one-line ``message``, see :class:`mavcal.ardupilot.limits.LimitViolation`)."""
+    (each with a one-line ``message``, see :class:`mavcal.autopilot.limits.LimitViolation`)."""
 
     def __init__(self, violations: Sequence[Any]) -> None:
         self.violations = list(violations)

@@ -1,5 +1,5 @@
 """What one recording's fits take from the prepared recording (:mod:`mavcal.fits`,
-:mod:`mavcal.accel_judging`): each sensor's readings in each still interval, the noise floor of
+:mod:`mavcal.judging`): each sensor's readings in each still interval, the noise floor of
 its telemetry quantisation, its interval statistics computed once per run, the coverage rule of
 the gates, and the refusal's reason when the log holds calibration prompts without IMU data.
 """

@@ -1,8 +1,9 @@
-"""The fits of one prepared recording, sensor by sensor, and each sensor's verdict.
+"""The fits of one prepared recording, sensor by sensor, handed to the judging: the orchestration.
 
-Every compass is fitted jointly with the primary accelerometer (:func:`mavcal.core.calibrate.calibrate`),
-mapped onto ArduPilot's parameters, checked (held-out error, heading/tilt bounds) and
-gated; every accelerometer is judged on its own fit (:mod:`mavcal.accel_judging`). What the
+Every compass is fitted jointly with the primary accelerometer (:func:`mavcal.core.calibrate.calibrate`)
+and mapped onto its autopilot's parameters (the model's ``map_calibration``), then judged
+(:mod:`mavcal.judging.compass`: held-out error, heading bound, gates); every accelerometer is
+judged on its own fit (:mod:`mavcal.judging.accel`). What the
 fits take from the recording (readings, noise floors, the interval statistics computed once)
 is :mod:`mavcal.fit_inputs`. The fits are independent of each other, so :func:`fit_recording` hands them to worker
 processes (:class:`mavcal.workers.ForkPool`, ``Options.workers``); with one worker they run
@@ -11,19 +12,19 @@ here, in the same order, with the same results to the bit.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
 
-from mavcal.accel_judging import accel_only, accel_own, died_gate, judge_accels
-from mavcal.autopilot import firmware as fw
 from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
-from mavcal.autopilot.mapping import AccelMapping, ParamMapping, combine, field_magnitude
+from mavcal.autopilot.mapping import AccelMapping, combine, field_magnitude
+from mavcal.autopilot.model import AutopilotModel
 from mavcal.autopilot.rotations import euler_to_matrix, nearest_rotation
 from mavcal.core.accel_fit import HOLDOUT_FOLDS
 from mavcal.core.calibrate import calibrate
+from mavcal.core.constants import GRAVITY_MPS2
 from mavcal.core.held import calibrate_held, turn_compass, turned_stats
 from mavcal.core.models import MODEL_CHAIN, MODELS
 from mavcal.core.stats import IntervalStats, interval_means
@@ -38,8 +39,6 @@ from mavcal.coverage import (
     accel_state,
     held_priors,
     segmentation_reach,
-    sensor_coverages,
-    within_reach,
 )
 from mavcal.errors import EstimationError, InsufficientDataError, MavcalError, SourceError
 from mavcal.fit_inputs import (
@@ -53,8 +52,10 @@ from mavcal.fit_inputs import (
     wanted_instances,
     with_blind_cal,
 )
+from mavcal.judging.accel import accel_only, accel_own, died_gate, judge_accels
+from mavcal.judging.compass import PairFit, judge_compass
+from mavcal.judging.quality import holdout_part, quality_of
 from mavcal.memory import release_free_memory
-from mavcal.quality import holdout_part, holdout_rms, quality_of
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.segment import Segmentation
 from mavcal.sources.progress import report
@@ -123,7 +124,7 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     runs: list[CalibrationRun | MavcalError] = []
     for j, o in enumerate(jobs):
         ok, r = got["pair", j]
-        runs.append(_finish_pair(prep, o, r, [h for _, h in sorted(slices[j], key=lambda kh: kh[0])],
+        runs.append(judge_compass(prep, o, r, [h for _, h in sorted(slices[j], key=lambda kh: kh[0])],
                                  got["quality", j]) if ok else r)
     if isinstance(runs[0], MavcalError):
         raise runs[0]
@@ -202,8 +203,9 @@ _Shared = tuple[Prepared, StatsCache]  # what the fit jobs share (inherited by f
 def _job(shared: _Shared, item: tuple[str, int, tuple]):
     """One fit job of :func:`fit_recording` (``item``: kind, pair or accelerometer index, arguments):
     a pair's joint fit and mapping (:func:`_fit_pair`), an accelerometer's own fit
-    (:func:`mavcal.accel_judging.accel_own`), a slice of a pair's held-out refits (:func:`mavcal.quality.holdout_part`)
-    or a pair's uncertainty bounds (:func:`mavcal.quality.quality_of`, the held-out numbers left NaN)."""
+    (:func:`mavcal.judging.accel.accel_own`), a slice of a pair's held-out refits
+    (:func:`mavcal.judging.quality.holdout_part`) or a pair's uncertainty bounds
+    (:func:`mavcal.judging.quality.quality_of`, the held-out numbers left NaN)."""
     prep, stats = shared
     kind, _, arg = item
     if kind == "pair":
@@ -319,19 +321,7 @@ def _intervals_of_pair(prep: Prepared, ai: int, mi: int, opts: Options = Options
     return used
 
 
-@dataclass(frozen=True, eq=False)
-class _PairFit:
-    """A pair's joint fit and mapping (what a worker sends back: no readings)."""
-
-    used: list[int]
-    cal: Calibration
-    mapping: ParamMapping
-    params_now: dict[str, float]
-    warnings: list[str]
-    reach: ReachCoverage | None = None  # poses within reach: what they identify (the accelerometer held)
-
-
-def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
+def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
     """calibrate -> map for one accelerometer/compass pair (``stats``: the run's interval
     statistics, :func:`mavcal.fit_inputs.stats_of`)."""
     log_ = prep.log
@@ -340,8 +330,10 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
     used = _intervals_of_pair(prep, ai, mi, opts)
     params_now = log_.params.snapshot()
     reach = reach_of(prep, opts)
-    turn = None if reach is None else reach_turn(reach, params_now, mi)
-    if reach is not None and (state := _accel_state_of(params_now, ai)) != "calibrated":
+    model = model_for(log_)
+    state = _accel_state_of(model, params_now, ai)
+    turn = None if reach is None else reach_turn(model, reach, params_now, ai, mi)
+    if reach is not None and state != "calibrated":
         sd = HELD_ACCEL_SD[state]
         reach = replace(reach, kept=reach.kept + (KeptParameter(
             f"accel{ai}", "calibration in force", f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry "
@@ -375,35 +367,7 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> _PairFit:
         am = replace(am, new=am.old, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
                      dropped_magnitude_mps2=0.0, kept=True)
         mapping = combine([am], mapping.compass, params_now, mapping.notes)
-    return _PairFit(used, cal, mapping, params_now, warnings, reach)
-
-
-def _finish_pair(prep: Prepared, opts: Options, f: _PairFit, holdout: list[Outcome], quality_out: Outcome
-                 ) -> CalibrationRun | MavcalError:
-    """The pair's run from its fit and its later jobs' outcomes (the held-out slices in order,
-    the bounds): the held-out error, the compass gates."""
-    bad = next((r for ok, r in holdout + [quality_out] if not ok), None)
-    if bad is not None:
-        return bad
-    ho = holdout_rms([r for _, r in holdout]) if opts.holdout else (float("nan"), float("nan"))
-    quality = replace(quality_out[1], holdout_accel_mps2=ho[0], holdout_mag_mgauss=ho[1])
-    cal, cm, seg = f.cal, f.mapping.compass[0], prep.segmentation
-    cov = sensor_coverages(seg, opts.accel_instance, coverage_rule(opts, seg), accels=[],
-                           compasses=[opts.mag_instance])[0]
-    if f.reach is not None:  # the rule of poses within reach identified it (else the fit was refused)
-        cov = within_reach(cov, f.reach)
-    report = gates_mod.GateReport(tuple(gates_mod.compass_gates(
-        cm, f.params_now, coverage=cov,
-        heading_95_deg=quality.heading_95_deg, holdout_mgauss=ho[1], config=model_for(prep.log).gate_config(opts.gates),
-        fit_converged=cal.converged,
-        fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message,
-        fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice(),
-        heading_advice=gates_mod.HEADING_ADVICE if f.reach is None else f.reach.heading_advice(
-            _accel_state_of(f.params_now, opts.accel_instance)))))
-    return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=seg,
-                          intervals_used=tuple(f.used), calibration=cal, mapping=f.mapping, quality=quality,
-                          gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)),
-                          kept=f.reach.kept if f.reach is not None else ())
+    return PairFit(used, cal, mapping, params_now, warnings, reach, state)
 
 
 def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
@@ -411,7 +375,7 @@ def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
     for the compass ``opts.mag_instance`` paired with accelerometer ``opts.accel_instance``; None
     when the rule does not apply (the poses identify the accelerometer, or go beyond a small tilt; a
     PX4 recording: the held accelerometer is read in ArduPilot's terms, so PX4 takes the full fit)."""
-    if opts.sensors == "accel" or model_for(prep.log).name != "ArduPilot":  # held values in ArduPilot's terms only
+    if opts.sensors == "accel" or not model_for(prep.log).holds_accel_within_reach:
         return None
     seg = prep.segmentation
     accels = prep.raw.accel_instances() if opts.sensors == "both" else []
@@ -421,24 +385,23 @@ def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
 _BEYOND_WORDS = "the vehicle on each side and upside down (the full capture without --max-tilt)"
 
 
-def _accel_state_of(params: dict[str, float], instance: int) -> str:
+def _accel_state_of(model: AutopilotModel, params: dict[str, float], instance: int) -> str:
     """The state of accelerometer ``instance``'s calibration in force (:func:`mavcal.coverage.accel_state`)."""
-    a = fw.accel_cal_from_params(params, instance)
+    a = model.accel_cal(params, instance)
     return accel_state(a.ofs_mps2, a.scale)
 
 
-def reach_turn(reach: ReachCoverage, params_now: dict[str, float], mag_instance: int) -> np.ndarray | None:
+def reach_turn(model: AutopilotModel, reach: ReachCoverage, params_now: dict[str, float], accel_instance: int,
+               mag_instance: int) -> np.ndarray | None:
     """The yaw turn (3 x 3, compass -> body, from its configured mounting) of a compass whose turn the
     tilts identify (:attr:`mavcal.coverage.ReachCoverage.mounting_turn_deg`, not 0), when its orientation
-    can be written: an external compass (COMPASS_ORIENT applies) whose turned mounting is a standard
+    can be written: an external compass (its own orientation applies) whose turned mounting is a standard
     orientation; None otherwise (the verdict then says it may be mounted rotated)."""
     if not reach.mounting_turn_deg or not reach.compass_identified:
         return None
-    names = fw.compass_param_names(mag_instance)
-    old = fw.compass_cal_from_params(params_now, mag_instance)
-    ext = params_now.get(names["external"])
-    board = int(round(params_now.get(fw.board_param_names()["orientation"], 0) or 0))
-    if not (bool(ext) if ext is not None else old.orient != board):
+    old = model.compass_cal(params_now, mag_instance)
+    board = model.accel_cal(params_now, accel_instance).board_orient
+    if not (old.external if old.external is not None else old.orient != board):
         return None
     Q = euler_to_matrix(0.0, 0.0, np.radians(reach.mounting_turn_deg))
     return Q if nearest_rotation(Q @ old.mount_matrix)[1] <= 1.0 else None
@@ -453,12 +416,13 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     if not reach.compass_identified:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach (tilts up to {reach.max_tilt_deg:.1f} "
                                     f"deg): {'; '.join(reach.missing)}; {reach.add}")
-    old = fw.accel_cal_from_params(params_now, opts.accel_instance)
+    model = model_for(prep.log)
+    old = model.accel_cal(params_now, opts.accel_instance)
     if old.board_orient != 0:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach need AHRS_ORIENTATION 0 (the fit holds "
                                     "the accelerometer in the board frame); capture the six sides instead")
     scale = np.asarray(old.scale, float)
-    K_a, b_a = np.diag(fw.GRAVITY_MSS / scale), np.asarray(old.ofs_mps2, float)
+    K_a, b_a = np.diag(GRAVITY_MPS2 / scale), np.asarray(old.ofs_mps2, float)
     calibrated = accel_state(b_a, scale)  # the held values' prior: full, level-only or no calibration
     # b_a[z] is fitted, not held: only K_a[33] + b_a[z] (the level reading) is identified, and a held pair that
     # misses it by more than the noise would be a misfit of the whole cost; it is kept all the same (not written)
@@ -470,7 +434,7 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     loc = opts.location or prep.log.position
     if loc is None:
         return replace(cal, model_reason=cal.model_reason + " (no position known)")
-    incl = field_magnitude(np.empty((0, 3)), fw.compass_cal_from_params(params_now, opts.mag_instance),
+    incl = field_magnitude(np.empty((0, 3)), model.compass_cal(params_now, opts.mag_instance),
                            location=loc)[2]
     sd_incl = _inclination_sd_deg(cal)
     if incl is None or sd_incl <= WMM_INCLINATION_SD_DEG:

@@ -2,7 +2,7 @@
 
 A log holds the readings *as corrected* by the calibration the vehicle had then (ArduPilot's
 RAW_IMU, DataFlash IMU/MAG; a live PX4's SCALED_IMU). To fit a new calibration, mavcal undoes
-that correction (:mod:`mavcal.ardupilot.recover`, :mod:`mavcal.px4.recover`), which takes the
+that correction (the autopilot model's ``recover_raw``: ArduPilot's, PX4's), which takes the
 values that were in force. They come from
 
 * the recording's parameters (a tlog's PARAM_VALUE messages, a DataFlash log's PARM records, a
@@ -11,7 +11,7 @@ values that were in force. They come from
   ``--params FILE`` (:func:`with_param_file`): Mission Planner's ``NAME,VALUE`` and MAVProxy's
   ``NAME VALUE`` .param files (:mod:`mavcal.autopilot.paramfile`).
 
-Each sensor's origin is in :attr:`mavcal.ardupilot.recover.RawImu.cal_origin`. A sensor whose
+Each sensor's origin is in :attr:`mavcal.autopilot.raw.RawImu.cal_origin`. A sensor whose
 calibration in force is not known (no parameters at all, or only some of its names) is still
 fitted and judged, but its verdict is "not written" (:func:`in_force_gates`): its new values
 would be off by exactly the calibration in force, and writing them would erase it. No default
@@ -67,7 +67,7 @@ def not_known_reason(sensor: str, missing: tuple[str, ...], live: bool = False) 
 
 def in_force_gates(raw: RawImu, *, live: bool = False) -> list[Gate]:
     """A failed gate per sensor of ``raw`` whose calibration in force is not known
-    (:attr:`~mavcal.ardupilot.recover.RawImu.cal_missing`): it rejects the sensor, and its
+    (:attr:`~mavcal.autopilot.raw.RawImu.cal_missing`): it rejects the sensor, and its
     reason comes first in the sensor's verdict."""
     return [Gate(sensor, GATE_NAME, False, 0.0, "known (the recording's parameters, --params FILE or the vehicle)",
                  not_known_reason(sensor, tuple(missing), live), True, CAUSE_IN_FORCE)
@@ -83,7 +83,7 @@ def with_param_file(log_: ImuLog, params: PathLike | Mapping[str, float], origin
     (they carry their times: a change during the log counts from its time); a different value in
     the file is said in the log's warnings. A name the recording lacks takes the file's value
     from the first reading on, as if the recording had held it from its start (the parameter
-    history then bounds it by the log's own events, :mod:`mavcal.ardupilot.param_history`).
+    history then bounds it by the log's own events, ArduPilot's parameter history).
 
     Parameters
     ----------

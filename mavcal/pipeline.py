@@ -1,9 +1,10 @@
-"""From a log or a live link to ArduPilot parameters; this module only chains the stages:
+"""From a log or a live link to an autopilot's parameters; this module only chains the stages:
 
     open_source (:mod:`mavcal.sources.reader` / :mod:`mavcal.link.live`)
-    -> prepare (untruncate, :mod:`mavcal.ardupilot.recover`, :mod:`mavcal.segment`)
-    -> calibrate (:mod:`mavcal.core`) -> map (:mod:`mavcal.ardupilot.mapping`)
-    -> quality (:mod:`mavcal.quality`) -> gates (:mod:`mavcal.ardupilot.gates`).
+    -> prepare (untruncate, the autopilot model's ``recover_raw``, :mod:`mavcal.segment`)
+    -> coverage (:mod:`mavcal.coverage`) -> fit (:mod:`mavcal.fits`, :mod:`mavcal.core`)
+    -> map (the model's ``map_calibration``) -> judge (:mod:`mavcal.judging`: the numbers of
+    :mod:`mavcal.judging.quality`, the gates of :mod:`mavcal.autopilot.gates`) -> verdict (:class:`CalibrationRun`).
 
 :func:`calibrate_source` is what ``mavcal calibrate``, the capture command and the
 MAVProxy module call. It never writes to a vehicle (that is :mod:`mavcal.link.writer`).
@@ -18,8 +19,8 @@ from mavcal.autopilot.raw import RawImu
 from mavcal.errors import UsageError
 from mavcal.fit_inputs import coverage_rule
 from mavcal.fits import fit_recording, refusal_verdicts
+from mavcal.judging.quality import Quality
 from mavcal.memory import release_free_memory
-from mavcal.quality import Quality
 from mavcal.run import STAGE_FIT, STAGE_RECOVER, STAGE_SEGMENT, CalibrationRun, Options, Prepared
 from mavcal.segment import find_still_intervals
 from mavcal.sources.progress import ProgressFn, report
@@ -171,7 +172,7 @@ def calibrate_source(source, options: Options = Options(), *, progress=None, par
     """Calibrate from a log or a live vehicle: the whole chain, without writing anything.
 
     read -> undo truncation -> raw recovery -> still intervals -> joint fit (paper's
-    algorithm, refinement, model selection, uncertainty) -> ArduPilot parameters ->
+    algorithm, refinement, model selection, uncertainty) -> the autopilot's parameters ->
     quality numbers -> quality gates. This is what ``mavcal calibrate`` runs.
 
     Parameters

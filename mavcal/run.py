@@ -12,7 +12,7 @@ from mavcal.core.accel_fit import AccelFit
 from mavcal.core.types import Calibration
 from mavcal.coverage import KeptParameter
 from mavcal.errors import EXIT_PARTIAL, GateError
-from mavcal.quality import Quality
+from mavcal.judging.quality import Quality
 from mavcal.segment import Segmentation, StillConfig
 from mavcal.sources.types import ImuLog
 
@@ -73,7 +73,7 @@ class Options:
     holdout : bool
         Compute the leave-one-interval-out (held-out) errors; costs one refit per interval.
     gates : GateConfig
-        Limits of the quality gates (:class:`mavcal.ardupilot.gates.GateConfig`).
+        Limits of the quality gates (:class:`mavcal.autopilot.gates.GateConfig`).
     workers : int
         Processes for the fits (:class:`mavcal.workers.ForkPool`): with more than 1, the
         accelerometer/compass pairs, then the accelerometers, are fitted in that many forked
@@ -114,7 +114,7 @@ class CalibrationRun:
     log : ImuLog
         The readings as read (:class:`mavcal.sources.types.ImuLog`).
     raw : RawImu
-        The readings with ArduPilot's correction undone (:class:`mavcal.ardupilot.recover.RawImu`).
+        The readings with the autopilot's correction undone (:class:`mavcal.autopilot.raw.RawImu`).
     segmentation : Segmentation
         The still intervals found and their coverage (:class:`mavcal.segment.Segmentation`).
     intervals_used : tuple of int
@@ -124,20 +124,20 @@ class CalibrationRun:
         (:class:`mavcal.core.types.Calibration`: ``accel.gain`` K_a, ``accel.bias`` b_a,
         ``mag.gain`` K_m, ``field`` h, ``orientations`` R_i, ``param_cov``, ``model``).
     mapping : ParamMapping
-        The ArduPilot parameters (:class:`mavcal.ardupilot.mapping.ParamMapping`).
+        The autopilot's parameters (:class:`mavcal.autopilot.mapping.ParamMapping`).
         ``mapping.new`` is a mapping **keyed by parameter name**, one entry per axis
         (``"COMPASS_OFS_X"``, ``"INS_ACCSCAL_Z"``, ``"COMPASS_ORIENT"`` ...) to the value to
         write, for every sensor calibrated; ``mapping.old`` holds the values in force in the
         log under the same names (None when unknown); ``mapping.changed()`` only the names
         whose value changes; ``mapping.notes`` what was decided and why, in words.
     quality : Quality
-        The primary pair's quality numbers (:class:`mavcal.quality.Quality`):
+        The primary pair's quality numbers (:class:`mavcal.judging.quality.Quality`):
         ``heading_95_deg`` / ``tilt_95_deg`` (95 % bound of the worst heading/tilt error the
         written parameters leave over the flight envelope, degrees),
         ``holdout_accel_mps2`` / ``holdout_mag_mgauss`` (held-out error, NaN when not
         computed) and ``chi2_dof`` (J'/dof, about 1 when the noise model explains the data).
     gates : GateReport
-        Every quality gate (:class:`mavcal.ardupilot.gates.GateReport`): ``gates.passed``,
+        Every quality gate (:class:`mavcal.autopilot.gates.GateReport`): ``gates.passed``,
         ``gates.failures()`` (each with ``sensor``, ``name``, ``value``, ``limit``, ``reason``)
         and ``gates.by_sensor()`` (keyed ``"accel0"``, ``"compass1"``, ``"data"`` ...).
     params_before : dict of str to float

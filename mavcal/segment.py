@@ -1,4 +1,4 @@
-"""Still intervals: where the vehicle was held still, and whether they can calibrate.
+"""Still intervals: where the vehicle was held still (the detector and its result).
 
 The joint calibration needs the mean accelerometer and magnetometer readings of many
 still poses. :func:`find_still_intervals` finds them in a recording:
@@ -20,10 +20,9 @@ still poses. :func:`find_still_intervals` finds them in a recording:
    assigned to an interval by their time: those within half a sample period of one of its
    spans (one stillness mask for every sensor).
 
-The diagnosis counts distinct gravity directions (clusters ``cluster_deg`` apart),
-measures how they span the sphere (smallest eigenvalue of the scatter of unit gravity
-vectors: 1/3 for a perfect spread, 0 when all lie in a plane; the largest empty spherical
-cap) and says in words what the data cannot identify.
+The window statistics are :mod:`mavcal.window_stats`'s; how the intervals' gravity directions
+spread (the :class:`~mavcal.gravity_spread.Coverage` a :class:`Segmentation` carries) is
+:mod:`mavcal.gravity_spread`'s.
 """
 from __future__ import annotations
 
@@ -34,15 +33,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavcal.errors import SegmentationError
+from mavcal.gravity_spread import Coverage, diagnose_coverage
 from mavcal.sources.types import SensorSeries
+from mavcal.window_stats import covered, gyro_still, norms, prefix_at, rolling_sd_max, same_times, window_sums
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StillConfig", "StillInterval", "Coverage", "Segmentation", "find_still_intervals",
-           "diagnose_coverage", "FULL_MODEL_MIN_INTERVALS", "axis_label", "count_clusters"]
-
-#: Intervals the full joint model needs (the paper's initial estimate and Wald tests).
-FULL_MODEL_MIN_INTERVALS = 8
+__all__ = ["StillConfig", "StillInterval", "Segmentation", "find_still_intervals"]
 
 
 @dataclass(frozen=True)
@@ -144,31 +141,6 @@ class StillInterval:
 
 
 @dataclass(frozen=True, eq=False)
-class Coverage:
-    """How well the intervals' gravity directions can identify a calibration.
-
-    Attributes
-    ----------
-    n_intervals, n_orientations : counts (orientations = gravity clusters).
-    scatter_eigenvalues : (3,) ascending eigenvalues of mean(g g^T) over the intervals.
-    largest_empty_cap_deg : radius of the largest spherical cap with no gravity direction.
-    status : "ok", "reduced" (usable with a reduced model) or "insufficient".
-    messages : tuple of str, what is missing, in words.
-    """
-
-    n_intervals: int
-    n_orientations: int
-    scatter_eigenvalues: np.ndarray
-    largest_empty_cap_deg: float
-    status: str
-    messages: tuple[str, ...] = ()
-
-    @property
-    def min_eigenvalue(self) -> float:
-        return float(self.scatter_eigenvalues[0])
-
-
-@dataclass(frozen=True, eq=False)
 class Segmentation:
     """Result of :func:`find_still_intervals`.
 
@@ -220,76 +192,6 @@ def _collect(data) -> tuple[list[SensorSeries], list[SensorSeries], list[SensorS
     return by["accel"], by["mag"], by["gyro"]
 
 
-#: samples (and window starts) per step of the running sums and sliding-window statistics:
-#: their temporaries stay small and cached instead of full-length copies of the series
-_CHUNK = 1 << 14
-
-
-def _prefix_at(x: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """The running sums ``P[idx]`` for sorted indices ``idx`` in [0, len(x)], where ``P[0] = 0`` and
-    ``P[1:] = cumsum(x, axis=0)``, computed a chunk at a time (no full-length array), one axis
-    per contiguous row: each sum continues sequentially (``x[b0] + carry``; IEEE addition
-    commutes), so the values are those of one ``cumsum`` over all rows."""
-    idx = np.asarray(idx, dtype=np.int64)
-    x2 = x.reshape(len(x), -1)
-    out = np.zeros((len(idx), x2.shape[1]))  # the prefix at index 0 is 0
-    carry = None
-    for b0 in range(0, len(x2), _CHUNK):
-        b1 = min(b0 + _CHUNK, len(x2))
-        lo, hi = np.searchsorted(idx, [b0, b1], side="right")
-        if hi == len(idx) and lo == hi:
-            break  # nothing asked beyond here
-        c = np.array(x2[b0:b1].T, dtype=float, order="C")  # a copy, whatever the layout of x
-        if carry is not None and c.shape[1]:
-            c[:, 0] += carry
-        np.cumsum(c, axis=1, out=c)
-        out[lo:hi] = c[:, idx[lo:hi] - b0 - 1].T
-        carry = c[:, -1].copy()
-    return out.reshape((len(idx),) + x.shape[1:])
-
-
-def _rolling_sd_max(x: np.ndarray, w: int) -> np.ndarray:
-    """Largest per-axis standard deviation of (n, d) ``x`` over the windows x[i:i+w], i = 0..n-w.
-
-    The running sums of the rows and of their squares are built a chunk at a time, one axis per
-    row of a buffer (contiguous: fast) that keeps the last ``w`` of the previous chunk ahead of
-    it (the windows across the boundary); each sum continues sequentially (``x[b0] + carry``:
-    IEEE addition commutes), so the sums are those of one ``cumsum`` over all rows. Every
-    window's mean and variance use the full-length expressions (``s1 / w``,
-    ``max(s2 / w - m * m, 0)``); the square root of the largest variance is the largest square
-    root (it is monotonic and correctly rounded): the result is bit-identical."""
-    n, d = x.shape
-    out = np.empty(max(n - w + 1, 0))
-    buf = np.empty((2 * d, w + min(_CHUNK, n)))  # running sums [x | x*x] (per axis) at prefix indices base..
-    buf[:, 0] = 0.0  # the prefix at index 0
-    held = 1  # columns of buf before this chunk's (the prefixes b0 - held + 1 .. b0)
-    for b0 in range(0, n, _CHUNK):
-        b1 = min(b0 + _CHUNK, n)
-        c = buf[:, held:held + b1 - b0]
-        xt = x[b0:b1].T
-        c[:d] = xt
-        np.multiply(xt, xt, out=c[d:])
-        if b0:
-            c[:, 0] += buf[:, held - 1]
-        np.cumsum(c, axis=1, out=c)
-        base = b0 - held + 1  # prefix index of buf[:, 0]
-        k0, k1 = max(b0 - w + 1, 0), b1 - w + 1  # window starts whose end lies in (b0, b1]
-        if k1 > k0:
-            sw = buf[:, k0 + w - base:k1 + w - base] - buf[:, k0 - base:k1 - base]
-            sw /= w  # [m | s2 / w]
-            var = sw[d:]
-            var -= sw[:d] * sw[:d]
-            np.maximum(var, 0.0, out=var)
-            big = var[0]
-            for j in range(1, d):
-                np.maximum(big, var[j], out=big)
-            np.sqrt(big, out=out[k0:k1])
-        keep = min(w, held + b1 - b0)
-        buf[:, :keep] = buf[:, held + b1 - b0 - keep:held + b1 - b0]
-        held = keep
-    return out
-
-
 def _unit(v: np.ndarray) -> np.ndarray:
     n = np.sqrt(v.dot(v))  # what np.linalg.norm computes for a 1-d float vector, without its overhead
     return v / n if n > 0 else v
@@ -301,194 +203,7 @@ def _angle_deg(a: np.ndarray | None, b: np.ndarray | None) -> float:
     return float(np.degrees(np.arccos(np.clip(np.dot(_unit(a), _unit(b)), -1.0, 1.0))))
 
 
-def axis_label(gravity_dir: np.ndarray) -> str:
-    """Words for a body-frame gravity direction (FRD): "level", "on its back", "nose down"..."""
-    g = np.asarray(gravity_dir, dtype=float)
-    k = int(np.argmax(np.abs(g)))
-    # gravity points along the body axis that faces the ground: +x down = nose down,
-    # +y (right wing) down = on its right side, +z down = level
-    names = {(2, 1): "level", (2, -1): "on its back", (0, 1): "nose down", (0, -1): "nose up",
-             (1, 1): "on its right side", (1, -1): "on its left side"}
-    name = names[(k, int(np.sign(g[k])))]
-    tilt = np.degrees(np.arccos(np.clip(abs(g[k]), -1, 1)))
-    return name if tilt < 15 else f"{name} (+{tilt:.0f} deg)"
-
-
-def _fibonacci_sphere(n: int = 2000) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5 ** 0.5) * i
-    return np.column_stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)])
-
-
-_SPHERE = _fibonacci_sphere()
-
-
-# --------------------------------------------------------------------------- coverage
-
-def count_clusters(g: np.ndarray, cluster_deg: float) -> int:
-    """Leader clustering of unit vectors in their order: a vector starts a new cluster when
-    no earlier cluster leader is within ``cluster_deg``. The first unassigned vector is
-    always a leader, and it claims every later vector within reach, so each pass is one
-    vectorised product (passes = clusters, bounded by how many caps fit on the sphere)."""
-    cos_c = np.cos(np.radians(cluster_deg))
-    free = np.ones(g.shape[0], dtype=bool)
-    n = 0
-    while True:
-        idx = np.flatnonzero(free)
-        if idx.size == 0:
-            return n
-        lead = idx[0]
-        n += 1
-        free[idx[g[idx] @ g[lead] >= cos_c]] = False
-        free[lead] = False
-
-
-#: grid points per product in :func:`_largest_empty_cap_deg`: a (400, 128) block is 400 kB and
-#: small enough for BLAS to run it on one thread (no thread start-up on a loaded machine)
-_SPHERE_ROWS = 400
-
-
-def _largest_empty_cap_deg(g: np.ndarray, chunk: int = 128) -> float:
-    """Radius (deg) of the largest spherical cap without any of the unit vectors ``g``
-    (over a fixed Fibonacci grid; memory bounded by ``chunk`` vectors and
-    :data:`_SPHERE_ROWS` grid points at a time: every product is a row of the one with all the
-    grid points, the same values)."""
-    best = np.full(_SPHERE.shape[0], -np.inf)
-    for k in range(0, g.shape[0], chunk):
-        gk = g[k:k + chunk].T
-        for r in range(0, _SPHERE.shape[0], _SPHERE_ROWS):
-            b = best[r:r + _SPHERE_ROWS]
-            np.maximum(b, np.max(_SPHERE[r:r + _SPHERE_ROWS] @ gk, axis=1), out=b)
-    return float(np.degrees(np.arccos(np.clip(best, -1, 1))).max())
-
-
-def diagnose_coverage(gravity_dirs: np.ndarray, cluster_deg: float = 20.0) -> Coverage:
-    """Coverage of a set of unit gravity directions (one per interval).
-
-    Parameters
-    ----------
-    gravity_dirs : (N, 3) array, any frame (the measures are rotation invariant).
-    cluster_deg : directions closer than this are one orientation.
-    """
-    g = np.asarray(gravity_dirs, dtype=float).reshape(-1, 3)
-    n = g.shape[0]
-    msgs: list[str] = []
-    if n == 0:
-        return Coverage(0, 0, np.zeros(3), 180.0, "insufficient",
-                        ("no still intervals were found: the vehicle never stayed still long enough "
-                         "(or the thresholds are too strict)",))
-    g = g / np.linalg.norm(g, axis=1, keepdims=True)
-    n_or = count_clusters(g, cluster_deg)
-    ev = np.sort(np.linalg.eigvalsh(g.T @ g / n))
-    cap = _largest_empty_cap_deg(g)
-    if n < FULL_MODEL_MIN_INTERVALS:
-        msgs.append(f"{n} still interval{'s' if n != 1 else ''}: the full joint model needs "
-                    f">= {FULL_MODEL_MIN_INTERVALS} intervals; with fewer only a reduced model can be fitted")
-    if n_or == 1:
-        msgs.append("a single orientation: gravity was seen from one direction only, which identifies "
-                    "neither accelerometer offsets/scales nor the compass soft iron; hold the vehicle "
-                    "in at least 6 different poses (each face down)")
-    elif n_or == 2:
-        msgs.append("only 2 distinct orientations: offsets and scales cannot be separated; "
-                    "add poses with each face down")
-    elif ev[0] < 0.02:
-        msgs.append("the gravity directions lie in one plane (the vehicle was turned about a single "
-                    "axis): the scale and offset along that axis cannot be identified; add poses "
-                    "with that axis up and down")
-    elif ev[0] < 0.08:
-        msgs.append(f"gravity directions are poorly spread (smallest scatter eigenvalue {ev[0]:.3f}, "
-                    f"ideal 0.333); add poses that fill the gap")
-    if n_or > 1 and cap > 100:
-        msgs.append(f"a large part of the sphere of gravity directions is empty (cap of {cap:.0f} deg); "
-                    f"results will be poorly constrained there")
-    if n_or <= 2 or n < 4:
-        status = "insufficient"
-    elif n < FULL_MODEL_MIN_INTERVALS or ev[0] < 0.08 or n_or < 6:
-        status = "reduced"
-    else:
-        status = "ok"
-    if status == "reduced" and n_or < 6 and n >= FULL_MODEL_MIN_INTERVALS and ev[0] >= 0.08:
-        msgs.append(f"only {n_or} distinct orientations (clusters {cluster_deg:.0f} deg apart); "
-                    f"at least 6 are recommended")
-    return Coverage(n, n_or, ev, cap, status, tuple(msgs))
-
-
 # --------------------------------------------------------------------------- detection
-
-def _covered(ok: np.ndarray, w: int, n: int) -> np.ndarray:
-    """(n,) bool: sample i lies in some window [s, s + w) with ``ok[s]`` (difference array;
-    ``len(ok) = n - w + 1``, so every window ends inside the samples)."""
-    d = np.zeros(n + 1, dtype=np.int32 if w < 2**31 // 2 else np.int64)
-    d[:len(ok)] += ok
-    d[w:w + len(ok)] -= ok
-    return np.cumsum(d[:n], out=d[:n]) > 0
-
-
-def _window_sums(t: np.ndarray, v: np.ndarray, t0: np.ndarray, t1: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Count, sum and sum of squares of the rows of ``v`` with ``t0 <= t <= t1`` (t sorted)."""
-    c1 = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v, axis=0)])
-    c2 = np.vstack([np.zeros((1, v.shape[1])), np.cumsum(v * v, axis=0)])
-    i0 = np.searchsorted(t, t0, side="left")
-    i1 = np.searchsorted(t, t1, side="right")
-    return i1 - i0, c1[i1] - c1[i0], c2[i1] - c2[i0]
-
-
-def _gyro_still(tg: np.ndarray, vg: np.ndarray | SensorSeries, t0: np.ndarray, t1: np.ndarray, limit: float,
-                w: int | None = None) -> np.ndarray:
-    """Per window [t0, t1]: RMS gyro rate of the samples in it below ``limit`` (no sample: still).
-
-    Chunked: the squared rates and their running sum are one value per sample; the windows
-    are evaluated a chunk at a time (same expressions, bit-identical results). ``w``: the gyro
-    samples are the reference's own times, strictly increasing, and the windows its ``w``-sample
-    windows (a gyro in the accelerometer's message): window k holds samples k..k+w-1, which
-    the sorted searches would find. ``vg``: the rates, or their series (whose values are then
-    read a chunk at a time: a packed series computes only those)."""
-    rows = vg.values_at if isinstance(vg, SensorSeries) else vg.__getitem__
-    c1 = np.empty(len(vg) + 1)
-    c1[0] = 0.0
-    for i in range(0, len(vg), _CHUNK):
-        g = rows(slice(i, i + _CHUNK))
-        sq = np.sum(g * g, axis=1)
-        if i:
-            sq[0] += c1[i]
-        np.cumsum(sq, out=c1[i + 1:i + 1 + len(sq)])
-    out = np.empty(len(t0), dtype=bool)
-    for k in range(0, len(t0), _CHUNK):
-        if w is not None:
-            m = len(t0[k:k + _CHUNK])
-            ms = c1[k + w:k + w + m] - c1[k:k + m]
-            ms /= w  # the count of every window
-        else:
-            i0 = np.searchsorted(tg, t0[k:k + _CHUNK], side="left")
-            i1 = np.searchsorted(tg, t1[k:k + _CHUNK], side="right")
-            cnt = i1 - i0
-            ms = np.where(cnt > 0, (c1[i1] - c1[i0]) / np.maximum(cnt, 1), 0.0)
-        out[k:k + _CHUNK] = np.sqrt(ms, out=ms) < limit
-    return out
-
-
-def _same_times(tg: np.ndarray, t: np.ndarray) -> bool:
-    """``tg`` holds exactly the strictly increasing times ``t`` (no duplicate, no NaN)."""
-    if len(tg) != len(t) or not (tg is t or np.array_equal(tg, t)):
-        return False
-    for i in range(0, len(t) - 1, _CHUNK):  # chunked: no full-length temporary
-        seg = t[i:i + _CHUNK + 1]
-        if not bool(np.all(seg[1:] > seg[:-1])):
-            return False
-    return True
-
-
-def _norms(a: np.ndarray) -> np.ndarray:
-    """|a| per row (``np.linalg.norm(a, axis=1)``, a chunk of rows at a time)."""
-    out = np.empty(len(a))
-    for i in range(0, len(a), _CHUNK):
-        c = a[i:i + _CHUNK]
-        # what np.linalg.norm(c, axis=1) computes for real rows, without its conj() copy
-        np.sqrt(np.add.reduce(c * c, axis=1), out=out[i:i + _CHUNK])
-    return out
-
 
 def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.ndarray | SensorSeries] | None,
                    mag: tuple[np.ndarray, np.ndarray] | None, w: int, cfg: StillConfig) -> np.ndarray:
@@ -496,19 +211,19 @@ def _still_windows(t: np.ndarray, acc: np.ndarray, gyro: tuple[np.ndarray, np.nd
     n = len(t)
     if n < w:
         return np.zeros(0, dtype=bool)
-    ok = _rolling_sd_max(acc, w) < cfg.accel_std_mps2
+    ok = rolling_sd_max(acc, w) < cfg.accel_std_mps2
     t0, t1 = t[:n - w + 1], t[w - 1:]  # per window start i: t[i], t[i + w - 1]
     if gyro is not None:
-        ok &= _gyro_still(gyro[0], gyro[1], t0, t1, cfg.gyro_rad_s, w if _same_times(gyro[0], t) else None)
+        ok &= gyro_still(gyro[0], gyro[1], t0, t1, cfg.gyro_rad_s, w if same_times(gyro[0], t) else None)
     if mag is not None:
-        cnt, s1, s2 = _window_sums(mag[0], mag[1], t0, t1)
+        cnt, s1, s2 = window_sums(mag[0], mag[1], t0, t1)
         m = s1 / np.maximum(cnt, 1)[:, None]
         var = np.maximum(s2 / np.maximum(cnt, 1)[:, None] - m * m, 0.0)
         # windows with < 2 mag samples carry no information: do not veto
         ok &= np.where(cnt >= 2, np.sqrt(var).max(axis=1) < cfg.mag_std_mgauss, True)
     if np.any(ok):
-        norm = _norms(acc)
-        med = float(np.median(norm[_covered(ok, w, n)], overwrite_input=True))  # the median of a copy
+        norm = norms(acc)
+        med = float(np.median(norm[covered(ok, w, n)], overwrite_input=True))  # the median of a copy
         bad = np.abs(norm - med) > cfg.accel_norm_tol * med
         del norm
         cb = np.zeros(n + 1, dtype=np.int32 if n < 2**31 else np.int64)  # bad samples before each index
@@ -604,7 +319,7 @@ class _Directions:
         self.R_b = R_b
         edges = np.asarray(spans, dtype=np.int64).reshape(-1, 2)
         ia = np.unique(edges)
-        ca = _prefix_at(ref.a, ia)
+        ca = prefix_at(ref.a, ia)
         sums = ca[np.searchsorted(ia, edges[:, 1])] - ca[np.searchsorted(ia, edges[:, 0])]
         keys = [(i0, i1) for i0, i1 in edges.tolist()]
         self._accel = dict(zip(keys, sums))
@@ -614,7 +329,7 @@ class _Directions:
             j0 = np.searchsorted(mag[0], ref.t[edges[:, 0]] - half, side="left")
             j1 = np.searchsorted(mag[0], ref.t[edges[:, 1] - 1] + half, side="right")
             jm = np.unique(np.concatenate([j0, j1]))
-            cm = _prefix_at(mag[1], jm)
+            cm = prefix_at(mag[1], jm)
             self._field = dict(zip(keys, cm[np.searchsorted(jm, j1)] - cm[np.searchsorted(jm, j0)]))
 
     def accel_sum(self, i0: int, i1: int) -> np.ndarray:
@@ -718,7 +433,7 @@ def find_still_intervals(data, config: StillConfig = StillConfig(),
     ----------
     data : RawImu, ImuLog, or sequence of SensorSeries
         Accel (m/s^2), mag (mGauss) and optional gyro (rad/s) series of any instances.
-        Raw data from :func:`mavcal.ardupilot.recover.recover_raw` is the usual input.
+        Raw data from the autopilot model's ``recover_raw`` is the usual input.
         Non-finite samples (e.g. readings whose calibration was unknown) are left out.
     config : StillConfig
     board_rotation : (3, 3) array, optional

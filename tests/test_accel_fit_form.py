@@ -23,7 +23,7 @@ from mavcal.core.accel_fit import (
     tilt_variances,
 )
 from mavcal.core.stats import interval_stats
-from mavcal.quality import accel_tilt_bounds
+from mavcal.judging.quality import accel_tilt_bounds
 
 pytestmark = pytest.mark.cpu_sensitive  # .ci/avx2 runs these as an AVX2-only CPU would (issue 30)
 

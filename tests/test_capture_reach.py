@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
 from mavcal.capture import CaptureConfig, CaptureSession, candidate_poses, euler_matrix
 from mavcal.capture.session import reach_plan
 from mavcal.testing.vehicle import TestVehicle, VehicleTruth

@@ -146,7 +146,7 @@ def test_finish_ends_the_capture_when_the_others_are_met():
     its target while calibrate's coverage rule still fails it has not met it, and the capture goes on."""
     from types import SimpleNamespace
 
-    from mavcal.ardupilot.gates import GateReport
+    from mavcal.autopilot.gates import GateReport
 
     v = TestVehicle(truth=VehicleTruth.random(7), seed=7)
     sess = CaptureSession(v.params)

@@ -13,7 +13,7 @@ from mavcal.core.accel_fit import HOLDOUT_POOL_MAX, holdout_accel_mps2
 from mavcal.core.reconstruct import estimate_orientations, orientations_from_means
 from mavcal.core.stats import interval_means, interval_stats, stats_subset
 from mavcal.errors import EstimationError
-from mavcal.quality import holdout_errors
+from mavcal.judging.quality import holdout_errors
 from mavcal.sim.paper import simulate
 from mavcal.testing.numbers import assert_close
 
@@ -96,7 +96,7 @@ def test_orientations_from_means_equal_estimate_orientations():
 
 def test_grid_errors_equal_attitude_errors_batch_after_batch():
     from mavcal.ardupilot import firmware as fw
-    from mavcal.ardupilot.evaluate import GridErrors, attitude_errors, attitude_grid, body_vectors, max_errors_deg
+    from mavcal.autopilot.evaluate import GridErrors, attitude_errors, attitude_grid, body_vectors, max_errors_deg
 
     rng = np.random.default_rng(11)
     grid = attitude_grid()
@@ -218,11 +218,12 @@ def test_accel_tilt_bounds_equal_the_draw_by_draw_form():
     """The accelerometer's tilt bound from all its draws at once equals the former per-draw
     evaluation (spelled out here), within 1e-9."""
     from mavcal.ardupilot import firmware as fw
-    from mavcal.ardupilot.evaluate import attitude_grid
-    from mavcal.ardupilot.mapping import accel_frame, map_accel
+    from mavcal.ardupilot.mapping import map_accel
+    from mavcal.autopilot.evaluate import attitude_grid
+    from mavcal.autopilot.mapping import accel_frame
     from mavcal.core.accel_fit import fit_accel, sample_accel
     from mavcal.core.constants import GRAVITY_MPS2
-    from mavcal.quality import accel_tilt_bounds
+    from mavcal.judging.quality import accel_tilt_bounds
 
     sim = simulate(20, seed=6, samples=(50, 80))
     fit = fit_accel(sim.accel_sets)

@@ -12,7 +12,7 @@ from mavcal.core.accel_fit import fit_accel, holdout_accel_mps2
 from mavcal.core.subset import diverse_subset
 from mavcal.core.uncertainty import parameter_vector
 from mavcal.errors import EstimationError
-from mavcal.quality import holdout_errors
+from mavcal.judging.quality import holdout_errors
 from mavcal.sim.paper import simulate
 from mavcal.testing.numbers import assert_close
 
@@ -104,7 +104,7 @@ def test_k_fold_holdout_warm_start_equals_cold_refits(monkeypatch):
     def cold(*args, start=None, **kw):  # the former refits: from scratch, with the search
         return orig(*args, **kw)
 
-    monkeypatch.setattr("mavcal.quality.calibrate", cold)
+    monkeypatch.setattr("mavcal.judging.quality.calibrate", cold)
     ref = holdout_errors(acc, mag, cal)
     np.testing.assert_allclose(warm, ref, rtol=1e-6)
     fit = fit_accel(acc)
@@ -124,14 +124,14 @@ def test_leave_one_out_holdout_warm_start_equals_cold_refits(monkeypatch):
         starts.append(start)
         return orig(*args, start=start, **kw)
 
-    monkeypatch.setattr("mavcal.quality.calibrate", spy)
+    monkeypatch.setattr("mavcal.judging.quality.calibrate", spy)
     warm = holdout_errors(acc, mag, cal)
     assert len(starts) >= 12 and all(s is cal for s in starts)  # one refit per interval whose pose recurs
 
     def cold(*args, start=None, **kw):  # the former refits: from scratch, with the search
         return orig(*args, **kw)
 
-    monkeypatch.setattr("mavcal.quality.calibrate", cold)
+    monkeypatch.setattr("mavcal.judging.quality.calibrate", cold)
     ref = holdout_errors(acc, mag, cal)
     assert np.all(np.isfinite(warm))
     np.testing.assert_allclose(warm, ref, rtol=1e-6)
@@ -167,10 +167,10 @@ def test_non_converging_large_n_fit_has_bounded_lm_work():
 def test_quality_draws_equal_per_draw_attitude_errors_to_the_last_bit():
     """quality_of evaluates its uncertainty draws in chunks (max_errors_deg); the numbers are
     those of attitude_errors draw by draw, exactly (printed results unchanged)."""
-    from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+    from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
     from mavcal.core.uncertainty import sample_parameters
+    from mavcal.judging.quality import quality_of, truth_functions
     from mavcal.pipeline import calibrate_source
-    from mavcal.quality import quality_of, truth_functions
 
     run = calibrate_source("sitl_logs/sitl02.tlog")
     cal, am, cm = run.calibration, run.mapping.accel[0], run.mapping.compass[0]
@@ -246,7 +246,7 @@ def test_large_n_refits_start_at_the_full_fits_noise_weights(monkeypatch):
         refits.append(orig(*args, **kw))
         return refits[-1]
 
-    monkeypatch.setattr("mavcal.quality.calibrate", spy)
+    monkeypatch.setattr("mavcal.judging.quality.calibrate", spy)
     new = holdout_errors(acc, mag, cal)
     new_its = [r.refine_iterations for r in refits]
     assert len(refits) == 10 and all(r.n_intervals > C.LARGE_N and r.converged for r in refits)

@@ -17,7 +17,7 @@ from mavcal.core.accel_fit import (
     holdout_folds,
 )
 from mavcal.core.calibrate import calibrate
-from mavcal.quality import holdout_errors
+from mavcal.judging.quality import holdout_errors
 from mavcal.sim.paper import simulate
 from mavcal.sources.progress import CallbackProgress, ProgressPrinter, auto_progress, report
 

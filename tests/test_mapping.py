@@ -132,7 +132,7 @@ def test_map_calibration_is_map_accel_and_map_compass_of_one_pair():
 
 
 def test_field_magnitude_choice():
-    from mavcal.ardupilot.mapping import field_magnitude
+    from mavcal.autopilot.mapping import field_magnitude
 
     old = fw.compass_cal_from_params({}, 0)
     means = np.array([[300.0, 0.0, 400.0], [0.0, 500.0, 0.0]])
@@ -146,7 +146,8 @@ def test_field_magnitude_choice():
 
 
 def test_merge_mappings_adds_the_other_instances():
-    from mavcal.ardupilot.mapping import map_calibration, merge_mappings
+    from mavcal.ardupilot.mapping import map_calibration
+    from mavcal.autopilot.mapping import merge_mappings
 
     means = np.array([[300.0, 0.0, 400.0]])
     primary = map_calibration(_cal(), PARAMS, means, field_mgauss=500.0)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from mavcal.ardupilot.gates import SensorVerdict
+from mavcal.autopilot.gates import SensorVerdict
 from mavcal.batch import BatchRow, fleet_exit_code, format_fleet_table
 from mavcal.cli import main
 from mavcal.testing.numbers import assert_json_close, numbers_close

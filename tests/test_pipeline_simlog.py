@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors
+from mavcal.autopilot.evaluate import attitude_errors
 from mavcal.errors import UsageError
 from mavcal.pipeline import Options, calibrate_source
 from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
@@ -52,7 +52,7 @@ def test_recovers_the_truth_from_simulated_logs(run):
 
 def test_quality_stage_reproduces_the_run_quality(run):
     """The pipeline only chains: quality_of on the run's own calibration and mapping gives its Quality."""
-    from mavcal.quality import quality_of
+    from mavcal.judging.quality import quality_of
 
     _, r = run
     am, cm = r.mapping.accel[0], r.mapping.compass[0]
@@ -64,7 +64,7 @@ def test_quality_stage_reproduces_the_run_quality(run):
 
 def test_truth_functions_are_the_reading_model():
     """raw = K R g + b (paper Eq. sensor_reading_model) with the body frame = engine frame."""
-    from mavcal.quality import truth_functions
+    from mavcal.judging.quality import truth_functions
 
     K_a = fw.GRAVITY_MSS * np.diag([1.0, 1.02, 0.98])
     b_a = np.array([0.1, -0.2, 0.3])

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
 from mavcal.autopilot.paramfile import read_param_file
 from mavcal.cli import main
 from mavcal.pipeline import calibrate_source

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import mavcal.segment as segment_mod
+import mavcal.gravity_spread as spread_mod
+import mavcal.window_stats as stats_mod
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.segment import find_still_intervals
@@ -141,13 +142,13 @@ def test_gyro_windows_by_index_equal_the_sorted_search(monkeypatch):
     for w in (3, 50, 400):
         t0, t1 = t[:len(t) - w + 1], t[w - 1:]
         for chunk in (64, 1 << 14):
-            monkeypatch.setattr(segment_mod, "_CHUNK", chunk)
-            searched = segment_mod._gyro_still(t, g, t0, t1, 0.0866)
-            assert _same(segment_mod._gyro_still(t, g, t0, t1, 0.0866, w), searched)
+            monkeypatch.setattr(stats_mod, "CHUNK", chunk)
+            searched = stats_mod.gyro_still(t, g, t0, t1, 0.0866)
+            assert _same(stats_mod.gyro_still(t, g, t0, t1, 0.0866, w), searched)
             assert 0 < searched.sum() < len(searched)  # the threshold splits the windows
-    assert segment_mod._same_times(t, t.copy())
-    assert not segment_mod._same_times(t, np.r_[t[:10], t[9], t[11:]])  # a repeated time
-    assert not segment_mod._same_times(t, t[:-1])
+    assert stats_mod.same_times(t, t.copy())
+    assert not stats_mod.same_times(t, np.r_[t[:10], t[9], t[11:]])  # a repeated time
+    assert not stats_mod.same_times(t, t[:-1])
 
 
 def test_prefix_sums_norms_and_cap_equal_the_full_length_expressions(monkeypatch):
@@ -156,17 +157,17 @@ def test_prefix_sums_norms_and_cap_equal_the_full_length_expressions(monkeypatch
     idx = np.unique(rng.integers(0, 3001, 200))
     full = np.vstack([np.zeros((1, 3)), np.cumsum(x, axis=0)])
     for chunk in (37, 1 << 14):
-        monkeypatch.setattr(segment_mod, "_CHUNK", chunk)
-        assert _same(segment_mod._prefix_at(x, idx), full[idx])
-        assert _same(segment_mod._norms(x), np.linalg.norm(x, axis=1))
+        monkeypatch.setattr(stats_mod, "CHUNK", chunk)
+        assert _same(stats_mod.prefix_at(x, idx), full[idx])
+        assert _same(stats_mod.norms(x), np.linalg.norm(x, axis=1))
     for n in (1, 5, 127, 128, 129, 1395):
         g = rng.normal(size=(n, 3))
         g /= np.linalg.norm(g, axis=1, keepdims=True)
-        best = np.full(len(segment_mod._SPHERE), -np.inf)
+        best = np.full(len(spread_mod.SPHERE), -np.inf)
         for k in range(0, n, 128):  # the former products: every grid point at once
-            np.maximum(best, np.max(segment_mod._SPHERE @ g[k:k + 128].T, axis=1), out=best)
+            np.maximum(best, np.max(spread_mod.SPHERE @ g[k:k + 128].T, axis=1), out=best)
         ref = float(np.degrees(np.arccos(np.clip(best, -1, 1))).max())
-        assert_close(segment_mod._largest_empty_cap_deg(g), ref)
+        assert_close(spread_mod.largest_empty_cap_deg(g), ref)
 
 
 def test_interval_directions_are_the_mean_and_norm_of_their_samples():

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import mavcal.ardupilot.recover as recover_mod
-import mavcal.segment as segment_mod
 import mavcal.sources.quantization as quant_mod
+import mavcal.window_stats as stats_mod
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.pipeline import Options, prepare
 from mavcal.segment import StillConfig, find_still_intervals
@@ -122,11 +122,11 @@ def test_chunked_statistics_are_the_same(monkeypatch, window_s):
     """Tiny chunks (and windows longer than a chunk) give exactly what one chunk gives."""
     path = SITL / "sitl02.tlog"
     opts = Options(still=StillConfig(window_s=window_s, min_duration_s=max(1.5, window_s)))
-    monkeypatch.setattr(segment_mod, "_CHUNK", 10**9)
+    monkeypatch.setattr(stats_mod, "CHUNK", 10**9)
     monkeypatch.setattr(recover_mod, "_CHUNK_ROWS", 10**9)
     monkeypatch.setattr(quant_mod, "_CHUNK_ROWS", 10**9)
     whole = prepare(path, opts)
-    monkeypatch.setattr(segment_mod, "_CHUNK", 37)
+    monkeypatch.setattr(stats_mod, "CHUNK", 37)
     monkeypatch.setattr(recover_mod, "_CHUNK_ROWS", 53)
     monkeypatch.setattr(quant_mod, "_CHUNK_ROWS", 11)
     assert whole.segmentation.window_samples > 37 or window_s < 1  # windows longer than a chunk too
@@ -141,9 +141,9 @@ def test_chunked_window_deviation_is_the_full_length_formula(monkeypatch, w):
     c2 = np.vstack([np.zeros((1, 3)), np.cumsum(x * x, axis=0)])
     m = (c1[w:] - c1[:-w]) / w
     ref = np.sqrt(np.maximum((c2[w:] - c2[:-w]) / w - m * m, 0.0)).max(axis=1)
-    sd_max = segment_mod._rolling_sd_max
+    sd_max = stats_mod.rolling_sd_max
     for chunk in (64, 101, 10**6):
-        monkeypatch.setattr(segment_mod, "_CHUNK", chunk)
+        monkeypatch.setattr(stats_mod, "CHUNK", chunk)
         assert _close(sd_max(x, w), ref)
 
 
@@ -169,7 +169,7 @@ def _prepare_stage_memory(path):
 def test_prepare_working_memory_is_bounded_by_chunks(tmp_path, monkeypatch):
     """Beyond their results, the untruncation and the raw recovery hold a chunk's work and the
     segmentation a few bytes per sample (the full-length version: hundreds)."""
-    for mod, name in ((segment_mod, "_CHUNK"), (recover_mod, "_CHUNK_ROWS"), (quant_mod, "_CHUNK_ROWS")):
+    for mod, name in ((stats_mod, "CHUNK"), (recover_mod, "_CHUNK_ROWS"), (quant_mod, "_CHUNK_ROWS")):
         monkeypatch.setattr(mod, name, 4096)
     small, big = tmp_path / "s.tlog", tmp_path / "b.tlog"
     biglogs.build_tlog(small, 2e6)

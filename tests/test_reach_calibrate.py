@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
 from mavcal.cli import main
 from mavcal.coverage import REACH_FLOWN_TILT_DEG
 from mavcal.errors import InsufficientDataError

@@ -124,7 +124,7 @@ def test_a_heading_bound_above_its_gate_names_the_kept_accelerometer():
     and what to do, not "more poses at different headings, or steel and magnets"."""
     from dataclasses import replace
 
-    from mavcal.ardupilot.gates import GateConfig
+    from mavcal.autopilot.gates import GateConfig
 
     sess, st, _ = _capture(_vehicle())
     assert st.done and not st.aborted, st.reason

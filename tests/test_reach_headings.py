@@ -15,7 +15,7 @@ from mavcal.capture import euler_matrix
 from mavcal.core.headings import provisional_headings
 from mavcal.core.held import tilts_of
 from mavcal.coverage import REACH_HEADING_DEG, _headings, reach_coverage
-from mavcal.segment import count_clusters
+from mavcal.gravity_spread import count_clusters
 
 G0 = 9.80665
 

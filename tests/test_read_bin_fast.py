@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.sources.assemble import DATAFLASH_MESSAGES, assemble_dataflash
+from mavcal.sources.dataflash_assemble import DATAFLASH_MESSAGES, assemble_dataflash
 from mavcal.sources.fast_dataflash import decode_dataflash
 from mavcal.sources.param_columns import dataflash_params, decode_text, text_codes, timeline_from_codes
 from mavcal.sources.reader import read_log

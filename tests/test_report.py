@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from mavcal.ardupilot.gates import Gate, GateReport  # noqa: E402
+from mavcal.autopilot.gates import Gate, GateReport  # noqa: E402
 from mavcal.errors import UsageError  # noqa: E402
 from mavcal.pipeline import calibrate_source  # noqa: E402
 from mavcal.report import FIGURE_NAMES, interval_numbers, summary_text, write_html  # noqa: E402

@@ -8,7 +8,8 @@ import pytest
 
 from mavcal.ardupilot.recover import recover_raw
 from mavcal.errors import MavcalError, SegmentationError
-from mavcal.segment import StillConfig, diagnose_coverage, find_still_intervals
+from mavcal.gravity_spread import diagnose_coverage
+from mavcal.segment import StillConfig, find_still_intervals
 from mavcal.sources import read_log
 from mavcal.sources.types import SensorSeries
 from mavcal.testing.simlog import AccelErrorTruth, MagTruth, SimConfig, simulate_session
@@ -144,7 +145,7 @@ def test_every_real_log_gives_intervals_or_a_reason(name):
 
 
 def test_axis_labels_follow_frd():
-    from mavcal.segment import axis_label
+    from mavcal.gravity_spread import axis_label
 
     assert axis_label(np.array([0.0, 0.0, 1.0])) == "level"
     assert axis_label(np.array([1.0, 0.0, 0.0])) == "nose down"  # the nose (+x) faces the ground

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
 from mavcal.testing.sitl import CALIBRATION_NAMES, WRONG_CALIBRATION, InjectedErrors
 from mavcal.testing.sitl_hand import run_guided_capture
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.gates import Gate, GateReport, accel_gates
+from mavcal.autopilot.gates import Gate, GateReport, accel_gates
 from mavcal.autopilot.paramfile import read_param_file, write_param_file
 from mavcal.cli import main
 

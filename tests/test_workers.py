@@ -172,7 +172,7 @@ def test_held_out_refits_in_slices_combine_to_the_whole_check_to_the_bit():
     """The held-out check split into K slices of its refits (one per worker) gives, put back in
     order, exactly the number of the whole check; a check that cannot run stays NaN."""
     from mavcal.core.calibrate import calibrate
-    from mavcal.quality import holdout_errors, holdout_part, holdout_rms
+    from mavcal.judging.quality import holdout_errors, holdout_part, holdout_rms
     from mavcal.sim.paper import simulate
 
     for n in (24, 90):  # leave-one-out, then 10-fold

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from mavcal.ardupilot import gates
 from mavcal.ardupilot import limits as L
+from mavcal.autopilot import gates
 from mavcal.cli import main
 from mavcal.errors import ParamWriteError, RestoreFailedError, UnknownParameterError
 from mavcal.link.connection import open_link

@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 
 from mavcal.ardupilot import firmware as fw
+from mavcal.autopilot.limits import LimitViolation
 from mavcal.autopilot.rotations import is_valid_rotation
 
 __all__ = ["ACCEL_OFFSET_MAX_MPS2", "ACCEL_SCALE_RANGE", "COMPASS_OFFSET_MAX_DEFAULT_MGAUSS", "COMPASS_OFFS_MAX",
@@ -48,20 +48,6 @@ COMPASS_MOT_MAX = 1000.0
 AHRS_TRIM_MAX_RAD = math.radians(10.0)
 CUSTOM_ANGLE_MAX_DEG = 360.0
 _EXTERNAL_VALUES = (0, 1, 2)
-
-
-@dataclass(frozen=True)
-class LimitViolation:
-    """One value outside its limit: ``message`` is the one-line refusal."""
-
-    name: str
-    value: float
-    limit: str
-    kind: str | None  # "compass", "accel" or None (board-wide)
-
-    @property
-    def message(self) -> str:
-        return f"{self.name} = {self.value:g}: limit {self.limit}"
 
 
 def _index() -> dict[str, tuple[str, int, str]]:

@@ -3,9 +3,9 @@ soft iron, scale and mounting (:class:`CompassCal`), an accelerometer's offsets,
 rotation (:class:`AccelCal`), and how such a calibration corrects a reading and is undone (pure numpy).
 
 The form is ArduPilot's (``AP_Compass_Backend::correct_field``,
-``AP_InertialSensor_Backend::_rotate_and_correct_accel``; see :mod:`mavcal.ardupilot.firmware` for the
+``AP_InertialSensor_Backend::_rotate_and_correct_accel``; see ArduPilot's firmware model for the
 equations and the parameters that hold it); PX4's calibration converts to it
-(:meth:`mavcal.px4.firmware.Px4AccelCal.ardupilot_form`). No parameter name is spelled here.
+(its ``ardupilot_form``). No parameter name is spelled here.
 """
 from __future__ import annotations
 

@@ -7,8 +7,7 @@ The in-flight stage (:mod:`mavcal.flight`) fits one form for every autopilot (it
 ``b_i`` the raw field of the sample, ``A`` what multiplies ``b + o`` into the body frame, ``o``
 the offsets, ``m`` the motor term in the body frame per unit of the driver ``x`` (the battery
 current in A, or the throttle 0..1). Each autopilot says how its own model maps onto that form
-(:class:`FlightModel`): ArduPilot's in :mod:`mavcal.ardupilot.flight`, PX4's in
-:mod:`mavcal.px4.flight`; the stage gets the one it needs from the registry
+(:class:`FlightModel`): ArduPilot's and PX4's, each in its own folder; the stage gets the one it needs from the registry
 (``mavcal.autopilot.model_named(name).flight()``), never by the folder's name.
 """
 from __future__ import annotations

@@ -1,33 +1,24 @@
-"""The limits a calibration is checked against before it is written (``apply``/``restore``/the writer).
+"""A value outside its limit (:class:`LimitViolation`): what every autopilot's limit check returns.
 
-The neutral layer's name for it: the rest of mavcal imports it from here, never from
-:mod:`mavcal.ardupilot.limits`, which holds its ArduPilot implementation.
-
-Transitional (issue 38, in part): the names below are still ArduPilot's implementation, re-exported
-from :mod:`mavcal.ardupilot`; the rest of mavcal imports them from here so that the next step can
-move them into per-autopilot model methods without touching the callers. Until then PX4 depends on
-ArduPilot's code through this module, although no module outside the autopilot folders names it."""
+Each autopilot's model checks the names it knows (``check_limits``); :mod:`mavcal.autopilot.protocol`
+asks every model.
+"""
 from __future__ import annotations
 
-from mavcal.ardupilot.limits import (
-    ACCEL_OFFSET_MAX_MPS2,
-    ACCEL_SCALE_RANGE,
-    AHRS_TRIM_MAX_RAD,
-    COMPASS_OFFSET_MAX_DEFAULT_MGAUSS,
-    CUSTOM_ANGLE_MAX_DEG,
-    DIA_RANGE,
-    FIELD_RANGE_MGAUSS,
-    ODI_MAX,
-    LimitViolation,
-    check_limits,
-    compass_offset_max,
-    failing_kinds,
-    related_names,
-    sensor_of,
-)
+from dataclasses import dataclass
 
-__all__ = ["ACCEL_OFFSET_MAX_MPS2", "ACCEL_SCALE_RANGE", "AHRS_TRIM_MAX_RAD",
-           "COMPASS_OFFSET_MAX_DEFAULT_MGAUSS",
-           "CUSTOM_ANGLE_MAX_DEG", "DIA_RANGE", "FIELD_RANGE_MGAUSS",
-           "LimitViolation", "ODI_MAX", "check_limits", "compass_offset_max", "failing_kinds",
-           "related_names", "sensor_of"]
+__all__ = ["LimitViolation"]
+
+
+@dataclass(frozen=True)
+class LimitViolation:
+    """One value outside its limit: ``message`` is the one-line refusal."""
+
+    name: str
+    value: float
+    limit: str
+    kind: str | None  # "compass", "accel" or None (board-wide)
+
+    @property
+    def message(self) -> str:
+        return f"{self.name} = {self.value:g}: limit {self.limit}"

@@ -1,6 +1,6 @@
 """The raw readings any autopilot's recovery gives the fit (:class:`RawImu`): the vocabulary of
-"recover raw", whatever firmware undid its own correction (ArduPilot's :mod:`mavcal.ardupilot.recover`,
-PX4's :mod:`mavcal.px4.recover`)."""
+"recover raw", whatever firmware undid its own correction (ArduPilot's model,
+PX4's: ``recover_raw``)."""
 from __future__ import annotations
 
 import logging

@@ -77,7 +77,7 @@ class LiveAttitude:
     def use_compass_fit(self, old: Any, new: Any) -> None:
         """Correct the compass readings (sent corrected by ``old``, the calibration in force) by
         the fit so far (``new``) before taking the heading: the raw compass of an uncalibrated
-        vehicle can be tens of degrees off. ``old``/``new``: :class:`~mavcal.ardupilot.firmware.CompassCal`."""
+        vehicle can be tens of degrees off. ``old``/``new``: :class:`~mavcal.autopilot.calform.CompassCal`."""
         with self._lock:
             self._compass_cals = (old, new)
 
@@ -131,7 +131,7 @@ class LiveAttitude:
             since = self._still_since
             cals = self._compass_cals
         if m is not None and cals is not None:
-            from mavcal.autopilot.firmware import apply_compass, undo_compass
+            from mavcal.autopilot.calform import apply_compass, undo_compass
 
             m = np.asarray(apply_compass(cals[1], undo_compass(cals[0], m, sensor_frame=True)), float).reshape(3)
         C = attitude_matrix(a, m)

@@ -157,7 +157,7 @@ def heading_gradients(run: CalibrationRun, prob: JointProblem, p) -> np.ndarray:
     variance of the heading error at attitude k caused by the estimation uncertainty.
     """
     from mavcal.autopilot.evaluate import attitude_grid, heading_errors_deg
-    from mavcal.quality import truth_functions
+    from mavcal.judging.quality import truth_functions
 
     am, cm = run.mapping.accel[0], run.mapping.compass[0]
     grid = attitude_grid(step_deg=30.0)

@@ -4,7 +4,7 @@ A :class:`CaptureSession` is fed the readings a vehicle streams (``add``), and o
 ``update`` it
 
 1. finds the still intervals so far (:mod:`mavcal.segment`, on raw readings recovered with
-   the vehicle's parameters, :mod:`mavcal.ardupilot.recover`);
+   the vehicle's parameters, the autopilot model's ``recover_raw``);
 2. fits the calibration once enough intervals exist, with its 95 % heading and tilt error
    bounds (:mod:`mavcal.pipeline`);
 3. proposes the **next pose**: among candidate attitudes (roll and pitch in 45 degree

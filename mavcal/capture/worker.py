@@ -477,8 +477,7 @@ class CaptureWorker:
         """The write flow of ``mavcal calibrate --write`` over the fed link (every word from
         :mod:`mavcal.report.text`): read what the write needs, show the diff and the values
         outside ArduPilot's limits (refused unless ``force``), then the safe writer."""
-        from mavcal.autopilot.limits import check_limits, failing_kinds
-        from mavcal.autopilot.protocol import force_save_kinds
+        from mavcal.autopilot.protocol import check_limits, failing_kinds, force_save_kinds
         from mavcal.errors import ParamWriteError
         from mavcal.link.backup import default_backup_path
         from mavcal.link.writer import write_params
@@ -516,8 +515,7 @@ class CaptureWorker:
     def _vehicle_values(link: Any, cfg: WorkerSettings, names: list[str]) -> dict[str, tuple[float, int]]:
         """The part of the vehicle's table the write needs (:func:`mavcal.link.writer.fetch_for_write`,
         as ``mavcal calibrate --write``): the names, their sensors' limits and device ids."""
-        from mavcal.autopilot.devices import id_names
-        from mavcal.autopilot.limits import related_names
+        from mavcal.autopilot.protocol import id_names, related_names
         from mavcal.link.writer import fetch_for_write
 
         return fetch_for_write(link, names, context=related_names(names) + id_names(),

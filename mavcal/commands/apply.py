@@ -1,6 +1,6 @@
 """``mavcal apply FILE --connect DEVICE``: write a .param file to the vehicle, safely.
 
-Values outside ArduPilot's limits (:mod:`mavcal.ardupilot.limits`) are refused before any
+Values outside the autopilot's limits (:func:`mavcal.autopilot.protocol.check_limits`) are refused before any
 write unless ``--force``. Every value about to change is saved to a backup .param file first; each write is
 confirmed by the vehicle's echo; on any failure everything written is restored from the
 backup (exit 5), or the parameters in doubt are listed (exit 6).

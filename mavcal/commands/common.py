@@ -380,7 +380,7 @@ def confirm(prompt: str, assume_yes: bool) -> None:
 
 
 def slot_maps(args: argparse.Namespace) -> tuple[dict[int, int], dict[int, int]]:
-    from mavcal.autopilot.devices import parse_slot_map
+    from mavcal.autopilot.protocol import parse_slot_map
 
     maps: tuple[dict[int, int], dict[int, int]] = ({}, {})
     for m, kind, texts in ((maps[0], "compass", getattr(args, "map_compass", None) or []),
@@ -396,7 +396,7 @@ def slot_maps(args: argparse.Namespace) -> tuple[dict[int, int], dict[int, int]]
 
 def _one_based(text: str, kind: str) -> str:
     """``compass0:compass1`` / ``accel0:accel1`` (the sensor names the verdicts print, 0-based)
-    -> the 1-based ``1:2`` of :func:`mavcal.ardupilot.devices.parse_slot_map`; plain numbers pass."""
+    -> the 1-based ``1:2`` of :func:`mavcal.autopilot.protocol.parse_slot_map`; plain numbers pass."""
     prefixes = ("compass",) if kind == "compass" else ("accel", "imu")
     parts = text.split(":")
     if len(parts) != 2 or not any(p.startswith(prefixes) for p in parts):
@@ -414,7 +414,7 @@ def _one_based(text: str, kind: str) -> str:
 def _matched_changes(args: argparse.Namespace, changes: dict, log_params: dict | None, table: dict) -> dict:
     """The log's calibration checked against the vehicle's device ids (UsageError on a
     mismatch) and moved to the vehicle slots the user mapped."""
-    from mavcal.autopilot.devices import device_id_problems, remap_changes
+    from mavcal.autopilot.protocol import device_id_problems, remap_changes
 
     if log_params is None:
         return changes
@@ -431,8 +431,7 @@ def _matched_changes(args: argparse.Namespace, changes: dict, log_params: dict |
 
 def _vehicle_values(link, args: argparse.Namespace, names: list) -> dict:
     """The part of the vehicle's table the write needs (:func:`mavcal.link.writer.fetch_for_write`)."""
-    from mavcal.autopilot.devices import id_names
-    from mavcal.autopilot.limits import related_names
+    from mavcal.autopilot.protocol import id_names, related_names
     from mavcal.link.writer import fetch_for_write
 
     context = related_names(names) + id_names()
@@ -495,7 +494,7 @@ def write_with_report(args: argparse.Namespace, changes: dict, backup: str | Non
 def _warn_out_of_range(changes: dict, table: dict, force: bool) -> None:
     """With --force, say loudly (stderr) which values break ArduPilot's limits and what is not
     marked calibrated."""
-    from mavcal.autopilot.limits import check_limits, failing_kinds
+    from mavcal.autopilot.protocol import check_limits, failing_kinds
 
     values = {n: v for n, (v, _) in table.items()}
     bad = check_limits(changes, values)

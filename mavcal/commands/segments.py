@@ -93,7 +93,7 @@ def _num(x: float) -> Any:
 
 
 def _report(src: str, raw, seg, samples: bool, sensors, reach=None) -> dict[str, Any]:
-    from mavcal.segment import axis_label
+    from mavcal.gravity_spread import axis_label
 
     cov = seg.coverage
     out: dict[str, Any] = {

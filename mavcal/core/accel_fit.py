@@ -434,7 +434,7 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
                        stats: IntervalStats | None = None) -> float:
     """RMS held-out error of the accelerometer alone (the reading units).
 
-    As :func:`mavcal.quality.holdout_errors`: each refit of :func:`holdout_folds`
+    As :func:`mavcal.judging.quality.holdout_errors`: each refit of :func:`holdout_folds`
     (leave-one-out up to :data:`LOO_MAX_INTERVALS` intervals, else :data:`HOLDOUT_FOLDS`-fold
     over at most :data:`HOLDOUT_POOL_MAX`) predicts intervals it never saw, each predicted
     mean compared with the nearest point of the refit's ellipsoid. NaN when no interval
@@ -447,7 +447,7 @@ def holdout_accel_mps2(accel_sets: Sequence[np.ndarray], *, noise_floor: float |
     ``stats``: the :func:`interval_stats` of ``accel_sets`` with ``per_interval=True`` (e.g.
     the start's own): each fold's statistics are taken from them (:func:`stats_subset`),
     the same numbers as the pool's own where the pool is all N, equal up to rounding on
-    longer logs (as in :func:`mavcal.quality.holdout_errors`).
+    longer logs (as in :func:`mavcal.judging.quality.holdout_errors`).
     ``form="auto"``: the form :func:`fit_accel` chooses on all the intervals (``start``'s when
     given); refits of fewer than :data:`MIN_INTERVALS_UPPER` intervals take the diagonal one.
     """

@@ -2,7 +2,7 @@
 vehicle still streams (issue 35, item 8; used by :mod:`mavcal.link.writer`).
 
 * :class:`Px4Pacing` -- before each PARAM_SET to a PX4, waits out a save its autosave is predicted
-  to run (:mod:`mavcal.px4.autosave`): no parameter changes while PX4 exports and verifies its file.
+  to run (PX4's model's ``autosave``): no parameter changes while PX4 exports and verifies its file.
 * :class:`StreamCheck` -- after a complete write (and, on a PX4, after the save of its last
   change), the vehicle must be heard again within :data:`STREAM_CHECK_S`: its IMU messages if they
   streamed during the write, else any message (a HEARTBEAT comes every second). A vehicle that went
@@ -15,7 +15,7 @@ import logging
 import time
 import weakref
 
-from mavcal.autopilot import SaveSchedule
+from mavcal.autopilot import model_named
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link
 
@@ -32,11 +32,13 @@ _LAST_CHANGE: weakref.WeakKeyDictionary[Link, float] = weakref.WeakKeyDictionary
 
 
 class Px4Pacing:
-    """PARAM_SETs to one PX4 kept out of its predicted parameter saves (:mod:`mavcal.px4.autosave`)."""
+    """PARAM_SETs to one PX4 kept out of its predicted parameter saves (PX4's model's ``autosave``)."""
 
     def __init__(self, link: Link) -> None:
         self.link = link
-        self.saves = SaveSchedule(_LAST_CHANGE.get(link, time.monotonic()))
+        saves = model_named("PX4").autosave(_LAST_CHANGE.get(link, time.monotonic()))
+        assert saves is not None  # PX4 saves by a schedule
+        self.saves = saves
 
     def before_send(self) -> None:
         """Wait out a predicted save, then count the PARAM_SET about to go as a change."""

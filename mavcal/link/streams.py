@@ -20,7 +20,6 @@ from typing import Any
 
 from pymavlink import mavutil
 
-from mavcal.autopilot import firmware as fw
 from mavcal.errors import LinkError
 from mavcal.link.connection import Link
 
@@ -64,13 +63,15 @@ def needed_stream_ids(params: Mapping[str, float] | None) -> tuple[int, ...]:
     """
     if params is None:
         return STREAM_MESSAGE_IDS
-    from mavcal.autopilot import is_px4_params
+    from mavcal.autopilot import is_px4_params, model_named
+    from mavcal.sources.types import ImuLog
 
     if is_px4_params(params):  # a PX4: no RAW_IMU (refused), SCALED_IMU* and HIGHRES_IMU
         return tuple(PX4_STREAM_MESSAGES.values())
     out = []
+    ardupilot, no_log = model_named("ArduPilot"), ImuLog(source="", kind="live", series=())
     for k, mid in enumerate(STREAM_MESSAGE_IDS):
-        ids = [params.get(fw.accel_param_names(k)["id"]), params.get(fw.compass_param_names(k)["dev_id"])]
+        ids = list(ardupilot.device_ids(no_log, params, k, k))  # the IMU's and the compass slot's device ids
         if k == 0 or any(v is None or int(v) != 0 for v in ids):
             out.append(mid)
     return tuple(out)

@@ -8,7 +8,7 @@ Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; rese
   (since 4.0.4, PR #13823), an echo of the unchanged value, and on master a PARAM_ERROR
   ``MAV_PARAM_ERROR_PERMISSION_DENIED``. Either ends the attempts at once and the failure is reported in the
   vehicle's words.
-* Values outside ArduPilot's limits (:mod:`mavcal.autopilot.limits`) are refused before any write unless
+* Values outside ArduPilot's limits (:mod:`mavcal.autopilot.protocol`) are refused before any write unless
   ``allow_out_of_range``; a sensor kind whose values fail is never force-saved.
 * Retries are bounded by time (``budget_s`` per parameter / force-save, after at least ``retries`` attempts), not by
   a fixed count: a lossy link gets as many attempts as fit.
@@ -17,7 +17,7 @@ Protocol facts it relies on (ArduPilot ``GCS_Param.cpp``, ``AP_Param.cpp``; rese
   only themselves). An echo with the right name and the expected value (float32-equal after the conversion) confirms
   a write; anything else is ignored until the attempt times out, then the PARAM_SET is sent again.
 * Values go out as float32 (REAL32) to ArduPilot; to PX4 an integer goes byte-wise with its type, and each changed
-  CAL_* vector by a detour (:func:`mavcal.autopilot.detoured_order`).
+  CAL_* vector by a detour (:func:`mavcal.autopilot.protocol.detoured_order`).
 
 Sequence of :func:`write_params`:
 
@@ -54,9 +54,14 @@ from typing import Any, NoReturn
 
 from pymavlink import mavutil
 
-from mavcal.autopilot import DETOUR_DWELL_S, detoured_order
-from mavcal.autopilot.limits import check_limits, failing_kinds
-from mavcal.autopilot.protocol import needs_reboot, vector_group
+from mavcal.autopilot.protocol import (
+    check_limits,
+    detour_dwell_s,
+    detoured_order,
+    failing_kinds,
+    needs_reboot,
+    vector_group,
+)
 from mavcal.errors import (
     LinkError,
     OutOfRangeError,
@@ -348,14 +353,14 @@ class _WriteRun:
 
     def write_each(self, to_write: Sequence[ParamResult]) -> str | None:
         """PARAM_SET every change until its echo confirms it (PX4's detours first, then the changes in
-        their order, see :func:`~mavcal.autopilot.detoured_order`); the failure, or None."""
+        their order, see :func:`~mavcal.autopilot.protocol.detoured_order`); the failure, or None."""
         order, detours = detoured_order({r.name: r.requested for r in to_write})
         for name, value in detours.items():
             out, failure = self._set(self.results[name], value)
             if not out.ok:
                 return failure or out.unheard or f"{name}: the detour to {value:g} was not confirmed"
         try:
-            self.link.pump(DETOUR_DWELL_S if detours else 0.0)
+            self.link.pump(detour_dwell_s() if detours else 0.0)
         except LinkError as exc:
             return str(exc)
         for name in order:
@@ -427,7 +432,7 @@ class _WriteRun:
                     link_ok, self.restore_problem = False, out.unheard or problem
         try:
             if detours and link_ok:
-                self.link.pump(DETOUR_DWELL_S)
+                self.link.pump(detour_dwell_s())
         except LinkError as exc:
             link_ok, self.restore_problem = False, str(exc)
         for name in reversed(self.attempted):

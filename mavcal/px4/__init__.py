@@ -1,4 +1,5 @@
-"""PX4's calibration model: the counterpart of :mod:`mavcal.ardupilot` for PX4 autopilots.
+"""PX4's calibration model: a sibling of ArduPilot's, implementing
+:class:`mavcal.autopilot.model.AutopilotModel` for PX4 autopilots.
 
 :mod:`~mavcal.px4.params` spells PX4's parameter names (the only place that does),
 :mod:`~mavcal.px4.firmware` applies and undoes PX4's correction, :mod:`~mavcal.px4.recover` gives

@@ -14,7 +14,7 @@ mavcal reads the magnetometer in mGauss (x 1000); thermal and power compensation
 modelled (warned when enabled, :mod:`mavcal.px4.recover`).
 
 Each calibration also has an :meth:`~Px4MagCal.ardupilot_form`: the same function of the raw
-reading written in the form of :mod:`mavcal.ardupilot.firmware` (``M (R s + OFS)`` with
+reading written in the common form of :mod:`mavcal.autopilot.calform` (``M (R s + OFS)`` with
 ``M = R S R^T``, ``OFS = -R OFF``; a custom rotation holding ``R``), so that the shared quality
 and gate stages judge a PX4 calibration with the equations they already have.
 """
@@ -102,7 +102,7 @@ class Px4AccelCal:
         return (a @ self.rotation) / np.asarray(self.scale) + np.asarray(self.ofs_mps2)
 
     def ardupilot_form(self) -> apfw.AccelCal:
-        """The same correction as :class:`mavcal.ardupilot.firmware.AccelCal` (identical form)."""
+        """The same correction as :class:`mavcal.autopilot.calform.AccelCal` (identical form)."""
         orient, custom = _ap_rotation(self.rotation)
         return apfw.AccelCal(ofs_mps2=self.ofs_mps2, scale=self.scale, board_orient=orient, custom_deg=custom)
 

@@ -1,9 +1,9 @@
 """Map a joint calibration onto PX4's ``CAL_ACC<n>_*`` / ``CAL_MAG<n>_*`` and say what cannot be held.
 
 The engine was given raw accelerometer readings in the sensor frame and raw magnetometer
-readings ``R_old s`` (:mod:`mavcal.px4.recover`), exactly the frames of the ArduPilot path, so
-the accelerometer is mapped by :func:`mavcal.ardupilot.mapping.map_accel` (PX4's accelerometer
-correction ``R ((u - OFF) * SCALE)`` is ArduPilot's form): ``OFF = b_a``, ``SCALE_j = g0 / |row_j(K_a)|``,
+readings ``R_old s`` (PX4's ``recover``), the frames every autopilot's mapping takes, so
+the accelerometer is mapped by :func:`mavcal.autopilot.mapping.accel_mapping` (PX4's accelerometer
+correction ``R ((u - OFF) * SCALE)`` is the common per-axis form): ``OFF = b_a``, ``SCALE_j = g0 / |row_j(K_a)|``,
 the cross-axis terms PX4 cannot hold reported as tilt.
 
 Magnetometer (``m = R_new S (s - OFF)``, OFF in gauss): with ``T = (|B| / |h|) R_A P K_m^-1`` the
@@ -31,10 +31,10 @@ from mavcal.autopilot.mapping import (
     AccelMapping,
     CompassMapping,
     ParamMapping,
+    accel_mapping,
     combine,
     field_correction,
     field_magnitude,
-    map_accel,
 )
 from mavcal.autopilot.rotations import rotation_angle_deg
 from mavcal.errors import ParameterMappingError
@@ -66,7 +66,7 @@ def _slot(params: Mapping[str, float], kind: str, cal: Px4AccelCal | Px4MagCal, 
 
 @dataclass(frozen=True, eq=False)
 class Px4AccelMapping(AccelMapping):
-    """:class:`~mavcal.ardupilot.mapping.AccelMapping` written as ``CAL_ACC<slot>_*``."""
+    """:class:`~mavcal.autopilot.mapping.AccelMapping` written as ``CAL_ACC<slot>_*``."""
 
     slot: int = 0
     device_id: int = 0
@@ -83,8 +83,8 @@ class Px4AccelMapping(AccelMapping):
 
 @dataclass(frozen=True, eq=False)
 class Px4CompassMapping(CompassMapping):
-    """:class:`~mavcal.ardupilot.mapping.CompassMapping` written as ``CAL_MAG<slot>_*``; ``old``/``new``
-    are the ArduPilot forms of ``px4_old``/``px4_new`` (for the shared quality and gate stages)."""
+    """:class:`~mavcal.autopilot.mapping.CompassMapping` written as ``CAL_MAG<slot>_*``; ``old``/``new``
+    are the common forms of ``px4_old``/``px4_new`` (for the shared quality and gate stages)."""
 
     slot: int = 0
     device_id: int = 0
@@ -109,13 +109,13 @@ def map_accel_px4(K_a: np.ndarray, b_a: np.ndarray, old: Px4AccelCal, params: Ma
                   instance: int = 0, notes: list[str] | None = None) -> Px4AccelMapping:
     """``CAL_ACC<slot>_{X,Y,Z}OFF`` = b_a and ``_{X,Y,Z}SCALE`` for one accelerometer."""
     slot, new_slot = _slot(params, "accel", old, notes if notes is not None else [])
-    am = map_accel(K_a, b_a, old.ardupilot_form(), instance)
+    am = accel_mapping(Px4AccelMapping, K_a, b_a, old.ardupilot_form(), instance, slot=slot, device_id=old.device_id,
+                       new_slot=new_slot)
     bad = [s for s in am.new.scale if not pn.SCALE_RANGE[0] <= s <= pn.SCALE_RANGE[1]]
     if bad:
         raise ParameterMappingError(f"accelerometer {instance}: scale {bad[0]:.3f} outside PX4's "
                                     f"{pn.SCALE_RANGE[0]}..{pn.SCALE_RANGE[1]}")
-    return Px4AccelMapping(am.instance, am.old, am.new, am.frame_rotation, am.cross_axis, am.dropped_tilt_deg,
-                           am.dropped_magnitude_mps2, slot=slot, device_id=old.device_id, new_slot=new_slot)
+    return am
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ sensor frame); a live link's SCALED_IMU accelerometer and HIGHRES_IMU magnetomet
 corrected values, undone here with the calibration in force (:mod:`mavcal.px4.firmware`).
 SCALED_IMU's magnetometer is raw on PX4.
 
-Frames of the results (those of :class:`mavcal.ardupilot.recover.RawImu`):
+Frames of the results (those of :class:`mavcal.autopilot.raw.RawImu`):
 
 * accelerometer: the sensor frame (the frame of ``CAL_ACCn_*OFF``/``SCALE``, before the rotation);
 * magnetometer: the sensor frame turned by the rotation in force ``R_old`` (level adjustment x

@@ -3,9 +3,9 @@
 :func:`to_json` turns a :class:`mavcal.pipeline.CalibrationRun` into a JSON-ready dict
 (``"format": "mavcal report v1"``, ``"format_version": 2``); :func:`from_json` loads such a
 dict back into the same objects: the :class:`~mavcal.core.types.Calibration`, a
-:class:`~mavcal.ardupilot.mapping.ParamMapping` with the parameters (old and new values,
-notes; no per-sensor mapping details), the :class:`~mavcal.quality.Quality`, the
-:class:`~mavcal.ardupilot.gates.GateReport` and the still intervals (bounds and counts,
+:class:`~mavcal.autopilot.mapping.ParamMapping` with the parameters (old and new values,
+notes; no per-sensor mapping details), the :class:`~mavcal.judging.quality.Quality`, the
+:class:`~mavcal.autopilot.gates.GateReport` and the still intervals (bounds and counts,
 not the samples). Non-finite numbers are written as ``null`` and read back as NaN.
 
 Format versions: 1 (mavcal 0.1 before the loader) lacks the full noise covariances,
@@ -28,7 +28,7 @@ from mavcal.autopilot.mapping import ParamMapping
 from mavcal.core.types import Calibration, SensorModel
 from mavcal.determined import determined, joint_unidentified
 from mavcal.errors import SourceError, UsageError
-from mavcal.quality import Quality
+from mavcal.judging.quality import Quality
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "SavedInterval", "SavedCalibration", "to_json", "refusal_json", "from_json",
            "write_json", "read_json"]

@@ -2,7 +2,7 @@
 
 :func:`interval_numbers` gives, for every still interval of a run, |a| and |B| before
 (readings as logged) and after (the raw samples through the new ArduPilot parameters, the
-firmware's equations of :mod:`mavcal.ardupilot.firmware`) and the whitened model residual
+firmware's equations of :mod:`mavcal.autopilot.calform`) and the whitened model residual
 ``mean - (K R_i g + b)`` (the paper's Eq. ``sensor_reading_model``).
 """
 from __future__ import annotations
@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
+from mavcal.autopilot import calform as fw
 from mavcal.core.constants import GRAVITY_MPS2
 
 __all__ = ["IntervalNumbers", "interval_numbers", "corrected_after", "rms_deviation"]

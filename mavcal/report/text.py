@@ -204,7 +204,7 @@ def _not_certified(run) -> str:
 
 
 def holdout_text(run) -> str:
-    """The held-out error, or why it was not run (NaN from :func:`mavcal.quality.holdout_errors`)."""
+    """The held-out error, or why it was not run (NaN from :func:`mavcal.judging.quality.holdout_errors`)."""
     q = run.quality
     if np.isfinite(q.holdout_accel_mps2) and np.isfinite(q.holdout_mag_mgauss):
         return f"held-out error: accel {q.holdout_accel_mps2:.4f} m/s^2, compass {q.holdout_mag_mgauss:.2f} mGauss"
@@ -359,7 +359,7 @@ def gate_refusal_text(run, override_hint: str, *, prefix: str = "") -> str:
 def forced_limits_text(violations: Sequence[str], unsaved_kinds: Sequence[str], *, override: str = "--force",
                        prefix: str = "mavcal: ") -> str:
     """The loud warning of a write forced past ArduPilot's limits: one line per value
-    (:attr:`mavcal.ardupilot.limits.LimitViolation.message`) and the sensor kinds that will not
+    (:attr:`mavcal.autopilot.limits.LimitViolation.message`) and the sensor kinds that will not
     be marked calibrated; "" when there is none."""
     lines = [f"WARNING: {override}: writing {v}" for v in violations]
     if unsaved_kinds:

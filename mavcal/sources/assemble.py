@@ -1,10 +1,12 @@
-"""Message columns -> :class:`~mavcal.sources.types.ImuLog`: the one assembly of IMU data.
+"""MAVLink message columns (a tlog, a live link) -> :class:`~mavcal.sources.types.ImuLog`: the one
+assembly of MAVLink IMU data.
 
-Shared by the log readers (:mod:`mavcal.sources.reader`: fast decoders and pymavlink) and the
+Shared by the tlog readers (:mod:`mavcal.sources.reader`: fast decoders and pymavlink) and the
 live recorder (:mod:`mavcal.link.live`): all of them produce *columns* - per message type, a
-dict of field name -> numpy array, plus ``_index`` (receive order), and for MAVLink
-``_log_time_s`` (receive time, unix s), ``_sysid``, ``_compid`` - and this module turns them
-into sensor series, a parameter timeline, events and vehicle facts.
+dict of field name -> numpy array, plus ``_index`` (receive order), ``_log_time_s`` (receive
+time, unix s), ``_sysid``, ``_compid`` - and this module turns them into sensor series, a
+parameter timeline, events and vehicle facts. A DataFlash log's columns are assembled by
+:mod:`mavcal.sources.dataflash_assemble`, the series of both by :mod:`mavcal.sources.series_set`.
 
 Units and conventions (what goes into :class:`SensorSeries`)
 ------------------------------------------------------------
@@ -19,9 +21,6 @@ Units and conventions (what goes into :class:`SensorSeries`)
   #32286 sent mGauss x 1000. Decided per log by the median field magnitude (> 100 "gauss"
   means the buggy unit) and converted to mGauss; the choice is stated in the warnings.
   Used for an instance only when no RAW_IMU/SCALED_IMU* carries it.
-* DataFlash IMU/ACC/GYR (``I`` field) and old IMU2/IMU3/ACC1.. names; MAG (``I``) and old
-  MAG2/MAG3; MAG extras ``ofs_mgauss`` (OfsX..), ``motor_ofs_mgauss`` (MOX..), ``health``.
-  Time from TimeUS (or TimeMS in very old logs). IMU preferred over ACC/GYR.
 
 Time base of tlogs (and live captures)
 --------------------------------------
@@ -37,13 +36,11 @@ IMU messages of their segment.
 from __future__ import annotations
 
 import logging
-import re
 from collections import Counter
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
 from mavcal.autopilot.mavlink import (
     MAV_AUTOPILOT_PX4,
     MAV_CMD,
@@ -55,16 +52,15 @@ from mavcal.errors import SourceError
 from mavcal.sources.decoded import DecodedImu, PreparedImu
 from mavcal.sources.param_columns import (
     bytewise_param_values,
-    dataflash_params,
     text_codes,
     timeline_from_codes,
-    with_column,
 )
 from mavcal.sources.param_columns import decode_text as _text
+from mavcal.sources.series_set import FIRMWARE_RE, Columns, SeriesSet, column_matrix, n_rows, take_rows
 from mavcal.sources.types import ImuLog, LogEvent, PackedValues, ParamTimeline, SensorSeries
 
-__all__ = ["assemble_tlog", "assemble_dataflash", "imu_series", "Columns", "IMU_MESSAGES", "TLOG_MESSAGES",
-           "DATAFLASH_MESSAGES", "SCALED_INSTANCE", "CALIBRATION_COMMANDS", "MG_TO_MS2", "REBOOT_BACKSTEP_S"]
+__all__ = ["assemble_tlog", "imu_series", "IMU_MESSAGES", "TLOG_MESSAGES", "SCALED_INSTANCE", "CALIBRATION_COMMANDS",
+           "MG_TO_MS2", "REBOOT_BACKSTEP_S"]
 
 log = logging.getLogger(__name__)
 
@@ -82,16 +78,9 @@ TLOG_MESSAGES = IMU_MESSAGES + ("PARAM_VALUE", "STATUSTEXT", "COMMAND_LONG", "CO
                                 "GPS_RAW_INT", "GLOBAL_POSITION_INT", "HOME_POSITION", "HEARTBEAT")
 #: IMU instance carried by each integer IMU message
 SCALED_INSTANCE = {"RAW_IMU": 0, "SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
-DF_IMU_NAMES = ("IMU", "IMU2", "IMU3", "ACC", "ACC1", "ACC2", "ACC3", "GYR", "GYR1", "GYR2", "GYR3")
-DF_MAG_NAMES = ("MAG", "MAG2", "MAG3")
-DATAFLASH_MESSAGES = DF_IMU_NAMES + DF_MAG_NAMES + ("PARM", "MSG", "GPS", "ORGN", "POS")
 PARAM_COMPONENTS = (1, 190)
-_FIRMWARE_RE = re.compile(r"^((?:Ardu|APM:)\w*|Blimp|AP_Periph)\S*\s+V?\d+\.\d+\S*")
 REBOOT_BACKSTEP_S = 2.0
 HIGHRES_BUG_THRESHOLD = 100.0  # median |mag| in "gauss" above which the mGauss*1000 bug is assumed
-_SENSOR_ORDER = ("accel", "gyro", "mag")
-
-Columns = dict[str, dict[str, np.ndarray]]
 
 #: the float arithmetic of each integer IMU reading (value = count * mul / div): milli-g x
 #: 9.80665/1000 -> m/s^2, mrad/s / 1000 -> rad/s, mGauss as sent
@@ -107,43 +96,12 @@ def _packed(sensor: str, counts: np.ndarray) -> PackedValues:
 
 
 # --------------------------------------------------------------------------- helpers
-def _vec(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
-    """(n, len(names)) float64 of the columns ``names`` (each cast straight into its column:
-    no float copy of each column before the interleaving)."""
-    cols = [np.asarray(c[n]) for n in names]
-    out = np.empty((len(cols[0]) if cols else 0, len(cols)))
-    for j, col in enumerate(cols):
-        out[:, j] = col.reshape(len(col)) if col.ndim != 1 else col
-    return out
-
-
-def _n(c: Mapping[str, np.ndarray] | None) -> int:
-    if not c:
-        return 0
-    for _k, v in c.items():
-        return len(v)
-    return 0
-
-
 def _any_nonzero(c: Mapping[str, np.ndarray], names: Sequence[str]) -> np.ndarray:
     """Per row: is any of the columns ``names`` non-zero."""
     out = np.asarray(c[names[0]]) != 0
     for n in names[1:]:
         out |= np.asarray(c[n]) != 0
     return out
-
-
-def _take(c: Mapping[str, np.ndarray], mask) -> dict[str, np.ndarray]:
-    return {k: np.asarray(v)[mask] for k, v in c.items()}
-
-
-def _dedupe_sorted(time_s: np.ndarray, *arrays) -> tuple[np.ndarray, int]:
-    """Index that sorts by time (stable) and drops repeated timestamps (duplicated packets)."""
-    order = np.argsort(time_s, kind="stable")
-    t = time_s[order]
-    keep = np.ones(len(t), dtype=bool)
-    keep[1:] = t[1:] != t[:-1]
-    return order[keep], int((~keep).sum())
 
 
 # --------------------------------------------------------------------------- tlog assembly
@@ -235,50 +193,12 @@ class _TimeBase:
         return np.asarray(logt, dtype=float) - self.delay[k] + self.offset[k]
 
 
-class _SeriesSet:
-    """The sensor series being assembled: at most one per (sensor, instance), first come first kept."""
-
-    def __init__(self, warns: list[str]) -> None:
-        self.warns = warns
-        self.series: list[SensorSeries] = []
-        self.taken: set[tuple[str, int]] = set()
-
-    def has(self, sensor: str, inst: int) -> bool:
-        return (sensor, inst) in self.taken
-
-    def add(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray | PackedValues,
-            lt: np.ndarray | None, extra: Mapping[str, np.ndarray] | None = None, dup_label: str | None = None) -> None:
-        """Keep a series for (sensor, instance) unless there is one already or ``t`` is empty."""
-        if len(t) == 0 or self.has(sensor, inst):
-            return
-        self.keep(sensor, inst, msg, t, v, lt, extra, dup_label)
-
-    def keep(self, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray | PackedValues,
-             lt: np.ndarray | None, extra: Mapping[str, np.ndarray] | None = None,
-             dup_label: str | None = None) -> None:
-        """Sort by time, drop repeated timestamps (stated in the warnings) and keep the series."""
-        if len(t) < 2 or bool(np.all(t[1:] > t[:-1])):  # already sorted, no repeat: keep the arrays as they are
-            self.series.append(SensorSeries(sensor, inst, msg, t, v, lt, dict(extra or {})))
-            self.taken.add((sensor, inst))
-            return
-        order, ndup = _dedupe_sorted(t)
-        if ndup:
-            self.warns.append(f"dropped {ndup} duplicated {dup_label or msg} samples (same timestamp)")
-        v = v.take(order) if isinstance(v, PackedValues) else v[order]
-        self.series.append(SensorSeries(sensor, inst, msg, t[order], v, None if lt is None else lt[order],
-                                        {k: a[order] for k, a in (extra or {}).items()}))
-        self.taken.add((sensor, inst))
-
-    def sorted(self) -> tuple[SensorSeries, ...]:
-        return tuple(sorted(self.series, key=lambda s: _SENSOR_ORDER.index(s.sensor) * 100 + s.instance))
-
-
 _TIME_COLUMNS = ("_index", "_log_time_s", "time_boot_ms", "time_usec")
 
 
 def _tlog_vehicle_imu(cols: Columns, source: str, warns: list[str]) -> tuple[int, Columns]:
     """The vehicle's system id (most IMU messages) and its IMU message columns."""
-    present = {n: cols[n] for n in IMU_MESSAGES if _n(cols.get(n))}
+    present = {n: cols[n] for n in IMU_MESSAGES if n_rows(cols.get(n))}
     if not present:
         raise SourceError(f"no IMU messages (RAW_IMU, SCALED_IMU*, HIGHRES_IMU) in {source}")
     sys_counts: Counter = Counter()
@@ -296,17 +216,17 @@ def _tlog_vehicle_imu(cols: Columns, source: str, warns: list[str]) -> tuple[int
         if n == "SCALED_IMU" and "RAW_IMU" in imu and m.any():
             # not used (RAW_IMU carries instance 0): keep only what the time base needs, release the rest
             times = {k: v for k, v in c.items() if k in _TIME_COLUMNS}
-            imu[n] = times if m.all() else _take(times, m)
+            imu[n] = times if m.all() else take_rows(times, m)
             if isinstance(cols, dict):
                 del cols[n]
         elif m.all():
             imu[n] = c  # the vehicle's alone: no copy
         elif m.any():
-            imu[n] = _take(c, m)
+            imu[n] = take_rows(c, m)
     return sysid, imu
 
 
-def _integer_imu_series(imu: Mapping[str, DecodedImu | Mapping[str, np.ndarray]], tb: _TimeBase, out: _SeriesSet,
+def _integer_imu_series(imu: Mapping[str, DecodedImu | Mapping[str, np.ndarray]], tb: _TimeBase, out: SeriesSet,
                         consumed: Callable[[str], None]) -> None:
     """RAW_IMU / SCALED_IMU / SCALED_IMU2 / SCALED_IMU3 -> accel, gyro, mag series.
 
@@ -355,7 +275,7 @@ def _int_values(c: Mapping[str, np.ndarray], sensor: str, names: Sequence[str], 
         for j, a in enumerate(cols):
             counts[:, j] = a
         return _packed(sensor, counts[keep])
-    v = _vec(c, names)[keep]
+    v = column_matrix(c, names)[keep]
     mul, div = _INT_UNITS[sensor]
     if mul != 1.0:
         v *= mul
@@ -364,7 +284,7 @@ def _int_values(c: Mapping[str, np.ndarray], sensor: str, names: Sequence[str], 
     return v
 
 
-def _zero_imu_warning(out: _SeriesSet, name: str, inst: int, nz: int, n: int) -> None:
+def _zero_imu_warning(out: SeriesSet, name: str, inst: int, nz: int, n: int) -> None:
     if nz and nz < n:
         out.warns.append(f"dropped {nz} {name} samples with all-zero accel and gyro")
     elif nz:  # no such IMU: the message is streamed for its compass (SITL's SCALED_IMU3): nothing wrong
@@ -378,7 +298,7 @@ def _rows_nonzero(*arrays: np.ndarray) -> np.ndarray:
     return out
 
 
-def _decoded_imu_series(name: str, inst: int, c: DecodedImu, out: _SeriesSet) -> None:
+def _decoded_imu_series(name: str, inst: int, c: DecodedImu, out: SeriesSet) -> None:
     """The series of a message decoded into its final arrays (same rules as from columns)."""
     t, lt, n = c.time_s, c.log_time_s, len(c.time_s)
     assert c.accel_mg is not None and c.gyro_mrads is not None and c.mag_mgauss is not None
@@ -392,12 +312,12 @@ def _decoded_imu_series(name: str, inst: int, c: DecodedImu, out: _SeriesSet) ->
     out.add("mag", inst, name, t[keep_m], _packed("mag", c.mag_mgauss[keep_m]), lt[keep_m])
 
 
-def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _SeriesSet) -> None:
+def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: SeriesSet) -> None:
     """HIGHRES_IMU -> series of the instances no integer IMU message carries (mag unit decided here)."""
     t = tb.from_boot(c["_index"], _boot_time("HIGHRES_IMU", c))
     lt = np.asarray(c["_log_time_s"], float)
     inst_arr = np.asarray(c.get("id", np.zeros(len(t))), dtype=int)
-    mag = _vec(c, ("xmag", "ymag", "zmag"))
+    mag = column_matrix(c, ("xmag", "ymag", "zmag"))
     norm = np.linalg.norm(mag, axis=1)
     med = float(np.median(norm[norm > 0])) if (norm > 0).any() else 0.0
     if med > HIGHRES_BUG_THRESHOLD:
@@ -410,8 +330,8 @@ def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _Series
             out.warns.append(f"HIGHRES_IMU mag is in gauss (median |mag| {med:.3f}); converted to mGauss")
     for inst in np.unique(inst_arr).tolist():
         m = inst_arr == inst
-        for sensor, v in (("accel", _vec(c, ("xacc", "yacc", "zacc"))),
-                          ("gyro", _vec(c, ("xgyro", "ygyro", "zgyro"))), ("mag", mag_mg)):
+        for sensor, v in (("accel", column_matrix(c, ("xacc", "yacc", "zacc"))),
+                          ("gyro", column_matrix(c, ("xgyro", "ygyro", "zgyro"))), ("mag", mag_mg)):
             if out.has(sensor, inst):
                 continue
             mm = m & ~(v == 0).all(axis=1) & np.isfinite(v).all(axis=1)
@@ -420,7 +340,7 @@ def _highres_imu_series(c: Mapping[str, np.ndarray], tb: _TimeBase, out: _Series
 
 def _is_px4(cols: Columns, sysid: int) -> bool:
     hb = cols.get("HEARTBEAT") or {}
-    return bool(_n(hb)) and bool(((np.asarray(hb["_sysid"]) == sysid)
+    return bool(n_rows(hb)) and bool(((np.asarray(hb["_sysid"]) == sysid)
                                   & (np.asarray(hb["autopilot"]) == MAV_AUTOPILOT_PX4)).any())
 
 
@@ -428,13 +348,13 @@ def _tlog_params(cols: Columns, sysid: int, tb: _TimeBase, warns: list[str]) -> 
     """PARAM_VALUE of the vehicle (autopilot or companion component) as a timeline (a PX4's
     integers decoded bytewise, :func:`bytewise_param_values`)."""
     pv = cols.get("PARAM_VALUE") or {}
-    if not _n(pv):
+    if not n_rows(pv):
         return ParamTimeline()
     m = (np.asarray(pv["_sysid"]) == sysid) & np.isin(np.asarray(pv["_compid"]), PARAM_COMPONENTS)
     if (~m).sum():
         warns.append(f"ignored {int((~m).sum())} PARAM_VALUE from other systems/components")
-    pv = _take(pv, m)
-    if not _n(pv):
+    pv = take_rows(pv, m)
+    if not n_rows(pv):
         return ParamTimeline()
     codes, labels = text_codes(pv["param_id"])
     times = tb.from_log(np.asarray(pv["_index"], np.int64), pv["_log_time_s"])
@@ -449,29 +369,29 @@ def _tlog_events(cols: Columns, sysid: int, tb: _TimeBase) -> tuple[list[LogEven
     events: list[LogEvent] = []
     firmware = None
     st = cols.get("STATUSTEXT") or {}
-    if _n(st):
-        st = _take(st, np.asarray(st["_sysid"]) == sysid)
+    if n_rows(st):
+        st = take_rows(st, np.asarray(st["_sysid"]) == sysid)
         times = tb.from_log(np.asarray(st["_index"], np.int64), st["_log_time_s"])
         for t, text, sev in zip(times.tolist(), st["text"], np.asarray(st["severity"]).tolist()):
             txt = _text(text)
             events.append(LogEvent(float(t), "statustext", txt, int(sev)))
-            if firmware is None and _FIRMWARE_RE.match(txt):
+            if firmware is None and FIRMWARE_RE.match(txt):
                 firmware = txt
     for name in ("COMMAND_LONG", "COMMAND_INT"):
         cm = cols.get(name) or {}
-        if not _n(cm):
+        if not n_rows(cm):
             continue
-        cm = _take(cm, np.isin(np.asarray(cm["command"]).astype(int), list(CALIBRATION_COMMANDS)))
+        cm = take_rows(cm, np.isin(np.asarray(cm["command"]).astype(int), list(CALIBRATION_COMMANDS)))
         times = tb.from_log(np.asarray(cm["_index"], np.int64), cm["_log_time_s"])
         pnames = (["param1", "param2", "param3", "param4", "param5", "param6", "param7"] if name == "COMMAND_LONG"
                   else ["param1", "param2", "param3", "param4", "x", "y", "z"])
-        pv_arr = _vec(cm, pnames) if _n(cm) else np.zeros((0, 7))
+        pv_arr = column_matrix(cm, pnames) if n_rows(cm) else np.zeros((0, 7))
         for t, code, p in zip(times.tolist(), np.asarray(cm["command"]).astype(int).tolist(), pv_arr.tolist()):
             kind = "accelcal_pos" if code == MAV_CMD_ACCELCAL_VEHICLE_POS else "command"
             events.append(LogEvent(float(t), kind, CALIBRATION_COMMANDS[code], code, tuple(float(x) for x in p)))
     ack = cols.get("COMMAND_ACK") or {}
-    if _n(ack):
-        ack = _take(ack, np.isin(np.asarray(ack["command"]).astype(int), list(CALIBRATION_COMMANDS)))
+    if n_rows(ack):
+        ack = take_rows(ack, np.isin(np.asarray(ack["command"]).astype(int), list(CALIBRATION_COMMANDS)))
         times = tb.from_log(np.asarray(ack["_index"], np.int64), ack["_log_time_s"])
         for t, code, res in zip(times.tolist(), np.asarray(ack["command"]).astype(int).tolist(),
                                 np.asarray(ack["result"]).astype(float).tolist()):
@@ -485,7 +405,7 @@ def _tlog_vehicle(cols: Columns, sysid: int, firmware: str | None) -> dict[str, 
     """sysid, autopilot and vehicle type (most common vehicle HEARTBEAT) and the firmware banner."""
     vehicle: dict[str, object] = {"sysid": int(sysid)}
     hb = cols.get("HEARTBEAT") or {}
-    if _n(hb):
+    if n_rows(hb):
         m = (np.asarray(hb["_sysid"]) == sysid) & (np.asarray(hb["autopilot"]) != MAV_AUTOPILOT_INVALID)
         if m.any():
             ci = Counter(zip(np.asarray(hb["autopilot"])[m].tolist(), np.asarray(hb["type"])[m].tolist()))
@@ -525,7 +445,7 @@ def assemble_tlog(cols: Columns, source: str, warnings: Sequence[str] = (),
         shown = ", ".join(shifts[:3]) + (f" ... ({len(shifts) - 3} more)" if len(shifts) > 3 else "")
         warns.append(f"vehicle rebooted {tb.reboots} time(s) during the log; time_s of later boots is "
                      f"shifted by {shown} s to continue the log time")
-    out = _SeriesSet(warns)
+    out = SeriesSet(warns)
 
     def consumed(name: str) -> None:  # release a message's columns once its series are built
         imu.pop(name, None)
@@ -555,198 +475,22 @@ def _median_position(c: Mapping[str, np.ndarray], m: np.ndarray, lat: str, lon: 
 def _tlog_position(cols: Columns, sysid: int) -> tuple[float, float, float] | None:
     """HOME_POSITION (last), else the median GPS_RAW_INT with a 3D fix, else the median GLOBAL_POSITION_INT."""
     hp = cols.get("HOME_POSITION") or {}
-    if _n(hp):
+    if n_rows(hp):
         m = (np.asarray(hp["_sysid"]) == sysid) & ((np.asarray(hp["latitude"]) != 0)
                                                    | (np.asarray(hp["longitude"]) != 0))
         if m.any():
             i = np.flatnonzero(m)[-1]
             return (float(hp["latitude"][i]) * 1e-7, float(hp["longitude"][i]) * 1e-7, float(hp["altitude"][i]) * 1e-3)
     gps = cols.get("GPS_RAW_INT") or {}
-    if _n(gps):
+    if n_rows(gps):
         m = (np.asarray(gps["_sysid"]) == sysid) & (np.asarray(gps["fix_type"]) >= 3)
         if m.any():
             return _median_position(gps, m, "lat", "lon", "alt", (1e-7, 1e-3))
     gp = cols.get("GLOBAL_POSITION_INT") or {}
-    if _n(gp):
+    if n_rows(gp):
         m = (np.asarray(gp["_sysid"]) == sysid) & ((np.asarray(gp["lat"]) != 0) | (np.asarray(gp["lon"]) != 0))
         if m.any():
             return _median_position(gp, m, "lat", "lon", "alt", (1e-7, 1e-3))
-    return None
-
-
-# --------------------------------------------------------------------------- DataFlash assembly
-
-
-def _df_time(c: Mapping[str, np.ndarray]) -> np.ndarray:
-    if "TimeUS" in c:
-        return np.asarray(c["TimeUS"], dtype=float) * 1e-6
-    if "TimeMS" in c:
-        return np.asarray(c["TimeMS"], dtype=float) * 1e-3
-    raise SourceError("DataFlash message without TimeUS/TimeMS")
-
-
-def _df_instances(name: str, c: Mapping[str, np.ndarray], limit: int, warns: list[str],
-                  keys: Sequence[str]) -> Iterator[tuple[int, Mapping[str, np.ndarray]]]:
-    """Yield (instance, columns) of a DataFlash message (I field, or the digit in the name).
-
-    Records whose instance is not 0..``limit``-1 (a corrupt I byte: ArduPilot has no such
-    sensor slot) are skipped and counted in ``warns``. Of a log with several instances, only
-    the columns ``keys`` (those the caller reads) are taken apart."""
-    if "I" in c:
-        col = np.asarray(c["I"])
-        if col.dtype.kind in "iu":  # the logged byte: a whole number, finite
-            raw = col
-            ok = (col >= 0) & (col < limit)
-        else:
-            raw = col.astype(float)
-            ok = np.isfinite(raw) & (raw >= 0) & (raw < limit) & (raw == np.round(raw))
-        if not ok.all():
-            bad = sorted({int(x) for x in raw[~ok & np.isfinite(raw)][:1000].tolist()})[:5]
-            warns.append(f"skipped {int((~ok).sum())} {name} records with an impossible instance number "
-                         f"({', '.join(map(str, bad)) or 'not a number'}; valid 0..{limit - 1}): corrupt records")
-        inst = np.where(ok, raw, -1).astype(int)
-        for i in np.flatnonzero(np.bincount(inst[ok], minlength=limit)).tolist():
-            m = inst == i
-            # one instance (the usual case): no copy; else gathered by index (instances often alternate)
-            yield i, (c if m.all() else _take({k: c[k] for k in keys if k in c}, np.flatnonzero(m)))
-    else:
-        digit = name[-1]
-        if digit.isdigit():  # IMU2 -> 1, MAG3 -> 2, ACC1 -> 0
-            yield int(digit) - 1, c
-        else:
-            yield 0, c
-
-
-def _df_add(out: _SeriesSet, sensor: str, inst: int, msg: str, t: np.ndarray, v: np.ndarray,
-            extra: Mapping[str, np.ndarray] | None = None) -> None:
-    """Keep a DataFlash series without its non-finite samples (stated in the warnings)."""
-    if len(t) == 0 or out.has(sensor, inst):
-        return
-    ok: np.ndarray | slice = slice(None)  # every sample finite (the usual case): no copy
-    finite = np.isfinite(v)
-    if not finite.all():
-        ok = finite.all(axis=1)
-        out.warns.append(f"dropped {int((~ok).sum())} {msg} samples with non-finite values")
-    out.keep(sensor, inst, msg, t[ok], v[ok], None, {k: a[ok] for k, a in (extra or {}).items()},
-             dup_label=f"{msg}[{inst}]")
-
-
-_DF_TIME_KEYS = ("TimeUS", "TimeMS")
-_DF_ACC = ("AccX", "AccY", "AccZ")
-_DF_GYR = ("GyrX", "GyrY", "GyrZ")
-_DF_MAG_KEYS = ("MagX", "MagY", "MagZ", "OfsX", "OfsY", "OfsZ", "MOX", "MOY", "MOZ", "Health")
-
-
-def _df_sensor_series(cols: Columns, out: _SeriesSet) -> None:
-    """IMU/ACC/GYR -> accel and gyro, MAG -> mag (with offsets, motor offsets and health)."""
-    for name in DF_IMU_NAMES:
-        c = cols.get(name) or {}
-        if not _n(c):
-            continue
-        for inst, ci in _df_instances(name, c, fw.MAX_IMUS, out.warns, _DF_TIME_KEYS + _DF_ACC + _DF_GYR):
-            t = _df_time(ci)
-            if all(k in ci for k in _DF_ACC):
-                _df_add(out, "accel", inst, name, t, _vec(ci, _DF_ACC))
-            if all(k in ci for k in _DF_GYR):
-                _df_add(out, "gyro", inst, name, t, _vec(ci, _DF_GYR))
-    for name in DF_MAG_NAMES:
-        c = cols.get(name) or {}
-        if not _n(c):
-            continue
-        for inst, ci in _df_instances(name, c, fw.MAX_COMPASSES, out.warns, _DF_TIME_KEYS + _DF_MAG_KEYS):
-            if not all(k in ci for k in ("MagX", "MagY", "MagZ")):
-                continue
-            extra = {}
-            if all(k in ci for k in ("OfsX", "OfsY", "OfsZ")):
-                extra["ofs_mgauss"] = _vec(ci, ("OfsX", "OfsY", "OfsZ"))
-            if all(k in ci for k in ("MOX", "MOY", "MOZ")):
-                extra["motor_ofs_mgauss"] = _vec(ci, ("MOX", "MOY", "MOZ"))
-            if "Health" in ci:
-                extra["health"] = np.asarray(ci["Health"], dtype=float)
-            _df_add(out, "mag", inst, name, _df_time(ci), _vec(ci, ("MagX", "MagY", "MagZ")), extra)
-
-
-class _DfRecordTime:
-    """Time of any DataFlash record: its TimeUS/TimeMS, or (old PARM, MSG without one) the time of the
-    latest timed record before it."""
-
-    def __init__(self, cols: Columns) -> None:
-        self.cols = cols
-        self._timeline: tuple[np.ndarray, np.ndarray] | None = None
-
-    def _timed(self) -> tuple[np.ndarray, np.ndarray]:
-        """(record numbers, running-max times) of every timed record, built when first needed
-        (only for records without a time of their own: most logs never need them)."""
-        if self._timeline is None:
-            timed = [(np.asarray(c["_index"]), _df_time(c)) for n, c in self.cols.items()
-                     if _n(c) and ("TimeUS" in c or "TimeMS" in c) and "_index" in c]
-            if timed:
-                t_idx = np.concatenate([a for a, _ in timed])
-                t_val = np.concatenate([b for _, b in timed])
-                o = np.argsort(t_idx, kind="stable")
-                self._timeline = (t_idx[o], np.maximum.accumulate(t_val[o]))
-            else:
-                self._timeline = (np.zeros(1, np.int64), np.zeros(1))
-        return self._timeline
-
-    def __call__(self, c: Mapping[str, np.ndarray]) -> np.ndarray:
-        if "TimeUS" in c or "TimeMS" in c:
-            return _df_time(c)
-        t_idx, t_val = self._timed()
-        k = np.searchsorted(t_idx, np.asarray(c["_index"]), side="right") - 1
-        return np.where(k >= 0, t_val[np.clip(k, 0, None)], t_val[0])
-
-
-def assemble_dataflash(cols: Columns, source: str, warnings: Sequence[str] = ()) -> ImuLog:
-    """Build an ImuLog from DataFlash message columns (fast decoder or DFReader)."""
-    warns = list(warnings)
-    out = _SeriesSet(warns)
-    _df_sensor_series(cols, out)
-    if not out.series:
-        raise SourceError(f"no IMU data (IMU/ACC/GYR/MAG records) in {source}")
-    rec_time = _DfRecordTime(cols)
-    params = ParamTimeline()
-    pm = cols.get("PARM") or {}
-    if _n(pm):
-        params = dataflash_params(pm, rec_time(pm), warns, source)
-    events: list[LogEvent] = []
-    firmware = None
-    msg = with_column(cols.get("MSG") or {}, "Message", "MSG", warns)  # {} when its FMT is damaged
-    if _n(msg):
-        for t, text in zip(rec_time(msg).tolist(), msg["Message"]):
-            txt = _text(text)
-            events.append(LogEvent(float(t), "statustext", txt))
-            if firmware is None and _FIRMWARE_RE.match(txt):
-                firmware = txt
-    events.sort(key=lambda e: e.time_s)
-    vehicle: dict[str, object] = {}
-    if firmware:
-        vehicle["firmware"] = firmware
-    return ImuLog(source=source, kind="dataflash", series=out.sorted(), params=params, events=tuple(events),
-                  position=_df_position(cols), vehicle=vehicle, warnings=tuple(warns))
-
-
-def _df_position(cols: Columns) -> tuple[float, float, float] | None:
-    o = cols.get("ORGN") or {}
-    if _n(o) and all(k in o for k in ("Lat", "Lng", "Alt")):
-        m = (np.asarray(o["Lat"]) != 0) | (np.asarray(o["Lng"]) != 0)
-        if m.any():
-            i = np.flatnonzero(m)[0]
-            return (float(o["Lat"][i]), float(o["Lng"][i]), float(o["Alt"][i]))
-    g = cols.get("GPS") or {}
-    if _n(g) and all(k in g for k in ("Lat", "Lng", "Alt", "Status")):
-        m = np.asarray(g["Status"]) >= 3
-        if "I" in g:
-            m &= np.asarray(g["I"]) == 0
-        if m.any():
-            return (float(np.median(np.asarray(g["Lat"])[m])), float(np.median(np.asarray(g["Lng"])[m])),
-                    float(np.median(np.asarray(g["Alt"])[m])))
-    p = cols.get("POS") or {}
-    if _n(p) and all(k in p for k in ("Lat", "Lng", "Alt")):
-        m = (np.asarray(p["Lat"]) != 0) | (np.asarray(p["Lng"]) != 0)
-        if m.any():
-            return (float(np.median(np.asarray(p["Lat"])[m])), float(np.median(np.asarray(p["Lng"])[m])),
-                    float(np.median(np.asarray(p["Alt"])[m])))
     return None
 
 

@@ -7,7 +7,7 @@ compensation applied), the attitude (``ATTITUDE``), the battery current (``SYS_S
 ``BATTERY_STATUS``; -1 cA is "no sensor"), the throttle (``VFR_HUD``), the GPS (``GPS_RAW_INT``), the
 arming state (``HEARTBEAT``) and the parameters the ground station read (``PARAM_VALUE``). What it
 does not carry: the offsets and the motor offset the firmware applied (the stage takes them from
-the parameters in force, :mod:`mavcal.ardupilot.flight`), the EKF-GSF yaw (no rotation verdict),
+the parameters in force, ArduPilot's in-flight model), the EKF-GSF yaw (no rotation verdict),
 the hover throttle. Times are the tlog's receive times (s from the first message): one link's
 delay on every series.
 

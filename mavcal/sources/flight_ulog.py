@@ -5,7 +5,7 @@ Beside :mod:`mavcal.sources.flight_series` (the DataFlash ``.bin``), the same
 
 * ``sensor_mag`` (each instance a compass): the **raw** reading (gauss -> mGauss, the sensor frame,
   before PX4's calibration) and its ``device_id``; PX4's corrected field is not read (the stage
-  applies the calibration in force itself, :mod:`mavcal.px4.flight`);
+  applies the calibration in force itself, PX4's in-flight model);
 * ``vehicle_attitude`` (``q``, body to NED) -> roll, pitch, yaw;
 * ``battery_status`` instance 0 (and 1) ``current_a``; the throttle: the length of
   ``vehicle_thrust_setpoint``'s ``xyz`` (else ``actuator_controls_0``'s throttle, PX4 up to 1.13);

@@ -12,7 +12,6 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
 from mavcal.errors import SourceError
 from mavcal.sources.types import ParamTimeline
 
@@ -83,7 +82,7 @@ def timeline_from_codes(codes: np.ndarray, labels: list[str], times, values) -> 
 
 
 def _plausible(codes: np.ndarray, labels: list[str], values: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """``fw.param_value_plausible(labels[codes[i]], values[i])`` for the records ``candidates``
+    """``param_value_plausible(labels[codes[i]], values[i])`` of ArduPilot's model for the records ``candidates``
     (False elsewhere), called once per distinct (name, value bits)."""
     out = np.zeros(len(codes), dtype=bool)
     if len(candidates) == 0:
@@ -94,7 +93,10 @@ def _plausible(codes: np.ndarray, labels: list[str], values: np.ndarray, candida
     bo, co = bits[order], cc[order]
     new = np.r_[True, (bo[1:] != bo[:-1]) | (co[1:] != co[:-1])]
     reps = candidates[order[new]]
-    verdict = np.array([fw.param_value_plausible(labels[int(codes[i])], float(values[i])) for i in reps.tolist()],
+    from mavcal.autopilot import model_named
+
+    plausible = model_named("ArduPilot").param_value_plausible  # a DataFlash log is ArduPilot's
+    verdict = np.array([plausible(labels[int(codes[i])], float(values[i])) for i in reps.tolist()],
                        dtype=bool)
     out[candidates[order]] = verdict[np.cumsum(new) - 1]
     return out
@@ -121,7 +123,7 @@ def dataflash_params(pm: Mapping[str, np.ndarray], t: np.ndarray, warns: list[st
     log: DataFlash has no checksum) or a non-finite time are skipped and counted in ``warns``.
 
     A name is possible when it is 1 to 16 letters, digits or ``_``; a value when
-    :func:`mavcal.ardupilot.firmware.param_value_plausible` says so.
+    ArduPilot's model says so (``param_value_plausible``).
     """
     if not {"Name", "Value"} <= set(pm):  # the PARM format (FMT) record is damaged
         raise SourceError(f"{source}: damaged DataFlash log: the format (FMT) of its PARM records names no Name and "

@@ -29,7 +29,9 @@ from typing import Any, Callable
 import numpy as np
 
 from mavcal.errors import MavcalError, SourceError
-from mavcal.sources.assemble import DATAFLASH_MESSAGES, G0, TLOG_MESSAGES, Columns, assemble_dataflash, assemble_tlog
+from mavcal.sources.assemble import G0, TLOG_MESSAGES, assemble_tlog
+from mavcal.sources.dataflash_assemble import DATAFLASH_MESSAGES, assemble_dataflash
+from mavcal.sources.series_set import Columns
 from mavcal.sources.types import ImuLog, SensorSeries
 
 __all__ = ["read_log", "read_csv", "is_device", "pymavlink_tlog_columns",

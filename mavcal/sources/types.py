@@ -3,7 +3,7 @@
 Everything is converted once to numpy columns in SI-ish units with the unit in the name:
 accelerations in m/s^2, angular rates in rad/s, magnetic field in mGauss, time in seconds.
 Readings are exactly what the vehicle sent or logged: *corrected* by the calibration in
-force on the vehicle. Undoing that correction is the job of :mod:`mavcal.ardupilot.recover`,
+force on the vehicle. Undoing that correction is the job of the autopilot's model (``recover_raw``),
 which needs the parameter timeline carried here.
 """
 from __future__ import annotations
@@ -285,7 +285,7 @@ class LogEvent:
     "reboot" (the vehicle restarted: ``time_s`` just after the last sample of the old boot),
     "param_set" (PARAM_SET sent to the vehicle: ``text`` = parameter name, ``params`` = (value,)).
     Raw recovery treats reboots, calibration reports and PARAM_SETs as events that may
-    change parameters (:mod:`mavcal.ardupilot.param_history`).
+    change parameters (ArduPilot's parameter history).
     """
 
     time_s: float

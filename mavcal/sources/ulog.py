@@ -18,7 +18,7 @@ PX4 logs its raw sensor topics at a low rate by default (about 1 Hz, ``SDLOG_PRO
 rate" or 3 "debug" raises it); a log without them (older PX4: only ``sensor_combined``, which is
 calibrated and averaged) is refused with that advice. :func:`calibrated_topics` gives PX4's own
 calibrated output beside them (``vehicle_acceleration``, ``vehicle_magnetometer``, the
-``vehicle_imu`` velocity increments), for checking the conventions of :mod:`mavcal.px4`.
+``vehicle_imu`` velocity increments), for checking the conventions of PX4's model.
 
 Only this module (and :mod:`mavcal.link`) imports pyulog.
 """

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import attitude_errors, attitude_grid
+from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
 
 __all__ = ["heading_error_vs_truth"]
 

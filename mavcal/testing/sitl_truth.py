@@ -7,7 +7,7 @@ ArduPilot's SITL simulates (``model_equations`` of the truth file)::
 
 with M_sim the symmetric matrix of SIM_MAG1_DIA/ODI (DIA all zero = identity). The
 functions below give those raw readings for any true body vectors, so written parameters
-can be checked with :func:`mavcal.ardupilot.evaluate.attitude_errors`.
+can be checked with :func:`mavcal.autopilot.evaluate.attitude_errors`.
 
 :class:`InjectedErrors` are the same errors for a live SITL (:mod:`mavcal.testing.sitl`):
 drawn from a seed, as SIM_* parameters, with the ideal ArduPilot calibration they imply;
@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 
 from mavcal.ardupilot import firmware as fw
-from mavcal.ardupilot.evaluate import AttitudeErrors, attitude_errors
+from mavcal.autopilot.evaluate import AttitudeErrors, attitude_errors
 from mavcal.autopilot.rotations import rotation_matrix
 
 

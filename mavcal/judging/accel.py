@@ -2,7 +2,8 @@
 held-out error, which values are written (its joint fit's with the primary compass, or its
 own), its tilt bounds and its gates; and the accelerometers calibrated alone, for a log
 without compass data. :mod:`mavcal.fits` runs the own fits (:func:`accel_own`) beside the
-pairs' and calls :func:`judge_accels` once the primary pair's verdict is known.
+pairs' and calls :func:`judge_accels` once the primary pair's verdict is known. The compasses'
+judging is beside it, :mod:`mavcal.judging.compass`.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from mavcal.fit_inputs import (
     wanted_instances,
     with_blind_cal,
 )
-from mavcal.quality import Quality, accel_tilt_bounds
+from mavcal.judging.quality import Quality, accel_tilt_bounds
 from mavcal.run import STAGE_FIT, CalibrationRun, Options, Prepared
 from mavcal.sources.progress import report
 from mavcal.workers import Outcome, WorkerDiedError

@@ -2,7 +2,7 @@
 
 * :func:`truth_functions`: raw-reading functions of an estimated sensor model (the
   paper's Eq. ``sensor_reading_model``, ``u = K R g + b``) in the engine frame, so that
-  the written ArduPilot parameters can be judged against it;
+  the written parameters (in the common form, :mod:`mavcal.autopilot.calform`) can be judged against it;
 * :func:`quality_of`: the 95 % bounds of the heading and tilt error over the flight
   envelope, propagating the parameter covariance (draws of
   :func:`mavcal.core.uncertainty.sample_parameters`);
@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from mavcal.autopilot import firmware as fw
+from mavcal.autopilot import calform as fw
 from mavcal.autopilot.evaluate import GridErrors, attitude_errors, attitude_grid
 from mavcal.autopilot.mapping import AccelMapping, CompassMapping, accel_frame
 from mavcal.core.accel_fit import AccelFit, holdout_folds, pool_index, sample_accel
@@ -143,8 +143,8 @@ DRAW_CHUNK = 16  # draws evaluated together: fewer calls, arrays still small eno
 def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
                  B_ned: np.ndarray, grid: np.ndarray) -> tuple[list[float], list[float]]:
     """Max heading and max tilt error over ``grid`` for every draw: what
-    :func:`mavcal.ardupilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
-    ``DRAW_CHUNK`` draws at a time by :class:`mavcal.ardupilot.evaluate.GridErrors` (the grid's
+    :func:`mavcal.autopilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
+    ``DRAW_CHUNK`` draws at a time by :class:`mavcal.autopilot.evaluate.GridErrors` (the grid's
     truth once for all chunks, the accelerometer's readings at its distinct specific forces)."""
     max_errors = GridErrors(am.new, cm.new, B_ned, grid)
     f_unique, B_body = max_errors.f_unique, max_errors.B_body
