@@ -119,7 +119,7 @@ def read_flight_series(path: str | Path) -> FlightSeries:
     if not p.is_file():
         raise SourceError(f"{path}: no such file")
     if p.suffix.lower() not in (".bin", ".log") and not _looks_dataflash(p):
-        raise SourceError(f"{path}: not a DataFlash .bin (the in-flight stage reads .bin logs)")
+        raise SourceError(f"{path}: not a DataFlash .bin, a PX4 .ulg or a .tlog (the logs the in-flight stage reads)")
     try:
         cols, formats, _ = decode_dataflash(str(p), MESSAGES)
     except (OSError, ValueError) as exc:
