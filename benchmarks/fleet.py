@@ -177,7 +177,8 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def run_rounds(configs: list[str], chunks: list[list[str]], root: Path, tmp: Path, env: dict) -> dict:
+def run_rounds(configs: list[str], chunks: list[list[str]], root: Path, tmp: Path, env: dict,
+               on_round=None) -> dict:
     """Every configuration on every chunk (paths under ``root``), taking turns (the order rotated
     each round); a ``-s3`` configuration reads the same logs from ``s3://fleet/``."""
     from contextlib import ExitStack
@@ -186,6 +187,7 @@ def run_rounds(configs: list[str], chunks: list[list[str]], root: Path, tmp: Pat
 
     clusters: dict[str, tuple[str, list[int]]] = {}
     per: dict[str, list[dict]] = {c: [] for c in configs}
+    extra: dict[str, dict] = {c: {} for c in configs}
     rounds = []
     with ExitStack() as stack:
         for c in configs:
@@ -220,14 +222,21 @@ def run_rounds(configs: list[str], chunks: list[list[str]], root: Path, tmp: Pat
                       f"load {os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
             this["load_after"] = os.getloadavg()[0]
             rounds.append(this)
-        extra: dict[str, dict] = {c: {} for c in configs}
+            for c, (address, _) in clusters.items():
+                with Client(address) as cl:
+                    extra[c]["worker_max_rss_mb"] = max(cl.run(_worker_rss_mb).values())
+            if on_round is not None:  # the rounds so far (a run stopped early keeps them)
+                on_round(_summary(configs, per, extra, rounds, len(chunks)))
         for c, (address, _) in clusters.items():
             with Client(address) as cl:
-                extra[c]["worker_max_rss_mb"] = max(cl.run(_worker_rss_mb).values())
                 n = 2000
                 t0 = time.perf_counter()
                 cl.gather(cl.map(_noop, range(n), pure=False))
                 extra[c]["dask_noop_task_ms"] = (time.perf_counter() - t0) / n * 1000 * 2  # per worker
+    return _summary(configs, per, extra, rounds, len(chunks))
+
+
+def _summary(configs: list[str], per: dict, extra: dict, rounds: list, planned: int) -> dict:
     results = []
     for c in configs:
         rs = per[c]
@@ -240,7 +249,7 @@ def run_rounds(configs: list[str], chunks: list[list[str]], root: Path, tmp: Pat
                                                           max(r["children_max_rss_mb"] for r in rs)),
                         "parent_max_rss_mb": max(r["parent_max_rss_mb"] for r in rs),
                         **{k: v for k, v in extra[c].items() if k != "worker_max_rss_mb"}})
-    return {"results": results, "rounds": rounds}
+    return {"results": results, "rounds": list(rounds), "rounds_planned": planned}
 
 
 def killed_and_resumed(root: str, table: str, reference: str) -> dict:
@@ -271,9 +280,12 @@ def write_results(doc: dict, out_dir: Path) -> None:
     lines = ["# Fleet: logs per second and memory (benchmarks/fleet.py)", "",
              f"`{doc['command']}`", "",
              f"{doc['n_logs']} logs ({doc['size_mb']:.0f} MB), 2 workers, {doc['machine']['cpus']} CPUs, "
-             f"{doc['date']}; `uptime` before: `{doc['uptime_before']}`, after: `{doc['uptime_after']}`. "
-             f"The logs are cut into {len(doc['rounds'])} chunks and the configurations take turns on each "
-             "(the order rotated every round), so background load falls on all alike.", "",
+             f"{doc['date']}; `uptime` at the start: `{doc['uptime_before']}`, at the end: `{doc['uptime_after']}`. "
+             f"The logs are cut into {doc['rounds_planned']} chunks and the configurations take turns on each "
+             "(the order rotated every round), so background load falls on all alike"
+             + (f"; {len(doc['rounds'])} of the {doc['rounds_planned']} rounds were run "
+                f"({doc['results'][0]['logs']} logs per configuration)" if len(doc['rounds']) < doc['rounds_planned']
+                else "") + ".", "",
              "| configuration | wall s | logs/s | vs fork | CPU s/log (all its processes) | of it the mavcal process "
              "| max worker RSS MB | parent RSS MB |", "|---|---|---|---|---|---|---|---|"]
     fork = next((r for r in doc["results"] if r["config"] == "fork"), None)
@@ -303,6 +315,99 @@ def write_results(doc: dict, out_dir: Path) -> None:
     (out_dir / "fleet.md").write_text("\n".join(lines) + "\n")
 
 
+# --------------------------------------------------------------------------- --why: a log's cost, where it runs
+
+def _timed(source: str, heap: bool = False) -> tuple[float, float, float, int, float]:
+    """One log's job (mavcal's per-log function, the CLI's options) timed where it runs: wall,
+    this thread's CPU, the whole process's CPU, minor page faults, system CPU."""
+    from contextlib import nullcontext
+
+    import mavcal
+    from mavcal.fleet.run import FleetJob, calibrate_entry, roomy_heap
+    from mavcal.pipeline import Options
+
+    job = FleetJob(Options(), None, mavcal.__version__, frozenset())
+    ru0 = resource.getrusage(resource.RUSAGE_SELF)
+    t0, c0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
+    with roomy_heap() if heap else nullcontext():
+        calibrate_entry(job, source)
+    ru1 = resource.getrusage(resource.RUSAGE_SELF)
+    return (time.perf_counter() - t0, time.thread_time() - c0, time.process_time() - p0,
+            ru1.ru_minflt - ru0.ru_minflt, ru1.ru_stime - ru0.ru_stime)
+
+
+def _timed_heap(source: str):
+    return _timed(source, heap=True)
+
+
+WHY = {  # name: (how it runs, Dask config or environment)
+    "plain process": ("plain", {}),
+    "plain process, MALLOC_TRIM_THRESHOLD_=65536": ("plain", {"MALLOC_TRIM_THRESHOLD_": "65536"}),
+    "forked child (the fork pool)": ("fork", {}),
+    "Dask worker, as Dask starts it": ("dask", {}),
+    "Dask worker, profiler off": ("dask", {"distributed.worker.profile.enabled": False}),
+    "Dask worker, without MALLOC_TRIM_THRESHOLD_": ("dask", {"distributed.nanny.pre-spawn-environ": {
+        "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}}),
+    "Dask worker, mavcal's job (roomy_heap)": ("dask-mavcal", {}),
+}
+
+
+def why_one(name: str, logs: list[str]) -> list:
+    how, cfg = WHY[name]
+    _warm()
+    _timed(logs[0])
+    if how == "plain":
+        return [_timed(s) for s in logs]
+    if how == "fork":
+        import multiprocessing as mp
+
+        with mp.get_context("fork").Pool(1) as p:
+            return p.map(_timed, logs, chunksize=1)
+    import dask
+    from distributed import Client, LocalCluster
+
+    fn = _timed_heap if how == "dask-mavcal" else _timed
+    with dask.config.set(cfg), LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                            dashboard_address=None) as lc, Client(lc) as c:
+        c.run(_warm)
+        c.submit(fn, logs[0], pure=False).result()
+        return [c.submit(fn, s, pure=False).result() for s in logs]
+
+
+def why(n: int, out_dir: Path) -> None:
+    """The same logs, one at a time, in each place of :data:`WHY`, each in a fresh process (a
+    LocalCluster's nanny sets its workers' environment in the process that starts it)."""
+    with tempfile.TemporaryDirectory(prefix="mavcal-fleet-why-") as tmp:
+        root = Path(tmp) / "fleet"
+        logs = [str(p) for p in make_fleet(root, n, 0)]
+        (Path(tmp) / "logs.txt").write_text("\n".join(logs))
+        rows = []
+        for name, (how, cfg) in WHY.items():
+            env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", **{k: str(v) for k, v in cfg.items() if how == "plain"}}
+            out = subprocess.run([sys.executable, __file__, "--why-one", name, str(Path(tmp) / "logs.txt")], env=env,
+                                 capture_output=True, text=True, timeout=3000, check=True)
+            res = json.loads(out.stdout.strip().splitlines()[-1])
+            m = [sum(r[i] for r in res) / len(res) for i in range(5)]
+            rows.append({"where": name, "wall_s": m[0], "thread_cpu_s": m[1], "process_cpu_s": m[2],
+                         "minor_faults": m[3], "system_cpu_s": m[4], "load": os.getloadavg()[0]})
+            print(rows[-1], file=sys.stderr, flush=True)
+    lines = ["# A log's cost where it runs (benchmarks/fleet.py --why)", "",
+             f"`python benchmarks/fleet.py --why {n}`, {datetime_utc()}; `uptime` at the end: `{_uptime()}`. "
+             f"The same {n} logs one at a time; means per log. CPU times are what load distorts least.", "",
+             "| where the log's job runs | wall s | CPU s, its thread | CPU s, its process | system CPU s "
+             "| minor page faults | load |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['where']} | {r['wall_s']:.3f} | {r['thread_cpu_s']:.3f} | {r['process_cpu_s']:.3f} | "
+              f"{r['system_cpu_s']:.3f} | {r['minor_faults']:.0f} | {r['load']:.1f} |" for r in rows]
+    (out_dir / "fleet.why.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "fleet.why.json").write_text(json.dumps(rows, indent=1) + "\n")
+
+
+def datetime_utc() -> str:
+    from datetime import datetime, timezone
+
+    return datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
 def _uptime() -> str:
     try:
         return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
@@ -319,6 +424,9 @@ def main() -> int:
     ap.add_argument("--no-kill", action="store_true", help="leave out the killed-and-resumed run")
     ap.add_argument("--one", nargs=4, metavar=("CONFIG", "LIST", "TABLE", "ADDRESS"), help=argparse.SUPPRESS)
     ap.add_argument("--serve-localcluster", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--why", type=int, metavar="N", help="instead: N logs' cost per log in a plain process, a forked "
+                    "child and a Dask worker with its settings switched one at a time (fleet.why.md)")
+    ap.add_argument("--why-one", nargs=2, help=argparse.SUPPRESS)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_output import add_output_arguments, resolve  # --save / --out (benchmarks/README.md)
 
@@ -326,6 +434,12 @@ def main() -> int:
     args = ap.parse_args()
     if args.serve_localcluster:
         return _serve_localcluster()
+    if args.why_one:
+        print(json.dumps(why_one(args.why_one[0], Path(args.why_one[1]).read_text().split("\n"))))
+        return 0
+    if args.why:
+        why(args.why, resolve(args.save, args.out))
+        return 0
     if args.one:
         print(json.dumps(run_one(*args.one)))
         return 0
@@ -353,15 +467,20 @@ def main() -> int:
                 fs.put_file(str(root / r), f"fleet/{r}")
         k = max(1, min(args.rounds, len(rel)))
         chunks = [rel[i::k] for i in range(k)]  # every chunk a mix of the fleet's kinds of log
-        done = run_rounds(list(args.configs), chunks, root, Path(tmp), env)
+        def document(done: dict, kill: dict | None = None) -> dict:
+            return {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()}, "n_logs": len(logs),
+                    "size_mb": size, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                    "command": "python benchmarks/fleet.py " + " ".join(sys.argv[1:]),
+                    "uptime_before": up0, "uptime_after": _uptime(), **done, "killed_and_resumed": kill}
+
+        out_dir = resolve(args.save, args.out)
+        done = run_rounds(list(args.configs), chunks, root, Path(tmp), env,
+                          on_round=lambda d: write_results(document(d), out_dir))
         kill = killed_and_resumed(str(root), str(Path(tmp) / "killed.csv"), str(Path(tmp) / "fork.csv")) \
             if "fork" in args.configs and not args.no_kill else None
-    doc = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()}, "n_logs": len(logs),
-           "size_mb": size, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-           "command": "python benchmarks/fleet.py " + " ".join(sys.argv[1:]),
-           "uptime_before": up0, "uptime_after": _uptime(), **done, "killed_and_resumed": kill}
+        doc = document(done, kill)
     print(json.dumps(doc, indent=1))
-    write_results(doc, resolve(args.save, args.out))
+    write_results(doc, out_dir)
     return 0
 
 
