@@ -14,12 +14,10 @@ from mavcal.fleet.flight import (
     FLIGHT_COLUMNS,
     INTERFERENCE_GROWTH_PCT,
     FlightOptions,
-    add_fleet_arguments,
     interference_html,
     interference_over_time,
-    is_many,
-    run_many,
 )
+from mavcal.fleet.flight_cli import add_fleet_arguments, is_many, run_many
 from mavcal.fleet.run import run_fleet
 from mavcal.fleet.table import read_table
 from mavcal.flight.stage import analyse

@@ -278,85 +278,101 @@ def run_fleet(sources: Sequence[str], options, *, jobs: int = 1, table: str | No
     if int(jobs) < 1:
         raise UsageError(f"jobs must be at least 1, got {jobs}")
     sources = [str(s) for s in sources]
-    layout, flat_of, failed_of, drift_log = _kind(kind)
-    out = FleetRun(drift=drift_log())
-    version = str(__version__)
+    layout, flat_of, _, drift_log = _kind(kind)
     writer = ResultsTable(table, layout=layout) if table else None
-    done: set[str] = set()
-    had: dict[str, tuple[tuple[str, ...], bool, int]] = {}  # key -> the table's logs of it, ok, exit code
+    got = _Collector(FleetRun(drift=drift_log()), writer, flat_of, str(__version__), keep_rows, progress)
+    if writer is not None:
+        writer.open(each=got.known)
+    got.job = job = FleetJob(options, csv_rate_hz, got.version, frozenset(got.done), kind)
+    finished = False
+    try:
+        if scheduler_address:
+            _on_dask(scheduler_address, job, sources, got.take)
+        else:
+            _on_fork_pool(job, int(jobs), sources, got.take)
+        finished = True
+    finally:
+        if writer is not None:
+            writer.close(finished=finished)
+    got.out.rows = [got.kept[i] for i in sorted(got.kept)]
+    got.out.exit_code = fleet_exit_code(got.worst)
+    return got.out
 
-    def known(r: dict) -> None:
-        out.drift.add(r)
+
+class _Collector:
+    """This process's side of a fleet run: each log's result to the table as it comes, reduced to
+    counts, the worst exit code and the drift log (the rows themselves kept only with ``keep_rows``)."""
+
+    def __init__(self, out: FleetRun, writer: ResultsTable | None, flat_of, version: str, keep_rows: bool,
+                 progress: Callable[[FleetResult], None] | None) -> None:
+        self.out, self.writer, self.flat_of, self.version = out, writer, flat_of, version
+        self.keep_rows, self.progress = keep_rows, progress
+        self.done: set[str] = set()
+        self.had: dict[str, tuple[tuple[str, ...], bool, int]] = {}  # key -> the table's logs of it, ok, exit code
+        self.kept: dict[int, Any] = {}
+        self.worst: list[BatchRow] = []
+        self.job: FleetJob | None = None
+
+    def known(self, r: dict) -> None:
+        """A row the table had when the run started."""
+        self.out.drift.add(r)
         if r.get("content_sha256"):
             key = row_key(r["content_sha256"], r["mavcal_version"])
-            done.add(key)
-            names = had[key][0] if key in had else ()
-            had[key] = ((*names, str(r["source"])), bool(r["ok"]), int(r["exit_code"] or 0))
+            self.done.add(key)
+            names = self.had[key][0] if key in self.had else ()
+            self.had[key] = ((*names, str(r["source"])), bool(r["ok"]), int(r["exit_code"] or 0))
 
-    if writer is not None:
-        writer.open(each=known)
-    job = FleetJob(options, csv_rate_hz, version, frozenset(done), kind)
-    kept: dict[int, BatchRow] = {}
-    worst: list[BatchRow] = []
+    def worse(self, source: str, ok: bool, exit_code: int) -> None:
+        r = BatchRow(source=source, ok=ok, exit_code=exit_code)
+        if not self.worst or fleet_exit_code([self.worst[0], r]) == r.exit_code != self.worst[0].exit_code:
+            self.worst[:] = [r]
 
-    def worse(r: BatchRow) -> None:
-        if not worst or fleet_exit_code([worst[0], r]) == r.exit_code != worst[0].exit_code:
-            worst[:] = [r]
-
-    def take(i: int, res: FleetResult) -> None:
-        key = row_key(res.sha256 or unread_key(res.source), job.version)
-        if res.row is None and key in had and res.source not in had[key][0]:  # the content, under another name
-            flat = _copy_row(_table_row(writer, key), res.source) if writer is not None else None
-            if flat is not None and writer is not None:
-                writer.append(flat)
-                out.drift.add(flat)
+    def take(self, i: int, res: FleetResult) -> None:
+        out, writer, had = self.out, self.writer, self.had
+        key = row_key(res.sha256 or unread_key(res.source), self.version)
+        original = _table_row(writer, key) if (writer is not None and res.row is None and key in had
+                                                and res.source not in had[key][0]) else None
+        if original is not None and writer is not None:  # the content, under another name: its row, renamed
+            flat = _copy_row(original, res.source)
+            writer.append(flat)
+            out.drift.add(flat)
             had[key] = ((*had[key][0], res.source), had[key][1], had[key][2])
             out.n_copied += 1
-            if keep_rows:
+            if self.keep_rows:
                 out.copied.append(res.source)
-            worse(BatchRow(source=res.source, ok=had[key][1], exit_code=had[key][2]))
+            self.worse(res.source, had[key][1], had[key][2])
         elif res.row is None:
             out.n_skipped += 1
-            if keep_rows:
+            if self.keep_rows:
                 out.skipped.append(res.source)
             if key in had:
-                worse(BatchRow(source=res.source, ok=had[key][1], exit_code=had[key][2]))
+                self.worse(res.source, had[key][1], had[key][2])
         else:
             log.info("%s: %s", res.source, "ok" if res.row.ok else res.row.error)
-            flat = flat_of(res.row, res.sha256 or unread_key(res.source), res.size_bytes or 0, job.version)
+            flat = self.flat_of(res.row, res.sha256 or unread_key(res.source), res.size_bytes or 0, self.version)
             if writer is not None:
                 writer.append(flat)
             out.drift.add(flat)
             out.n_calibrated += 1
             out.n_failed += 0 if res.row.ok else 1
-            worse(BatchRow(source=res.source, ok=res.row.ok, exit_code=res.row.exit_code))
-            if keep_rows:
-                kept[i] = res.row
-        if progress is not None:
-            progress(res)
+            self.worse(res.source, res.row.ok, res.row.exit_code)
+            if self.keep_rows:
+                self.kept[i] = res.row
+        if self.progress is not None:
+            self.progress(res)
 
-    finished = False
-    try:
-        if scheduler_address:
-            _on_dask(scheduler_address, job, sources, take)
-        else:
-            def then(item: tuple[int, str], outcome: Outcome) -> list:
-                i, source = item
-                ok, res = outcome
-                if not ok:  # its worker process died (out of memory?): this log alone fails
-                    res = FleetResult(source, None, None, failed_of(source, res, options))
-                take(i, res)
-                return []
 
-            with ForkPool(job, min(int(jobs), max(1, len(sources))), max_tasks=MAX_TASKS_PER_CHILD) as pool:
-                pool.run(_indexed, list(enumerate(sources)), then)
-        finished = True
-    finally:
-        if writer is not None:
-            writer.close(finished=finished)
-    out.rows = [kept[i] for i in sorted(kept)]
-    out.exit_code = fleet_exit_code(worst)
-    return out
+def _on_fork_pool(job: FleetJob, jobs: int, sources: Sequence[str], take: Callable[[int, FleetResult], None]) -> None:
+    def then(item: tuple[int, str], outcome: Outcome) -> list:
+        i, source = item
+        ok, res = outcome
+        if not ok:  # its worker process died (out of memory?): this log alone fails
+            res = FleetResult(source, None, None, _kind(job.kind)[2](source, res, job.options))
+        take(i, res)
+        return []
+
+    with ForkPool(job, min(jobs, max(1, len(sources))), max_tasks=MAX_TASKS_PER_CHILD) as pool:
+        pool.run(_indexed, list(enumerate(sources)), then)
 
 
 def _table_row(writer: ResultsTable, key: str) -> dict | None:
