@@ -137,7 +137,7 @@ def _localcluster(env: dict):
     def cm():
         proc = subprocess.Popen([sys.executable, __file__, "--serve-localcluster"], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env,
-                                start_new_session=True)
+                                preexec_fn=os.setpgrp)  # same session: same CPU share (autogroup)
         try:
             assert proc.stdout is not None
             yield proc.stdout.readline().strip(), [proc.pid]
