@@ -87,6 +87,19 @@ def _row(source, t, ofs, sysid=1, accepted=True):
     return r
 
 
+def test_a_large_fleet_s_rows_are_not_kept_the_table_has_them(fleet_dir, tmp_path, monkeypatch, capsys):
+    """Beyond PRINTED_MAX logs with --table, the parent keeps no row: one line names the table; the
+    drift summary and the exit code come from what it kept as the rows went by."""
+    from mavcal.commands import calibrate as cmd
+
+    monkeypatch.setattr(cmd, "PRINTED_MAX", 1)
+    table = tmp_path / "t.csv"
+    assert main(["calibrate", str(fleet_dir), "-q", "--table", str(table)]) == 0
+    out = capsys.readouterr().out
+    assert f"2 logs calibrated in this run (0 failed): their rows are in {table}" in out
+    assert "VEHICLE" not in out and "2 logs, MOVED" in out and len(read_table(table)) == 2
+
+
 def test_drift_over_time_orders_by_time_and_flags_a_moved_vehicle():
     rows = [_row("v1-c", "2024-03-01T00:00:00Z", (40.0, 0.0, 0.0)),
             _row("v1-a", "2024-01-01T00:00:00Z", (0.0, 0.0, 0.0)),

@@ -25,8 +25,28 @@ def fleet(tmp_path_factory, sitl_dir, real_dir):
     return root, logs, read_table(table)
 
 
-@pytest.mark.timeout(240)
-def test_separate_scheduler_and_two_workers_give_the_fork_pool_rows(fleet, tmp_path, monkeypatch, capsys):
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory):
+    """Two synthetic DataFlash flights (tests/test_flight_real.py's writer) and a broken one."""
+    from test_flight_real import write_flight_bin
+
+    from mavcal.testing.flight_synth import SynthCompass, synth_flight
+
+    root = tmp_path_factory.mktemp("flights")
+    for k, mot in enumerate(((1.0, -1.0, 0.5), (4.0, -3.0, 2.0))):
+        write_flight_bin(root / f"f{k}.bin", synth_flight([SynthCompass(interference=mot)] * 2, seed=k,
+                                                          duration_s=90.0))
+    (root / "broken.bin").write_bytes(b"\xa3\x95" + bytes(range(200)))
+    return root, sorted(str(p) for p in root.iterdir())
+
+
+@pytest.mark.timeout(300)
+def test_separate_scheduler_and_two_workers_give_the_fork_pool_rows(fleet, flights, tmp_path, monkeypatch, capsys):
+    from distributed import Client
+
+    from mavcal.fleet.flight import FLIGHT, FLIGHT_COLUMNS, FlightOptions
+    from mavcal.testing.fleet import heap_probe
+
     root, logs, fork = fleet
     monkeypatch.setattr(fleet_run, "MIN_WINDOW", 1)  # two jobs on the cluster at a time: the rest wait here
     monkeypatch.setattr(fleet_run, "WINDOW_PER_WORKER", 1)
@@ -35,6 +55,18 @@ def test_separate_scheduler_and_two_workers_give_the_fork_pool_rows(fleet, tmp_p
         done = run_fleet(logs, FAST, table=str(table), scheduler_address=address)
         assert [r.source for r in done.rows] == logs
         assert_same_rows(comparable(read_table(table), str(root)), comparable(fork, str(root)))
+        # Dask's nanny sets MALLOC_TRIM_THRESHOLD_ in its workers; each job undoes its cost (roomy_heap)
+        with Client(address) as c:
+            assert set(c.run(heap_probe).values()) == {("65536", True)}
+        # `mavcal flight` over many logs: the same rows on the cluster as in the fork pool here
+        froot, flogs = flights
+        ft = {}
+        for how, kw in (("fork", {"jobs": 2}), ("dask", {"scheduler_address": address})):
+            ft[how] = tmp_path / f"flight-{how}.csv"
+            run_fleet(flogs, FlightOptions(), table=str(ft[how]), kind="flight", **kw)
+        fd, ff = (comparable(read_table(ft[h], FLIGHT), str(froot), FLIGHT_COLUMNS) for h in ("dask", "fork"))
+        assert len(fd) == 3 and sum(1 for r in fd if r[FLIGHT_COLUMNS.index("ok") - 1]) == 2
+        assert_same_rows(fd, ff)
         # the CLI, with the scheduler from DASK_SCHEDULER_ADDRESS (the environment Dask's own clients use)
         monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", address)
         code = main(["calibrate", str(root / "a"), "-q", "--table", str(tmp_path / "cli.csv")])

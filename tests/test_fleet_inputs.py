@@ -1,5 +1,5 @@
-"""A fleet's inputs: a directory, a glob, @LIST and s3:// (moto's server on 127.0.0.1) give the
-same rows as the same local files (issue 40, item 1)."""
+"""A fleet's inputs: a directory, a glob, @LIST, s3:// (moto's server on 127.0.0.1) and an http
+directory listing give the same rows as the same local files (issue 40, item 1)."""
 from __future__ import annotations
 
 import sys
@@ -107,8 +107,10 @@ def test_a_file_whose_name_looks_like_a_glob_is_that_file(tmp_path):
     assert expand_sources([str(tmp_path)]) == [str(p)]
 
 
-def test_https_style_urls_are_read_by_the_worker(fleet, tmp_path):
-    """An http(s) URL per log (here a local http.server on 127.0.0.1): the rows of the local files."""
+def test_an_http_directory_listing_gives_the_local_rows(fleet, tmp_path):
+    """An http(s) server's directory listing (here Python's http.server on 127.0.0.1, read with
+    fsspec's HTTPFileSystem): every log under it, recursively, each read by its worker, and the
+    rows of the local files; a list file of URLs too."""
     import functools
     import http.server
     import threading
@@ -121,15 +123,16 @@ def test_https_style_urls_are_read_by_the_worker(fleet, tmp_path):
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
         base = f"http://127.0.0.1:{server.server_address[1]}"
-        picked = [p for p in logs if p.name in ("sitl01.tlog", "corrupt.tlog")]
-        lst = tmp_path / "urls.txt"
-        lst.write_text("".join(f"{base}/{p.relative_to(root)}\n" for p in picked))
-        sources = expand_sources([f"@{lst}"])
-        assert sources == [f"{base}/{p.relative_to(root)}" for p in picked]
+        sources = expand_sources([f"{base}/"])
+        assert sources == [f"{base}/{p.relative_to(root)}" for p in logs]  # notes.txt left out
         table = tmp_path / "http.csv"
-        run_fleet(sources, FAST, jobs=1, table=str(table))
-        want = [r for r in comparable(local, str(root)) if r[0] in {str(p.relative_to(root)) for p in picked}]
-        assert_same_rows(comparable(read_table(table), base), want)
+        done = run_fleet(sources, FAST, jobs=2, table=str(table))
+        assert [r.source for r in done.rows] == sources
+        assert_same_rows(comparable(read_table(table), base), comparable(local, str(root)))
+        lst = tmp_path / "urls.txt"
+        lst.write_text(f"{base}/a/\n{base}/b/corrupt.tlog\n")
+        assert expand_sources([f"@{lst}"]) == [s for s in sources if s.startswith(f"{base}/a/")] + [
+            f"{base}/b/corrupt.tlog"]
     finally:
         server.shutdown()
         server.server_close()

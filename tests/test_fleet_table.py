@@ -174,3 +174,27 @@ def test_pandas_polars_and_duckdb_read_the_tables_as_is(whole, tmp_path):
         for f in ("r.csv", "r.parquet"):
             [(n,)] = duckdb.sql(f"SELECT count(*) FROM '{tmp_path / f}' WHERE ok").fetchall()
             assert n == sum(1 for r in whole if r["ok"])
+
+
+def test_parquet_is_rewritten_and_read_a_batch_at_a_time(whole, tmp_path, monkeypatch):
+    """The snapshot and the reading go a batch of rows at a time (here 2): the same rows, in order;
+    a table of another layout (a flight table) is refused, not appended to."""
+    pytest.importorskip("pyarrow")
+    from mavcal.fleet import table as fleet_table
+    from mavcal.fleet.flight import FLIGHT
+
+    monkeypatch.setattr(fleet_table, "_BATCH_ROWS", 2)
+    t = ResultsTable(tmp_path / "r.parquet")
+    t.open()
+    for r in whole:
+        t.append(r)
+    t.close()
+    got = read_table(tmp_path / "r.parquet")
+    assert [r["source"] for r in got] == [r["source"] for r in whole] and len(whole) > 2
+    assert got[0]["compass_ofs_new_x_mgauss"] == whole[0]["compass_ofs_new_x_mgauss"]
+    seen: list[str] = []
+    again = ResultsTable(tmp_path / "r.parquet")
+    assert again.open(each=lambda r: seen.append(r["source"])) == [] and seen == [r["source"] for r in whole]
+    again.close()
+    with pytest.raises(UsageError, match="not a table of this mavcal"):
+        ResultsTable(tmp_path / "r.parquet", layout=FLIGHT).open()

@@ -359,10 +359,14 @@ def run(args) -> int:
     return _fleet(args)
 
 
+#: A fleet run with --table prints its table at the end up to this many logs (and keeps their rows for it)
+PRINTED_MAX = 1000
+
+
 def _fleet(args) -> int:
     from dataclasses import asdict
 
-    from mavcal.batch import BatchRow, fleet_exit_code, format_fleet_table
+    from mavcal.batch import format_fleet_table
     from mavcal.fleet.drift import drift_text
     from mavcal.fleet.progress import progress_line
     from mavcal.fleet.run import run_fleet
@@ -379,33 +383,39 @@ def _fleet(args) -> int:
 
     check_outputs([("--table", args.table), ("--json", args.json), ("--drift-html", args.drift_html)], args.sources)
     shown = progress_line(sys.stderr, len(args.sources), quiet=getattr(args, "quiet", False))
+    # the rows stay in this process only for what needs them all: --json, a run without a table
+    # (the table printed at the end is its only output), or a fleet small enough to print
+    keep = bool(args.json) or not args.table or len(args.sources) <= PRINTED_MAX
     try:
         done = run_fleet(list(args.sources), _options(args), jobs=args.jobs or 1, table=args.table,
-                         scheduler_address=args.scheduler_address, csv_rate_hz=csv_rate(args), progress=shown)
+                         scheduler_address=args.scheduler_address, csv_rate_hz=csv_rate(args), progress=shown,
+                         keep_rows=keep)
     finally:
         if shown is not None:
             shown.close()
     out = sys.stderr if args.json == "-" else sys.stdout  # --json -: the JSON alone on stdout
-    print(format_fleet_table(done.rows) if done.rows else "no log calibrated in this run", file=out)
-    if done.skipped:
-        print(f"{len(done.skipped)} log(s) already in {args.table} (same content, same mavcal version): "
+    if keep:
+        print(format_fleet_table(done.rows) if done.rows else "no log calibrated in this run", file=out)
+    else:
+        print(f"{done.n_calibrated} logs calibrated in this run ({done.n_failed} failed): their rows are in "
+              f"{args.table} (the table is printed here for up to {PRINTED_MAX} logs); exit code {done.exit_code} "
+              "(the worst log's)", file=out)
+    if done.n_skipped:
+        print(f"{done.n_skipped} log(s) already in {args.table} (same content, same mavcal version): "
               "skipped, their rows are there", file=out)
-    if done.copied:
-        print(f"{len(done.copied)} log(s) with the content of a log already in {args.table} under another name: "
+    if done.n_copied:
+        print(f"{done.n_copied} log(s) with the content of a log already in {args.table} under another name: "
               "not calibrated again, its row written under their name", file=out)
     if args.table or args.drift_html:
-        text = drift_text(done.table_rows)
+        text = drift_text(done.drift)
         if text:
             print(text, file=out)
     if args.drift_html:
         from mavcal.fleet.drift import drift_html
         from mavcal.outputs import write_atomic
 
-        write_atomic(args.drift_html, drift_html(done.table_rows))
+        write_atomic(args.drift_html, drift_html(done.drift))
         print(f"drift over time written to {args.drift_html}", file=out)
     if args.json:
         json_output(args.json, [asdict(r) for r in done.rows])
-    by_source = {r["source"]: r for r in done.table_rows}
-    earlier = [BatchRow(source=s, ok=bool(by_source[s]["ok"]), exit_code=int(by_source[s]["exit_code"]))
-               for s in done.skipped + done.copied if s in by_source]
-    return fleet_exit_code(list(done.rows) + earlier)
+    return done.exit_code

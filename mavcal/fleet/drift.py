@@ -10,12 +10,12 @@ accelerometer offsets (m/s^2) or a scale, from one accepted log's new values to 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from mavcal.batch import DRIFT_ACCEL_OFS_MPS2, DRIFT_ACCEL_SCALE, DRIFT_COMPASS_MGAUSS
 
-__all__ = ["VehicleDrift", "drift_over_time", "drift_text", "drift_html"]
+__all__ = ["VehicleDrift", "DriftLog", "drift_over_time", "drift_text", "drift_html", "line_plot"]
 
 
 @dataclass(frozen=True)
@@ -56,26 +56,49 @@ def _maxabs(a, b) -> float | None:
     return None if a is None or b is None else max(abs(x - y) for x, y in zip(a, b))
 
 
-def drift_over_time(rows: Sequence[dict]) -> list[VehicleDrift]:
-    """Per vehicle (module docstring) with two accepted logs or more: the moves between them."""
-    groups: dict[tuple, list[dict]] = {}
-    for r in rows:
+class DriftLog:
+    """A fleet's rows reduced, one at a time, to what drift over time needs: per vehicle, each
+    accepted log's name, start time and new offsets and scales (a tuple of about 200 bytes; a
+    rejected or failed log is counted, not kept). The parent of a fleet run adds each row as it
+    is written, so it never holds the rows themselves."""
+
+    def __init__(self, rows: Iterable[dict] = ()) -> None:
+        self.n_rows = 0
+        self.vehicles: dict[tuple, list[tuple]] = {}
+        for r in rows:
+            self.add(r)
+
+    def add(self, r: dict) -> None:
+        self.n_rows += 1
         if r.get("ok") and r.get("accepted"):
-            groups.setdefault(_key(r), []).append(r)
+            self.vehicles.setdefault(_key(r), []).append(
+                (r.get("log_start_utc") or "", str(r["source"]), _vec(r, "compass_ofs", "_mgauss"),
+                 _vec(r, "accel_ofs", "_mps2"), _vec(r, "accel_scale", "")))
+
+
+def _log(rows: Iterable[dict] | DriftLog) -> DriftLog:
+    return rows if isinstance(rows, DriftLog) else DriftLog(rows)
+
+
+def _ordered(log: DriftLog) -> list[tuple[tuple, list[tuple]]]:
+    return [(k, sorted(recs, key=lambda t: (t[0], t[1])))
+            for k, recs in sorted(log.vehicles.items(), key=lambda kv: _name(kv[0]))]
+
+
+def drift_over_time(rows: Iterable[dict] | DriftLog) -> list[VehicleDrift]:
+    """Per vehicle (module docstring) with two accepted logs or more: the moves between them.
+    ``rows``: a table's rows, or a :class:`DriftLog` of them."""
     out = []
-    for k, rs in sorted(groups.items(), key=lambda kv: _name(kv[0])):
-        rs = sorted(rs, key=lambda r: (r.get("log_start_utc") or "", r["source"]))
+    for k, rs in _ordered(_log(rows)):
         steps = []
         flagged = False
         for a, b in zip(rs, rs[1:]):
-            c = _dist(_vec(a, "compass_ofs", "_mgauss"), _vec(b, "compass_ofs", "_mgauss"))
-            o = _dist(_vec(a, "accel_ofs", "_mps2"), _vec(b, "accel_ofs", "_mps2"))
-            s = _maxabs(_vec(a, "accel_scale", ""), _vec(b, "accel_scale", ""))
-            steps.append((a["source"], b["source"], c, o, s))
+            c, o, s = _dist(a[2], b[2]), _dist(a[3], b[3]), _maxabs(a[4], b[4])
+            steps.append((a[1], b[1], c, o, s))
             flagged |= any(v is not None and v > t for v, t in ((c, DRIFT_COMPASS_MGAUSS), (o, DRIFT_ACCEL_OFS_MPS2),
                                                                 (s, DRIFT_ACCEL_SCALE)))
         if steps:
-            out.append(VehicleDrift(_name(k), tuple(r["source"] for r in rs), tuple(steps), flagged))
+            out.append(VehicleDrift(_name(k), tuple(r[1] for r in rs), tuple(steps), flagged))
     return out
 
 
@@ -83,7 +106,7 @@ def _f(v: float | None, fmt: str) -> str:
     return "-" if v is None else format(v, fmt)
 
 
-def drift_text(rows: Sequence[dict]) -> str:
+def drift_text(rows: Iterable[dict] | DriftLog) -> str:
     """The drift-over-time summary: per vehicle with two accepted logs or more, whether its
     calibration moved between flights beyond the thresholds, and the largest move; "" if none."""
     vs = drift_over_time(rows)
@@ -106,15 +129,17 @@ def drift_text(rows: Sequence[dict]) -> str:
 _COLOURS = ("#d62728", "#2ca02c", "#1f77b4")  # x, y, z
 
 
-def _svg(title: str, unit: str, series: list[tuple[float, float, float] | None], labels: Sequence[str]) -> str:
-    """An inline SVG line plot of x, y, z over the logs in time order (no external asset)."""
+def line_plot(title: str, unit: str, series: Sequence[Sequence[float | None] | None], labels: Sequence[str],
+              names: Sequence[str] = ("x", "y", "z")) -> str:
+    """An inline SVG line plot (no external asset) of up to three quantities (``names``) over the
+    logs in time order: ``series[i]`` the values at log ``i`` (None: not known there)."""
     from html import escape
 
     w, h, left, right, top, bottom = 640, 220, 60, 20, 24, 40
     pts = [(i, v) for i, v in enumerate(series) if v is not None]
-    if not pts:
+    vals = [x for _, v in pts for x in v if x is not None]
+    if not vals:
         return ""
-    vals = [x for _, v in pts for x in v]
     lo, hi = min(vals), max(vals)
     if hi - lo < 1e-12:
         lo, hi = lo - 1.0, hi + 1.0
@@ -132,11 +157,15 @@ def _svg(title: str, unit: str, series: list[tuple[float, float, float] | None],
            f'<line x1="{left}" y1="{top}" x2="{left}" y2="{h - bottom}" stroke="#888"/>',
            f'<text x="4" y="{py(hi) + 4:.1f}" font-size="11">{hi:.3g}</text>',
            f'<text x="4" y="{py(lo) + 4:.1f}" font-size="11">{lo:.3g}</text>']
-    for k, colour in enumerate(_COLOURS):
-        line = " ".join(f"{px(i):.1f},{py(v[k]):.1f}" for i, v in pts)
+    for k, (colour, name) in enumerate(zip(_COLOURS, names)):
+        mine = [(i, v[k]) for i, v in pts if k < len(v) and v[k] is not None]
+        if not mine:
+            continue
+        line = " ".join(f"{px(i):.1f},{py(y):.1f}" for i, y in mine)
         out.append(f'<polyline fill="none" stroke="{colour}" stroke-width="2" points="{line}"/>')
-        out += [f'<circle cx="{px(i):.1f}" cy="{py(v[k]):.1f}" r="3" fill="{colour}"/>' for i, v in pts]
-        out.append(f'<text x="{w - right - 60 + 20 * k}" y="16" font-size="12" fill="{colour}">{"xyz"[k]}</text>')
+        out += [f'<circle cx="{px(i):.1f}" cy="{py(y):.1f}" r="3" fill="{colour}"/>' for i, y in mine]
+        out.append(f'<text x="{w - right - 60 * (len(names) - k)}" y="16" font-size="12" fill="{colour}">'
+                   f'{escape(name)}</text>')
     for i, lab in enumerate(labels):
         out.append(f'<text x="{px(i):.1f}" y="{h - bottom + 14}" font-size="10" text-anchor="middle">'
                    f'<title>{escape(lab)}</title>{i + 1}</text>')  # the log's name on hovering its number
@@ -144,30 +173,31 @@ def _svg(title: str, unit: str, series: list[tuple[float, float, float] | None],
     return "\n".join(out)
 
 
-def drift_html(rows: Sequence[dict]) -> str:
+def drift_html(rows: Iterable[dict] | DriftLog) -> str:
     """A self-contained HTML page (no script, style or image from elsewhere): the drift summary,
     and per vehicle that moved, its compass and accelerometer offsets over its logs in time
     order (one inline SVG plot each) with the logs listed."""
     from html import escape
 
-    vs = drift_over_time(rows)
-    by_source = {r["source"]: r for r in rows}
+    log = _log(rows)
+    vs = drift_over_time(log)
+    recs = {k: {r[1]: r for r in rs} for k, rs in log.vehicles.items()}
     flagged = [v for v in vs if v.flagged]
     body = ["<h1>mavcal: drift over time</h1>",
-            f"<p>{len(rows)} logs, {len(vs)} vehicle(s) with two accepted logs or more, {len(flagged)} moved beyond "
+            f"<p>{log.n_rows} logs, {len(vs)} vehicle(s) with two accepted logs or more, {len(flagged)} moved beyond "
             f"the thresholds (compass offsets {DRIFT_COMPASS_MGAUSS:g} mGauss, accel offsets "
             f"{DRIFT_ACCEL_OFS_MPS2:g} m/s², a scale {DRIFT_ACCEL_SCALE:g}, from one flight to the next).</p>"]
     if not vs:
         body.append("<p>No vehicle has two accepted logs yet: nothing to compare.</p>")
     body.append("<ul>" + "".join(f"<li>{escape(v.vehicle)}: {len(v.logs)} logs, "
                                   f"<b>{'MOVED' if v.flagged else 'steady'}</b></li>" for v in vs) + "</ul>")
+    by_name = {_name(k): by for k, by in recs.items()}
     for v in flagged:
-        logs = [by_source[s] for s in v.logs]
+        logs = [by_name[v.vehicle][s] for s in v.logs]
         body.append(f"<h2>{escape(v.vehicle)}</h2>")
-        body.append(_svg("compass offsets", "mGauss", [_vec(r, "compass_ofs", "_mgauss") for r in logs], v.logs))
-        body.append(_svg("accelerometer offsets", "m/s²", [_vec(r, "accel_ofs", "_mps2") for r in logs], v.logs))
-        items = "".join(f"<li>{escape(str(r.get('log_start_utc') or 'time not in the log'))}: "
-                        f"{escape(r['source'])}</li>" for r in logs)
+        body.append(line_plot("compass offsets", "mGauss", [r[2] for r in logs], v.logs))
+        body.append(line_plot("accelerometer offsets", "m/s²", [r[3] for r in logs], v.logs))
+        items = "".join(f"<li>{escape(r[0] or 'time not in the log')}: {escape(r[1])}</li>" for r in logs)
         steps = "".join(f"<tr><td>{escape(a.rsplit('/', 1)[-1])} → {escape(b.rsplit('/', 1)[-1])}</td>"
                         f"<td>{_f(c, '.1f')}</td><td>{_f(o, '.3f')}</td><td>{_f(s, '.4f')}</td></tr>"
                         for a, b, c, o, s in v.steps)

@@ -22,16 +22,20 @@ import csv
 import io
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
 from mavcal.errors import SourceError, UsageError
 
-__all__ = ["COLUMNS", "COLUMN_TYPES", "ResultsTable", "flat_row", "row_key", "read_table", "done_keys", "unread_key",
+__all__ = ["COLUMNS", "COLUMN_TYPES", "CALIBRATE", "Layout", "ResultsTable", "flat_row", "row_key", "read_table",
+           "done_keys", "unread_key",
            "utc"]
 
 _XYZ = ("x", "y", "z")
+#: Rows per batch when a Parquet table is read or rewritten (memory: one batch, not the table)
+_BATCH_ROWS = 5000
 
 
 def _vec_cols(name: str, unit: str) -> list[tuple[str, type]]:
@@ -58,6 +62,25 @@ COLUMN_TYPES: dict[str, type] = dict([
     ("warnings", str), ("elapsed_s", float),
 ])
 COLUMNS: tuple[str, ...] = tuple(COLUMN_TYPES)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A kind of table: its columns and their types, in order (``mavcal calibrate``'s, or
+    ``mavcal flight``'s: :data:`mavcal.fleet.flight.FLIGHT`), and the text columns whose empty
+    cell reads back as "" (the others' as None). Every layout starts with the key columns
+    ``source``, ``content_sha256``, ``mavcal_version``, ``ok``, ``exit_code``."""
+
+    types: dict[str, type]
+    blank_text: frozenset[str] = frozenset()
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        return tuple(self.types)
+
+
+#: ``mavcal calibrate``'s table
+CALIBRATE = Layout(COLUMN_TYPES, frozenset(("rejections", "sensors", "warnings", "drift_flag", "not_determined_why")))
 
 
 def row_key(sha256: str, version: str) -> str:
@@ -125,19 +148,18 @@ def _cell(v) -> str:
     return _one_line(v) if isinstance(v, str) else str(v)
 
 
-def _parse(col: str, s: str):
+def _parse(col: str, s: str, layout: Layout = CALIBRATE):
+    t = layout.types[col]
     if s == "":
-        return "" if COLUMN_TYPES[col] is str and col in ("rejections", "sensors", "warnings", "drift_flag",
-                                                          "not_determined_why") else None
-    t = COLUMN_TYPES[col]
+        return "" if t is str and col in layout.blank_text else None
     if t is bool:
         return s == "true"
     return t(s)
 
 
-def _csv_line(row: dict) -> bytes:
+def _csv_line(row: dict, layout: Layout = CALIBRATE) -> bytes:
     buf = io.StringIO()
-    csv.writer(buf, lineterminator="\n").writerow([_cell(row.get(c)) for c in COLUMNS])
+    csv.writer(buf, lineterminator="\n").writerow([_cell(row.get(c)) for c in layout.types])
     return buf.getvalue().encode("utf-8")
 
 
@@ -154,35 +176,63 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def _read_csv(path: Path, *, repair: bool) -> list[dict]:
+def _repair(path: Path) -> None:
+    """Cut a torn last line (a kill mid-row) off a CSV table."""
+    with open(path, "r+b") as f:
+        size = f.seek(0, os.SEEK_END)
+        if size == 0:
+            return
+        f.seek(size - 1)
+        if f.read(1) == b"\n":
+            return
+        back = min(size, 1 << 20)
+        while True:  # the last newline, reading backwards a MiB at a time
+            f.seek(size - back)
+            tail = f.read(back)
+            at = tail.rfind(b"\n")
+            if at >= 0 or back == size:
+                cut = size - back + at + 1 if at >= 0 else 0
+                break
+            back = min(size, 2 * back)
+        f.truncate(cut)
+        os.fsync(f.fileno())
+
+
+def _iter_csv(path: Path, layout: Layout = CALIBRATE) -> Iterator[dict]:
+    """The rows of a CSV table one at a time (a torn last line, without its newline, left out)."""
+    with open(path, encoding="utf-8", errors="replace", newline="") as f:
+        reader = csv.reader(_whole_lines(f))
+        header = next(reader, None)
+        if header is None:
+            return
+        cols = layout.columns
+        if tuple(header) != cols:
+            missing = [c for c in cols if c not in header]
+            raise UsageError(f"{path}: not a table of this mavcal (columns differ: "
+                             f"{', '.join(missing[:3]) or 'order'}); give a new --table file")
+        for cells in reader:
+            if len(cells) == len(cols):
+                yield {c: _parse(c, v, layout) for c, v in zip(cols, cells)}
+
+
+def _whole_lines(f) -> Iterator[str]:
+    for line in f:
+        if line.endswith("\n"):
+            yield line
+
+
+def _read_csv(path: Path, *, repair: bool, layout: Layout = CALIBRATE) -> list[dict]:
     """The rows of a CSV table; with ``repair`` a torn last line (a kill mid-row) is cut off."""
-    with open(path, "rb") as f:
-        data = f.read()
-    if data and not data.endswith(b"\n"):
-        cut = data.rfind(b"\n") + 1
-        data = data[:cut]
-        if repair:
-            with open(path, "r+b") as f:
-                f.truncate(cut)
-                os.fsync(f.fileno())
-    if not data:
-        return []
-    reader = csv.reader(io.StringIO(data.decode("utf-8", errors="replace")))
-    header = next(reader, None)
-    if header is None:
-        return []
-    if tuple(header) != COLUMNS:
-        missing = [c for c in COLUMNS if c not in header]
-        raise UsageError(f"{path}: not a table of this mavcal (columns differ: {', '.join(missing[:3]) or 'order'}); "
-                         "give a new --table file")
-    return [{c: _parse(c, s) for c, s in zip(COLUMNS, cells)} for cells in reader if len(cells) == len(COLUMNS)]
+    if repair:
+        _repair(path)
+    return list(_iter_csv(path, layout))
 
 
-def _arrow_schema():
+def _arrow_schema(layout: Layout = CALIBRATE):
     import pyarrow as pa
 
     types = {str: pa.string(), int: pa.int64(), float: pa.float64(), bool: pa.bool_()}
-    return pa.schema([(c, types[t]) for c, t in COLUMN_TYPES.items()])
+    return pa.schema([(c, types[t]) for c, t in layout.types.items()])
 
 
 def _need_pyarrow():
@@ -195,19 +245,27 @@ def _need_pyarrow():
     return pq
 
 
-def read_table(path: str | os.PathLike) -> list[dict]:
+def _iter_parquet(path: Path, layout: Layout = CALIBRATE) -> Iterator[dict]:
+    pq = _need_pyarrow()
+    f = pq.ParquetFile(path)
+    if tuple(f.schema_arrow.names) != layout.columns:
+        raise UsageError(f"{path}: not a table of this mavcal (other columns); give a new --table file")
+    for batch in f.iter_batches(batch_size=_BATCH_ROWS):
+        yield from batch.to_pylist()
+
+
+def read_table(path: str | os.PathLike, layout: Layout = CALIBRATE) -> list[dict]:
     """The rows of a results table (CSV or Parquet, with a Parquet table's journal when a run was
-    interrupted), as dicts of :data:`COLUMNS`."""
+    interrupted), as dicts of the layout's columns (:data:`COLUMNS` for ``mavcal calibrate``'s)."""
     p = Path(path)
     if p.suffix.lower() == ".parquet":
         journal = p.with_name(p.name + ".journal.csv")
         if journal.exists():
-            return _read_csv(journal, repair=False)
+            return _read_csv(journal, repair=False, layout=layout)
         if not p.exists():
             return []
-        pq = _need_pyarrow()
-        return pq.read_table(p).to_pylist()
-    return _read_csv(p, repair=False) if p.exists() else []
+        return list(_iter_parquet(p, layout))
+    return _read_csv(p, repair=False, layout=layout) if p.exists() else []
 
 
 class ResultsTable:
@@ -217,8 +275,9 @@ class ResultsTable:
     ``snapshot_s``: a Parquet table is rewritten from its journal at most this often (and at
     least ten times the last rewrite's duration apart), and at :meth:`close`."""
 
-    def __init__(self, path: str | os.PathLike, *, snapshot_s: float = 30.0) -> None:
+    def __init__(self, path: str | os.PathLike, *, snapshot_s: float = 30.0, layout: Layout = CALIBRATE) -> None:
         self.path = Path(path)
+        self.layout = layout
         kind = self.path.suffix.lower()
         if kind not in (".csv", ".parquet"):
             raise UsageError(f"--table {path}: give a .csv or a .parquet file")
@@ -232,26 +291,31 @@ class ResultsTable:
         self._snapshot_cost = 0.0
         self._dirty = False
 
-    def open(self) -> list[dict]:
-        """Open for appending; returns the rows already there (a torn last row cut off)."""
+    def open(self, each: Callable[[dict], None] | None = None) -> list[dict]:
+        """Open for appending. Returns the rows already there (a torn last row cut off), or with
+        ``each`` passes them to it one at a time and returns [] (no row held here)."""
+        rows: list[dict] = []
+        take = each if each is not None else rows.append
         try:
             if self.parquet and not self.journal.exists():
-                rows = read_table(self.path) if self.path.exists() else []
                 tmp = self.journal.with_name(self.journal.name + ".tmp")
                 with open(tmp, "wb") as f:
-                    f.write(_csv_line({c: c for c in COLUMNS}))
-                    for r in rows:
-                        f.write(_csv_line(r))
+                    f.write(_csv_line({c: c for c in self.layout.types}, self.layout))
+                    if self.path.exists():
+                        for r in _iter_parquet(self.path, self.layout):
+                            f.write(_csv_line(r, self.layout))
+                            take(r)
                     f.flush()
                     os.fsync(f.fileno())
                 os.replace(tmp, self.journal)
                 _fsync_dir(self.journal)
             elif self.journal.exists() and self.journal.stat().st_size > 0:
-                rows = _read_csv(self.journal, repair=True)
+                _repair(self.journal)
+                for r in _iter_csv(self.journal, self.layout):
+                    take(r)
             else:
-                rows = []
                 with open(self.journal, "wb") as f:
-                    f.write(_csv_line({c: c for c in COLUMNS}))
+                    f.write(_csv_line({c: c for c in self.layout.types}, self.layout))
                     f.flush()
                     os.fsync(f.fileno())
                 _fsync_dir(self.journal)
@@ -265,10 +329,15 @@ class ResultsTable:
                              "give a new --table file") from None
         return rows
 
+    def each_row(self, fn: Callable[[dict], None]) -> None:
+        """Pass every row written so far to ``fn``, one at a time (read from the file)."""
+        for r in _iter_csv(self.journal, self.layout):
+            fn(r)
+
     def append(self, row: dict) -> None:
         """Write one row now: one write, then fsync (it survives a kill of this process)."""
         assert self._fd is not None, "open() first"
-        line = _csv_line(row)
+        line = _csv_line(row, self.layout)
         n = os.write(self._fd, line)
         while n < len(line):  # a short write (rare on a regular file): the rest
             n += os.write(self._fd, line[n:])
@@ -282,10 +351,18 @@ class ResultsTable:
         import pyarrow.parquet as pq
 
         t0 = time.monotonic()
-        rows = _read_csv(self.journal, repair=False)
-        table = pa.Table.from_pylist(rows, schema=_arrow_schema())
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
-        pq.write_table(table, tmp)
+        schema = _arrow_schema(self.layout)
+        with pq.ParquetWriter(tmp, schema) as out:  # a batch of rows at a time: the rows are never all in memory
+            batch: list[dict] = []
+            wrote = False
+            for r in _iter_csv(self.journal, self.layout):
+                batch.append(r)
+                if len(batch) >= _BATCH_ROWS:
+                    out.write_table(pa.Table.from_pylist(batch, schema=schema))
+                    batch, wrote = [], True
+            if batch or not wrote:
+                out.write_table(pa.Table.from_pylist(batch, schema=schema))
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.replace(tmp, self.path)

@@ -134,12 +134,26 @@ class GrowArray:
             self._cap = max(need, 2 * self._cap)
             assert self._map is not None
             self._full = None  # a map with a view of it cannot be resized
-            self._map.resize(self._cap * self._row)
+            self._resize(self._cap * self._row)
         if self._full is None:
             self._full = self._view(self._cap)
         out = self._full[self.n:need]
         self.n = need
         return out
+
+    def _resize(self, nbytes: int) -> None:
+        """The map grown or trimmed to ``nbytes`` in place (``mremap``); when a view of it is still
+        referenced elsewhere (a sampling profiler's frame, e.g. a Dask worker's, keeps a finished
+        call's locals a moment), the kernel may not move it: then a new map with the rows copied."""
+        assert self._map is not None
+        try:
+            self._map.resize(nbytes)
+        except BufferError:
+            new = _new_map(nbytes)
+            keep = min(nbytes, self.n * self._row)
+            with memoryview(new) as dst, memoryview(self._map) as src:
+                dst[:keep] = src[:keep]
+            self._map = new
 
     def rows(self) -> np.ndarray:
         """The rows so far (a view: drop it before the next :meth:`extend`)."""
@@ -149,7 +163,7 @@ class GrowArray:
         """The column (its map trimmed to the rows); the buffer is empty afterwards."""
         assert self._map is not None
         self._full = None
-        self._map.resize(max(self.n, 1) * self._row)
+        self._resize(max(self.n, 1) * self._row)
         out = self._view(self.n)
         self._map, self._cap, self.n = None, 0, 0
         return out

@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ["make_fleet", "moto_s3", "dask_cluster", "comparable", "free_port", "VOLATILE", "row_differences",
-           "assert_same_rows"]
+           "assert_same_rows", "heap_probe"]
 
 #: Columns that differ between two runs of the same logs (when, how long, where from).
 VOLATILE = ("source", "finished_utc", "elapsed_s")
@@ -109,20 +109,22 @@ def moto_s3(bucket: str = "fleet") -> Iterator[dict[str, str]]:
 def dask_cluster(workers: int = 2, timeout_s: float = 90) -> Iterator[str]:
     """A ``dask scheduler`` and ``workers`` ``dask worker`` processes (one thread each) on
     127.0.0.1, started separately as on a cluster; yields the scheduler's address; all killed
-    on leaving."""
+    on leaving. Each is a process group of its own (killed as one) in this session: a session
+    of its own would give each its own share of the CPUs under Linux's autogroup scheduling,
+    which made the benchmark's separate workers faster than the fork pool under other load."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
     procs = [subprocess.Popen([_bin("dask"), "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                              start_new_session=True, env=env)]
+                              preexec_fn=os.setpgrp, env=env)]
     try:
         _wait_port(port, procs[0], timeout_s, "dask scheduler")
         for _ in range(workers):
             procs.append(subprocess.Popen([_bin("dask"), "worker", address, "--host", "127.0.0.1", "--nthreads", "1",
                                            "--nworkers", "1", "--no-dashboard", "--memory-limit", "0"],
                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                          start_new_session=True, env=env))
+                                          preexec_fn=os.setpgrp, env=env))
         from distributed import Client
 
         with Client(address, timeout=f"{timeout_s}s") as c:
@@ -132,17 +134,29 @@ def dask_cluster(workers: int = 2, timeout_s: float = 90) -> Iterator[str]:
         _stop(procs)
 
 
-def comparable(rows: Sequence[dict], root: str | None = None) -> list[tuple]:
+def heap_probe() -> tuple[str | None, bool]:
+    """In a Dask worker (``client.run``): its ``MALLOC_TRIM_THRESHOLD_`` and whether
+    :func:`mavcal.fleet.run.roomy_heap` changes glibc's heap settings for a job there."""
+    from mavcal.fleet.run import roomy_heap
+
+    with roomy_heap() as changed:
+        return os.environ.get("MALLOC_TRIM_THRESHOLD_"), changed
+
+
+def comparable(rows: Sequence[dict], root: str | None = None, columns: Sequence[str] | None = None) -> list[tuple]:
     """A table's rows as sorted tuples without the columns that differ between runs, each
-    row's log named by its path under ``root`` (a directory, a bucket URL)."""
+    row's log named by its path under ``root`` (a directory, a bucket URL); ``columns``: the
+    table's (``mavcal calibrate``'s by default)."""
     from mavcal.fleet.table import COLUMNS
+
+    columns = COLUMNS if columns is None else columns
 
     def named(v):  # the root in messages too ("no MAVLink frames in ROOT/b/x.tlog")
         return v.replace(root.rstrip("/") + "/", "") if isinstance(v, str) and root is not None else v
 
     out = []
     for r in rows:
-        out.append((named(str(r["source"])), *(named(r[c]) for c in COLUMNS if c not in VOLATILE)))
+        out.append((named(str(r["source"])), *(named(r[c]) for c in columns if c not in VOLATILE)))
     return sorted(out, key=lambda t: t[0])
 
 
