@@ -17,7 +17,7 @@ from mavcal.fleet.flight import (
     interference_html,
     interference_over_time,
 )
-from mavcal.fleet.flight_cli import add_fleet_arguments, is_many, run_many
+from mavcal.fleet.flight_cli import is_many, run_many
 from mavcal.fleet.run import run_fleet
 from mavcal.fleet.table import read_table
 from mavcal.flight.stage import analyse
@@ -89,14 +89,12 @@ def test_fleet_rows_are_each_flight_alone_and_the_growth_is_flagged(flights, tmp
 
 
 def _args(*argv: str) -> argparse.Namespace:
+    """``mavcal flight``'s own parser (its LOG takes several, the many-log options added)."""
+    from mavcal.commands.flight import add_arguments
+
     p = argparse.ArgumentParser()
-    p.add_argument("log", nargs="+")
-    p.add_argument("--json")
-    p.add_argument("--param-out")
-    p.add_argument("--yaw", default="ekf")
-    p.add_argument("--driver", default="auto")
     p.add_argument("-q", "--quiet", action="store_true")
-    add_fleet_arguments(p)
+    add_arguments(p)
     return p.parse_args(argv)
 
 
@@ -114,3 +112,22 @@ def test_the_many_log_command_over_a_directory(flights, tmp_path, capsys):
     assert "<svg" in page.read_text()
     with pytest.raises(Exception, match="--param-out"):
         run_many(_args(str(root), "--param-out", str(tmp_path / "x.param")))
+
+
+def test_the_command_line_runs_a_fleet_and_keeps_one_vehicle_options_for_one_log(flights, tmp_path):
+    """`mavcal flight DIR --table T --jobs 2` through the command itself; --write / --html with a
+    fleet: one line, exit 2, nothing run."""
+    import subprocess
+    import sys
+
+    root, _ = flights
+    table = tmp_path / "t.csv"
+    out = subprocess.run([sys.executable, "-m", "mavcal", "flight", str(root / "a"), "--table", str(table),
+                          "--jobs", "2", "-q"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert len(read_table(table, FLIGHT)) == 3 and "GREW" in out.stdout
+    for opt in (["--write", "--connect", "udp:127.0.0.1:9"], ["--html", str(tmp_path / "h.html")]):
+        bad = subprocess.run([sys.executable, "-m", "mavcal", "flight", str(root / "a"), *opt],
+                             capture_output=True, text=True, timeout=60)
+        assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+        assert "single LOG" in bad.stderr

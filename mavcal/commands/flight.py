@@ -38,7 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      "  3  unreadable log   4  too little data   2  bad options   70  internal error\n"
                      "  5  write failed, vehicle restored   6  write and restore failed\n"
                      "  11 the connected vehicle is not the log's (nothing written)")
-    parser.add_argument("log", metavar="LOG", help="flight log: ArduPilot DataFlash (.bin), PX4 ULog (.ulg) or tlog")
+    parser.add_argument("log", metavar="LOG", nargs="+",
+                        help="flight log: ArduPilot DataFlash (.bin), PX4 ULog (.ulg) or tlog; several, a directory, "
+                             "a glob, @LIST or a URL: a fleet (docs/fleet.md)")
     add_json_argument(parser)
     parser.add_argument("--param-out", metavar="FILE", default=None,
                         help="write the motor compensation (its type, the accepted compasses' terms) to this .param")
@@ -53,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the yaw used for the heading checks: the EKF's, or the EKF-GSF estimator's "
                              "(compass-independent; samples where it has not converged are left out)")
     add_write_arguments(parser)
+    from mavcal.fleet.flight_cli import add_fleet_arguments
+
+    add_fleet_arguments(parser)
 
 
 def add_write_arguments(parser: argparse.ArgumentParser) -> None:
@@ -209,6 +214,11 @@ def _run_with_html(args: argparse.Namespace) -> FlightResult:
 
 
 def run(args: argparse.Namespace) -> int:
+    from mavcal.fleet.flight_cli import is_many, run_many
+
+    if is_many(args):
+        return run_many(args)
+    args.log = args.log[0]
     for opt in ("json", "param_out", "html"):
         v = getattr(args, opt)
         if v not in (None, "-") and Path(v).resolve() == Path(args.log).resolve():

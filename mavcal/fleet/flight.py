@@ -113,13 +113,13 @@ def failed_row(source: str, exc: BaseException, options: object = None) -> Fligh
 
 def analyse_one(path: str, source: str, options: FlightOptions) -> FlightRow:
     """``mavcal flight`` of the log at ``path`` (named ``source``) alone, as a table row."""
-    from mavcal.autopilot.firmware import compass_param_names
+    from mavcal.autopilot import model_named
     from mavcal.flight.stage import analyse
-    from mavcal.sources.flight_series import read_flight_series
+    from mavcal.sources.flight_logs import read_flight_log
 
     t0 = time.perf_counter()
     try:
-        s = read_flight_series(path)
+        s = read_flight_log(path)
         r = analyse(s, yaw=options.yaw, driver=options.driver)
     except MavcalError as exc:
         return FlightRow(source, False, int(exc.exit_code), _one_line(str(exc).replace(path, source)),
@@ -131,8 +131,13 @@ def analyse_one(path: str, source: str, options: FlightOptions) -> FlightRow:
         "firmware": s.evidence.firmware or None, "driver": r.driver_kind, "motct_in_force": r.motct_in_force,
         "yaw_source": r.yaw_source, "field_source": r.field_source, "rotation_reference": r.rotation_reference,
         "n_compasses": len(r.compasses), "warnings": "; ".join(_one_line(w) for w in r.warnings)}
+    model = model_named(s.autopilot).flight()
+    logged_ids = {c.instance: c.device_id for c in s.compasses if c.device_id}
     for k in range(N_COMPASSES):
-        dev = s.params.get(compass_param_names(k)["dev_id"])
+        dev = logged_ids.get(k)
+        if dev is None:  # a .bin: the device id is the parameter's of that compass's slot
+            name = model.id_name(k)
+            dev = s.params.get(name) if name else None
         cells[f"compass{k}_dev_id"] = int(dev) if dev is not None and int(dev) != 0 else None
     for c in r.compasses:
         if not 0 <= c.instance < N_COMPASSES or c.fit is None:

@@ -56,9 +56,10 @@ def run_many(args) -> int:
     from mavcal.outputs import check_outputs, write_atomic
     from mavcal.workers import worker_limit
 
-    if getattr(args, "param_out", None):
-        raise UsageError("--param-out writes one vehicle's compensation: give a single LOG, without --table, "
-                         "--scheduler-address or --drift-html")
+    for opt in ("param_out", "write", "dry_run", "html"):
+        if getattr(args, opt, None):
+            raise UsageError(f"--{opt.replace('_', '-')} is about one vehicle's flight: give a single LOG, without "
+                             "--table, --scheduler-address, --jobs or --drift-html")
     logs = list(args.log) if isinstance(args.log, (list, tuple)) else [args.log]
     table = getattr(args, "table", None)
     if table and not str(table).lower().endswith((".csv", ".parquet")):
