@@ -5,14 +5,6 @@ options, and ``run`` calls :func:`run_many` when :func:`is_many` (else the singl
 """
 from __future__ import annotations
 
-from mavcal.fleet.flight import (
-    PRINTED_MAX,
-    FlightOptions,
-    format_flight_table,
-    interference_html,
-    interference_text,
-)
-
 __all__ = ["add_fleet_arguments", "is_many", "run_many"]
 
 
@@ -50,6 +42,13 @@ def run_many(args) -> int:
     from dataclasses import asdict
 
     from mavcal.errors import UsageError
+    from mavcal.fleet.flight import (  # here, not at the top: `mavcal --help` builds this command's parser
+        PRINTED_MAX,
+        FlightOptions,
+        format_flight_table,
+        interference_html,
+        interference_text,
+    )
     from mavcal.fleet.inputs import expand_sources
     from mavcal.fleet.progress import progress_line
     from mavcal.fleet.run import run_fleet, scheduler_from_env
