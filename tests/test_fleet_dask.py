@@ -28,9 +28,7 @@ def fleet(tmp_path_factory, sitl_dir, real_dir):
 @pytest.fixture(scope="module")
 def flights(tmp_path_factory):
     """Two synthetic DataFlash flights (tests/test_flight_real.py's writer) and a broken one."""
-    from test_flight_real import write_flight_bin
-
-    from mavcal.testing.flight_synth import SynthCompass, synth_flight
+    from mavcal.testing.flight_synth import SynthCompass, synth_flight, write_flight_bin
 
     root = tmp_path_factory.mktemp("flights")
     for k, mot in enumerate(((1.0, -1.0, 0.5), (4.0, -3.0, 2.0))):

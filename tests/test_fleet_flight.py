@@ -7,7 +7,6 @@ import argparse
 import math
 
 import pytest
-from test_flight_real import write_flight_bin
 
 from mavcal.fleet.flight import (
     FLIGHT,
@@ -22,7 +21,7 @@ from mavcal.fleet.run import run_fleet
 from mavcal.fleet.table import read_table
 from mavcal.flight.stage import analyse
 from mavcal.sources.flight_series import read_flight_series
-from mavcal.testing.flight_synth import SynthCompass, synth_flight
+from mavcal.testing.flight_synth import SynthCompass, synth_flight, write_flight_bin
 
 # vehicle A: two compasses; its interference (mGauss per amp) grows at the third flight (a new
 # cable by the GPS mast, say); vehicle B: other device ids, steady

@@ -13,11 +13,10 @@ import sys
 
 import numpy as np
 import pytest
-from test_flight_real import write_flight_bin
 
 from mavcal.flight.stage import analyse
 from mavcal.report.flight_html import compass_curves
-from mavcal.testing.flight_synth import SynthCompass, synth_flight
+from mavcal.testing.flight_synth import SynthCompass, synth_flight, write_flight_bin
 
 pytest.importorskip("matplotlib")
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import io
 import re
-import struct
 from dataclasses import replace
 from pathlib import Path
 
@@ -24,9 +23,9 @@ from mavcal.errors import InsufficientDataError
 from mavcal.flight.airborne import judge_flight
 from mavcal.flight.stage import analyse, no_current_sensor
 from mavcal.flight.verdict import FALSE_ALARM, Z_WRONG
-from mavcal.sources.flight_series import FlightSeries, read_flight_series
+from mavcal.sources.flight_series import read_flight_series
 from mavcal.testing.damaged import error_line_problem
-from mavcal.testing.flight_synth import SynthCompass, synth_flight
+from mavcal.testing.flight_synth import SynthCompass, synth_flight, write_flight_bin
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real"
@@ -50,73 +49,7 @@ def run(*args: str) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
-# --- a synthetic flight written as a DataFlash .bin -------------------------------------------
-
-FORMATS = {  # name: (type, format, columns) as ArduPilot 4.x logs them
-    "MAG": (30, "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S"),
-    "ATT": (31, "QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF"),
-    "BAT": (32, "QBfffffcfBBB", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res,RemPct,H,SH"),
-    "CTUN": (33, "Qfffffffccfhh", "TimeUS,ThI,ABst,ThO,ThH,DAlt,Alt,BAlt,DSAlt,SAlt,TAlt,DCRt,CRt"),
-    "GPS": (34, "QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"),
-    "XKY0": (35, "QBffffffffffff", "TimeUS,C,YC,YCS,Y0,Y1,Y2,Y3,Y4,W0,W1,W2,W3,W4"),
-    "ARM": (36, "QBIBB", "TimeUS,ArmState,ArmChecks,Forced,Method"),
-    "MSG": (37, "QZ", "TimeUS,Message"),
-    "PARM": (38, "QNff", "TimeUS,Name,Value,Default"),
-    "FMTU": (39, "QBNN", "TimeUS,FmtType,UnitIds,MultIds"),
-}
-PACK = {"Q": "Q", "B": "B", "h": "h", "H": "H", "I": "I", "f": "f", "c": "h", "C": "H", "L": "i", "e": "i",
-        "Z": "64s", "N": "16s"}
-SCALE = {"c": 100, "C": 100, "L": 1e7, "e": 100}
-
-
-def write_flight_bin(path: Path, s: FlightSeries, *, gsf: bool = True, firmware: str = "ArduCopter V4.5.7",
-                     armed: bool = True, hover: float = 0.35, gsf_unit: str | None = "h") -> Path:
-    """``gsf_unit``: the GSF yaw's unit as ``FMTU`` says ("h": deg as 4.2 on, "r": rad as 4.0/4.1,
-    None: no FMTU for it)."""
-    out = bytearray()
-    for name, (ty, fmt, cols) in FORMATS.items():
-        body = struct.pack("<BB4s16s64s", ty, 3 + struct.calcsize("<" + "".join(PACK[c] for c in fmt)),
-                           name.encode(), fmt.encode(), cols.encode())
-        out += b"\xa3\x95\x80" + body
-
-    def rec(name: str, *values) -> None:
-        ty, fmt, _ = FORMATS[name]
-        vals = []
-        for c, v in zip(fmt, values):
-            if c in "ZN":
-                vals.append(str(v).encode())
-            elif c == "f":
-                vals.append(float(v))
-            else:
-                vals.append(int(round(float(v) * SCALE.get(c, 1))))
-        out.extend(b"\xa3\x95" + bytes([ty]) + struct.pack("<" + "".join(PACK[c] for c in fmt), *vals))
-
-    rec("MSG", 1000, firmware)
-    if gsf_unit is not None:
-        rec("FMTU", 1000, FORMATS["XKY0"][0], f"s#{gsf_unit}d{gsf_unit * 5}-----", "F-000000000000")
-    per = 1.0 if gsf_unit != "r" else np.radians(1.0)
-    for k, v in s.params.items():
-        rec("PARM", 2000, k, v, 0.0)
-    t0 = 5.0
-    if armed:
-        rec("ARM", int((t0 - 1) * 1e6), 1, 0, 0, 0)
-    cur_max = max(float(np.max(s.current_a)), 1e-9)
-    for k, t in enumerate(s.att_time_s):
-        us = int((t + t0) * 1e6)
-        rec("ATT", us, 0, s.roll_deg[k], 0, s.pitch_deg[k], 0, s.yaw_deg[k] % 360.0, 0, 0, 3)
-        for c in s.compasses:
-            rec("MAG", us, c.instance, *c.field_mgauss[k], *c.ofs_mgauss[k], *c.motor_ofs_mgauss[k], 1, us // 1000)
-        rec("BAT", us, 0, 16.0, 16.0, s.current_a[k], 1.0, 1.0, 25.0, 0.01, 90, 1, 0)
-        alt = min(10.0, 2.0 * t)
-        rec("CTUN", us, 0.5, 0, hover * (0.9 + 0.5 * s.current_a[k] / cur_max), hover, alt, alt, alt, 0, 0, 0, 0, 0, 0)
-        if k % 2 == 0:
-            rec("GPS", us, 0, 6, 0, 0, 12, 0.8, -35.363, 149.165, 600.0, 4.0, 0.0, 0.0, 0.0, 1)
-        if gsf:
-            rec("XKY0", us, 0, s.gsf_yaw_deg[k] * per, s.gsf_yaw_sigma_deg[k] * per, *([0.0] * 10))
-    if armed:
-        rec("ARM", int((s.att_time_s[-1] + t0 + 1) * 1e6), 0, 0, 0, 0)
-    path.write_bytes(bytes(out))
-    return path
+# --- a synthetic flight written as a DataFlash .bin (mavcal.testing.flight_synth.write_flight_bin)
 
 
 @pytest.fixture(scope="module")

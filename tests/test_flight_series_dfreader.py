@@ -11,12 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pymavlink import DFReader
-from test_flight_real import write_flight_bin
 
 from mavcal.errors import SourceError
 from mavcal.sources.fast_dataflash import decode_dataflash
 from mavcal.sources.flight_series import MESSAGES, read_flight_series
-from mavcal.testing.flight_synth import SynthCompass, synth_flight
+from mavcal.testing.flight_synth import SynthCompass, synth_flight, write_flight_bin
 from mavcal.testing.numbers import assert_close
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
