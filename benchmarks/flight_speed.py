@@ -91,19 +91,6 @@ print(json.dumps({"dfreader_s": best(dfreader, runs),
                   "analyse_s": best(lambda: analyse(s), runs)}))
 """
 
-WX_STANDIN = '''"""A stand-in wx for running MAGFit's headless main() without wxPython."""
-class _Any:
-    def __init__(self, *a, **k):
-        pass
-    def __getattr__(self, name):
-        return _Any
-def __getattr__(name):
-    return _Any
-'''
-MAGFIT_RUN = ("import sys; from MAVProxy.modules.lib import magfit; sys.argv = ['magfit'] + sys.argv[1:]; "
-              "magfit.main()")
-
-
 def records(data: bytes) -> list[tuple[int, int, int]]:
     """(start, end, type) of every record of a DataFlash log, as DFReader frames them (a record
     of a known type, else one byte skipped). Set-up only: a plain loop."""
@@ -205,6 +192,8 @@ def one_log(log: Path, runs: int, magfit: bool, work: Path) -> dict:
                             env=dict(env, OPENBLAS_NUM_THREADS="1"), timeout=1800)
     res["in_process"] = json.loads(inproc.stdout.strip().splitlines()[-1]) if inproc.returncode == 0 else None
     if magfit:
+        from flight import MAGFIT_RUN, WX_STANDIN  # the flight benchmark's MAGFit run, headless (its stand-in wx)
+
         standin = work / "standin"
         (standin / "wx").mkdir(parents=True, exist_ok=True)
         (standin / "wx" / "__init__.py").write_text(WX_STANDIN)
