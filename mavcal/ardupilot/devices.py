@@ -7,7 +7,7 @@ users swap priorities. So before a log's values are written, each touched compas
 ``COMPASS_DEV_ID{n}`` in the log must equal the vehicle's, and each IMU's ``INS_ACC*_ID`` too.
 
 A mismatch is refused with both ids named, unless the user maps slots explicitly
-(:func:`parse_slot_map`, ``--map-compass LOGSLOT:VEHICLESLOT`` / ``--map-imu``, 1-based);
+(:func:`mavcal.autopilot.protocol.parse_slot_map`, ``--map-compass LOGSLOT:VEHICLESLOT`` / ``--map-imu``, 1-based);
 :func:`remap_changes` then moves the values to the vehicle's slot. A vehicle whose slot no
 longer holds the compass its priority names (a priority change waiting for a reboot) is
 refused too: after the reboot the values would sit on another compass.
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from mavcal.ardupilot import firmware as fw
 from mavcal.ardupilot.limits import sensor_of
 
-__all__ = ["SlotMap", "parse_slot_map", "device_id_problems", "remap_changes", "id_names"]
+__all__ = ["SlotMap", "device_id_problems", "remap_changes", "id_names"]
 
 #: log slot -> vehicle slot (0-based)
 SlotMap = Mapping[int, int]
@@ -31,21 +31,6 @@ class _Slot:
     kind: str
     log: int
     vehicle: int
-
-
-def parse_slot_map(text: str, kind: str) -> tuple[int, int]:
-    """``"LOGSLOT:VEHICLESLOT"`` (1-based, as COMPASS_PRIOn / IMU n) -> 0-based (log, vehicle).
-
-    Raises ValueError with a one-line message for anything else.
-    """
-    limit = fw.MAX_COMPASSES if kind == "compass" else fw.MAX_IMUS
-    try:
-        a, b = (int(x) for x in text.split(":"))
-    except ValueError:
-        raise ValueError(f"expected LOGSLOT:VEHICLESLOT (1..{limit}), got {text!r}") from None
-    if not (1 <= a <= limit and 1 <= b <= limit):
-        raise ValueError(f"{kind} slots are 1..{limit}, got {text!r}")
-    return a - 1, b - 1
 
 
 def _id_name(kind: str, k: int) -> str:
