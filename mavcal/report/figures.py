@@ -1,5 +1,6 @@
 """The report's figures (matplotlib's object-oriented API; ``Figure`` is handed in by
-:func:`mavcal.report.html.write_html`, so nothing here imports matplotlib or pyplot).
+:func:`mavcal.report.html.write_html`, made by :func:`figure_factory`, the one place matplotlib is
+imported, when a page is written; never pyplot).
 
 * ``timeline``: readings as logged and the norm after the new calibration against time,
   the still intervals shaded (used green, unused orange) and numbered in a strip on top;
@@ -178,3 +179,22 @@ def png_bytes(fig) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", metadata={"Software": None})
     return buf.getvalue()
+
+
+def figure_factory():
+    """``Figure(**kw)``: a matplotlib figure on the Agg canvas (no pyplot, no display), for the
+    report pages; :class:`mavcal.errors.UsageError` when matplotlib is not installed."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure as _Figure
+    except ImportError:
+        from mavcal.errors import UsageError
+
+        raise UsageError("the HTML report needs matplotlib: pip install 'mavcal[plots]'") from None
+
+    def Figure(**kw):
+        fig = _Figure(**kw)
+        FigureCanvasAgg(fig)
+        return fig
+
+    return Figure

@@ -29,7 +29,7 @@ from mavcal.autopilot import model_named
 from mavcal.errors import UsageError
 from mavcal.flight.reference import reference_at
 from mavcal.flight.stage import CompassResult, FlightResult, in_force_driver, param_values
-from mavcal.report.figures import png_bytes
+from mavcal.report.figures import figure_factory, png_bytes
 from mavcal.sources.flight_series import FlightSeries
 
 __all__ = ["CompassCurves", "compass_curves", "flight_page", "write_flight_html", "missing_dependencies"]
@@ -229,16 +229,7 @@ def missing_dependencies() -> list[str]:
 def write_flight_html(s: FlightSeries, r: FlightResult, path: str | Path) -> Path:
     """Write the page of ``r`` (the stage's result on the flight ``s``) to ``path``, atomically;
     :class:`UsageError` when matplotlib is missing or the file cannot be written."""
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure as _Figure
-    except ImportError:
-        raise UsageError("the HTML report needs matplotlib: pip install 'mavcal[plots]'") from None
-
-    def Figure(**kw):
-        fig = _Figure(**kw)
-        FigureCanvasAgg(fig)
-        return fig
+    Figure = figure_factory()
 
     images = {c.instance: png_bytes(fig_compass(Figure, r, c, compass_curves(s, r, c)))
               for c in r.compasses if c.fit is not None}

@@ -29,6 +29,7 @@ from mavcal.report.figures import (
     fig_magnitudes,
     fig_residuals,
     fig_timeline,
+    figure_factory,
     png_bytes,
 )
 from mavcal.report.numbers import IntervalNumbers, interval_numbers
@@ -353,16 +354,7 @@ def write_html(run, path, *, png_dir=None, force: bool = False) -> Path:
     ``data-intervals-used``; the timeline figure carries ``data-shaded-spans``, the number
     of interval spans actually drawn in it.
     """
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure as _Figure
-    except ImportError:
-        raise UsageError("the HTML report needs matplotlib: pip install 'mavcal[plots]'") from None
-
-    def Figure(**kw):
-        fig = _Figure(**kw)
-        FigureCanvasAgg(fig)
-        return fig
+    Figure = figure_factory()
 
     path = Path(path)
     if not (run.mapping.accel and run.mapping.compass and run.calibration is not None):
