@@ -331,7 +331,8 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
     params_now = log_.params.snapshot()
     reach = reach_of(prep, opts)
     model = model_for(log_)
-    state = _accel_state_of(model, params_now, ai)
+    # poses within reach hold the accelerometer: its state in force sets its prior and the advice
+    state = "calibrated" if reach is None else _accel_state_of(model, params_now, ai)
     turn = None if reach is None else reach_turn(model, reach, params_now, ai, mi)
     if reach is not None and state != "calibrated":
         sd = HELD_ACCEL_SD[state]
