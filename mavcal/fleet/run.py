@@ -13,6 +13,7 @@ installed and reach the logs), with Dask's retries for a worker that dies mid-jo
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from collections.abc import Callable, Iterator, Sequence
@@ -151,7 +152,9 @@ _MMAP_THRESHOLD_MAX = 32 << 20
 _GLIBC_MMAP_THRESHOLD = 128 << 10
 
 
+@functools.lru_cache(maxsize=1)
 def _libc():
+    """glibc, found once per worker process (``find_library`` runs ``ldconfig``), or None."""
     import ctypes
     import ctypes.util
 
