@@ -126,6 +126,8 @@ CONTROL_PORT, TOOL_PORT, RELAY_PORT = 14550, 14551, 14552
 FIXTURE_SYSTEM, FIXTURE_COMPONENT = 254, 250  # not the GCS ids mavcal and MAVProxy use (255/190)
 MSG_SIMSTATE = 164
 MSG_RAW_IMU = 27
+#: parameter reads unanswered at a time (:meth:`SitlVehicle.get_params`): ArduPilot queues 20 requests
+READ_WINDOW = 10
 
 #: a calibration in force that is wrong for any :class:`InjectedErrors` (orientation 0 included)
 WRONG_CALIBRATION: dict[str, float] = {
@@ -484,9 +486,9 @@ class SitlVehicle:
         self.set_message_interval(MSG_SIMSTATE, 20.0)
         if self.wait_for(lambda: self._simstate is not None, 20.0) is False:
             raise SitlError("no SIMSTATE from SITL")
-        self._check_injected()
+        at_boot = self._check_injected()
         if self.measure_field:
-            self.field_ned_mgauss = self._measure_field()
+            self.field_ned_mgauss = self._measure_field({n: at_boot[n] for n in CALIBRATION_NAMES if n in at_boot})
         log.info("SITL %d up (pid %d, %s)", self.instance, self._sitl.pid, self.workdir)
 
     def _log_tail(self) -> str:
@@ -589,9 +591,13 @@ class SitlVehicle:
 
     # ---------------------------------------------------------------- parameters
     def get_params(self, names: Iterable[str], timeout_s: float = 10.0) -> dict[str, float]:
-        """Read ``names`` (PARAM_REQUEST_READ each); a name the vehicle does not know is missing
-        from the result."""
-        names = list(names)
+        """Read ``names`` (PARAM_REQUEST_READ each, at most :data:`READ_WINDOW` unanswered at a time);
+        a name the vehicle does not know is missing from the result.
+
+        ArduPilot queues 20 parameter requests (all channels together; ``GCS_Param.cpp``) and drops
+        the rest: sending 49 at once had the rest asked again only after a 1 s wait (1.44 s for
+        :data:`CALIBRATION_NAMES`; in windows, about 1.0 s, the rate SITL answers at)."""
+        names = list(dict.fromkeys(names))
         with self._cond:
             for n in names:
                 self._params.pop(n, None)
@@ -599,15 +605,18 @@ class SitlVehicle:
         deadline = time.monotonic() + timeout_s
         pending = list(names)
         while pending and time.monotonic() < deadline:
-            for n in pending:
+            window = pending[:READ_WINDOW]
+            for n in window:
                 self._send("param_request_read_send", self.target_system, self.target_component, n.encode(), -1)
             left = max(0.0, deadline - time.monotonic())
-            self.wait_for(lambda: all(n in self._params for n in pending), min(1.0, left))
+            self.wait_for(lambda w=window: all(n in self._params for n in w), min(1.0, left))
             with self._cond:
                 for n in list(pending):
                     if n in self._params:
                         out[n] = self._params[n]
                         pending.remove(n)
+            # unanswered (dropped, or a name the vehicle does not know) go to the back: the others are asked
+            pending = [n for n in pending if n not in window] + [n for n in window if n in pending]
         return out
 
     def writes_since(self, mark: int, names: Iterable[str] | None = None) -> list[tuple[str, float]]:
@@ -653,12 +662,15 @@ class SitlVehicle:
         self._send("param_set_send", self.target_system, self.target_component, name.encode(), float(value),
                    mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
 
-    def _check_injected(self) -> None:
+    def _check_injected(self) -> dict[str, float]:
+        """Check the boot parameters took; returns them and the calibration in force (one read for
+        both: :meth:`_measure_field` needs the latter, and nothing writes in between)."""
         want = {**self.errors.sim_params(), **self.calibration_at_boot, **self.extra_params}
-        got = self.get_params(want)
+        got = self.get_params([*want, *(CALIBRATION_NAMES if self.measure_field else ())])
         bad = {n: (got.get(n), v) for n, v in want.items() if n not in got or _f32(got[n]) != _f32(v)}
         if bad:
             raise SitlError(f"SITL did not take its boot parameters (got, wanted): {bad}")
+        return got
 
     # ---------------------------------------------------------------- motion
     @property
@@ -732,12 +744,13 @@ class SitlVehicle:
         mag = np.mean([[m.xmag, m.ymag, m.zmag] for m in msgs], axis=0)
         return acc, mag
 
-    def _measure_field(self) -> np.ndarray:
+    def _measure_field(self, in_force: Mapping[str, float] | None = None) -> np.ndarray:
         """SITL's Earth field (NED, mGauss) from compass 1 at the current pose: the calibration
-        in force and the injected errors undone, rotated by SIMSTATE's attitude."""
+        in force (``in_force``, else read now) and the injected errors undone, rotated by SIMSTATE's
+        attitude."""
         s = self.wait_settled(timeout_s=20.0)
         _, reading = self.read_imu()
-        cal = fw.compass_cal_from_params(self.get_params(CALIBRATION_NAMES), 0)
+        cal = fw.compass_cal_from_params(self.get_params(CALIBRATION_NAMES) if in_force is None else in_force, 0)
         raw = fw.undo_compass(cal, reading[None, :], sensor_frame=True)[0]
         B_body = self.errors.body_field(raw)
         return euler_to_matrix(*np.radians([s.roll_deg, s.pitch_deg, s.yaw_deg])) @ B_body
