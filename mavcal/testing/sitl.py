@@ -484,9 +484,10 @@ class SitlVehicle:
         self._reader = threading.Thread(target=self._read, name=f"sitl{self.instance}-control", daemon=True)
         self._reader.start()
         self.set_message_interval(MSG_SIMSTATE, 20.0)
+        # the parameters are read while SITL gets ready to send SIMSTATE (~2.5 s after its first heartbeat)
+        at_boot = self._check_injected()
         if self.wait_for(lambda: self._simstate is not None, 20.0) is False:
             raise SitlError("no SIMSTATE from SITL")
-        at_boot = self._check_injected()
         if self.measure_field:
             self.field_ned_mgauss = self._measure_field({n: at_boot[n] for n in CALIBRATION_NAMES if n in at_boot})
         log.info("SITL %d up (pid %d, %s)", self.instance, self._sitl.pid, self.workdir)
