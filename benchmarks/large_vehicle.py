@@ -234,7 +234,8 @@ def honesty_capture(seed: int, state: str, max_tilt: float = 15.0) -> dict:
     verdict = {x.sensor: x for x in run.verdicts}.get("compass0")
     ct = truth.compasses[0]
     M = fw.soft_iron_matrix(ct.dia, ct.odi)
-    written = fw.compass_cal_from_params({**v.params, **run.params_to_write(force=True)}, 0)
+    after = {**v.params, **run.params_to_write(force=True)}
+    written, now = fw.compass_cal_from_params(after, 0), fw.accel_cal_from_params(after, 0)
 
     def raw_a(f):
         return f / k + b
@@ -244,11 +245,13 @@ def honesty_capture(seed: int, state: str, max_tilt: float = 15.0) -> dict:
 
     e = attitude_errors(raw_a, raw_m, now, written, B, attitude_grid(max_tilt_deg=REACH_FLOWN_TILT_DEG))
     level = attitude_errors(raw_a, raw_m, now, written, B, attitude_grid(max_tilt_deg=0.0))
+    e30 = attitude_errors(raw_a, raw_m, now, written, B, attitude_grid(max_tilt_deg=30.0))
     accepted = verdict is not None and verdict.accepted
     return dict(seed=seed, state=state, outcome="accepted" if accepted else "rejected", intervals=st.n_intervals,
                 reason="" if accepted else "; ".join(verdict.reasons if verdict else ["no verdict"]),
                 bound_deg=run.quality.heading_95_deg, heading_deg=e.max_heading_deg,
-                heading_level_deg=level.max_heading_deg, within=bool(e.max_heading_deg <= run.quality.heading_95_deg))
+                heading_level_deg=level.max_heading_deg, compass15_deg=e.max_heading_compass_only_deg,
+                compass30_deg=e30.max_heading_compass_only_deg, static30_deg=e30.max_heading_deg, within=bool(e.max_heading_deg <= run.quality.heading_95_deg))
 
 
 # ------------------------------------------------------------------------------- tables

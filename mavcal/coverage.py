@@ -315,10 +315,8 @@ def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
     g_xy = 9.80665 * np.sin(np.radians(tilt))
     return [
         KeptParameter(sensor, "Z scale", f"{t} cannot separate it from the Z offset (gravity stays within "
-                      f"{100 * (1 - np.cos(np.radians(tilt))):.1f} % of its level value along Z)", _BEYOND),
-        KeptParameter(sensor, "Z offset", f"{t} cannot separate it from the Z scale", _BEYOND),
-        KeptParameter(sensor, "X and Y offsets", f"at {t} an X/Y offset cannot be told from a tilt of the whole "
-                      "frame (a level trim)", _BEYOND),
+                      f"{100 * (1 - np.cos(np.radians(tilt))):.1f} % of its level value along Z; the Z offset is "
+                      "fitted with the scale kept, so that the level reading is right)", _BEYOND),
         KeptParameter(sensor, "X and Y scales", f"{t} move X/Y by at most {g_xy:.2f} m/s^2, which a tilt of the "
                       "frame explains as well", _BEYOND),
     ]

@@ -66,8 +66,9 @@ log = logging.getLogger(__name__)
 __all__ = ["fit_recording", "refusal_verdicts", "reach_of"]
 
 
-_REACH_NOTE = ("poses within reach (tilts up to {:.1f} deg): the accelerometers keep their current calibration, "
-               "the compasses are fitted with it held; no held-out check")
+_REACH_NOTE = ("poses within reach (tilts up to {:.1f} deg): the accelerometers keep their current scales, the "
+               "compasses are fitted with them held and with the primary accelerometer's offsets (written with an "
+               "accepted compass when the poses identify them); no held-out check")
 
 
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
@@ -144,22 +145,44 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     accels, fits, accel_gates = judge_accels(prep, opts, [primary] + others,
                                               [(a, got["accel", j]) for j, a in enumerate(insts)], warnings)
     report(progress, STAGE_FIT, n, n)
-    accels, kept = _within_reach_parts(reach, primary, compass_runs, accels)
+    accels, kept, reach_gates = _within_reach_parts(prep, opts, reach, primary, compass_runs, accels)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
-    return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
+    return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + reach_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits), kept=kept)
 
 
-def _within_reach_parts(reach: ReachCoverage | None, primary: CalibrationRun, compass_runs: list[CalibrationRun],
-                        accels: list[AccelMapping]):
-    """(accelerometer mappings, kept parameters) of a run: for poses within reach, the kept
-    accelerometer (no parameter to write) and every compass's and accelerometer's kept parameters."""
+def _within_reach_parts(prep: Prepared, opts: Options, reach: ReachCoverage | None, primary: CalibrationRun,
+                        compass_runs: list[CalibrationRun], accels: list[AccelMapping]):
+    """(accelerometer mappings, kept parameters, accelerometer gates) of a run: for poses within
+    reach, the primary accelerometer with its scales kept and its offsets fitted (written with an
+    accepted compass only: they come from its joint fit; else kept too), and every compass's and
+    accelerometer's kept parameters."""
     if reach is None:
-        return accels, ()
+        return accels, (), []
     kept = tuple(k for r in compass_runs for k in r.kept if k.sensor.startswith("compass")) \
         + tuple(k for k in primary.kept if k.sensor.startswith("accel"))
-    return [primary.mapping.accel[0]], kept
+    am = primary.mapping.accel[0]
+    if am.kept:
+        return [am], kept, []
+    if not all(g.ok for g in primary.gates.gates):
+        kept += (KeptParameter(f"accel{am.instance}", "offsets", f"fitted with compass {opts.mag_instance}, which "
+                               "was rejected: not written without it", "an accepted compass (see its verdict)"),)
+        return [replace(am, new=am.old, kept=True)], kept, []
+    cal = primary.calibration
+    assert cal is not None
+    state = accel_state(am.old.ofs_mps2, am.old.scale)
+    level_95 = _level_tilt_95_deg(offsets_sd_mps2(cal))
+    gates = gates_mod.reach_accel_gates(am, level_tilt_95_deg=level_95,
+                                        limit_deg=_level_tilt_95_deg(HELD_ACCEL_SD[state][0] / REACH_OFFSETS_GAIN),
+                                        config=model_for(prep.log).gate_config(opts.gates))
+    return [am], kept, gates
+
+
+def _level_tilt_95_deg(sd_mps2: float) -> float:
+    """The 95 % bound of the level tilt error (deg) an X/Y offset error of ``sd_mps2`` (1 sigma, any
+    horizontal direction) leaves: chi2 with 2 degrees of freedom."""
+    return float(np.degrees(np.sqrt(CHI2_2_95) * sd_mps2 / GRAVITY_MPS2))
 
 
 def _holdout_slices(workers: int) -> int:
@@ -363,11 +386,17 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
         location=opts.location or log_.position, location_source="" if opts.location else log_.position_source,
         field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg, allow_custom=opts.allow_custom,
         force_external=opts.force_external)
-    if reach is not None:  # the accelerometer keeps its values, exactly (the fit held them)
+    if reach is not None:  # the accelerometer keeps its scales, exactly; its offsets are the fit's (if identified)
         am = mapping.accel[0]
-        am = replace(am, new=am.old, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
-                     dropped_magnitude_mps2=0.0, kept=True)
+        fitted = "b_a[x]" not in cal.held
+        new = replace(am.old, ofs_mps2=tuple(float(x) for x in cal.accel.bias)) if fitted else am.old
+        am = replace(am, new=new, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
+                     dropped_magnitude_mps2=0.0, kept=not fitted)
         mapping = combine([am], mapping.compass, params_now, mapping.notes)
+        if not fitted:
+            reach = replace(reach, kept=reach.kept + (KeptParameter(
+                f"accel{ai}", "offsets", f"these poses do not identify them {REACH_OFFSETS_GAIN:g} times better than "
+                "the calibration in force is known (the model's reason says how well)", _OFFSETS_POSE),))
     return PairFit(used, cal, mapping, params_now, warnings, reach, state)
 
 
@@ -384,6 +413,8 @@ def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
 
 
 _BEYOND_WORDS = "the vehicle on each side and upside down (the full capture without --max-tilt)"
+_OFFSETS_POSE = "tilts in more directions at several headings, each held still longer; or " + _BEYOND_WORDS
+CHI2_2_95 = 5.991464547107979  # the 95 % point of chi2 with 2 degrees of freedom
 
 
 def _accel_state_of(model: AutopilotModel, params: dict[str, float], instance: int) -> str:
@@ -408,11 +439,20 @@ def reach_turn(model: AutopilotModel, reach: ReachCoverage, params_now: dict[str
     return Q if nearest_rotation(Q @ old.mount_matrix)[1] <= 1.0 else None
 
 
+#: poses within reach fit the accelerometer's offsets (issue 37: the tilts at several headings tell a body-fixed
+#: offset from the tilt of each pose, through gravity's constant magnitude and the compass's view of the tilt);
+#: they are written when the fit knows them at least this many times better than the calibration in force is
+#: assumed to be known (:data:`mavcal.coverage.HELD_ACCEL_SD` by its state), else held as before
+REACH_OFFSETS_GAIN = 2.0
+
+
 def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: IntervalStats, sm: IntervalStats,
                       params_now: dict[str, float]) -> Calibration:
-    """The compass fitted with the accelerometer held at its current calibration
-    (:func:`mavcal.core.held.calibrate_held`). The field dip is fitted; when the position is
-    known and the tilts determine the dip less well than the World Magnetic Model knows it
+    """The compass fitted with the accelerometer's scales held at its current calibration and its
+    offsets fitted (:func:`mavcal.core.held.calibrate_held`); the offsets held too when the poses do
+    not identify them to :data:`REACH_OFFSETS_GAIN` times the prior of the calibration in force (or
+    the fit with them free fails). The field dip is fitted; when the position is known and the tilts
+    determine the dip less well than the World Magnetic Model knows it
     (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead."""
     if not reach.compass_identified:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach (tilts up to {reach.max_tilt_deg:.1f} "
@@ -424,13 +464,43 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
                                     "the accelerometer in the board frame); capture the six sides instead")
     scale = np.asarray(old.scale, float)
     K_a, b_a = np.diag(GRAVITY_MPS2 / scale), np.asarray(old.ofs_mps2, float)
-    calibrated = accel_state(b_a, scale)  # the held values' prior: full, level-only or no calibration
-    # b_a[z] is fitted, not held: only K_a[33] + b_a[z] (the level reading) is identified, and a held pair that
-    # misses it by more than the noise would be a misfit of the whole cost; it is kept all the same (not written)
-    held = [f"K_a[{j}{j}]" for j in (1, 2, 3)] + ["b_a[x]", "b_a[y]"]
+    state = accel_state(b_a, scale)  # the held values' prior: full, level-only or no calibration
+    # the scales are held: only K_a[33] + b_a[z] (the level reading) is identified along Z, and X/Y scales move
+    # the readings by at most g sin(tilt); b_a[z] is fitted with K_a[33] held (the level reading), as are
+    # b_a[x], b_a[y] (see REACH_OFFSETS_GAIN)
+    scales = [f"K_a[{j}{j}]" for j in (1, 2, 3)]
     why = (f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} distinct "
-           "headings): the accelerometer held at its current calibration, ")
-    cal = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, calibrated, None),
+           "headings): the accelerometer's scales held at its current calibration, ")
+    limit = HELD_ACCEL_SD[state][0] / REACH_OFFSETS_GAIN
+    try:
+        cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales, state, params_now, why + "its offsets fitted, ")
+        sd = offsets_sd_mps2(cal)
+        if sd <= limit:
+            return cal
+        note = (f"its X/Y offsets held too: the poses determine them to {sd:.3f} m/s^2 (1 sigma), not within "
+                f"{limit:g} m/s^2, ")
+    except (InsufficientDataError, EstimationError) as exc:
+        note = f"its X/Y offsets held too: the fit with them free failed ({exc}), "
+    return _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales + ["b_a[x]", "b_a[y]"], state, params_now,
+                         why + note)
+
+
+def offsets_sd_mps2(cal: Calibration) -> float:
+    """The largest standard deviation of a held fit's accelerometer X/Y offsets (any direction in the
+    horizontal plane, m/s^2): inf when they were held or their covariance is unknown."""
+    names = cal.param_names
+    if cal.param_cov is None or "b_a[x]" in cal.held or "b_a[x]" not in names:
+        return float("inf")
+    k = [names.index("b_a[x]"), names.index("b_a[y]")]
+    return float(np.sqrt(max(np.linalg.eigvalsh(cal.param_cov[np.ix_(k, k)]).max(), 0.0)))
+
+
+def _held_dip_fit(prep: Prepared, opts: Options, sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray,
+                  b_a: np.ndarray, held: list[str], state: str, params_now: dict[str, float], why: str) -> Calibration:
+    """:func:`mavcal.core.held.calibrate_held` with ``held`` fixed, the field dip fitted, or held at the World
+    Magnetic Model's inclination when the tilts determine it less well than the model knows it."""
+    model = model_for(prep.log)
+    cal = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, None),
                          reason=why + "the field dip estimated from the tilts")
     loc = opts.location or prep.log.position
     if loc is None:
@@ -441,7 +511,7 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     if incl is None or sd_incl <= WMM_INCLINATION_SD_DEG:
         return replace(cal, model_reason=cal.model_reason + f" (to {sd_incl:.2f} deg, closer than the World "
                        f"Magnetic Model's {WMM_INCLINATION_SD_DEG:g} deg)")
-    return calibrate_held(sa, sm, K_a, b_a, held=held + ["h_z"], prior_sd=held_priors(K_a, calibrated, incl),
+    return calibrate_held(sa, sm, K_a, b_a, held=held + ["h_z"], prior_sd=held_priors(K_a, state, incl),
                           h_z=float(np.tan(np.radians(incl))),
                           reason=why + f"the field dip at the World Magnetic Model's inclination {incl:.2f} deg (the "
                           f"tilts determine it only to {sd_incl:.2f} deg)")
