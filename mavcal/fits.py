@@ -16,6 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
+from scipy.stats import chi2
 
 from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
@@ -357,12 +358,6 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
     # poses within reach hold the accelerometer: its state in force sets its prior and the advice
     state = "calibrated" if reach is None else _accel_state_of(model, params_now, ai)
     turn = None if reach is None else reach_turn(model, reach, params_now, ai, mi)
-    if reach is not None and state != "calibrated":
-        sd = HELD_ACCEL_SD[state]
-        reach = replace(reach, kept=reach.kept + (KeptParameter(
-            f"accel{ai}", "calibration in force", f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry "
-            f"that uncertainty (1 sigma: offsets {sd[0]:g} m/s^2, scales {100 * sd[1]:g} %)",
-            "its full calibration: " + _BEYOND_WORDS),))
     if reach is not None and reach.mounting_turn_deg and turn is None and reach.compass_identified:
         reach = replace(reach, kept=reach.kept + (KeptParameter(
             f"compass{mi}", "orientation", f"{reach.mounting_text()} (its orientation cannot be written here: an "
@@ -372,11 +367,19 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
         if reach is None:
             cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
         elif turn is None:
-            cal = _fit_within_reach(prep, opts, reach, sa, sm, params_now)
+            cal, state = _fit_within_reach(prep, opts, reach, sa, sm, params_now)
         else:  # the compass turned as the tilts say (issue 37): fitted so, its orientation then written
-            cal = turn_compass(_fit_within_reach(prep, opts, reach, sa, turned_stats(sm, turn), params_now), turn)
+            cal, state = _fit_within_reach(prep, opts, reach, sa, turned_stats(sm, turn), params_now)
+            cal = turn_compass(cal, turn)
     except (InsufficientDataError, EstimationError) as exc:
         raise with_blind_cal(prep, exc) from None
+    if reach is not None and state != "calibrated":
+        sd = HELD_ACCEL_SD[state]
+        reach = replace(reach, kept=reach.kept + (KeptParameter(
+            f"accel{ai}", "calibration in force", f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry "
+            f"that uncertainty (1 sigma: offsets {sd[0]:g} m/s^2, scales {100 * sd[1]:g} %"
+            + (" or the discrepancy, if larger)" if state == "inconsistent" else ")"),
+            "its full calibration: " + _BEYOND_WORDS),))
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
     if reach is not None:  # the segmentation's "too few orientations" is what the reduced fit answers
@@ -447,13 +450,15 @@ REACH_OFFSETS_GAIN = 2.0
 
 
 def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: IntervalStats, sm: IntervalStats,
-                      params_now: dict[str, float]) -> Calibration:
+                      params_now: dict[str, float]) -> tuple[Calibration, str]:
     """The compass fitted with the accelerometer's scales held at its current calibration and its
     offsets fitted (:func:`mavcal.core.held.calibrate_held`); the offsets held too when the poses do
     not identify them to :data:`REACH_OFFSETS_GAIN` times the prior of the calibration in force (or
     the fit with them free fails). The field dip is fitted; when the position is known and the tilts
     determine the dip less well than the World Magnetic Model knows it
-    (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead."""
+    (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead.
+    Returns the fit and the state of the calibration in force (:func:`mavcal.coverage.accel_state`, or
+    "inconsistent": calibrated, but its X/Y scales contradicted by the poses, :func:`_checked_scales`)."""
     if not reach.compass_identified:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach (tilts up to {reach.max_tilt_deg:.1f} "
                                     f"deg): {'; '.join(reach.missing)}; {reach.add}")
@@ -476,13 +481,56 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
         cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales, state, params_now, why + "its offsets fitted, ")
         sd = offsets_sd_mps2(cal)
         if sd <= limit:
-            return cal
+            return _checked_scales(sa, sm, K_a, b_a, cal, state)
         note = (f"its X/Y offsets held too: the poses determine them to {sd:.3f} m/s^2 (1 sigma), not within "
                 f"{limit:g} m/s^2, ")
     except (InsufficientDataError, EstimationError) as exc:
         note = f"its X/Y offsets held too: the fit with them free failed ({exc}), "
-    return _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales + ["b_a[x]", "b_a[y]"], state, params_now,
-                         why + note)
+    cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales + ["b_a[x]", "b_a[y]"], state, params_now, why + note)
+    return _checked_scales(sa, sm, K_a, b_a, cal, state)
+
+
+#: the false-alarm rate of calling an accelerometer's X/Y scales in force inconsistent with poses within reach
+SCALES_FALSE_ALARM = 1e-3
+
+
+def _checked_scales(sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray, b_a: np.ndarray, cal: Calibration,
+                    state: str) -> tuple[Calibration, str]:
+    """A calibrated accelerometer's held X/Y scales tested against the poses (issue 37): the same fit with
+    K_a[11], K_a[22] free (K_a[33] and the rest held as in ``cal``, their priors counted), and the
+    difference d of the free values from the held ones weighed by its covariance C (the free fit's plus
+    the held values' prior): d^T C^-1 d is chi2 with 2 degrees of freedom when the calibration in force is
+    within its prior. Beyond the chi2 point of :data:`SCALES_FALSE_ALARM`, the held values keep their place
+    (the fit's point is unchanged) but their prior becomes a level calibration's, or the discrepancy when
+    larger, and the state "inconsistent": the bounds then carry it and the verdict names it."""
+    if state != "calibrated":
+        return cal, state
+    held = [h for h in cal.held if h not in ("K_a[11]", "K_a[22]")]
+    incl = float(np.degrees(np.arctan(cal.h_z))) if "h_z" in held else None
+    h_z = cal.h_z if "h_z" in held else None
+    try:
+        free = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, incl), h_z=h_z)
+    except (InsufficientDataError, EstimationError):
+        return cal, state
+    if free.param_cov is None:
+        return cal, state
+    k = [free.param_names.index(n) for n in ("K_a[11]", "K_a[22]")]
+    K = np.diag(K_a)[:2]
+    d = np.diag(free.accel.gain)[:2] - K
+    C = free.param_cov[np.ix_(k, k)] + np.diag((HELD_ACCEL_SD[state][1] * K) ** 2)
+    z2 = float(d @ np.linalg.solve(C, d))
+    if z2 <= float(chi2.isf(SCALES_FALSE_ALARM, 2)):
+        return cal, state
+    off = float(np.abs(d / K).max())
+    sd = max(HELD_ACCEL_SD["inconsistent"][1], off)
+    pct = ", ".join(f"{c} {100 * x:+.1f} %" for c, x in zip("XY", np.diag(free.accel.gain)[:2] / K - 1.0))
+    reason = (cal.model_reason + f"; its X/Y scales in force do not fit these poses (K_a[11], K_a[22] fitted "
+              f"{pct} off them, chi2 {z2:.1f} on 2 dof, false-alarm rate {SCALES_FALSE_ALARM:g}): their prior "
+              f"widened to {100 * sd:.1f} %")
+    refit = calibrate_held(sa, sm, K_a, b_a, held=list(cal.held), prior_sd=held_priors(K_a, "inconsistent", incl,
+                                                                                       scale_sd=sd), h_z=h_z,
+                           reason=reason)
+    return refit, "inconsistent"
 
 
 def offsets_sd_mps2(cal: Calibration) -> float:

@@ -1,7 +1,8 @@
 """The guided capture of a vehicle that cannot be turned over (``--max-tilt``, issue 27): only
 poses within the tilt limit are advised, "can't do this one" gets another pose, the capture
-stops when the compass's bound reaches what such poses can give, and the result writes the
-compass alone, right to within 0.5 deg of heading at level."""
+stops when the compass's bound reaches what such poses can give (or its target), and the result
+writes the compass and the accelerometer's offsets (issue 37; its scales kept), right to within
+0.5 deg of heading at level."""
 import sys
 from pathlib import Path
 
