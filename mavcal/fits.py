@@ -156,9 +156,10 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
 def _within_reach_parts(prep: Prepared, opts: Options, reach: ReachCoverage | None, primary: CalibrationRun,
                         compass_runs: list[CalibrationRun], accels: list[AccelMapping]):
     """(accelerometer mappings, kept parameters, accelerometer gates) of a run: for poses within
-    reach, the primary accelerometer with its scales kept and its offsets fitted (written with an
-    accepted compass only: they come from its joint fit; else kept too), and every compass's and
-    accelerometer's kept parameters."""
+    reach, the primary accelerometer with its scales kept and its offsets fitted, and every compass's
+    and accelerometer's kept parameters. The offsets and the compass are one fit: the offsets are
+    rejected with their compass (and written with it under --force, the compass being right only
+    with them)."""
     if reach is None:
         return accels, (), []
     kept = tuple(k for r in compass_runs for k in r.kept if k.sensor.startswith("compass")) \
@@ -166,16 +167,14 @@ def _within_reach_parts(prep: Prepared, opts: Options, reach: ReachCoverage | No
     am = primary.mapping.accel[0]
     if am.kept:
         return [am], kept, []
-    if not all(g.ok for g in primary.gates.gates):
-        kept += (KeptParameter(f"accel{am.instance}", "offsets", f"fitted with compass {opts.mag_instance}, which "
-                               "was rejected: not written without it", "an accepted compass (see its verdict)"),)
-        return [replace(am, new=am.old, kept=True)], kept, []
     cal = primary.calibration
     assert cal is not None
     state = accel_state(am.old.ofs_mps2, am.old.scale)
     level_95 = _level_tilt_95_deg(offsets_sd_mps2(cal))
     gates = gates_mod.reach_accel_gates(am, level_tilt_95_deg=level_95,
                                         limit_deg=_level_tilt_95_deg(HELD_ACCEL_SD[state][0] / REACH_OFFSETS_GAIN),
+                                        partner=f"compass{opts.mag_instance}",
+                                        partner_ok=all(g.ok for g in primary.gates.gates),
                                         config=model_for(prep.log).gate_config(opts.gates))
     return [am], kept, gates
 

@@ -68,4 +68,7 @@ def test_scales_off_their_prior_are_named_and_carried_by_the_bound():
     assert "calibrate the accelerometer again" in why, why
     assert e.max_heading_deg <= run.quality.heading_95_deg, (e.max_heading_deg, run.quality.heading_95_deg)
     assert not run.params_to_write()  # the compass rejected: the accelerometer's offsets are not written either
-    assert any(k.sensor == "accel0" and k.what == "offsets" and "rejected" in k.why for k in run.kept)
+    (va,) = [v for v in run.verdicts if v.sensor == "accel0"]
+    assert not va.accepted and "fitted with compass0, which was rejected" in " ".join(va.reasons)
+    forced = run.params_to_write(force=True)  # the two are one fit: forced, both are written
+    assert "INS_ACCOFFS_X" in forced and "COMPASS_OFS_X" in forced

@@ -148,14 +148,18 @@ def _offsets_gate(add, s: str, am, c: GateConfig) -> None:
         "or readings that are not in m/s^2")
 
 
-def reach_accel_gates(am, *, level_tilt_95_deg: float, limit_deg: float, config: GateConfig = GateConfig()
-                      ) -> list[Gate]:
+def reach_accel_gates(am, *, level_tilt_95_deg: float, limit_deg: float, partner: str, partner_ok: bool,
+                      config: GateConfig = GateConfig()) -> list[Gate]:
     """The gates of an accelerometer whose offsets alone poses within reach fitted (its scales kept,
-    :mod:`mavcal.fits`): the offset limit, and the 95 % bound of the level tilt error its fitted
-    offsets leave against ``limit_deg`` (what the calibration in force is assumed to leave, made
-    smaller by the fit's required gain)."""
+    :mod:`mavcal.fits`) jointly with the compass ``partner``: that compass accepted (the two are one
+    fit), the offset limit, and the 95 % bound of the level tilt error its fitted offsets leave against
+    ``limit_deg`` (what the calibration in force is assumed to leave, made smaller by the fit's
+    required gain)."""
     gates: list[Gate] = []
     add, s = _adder(gates), f"accel{am.instance}"
+    add(s, "joint compass", partner_ok, float(partner_ok), f"{partner} accepted",
+        f"its offsets were fitted with {partner}, which was rejected: they are written only with it (its values "
+        "are right only with them)", "data")
     _offsets_gate(add, s, am, config)
     add(s, "level tilt uncertainty", level_tilt_95_deg <= limit_deg, level_tilt_95_deg,
         f"<= {limit_deg:.2f} deg (95 %)",
