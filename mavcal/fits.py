@@ -511,8 +511,8 @@ def _checked_scales(sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray, b_a: 
         free = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, incl), h_z=h_z)
     except (InsufficientDataError, EstimationError):
         return cal, state
-    if free.param_cov is None:
-        return cal, state
+    if free.param_cov is None or not free.converged or np.any(np.diag(free.accel.gain)[:2] <= 0.0):
+        return cal, state  # no certified optimum of the proper sign (tiny tilts): the poses cannot test them
     k = [free.param_names.index(n) for n in ("K_a[11]", "K_a[22]")]
     K = np.diag(K_a)[:2]
     d = np.diag(free.accel.gain)[:2] - K
