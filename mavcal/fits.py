@@ -374,11 +374,16 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
         raise with_blind_cal(prep, exc) from None
     if reach is not None and state != "calibrated":
         sd = HELD_ACCEL_SD[state]
+        if "K_a[11]" not in cal.held:  # its X/Y scales fitted from the poses, its Z scale kept
+            what = (f"{ACCEL_STATE_WORDS[state]}: its X/Y scales and offsets are fitted from the poses (X/Y scales to "
+                    f"{100 * scales_sd(cal):.1f} %, 1 sigma), its Z scale kept; the heading and tilt bounds carry "
+                    f"the Z scale's uncertainty ({100 * sd[1]:g} %, 1 sigma)")
+        else:
+            what = (f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry that uncertainty (1 sigma: "
+                    f"offsets {sd[0]:g} m/s^2, scales {100 * sd[1]:g} %"
+                    + (" or the discrepancy, if larger)" if state == "inconsistent" else ")"))
         reach = replace(reach, kept=reach.kept + (KeptParameter(
-            f"accel{ai}", "calibration in force", f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry "
-            f"that uncertainty (1 sigma: offsets {sd[0]:g} m/s^2, scales {100 * sd[1]:g} %"
-            + (" or the discrepancy, if larger)" if state == "inconsistent" else ")"),
-            "its full calibration: " + _BEYOND_WORDS),))
+            f"accel{ai}", "calibration in force", what, "its full calibration: " + _BEYOND_WORDS),))
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
     if reach is not None:  # the segmentation's "too few orientations" is what the reduced fit answers
@@ -392,6 +397,11 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
         am = mapping.accel[0]
         fitted = "b_a[x]" not in cal.held
         new = replace(am.old, ofs_mps2=tuple(float(x) for x in cal.accel.bias)) if fitted else am.old
+        if "K_a[11]" not in cal.held:  # the X/Y scales fitted (K_a = diag(g / scale)), the Z scale kept
+            K = np.diag(cal.accel.gain)
+            new = replace(new, scale=(GRAVITY_MPS2 / float(K[0]), GRAVITY_MPS2 / float(K[1]), new.scale[2]))
+            reach = replace(reach, kept=tuple(k for k in reach.kept if not (k.sensor == f"accel{ai}"
+                                                                            and k.what == "X and Y scales")))
         am = replace(am, new=new, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
                      dropped_magnitude_mps2=0.0, kept=not fitted)
         mapping = combine([am], mapping.compass, params_now, mapping.notes)
@@ -450,11 +460,12 @@ REACH_OFFSETS_GAIN = 2.0
 
 def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: IntervalStats, sm: IntervalStats,
                       params_now: dict[str, float]) -> tuple[Calibration, str]:
-    """The compass fitted with the accelerometer's scales held at its current calibration and its
-    offsets fitted (:func:`mavcal.core.held.calibrate_held`); the offsets held too when the poses do
-    not identify them to :data:`REACH_OFFSETS_GAIN` times the prior of the calibration in force (or
-    the fit with them free fails). The field dip is fitted; when the position is known and the tilts
-    determine the dip less well than the World Magnetic Model knows it
+    """The compass fitted with the accelerometer's offsets (:func:`mavcal.core.held.calibrate_held`): its
+    scales held at its current calibration when it is calibrated (and the poses do not contradict them),
+    else its X/Y scales fitted too when the poses identify them (:func:`_fit_free_scales`); the offsets
+    held too when the poses do not identify them to :data:`REACH_OFFSETS_GAIN` times the prior of the
+    calibration in force (or the fit with them free fails). The field dip is fitted; when the position
+    is known and the tilts determine the dip less well than the World Magnetic Model knows it
     (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead.
     Returns the fit and the state of the calibration in force (:func:`mavcal.coverage.accel_state`, or
     "inconsistent": calibrated, but its X/Y scales contradicted by the poses, :func:`_checked_scales`)."""
@@ -469,9 +480,23 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     scale = np.asarray(old.scale, float)
     K_a, b_a = np.diag(GRAVITY_MPS2 / scale), np.asarray(old.ofs_mps2, float)
     state = accel_state(b_a, scale)  # the held values' prior: full, level-only or no calibration
-    # the scales are held: only K_a[33] + b_a[z] (the level reading) is identified along Z, and X/Y scales move
-    # the readings by at most g sin(tilt); b_a[z] is fitted with K_a[33] held (the level reading), as are
-    # b_a[x], b_a[y] (see REACH_OFFSETS_GAIN)
+    if state != "calibrated":  # a level calibration's or the factory's scales: the poses know them better
+        free = _fit_free_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach)
+        if free is not None:
+            return free, state
+    cal = _fit_held_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach)
+    cal, state, note = _checked_scales(sa, sm, K_a, b_a, cal, state)
+    if state == "inconsistent":  # the scales in force contradicted: the poses' own, when they know them
+        free = _fit_free_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach, note + "; ")
+        if free is not None:
+            return free, state
+    return cal, state
+
+
+def _fit_held_scales(prep: Prepared, opts: Options, sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray,
+                     b_a: np.ndarray, state: str, params_now: dict[str, float], reach: ReachCoverage) -> Calibration:
+    """The fit with every scale held, the offsets fitted (held too when not identified, :data:`REACH_OFFSETS_GAIN`)."""
+    # only K_a[33] + b_a[z] (the level reading) is identified along Z: b_a[z] is fitted with K_a[33] held
     scales = [f"K_a[{j}{j}]" for j in (1, 2, 3)]
     why = (f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} distinct "
            "headings): the accelerometer's scales held at its current calibration, ")
@@ -480,13 +505,52 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
         cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales, state, params_now, why + "its offsets fitted, ")
         sd = offsets_sd_mps2(cal)
         if sd <= limit:
-            return _checked_scales(sa, sm, K_a, b_a, cal, state)
+            return cal
         note = (f"its X/Y offsets held too: the poses determine them to {sd:.3f} m/s^2 (1 sigma), not within "
                 f"{limit:g} m/s^2, ")
     except (InsufficientDataError, EstimationError) as exc:
         note = f"its X/Y offsets held too: the fit with them free failed ({exc}), "
-    cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales + ["b_a[x]", "b_a[y]"], state, params_now, why + note)
-    return _checked_scales(sa, sm, K_a, b_a, cal, state)
+    return _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales + ["b_a[x]", "b_a[y]"], state, params_now, why + note)
+
+
+#: poses within reach fit the X/Y scales of an accelerometer whose scales in force are a level calibration's or
+#: the factory's (1), or contradicted by the poses, when the fit knows them at least this many times better than
+#: those are assumed to be known (3 %, :data:`mavcal.coverage.HELD_ACCEL_SD`); else they are held
+REACH_SCALES_GAIN = 1.5
+
+
+def _fit_free_scales(prep: Prepared, opts: Options, sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray,
+                     b_a: np.ndarray, state: str, params_now: dict[str, float], reach: ReachCoverage,
+                     before: str = "") -> Calibration | None:
+    """The fit with the X/Y scales and the offsets free, the Z scale held with its prior (issue 37): the
+    X/Y-to-Z ratios the tilts see, which a wrong Z scale shifts by half its error (carried). None when
+    it fails, is not certified with positive gains, or does not identify the scales to
+    :data:`REACH_SCALES_GAIN` times their prior or the offsets to :data:`REACH_OFFSETS_GAIN` times theirs."""
+    why = (before + f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} "
+           "distinct headings): the accelerometer's Z scale held at its current calibration, its X/Y scales and "
+           "offsets fitted, ")
+    try:
+        cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, ["K_a[33]"], state, params_now, why)
+    except (InsufficientDataError, EstimationError):
+        return None
+    gains = np.diag(cal.accel.gain)[:2]
+    ofs_ok = offsets_sd_mps2(cal) <= HELD_ACCEL_SD[state][0] / REACH_OFFSETS_GAIN
+    if not cal.converged or np.any(gains <= 0.0) or not ofs_ok:
+        return None
+    return cal if scales_sd(cal) <= HELD_ACCEL_SD[state][1] / REACH_SCALES_GAIN else None
+
+
+def scales_sd(cal: Calibration) -> float:
+    """The largest relative standard deviation of a held fit's accelerometer X/Y scales (inf when held or
+    their covariance is unknown)."""
+    names = cal.param_names
+    if cal.param_cov is None or "K_a[11]" in cal.held:
+        return float("inf")
+    out = 0.0
+    for j in (1, 2):
+        k = names.index(f"K_a[{j}{j}]")
+        out = max(out, float(np.sqrt(max(cal.param_cov[k, k], 0.0))) / abs(float(cal.accel.gain[j - 1, j - 1])))
+    return out
 
 
 #: the false-alarm rate of calling an accelerometer's X/Y scales in force inconsistent with poses within reach
@@ -494,42 +558,43 @@ SCALES_FALSE_ALARM = 1e-3
 
 
 def _checked_scales(sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray, b_a: np.ndarray, cal: Calibration,
-                    state: str) -> tuple[Calibration, str]:
+                    state: str) -> tuple[Calibration, str, str]:
     """A calibrated accelerometer's held X/Y scales tested against the poses (issue 37): the same fit with
     K_a[11], K_a[22] free (K_a[33] and the rest held as in ``cal``, their priors counted), and the
     difference d of the free values from the held ones weighed by its covariance C (the free fit's plus
     the held values' prior): d^T C^-1 d is chi2 with 2 degrees of freedom when the calibration in force is
     within its prior. Beyond the chi2 point of :data:`SCALES_FALSE_ALARM`, the held values keep their place
     (the fit's point is unchanged) but their prior becomes a level calibration's, or the discrepancy when
-    larger, and the state "inconsistent": the bounds then carry it and the verdict names it."""
+    larger, and the state "inconsistent": the bounds then carry it and the verdict names it. Returns the
+    fit, the state and the finding in words ("" when none)."""
     if state != "calibrated":
-        return cal, state
+        return cal, state, ""
     held = [h for h in cal.held if h not in ("K_a[11]", "K_a[22]")]
     incl = float(np.degrees(np.arctan(cal.h_z))) if "h_z" in held else None
     h_z = cal.h_z if "h_z" in held else None
     try:
         free = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, incl), h_z=h_z)
     except (InsufficientDataError, EstimationError):
-        return cal, state
+        return cal, state, ""
     if free.param_cov is None or not free.converged or np.any(np.diag(free.accel.gain)[:2] <= 0.0):
-        return cal, state  # no certified optimum of the proper sign (tiny tilts): the poses cannot test them
+        return cal, state, ""  # no certified optimum of the proper sign (tiny tilts): the poses cannot test them
     k = [free.param_names.index(n) for n in ("K_a[11]", "K_a[22]")]
     K = np.diag(K_a)[:2]
     d = np.diag(free.accel.gain)[:2] - K
     C = free.param_cov[np.ix_(k, k)] + np.diag((HELD_ACCEL_SD[state][1] * K) ** 2)
     z2 = float(d @ np.linalg.solve(C, d))
     if z2 <= float(chi2.isf(SCALES_FALSE_ALARM, 2)):
-        return cal, state
+        return cal, state, ""
     off = float(np.abs(d / K).max())
     sd = max(HELD_ACCEL_SD["inconsistent"][1], off)
     pct = ", ".join(f"{c} {100 * x:+.1f} %" for c, x in zip("XY", np.diag(free.accel.gain)[:2] / K - 1.0))
-    reason = (cal.model_reason + f"; its X/Y scales in force do not fit these poses (K_a[11], K_a[22] fitted "
-              f"{pct} off them, chi2 {z2:.1f} on 2 dof, false-alarm rate {SCALES_FALSE_ALARM:g}): their prior "
-              f"widened to {100 * sd:.1f} %")
+    note = (f"its X/Y scales in force do not fit these poses (K_a[11], K_a[22] fitted {pct} off them, chi2 "
+            f"{z2:.1f} on 2 dof, false-alarm rate {SCALES_FALSE_ALARM:g})")
+    reason = cal.model_reason + f"; {note}: their prior widened to {100 * sd:.1f} %"
     refit = calibrate_held(sa, sm, K_a, b_a, held=list(cal.held), prior_sd=held_priors(K_a, "inconsistent", incl,
                                                                                        scale_sd=sd), h_z=h_z,
                            reason=reason)
-    return refit, "inconsistent"
+    return refit, "inconsistent", note
 
 
 def offsets_sd_mps2(cal: Calibration) -> float:
