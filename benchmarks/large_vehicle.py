@@ -129,7 +129,8 @@ def mavcal_run(sitl: SitlVehicle, errors: InjectedErrors, seed: int, args: list[
     after = sitl.get_params(CALIBRATION_NAMES)
     s = score_params(after, errors, sitl.field_ned_mgauss)
     sensors = {x["sensor"]: x for x in rep.get("sensors", [])}
-    kept = [n for n in ACCEL_NAMES if n in before and n not in fw.accel_param_names(0)["ofs"]]
+    fitted = set(fw.accel_param_names(0)["ofs"]) | set(fw.accel_param_names(0)["scale"][:2])  # may be written
+    kept = [n for n in ACCEL_NAMES if n in before and n not in fitted]
     unchanged = all(np.float32(after.get(n, np.nan)) == np.float32(before[n]) for n in kept)
     c0 = sensors.get("compass0", {})
     refusal = "" if rep else (g.status.text().strip().splitlines() or ["(no output)"])[-1]
@@ -139,6 +140,7 @@ def mavcal_run(sitl: SitlVehicle, errors: InjectedErrors, seed: int, args: list[
                 intervals=len(rep.get("intervals", [])) or None,
                 compass_accepted=bool(c0.get("accepted")), reasons=c0.get("reasons", [refusal] if refusal else []),
                 bound_deg=rep.get("quality", {}).get("heading_95_deg"), kept_unchanged=unchanged,
+                bound_steep_deg=rep.get("quality", {}).get("heading_95_steep_deg"),
                 accel_xy_offset_error_before_mps2=score_params(before, errors, sitl.field_ned_mgauss)[
                     "accel_xy_offset_error_mps2"],
                 would={k: v for k, v in would.items()}, **s)
@@ -255,6 +257,7 @@ def honesty_capture(seed: int, state: str, max_tilt: float = 15.0) -> dict:
     return dict(seed=seed, state=state, outcome="accepted" if accepted else "rejected", intervals=st.n_intervals,
                 reason="" if accepted else "; ".join(verdict.reasons if verdict else ["no verdict"]),
                 bound_deg=run.quality.heading_95_deg, heading_deg=e.max_heading_deg,
+                bound_steep_deg=run.quality.heading_95_steep_deg,
                 heading_level_deg=level.max_heading_deg, compass15_deg=e.max_heading_compass_only_deg,
                 compass30_deg=e30.max_heading_compass_only_deg, static30_deg=e30.max_heading_deg, within=bool(e.max_heading_deg <= run.quality.heading_95_deg))
 
@@ -281,8 +284,8 @@ def sitl_table(rows: list[dict]) -> str:
     head = ("| seed | accelerometer | site (dip) | SIM orient | offsets from in force (mGauss) | method | compass "
             "accepted | poses held (intervals) | time (s) | heading level (deg) | heading <=30 deg tilt (deg) "
             "| heading <=30 deg, attitude known (deg) | tilt (deg) | offsets (mGauss) | COMPASS_ORIENT read back "
-            "| 95 % bound (deg) | would-be <=15 deg (deg) | accel X/Y offset error (m/s^2) | accel scales kept |\n|"
-            + "---|" * 19)
+            "| 95 % bound (deg) | would-be <=15 deg (deg) | 95 % bound <=30 deg, either way (deg) "
+            "| accel X/Y offset error (m/s^2) | accel Z scale and IMU 2 kept |\n|" + "---|" * 20)
     lines = [head]
     for r in rows:
         for m in ("reach15", "reach5", "full", "fixed_yaw"):
@@ -298,7 +301,7 @@ def sitl_table(rows: list[dict]) -> str:
                 f"| {_f(x.get('seconds'), '.0f')} | {_f(x['heading_level_deg'])} | {_f(x['heading_tilt30_deg'])} "
                 f"| {_f(x.get('heading_tilt30_attitude_known_deg'))} "
                 f"| {_f(x['tilt_deg'])} | {_f(x['offsets_mgauss'], '.1f')} | {x['orient']} | {_f(x.get('bound_deg'))} "
-                f"| {_f(w.get('heading_tilt15_deg')) if mav else '-'} "
+                f"| {_f(w.get('heading_tilt15_deg')) if mav else '-'} | {_f(x.get('bound_steep_deg')) if mav else '-'} "
                 f"| {_ofs_change(x) if mav else _f(x.get('accel_xy_offset_error_mps2'))} "
                 f"| {('yes' if x['kept_unchanged'] else 'NO') if mav else '-'} |")
     return "\n".join(lines)
@@ -318,15 +321,28 @@ def verdict_lines(rows: list[dict]) -> str:
     return "\n".join(out) or "(every compass accepted)"
 
 
+def _worse(r: dict) -> float | None:
+    """The larger of the two heading errors over tilts up to 30 deg (through the accelerometer, attitude known)."""
+    xs = [r[k] for k in ("static30_deg", "compass30_deg") if r.get(k) is not None]
+    return max(xs) if xs else None
+
+
+def _within(measured, bound) -> str:
+    if measured is None or bound is None or not np.isfinite(bound):
+        return "-"
+    return "yes" if measured <= bound else "NO"
+
+
 def honesty_table(rows: list[dict]) -> str:
     head = ("| seed | accelerometer | outcome | intervals | measured max heading <=15 deg tilt (deg) | level (deg) "
-            "| <=30 deg tilt (deg) | <=30 deg, attitude known (deg) | 95 % bound (deg) | within | reason |\n|"
-            + "---|" * 11)
+            "| <=30 deg tilt (deg) | <=30 deg, attitude known (deg) | 95 % bound (deg) | within | 95 % bound <=30 deg, "
+            "either way (deg) | within | reason |\n|" + "---|" * 13)
     return "\n".join([head] + [f"| {r['seed']} | {r['state']} | {r['outcome']} | {r['intervals']} "
                                f"| {_f(r.get('heading_deg'))} | {_f(r.get('heading_level_deg'))} "
                                f"| {_f(r.get('static30_deg'))} | {_f(r.get('compass30_deg'))} "
                                f"| {_f(r.get('bound_deg'))} "
                                f"| {'-' if 'within' not in r else ('yes' if r['within'] else 'NO')} "
+                               f"| {_f(r.get('bound_steep_deg'))} | {_within(_worse(r), r.get('bound_steep_deg'))} "
                                f"| {r.get('reason', '')[:140]} |" for r in rows])
 
 

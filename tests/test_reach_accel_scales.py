@@ -103,3 +103,32 @@ def test_a_compass_rejected_takes_the_offsets_with_it_and_force_writes_both():
     assert not run.params_to_write()
     forced = run.params_to_write(force=True)
     assert "INS_ACCOFFS_X" in forced and "COMPASS_OFS_X" in forced
+
+
+def test_a_level_calibrated_accelerometer_gets_the_bound_beyond_the_poses_tilts():
+    """A level-calibrated accelerometer (scales at 1, truth up to 5 % off): its X/Y scales fitted, its Z scale
+    kept; the verdict gives the heading bound over tilts up to 30 deg too (the accelerometer named), and the
+    error measured there, through the accelerometer's tilt or with the attitude known, is within it."""
+    truth = VehicleTruth.random(4)
+    v = TestVehicle(truth=truth, seed=4)
+    a = truth.accels[0]
+    k = np.array(a.scale)
+    level = fw.AccelCal(ofs_mps2=(a.offsets[0], a.offsets[1], a.offsets[2] - 9.80665 / k[2] + 9.80665),
+                        scale=(1.0, 1.0, 1.0))
+    for name, value in fw.accel_param_values(level, 0).items():
+        v.set_param_local(name, value)
+    run = _session(v).result()
+    assert run.accepted and "K_a[11]" not in run.calibration.held
+    steep = run.quality.heading_95_steep_deg
+    assert steep > run.quality.heading_95_deg
+    said = " ".join(run.warnings)
+    assert f"at 30 deg of tilt the heading error could reach {steep:.2f} deg (95 %)" in said, said
+    assert "level-calibrated only" in said and "calibrate the accelerometer fully" in said, said
+    ct = truth.compasses[0]
+    M = fw.soft_iron_matrix(ct.dia, ct.odi)
+    after = {**v.params, **run.params_to_write()}
+    e = attitude_errors(lambda f: f / k + np.array(a.offsets),
+                        lambda x: x @ np.linalg.inv(M).T / ct.scale - np.array(ct.offsets),
+                        fw.accel_cal_from_params(after, 0), fw.compass_cal_from_params(after, 0),
+                        np.array(truth.earth_field_ned_mgauss), attitude_grid(max_tilt_deg=30.0))
+    assert max(e.max_heading_deg, e.max_heading_compass_only_deg) <= steep, e
