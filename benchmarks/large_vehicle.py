@@ -113,6 +113,9 @@ def score_params(params: dict, errors: InjectedErrors, field_ned) -> dict:
         out[f"heading_{key}_deg"] = e.max_heading_deg
         if key == "tilt30":
             out["tilt_deg"] = e.max_tilt_deg
+            out["heading_tilt30_attitude_known_deg"] = e.max_heading_compass_only_deg
+    ideal = errors.ideal_params()
+    out["accel_xy_offset_error_mps2"] = max(abs(params[n] - ideal[n]) for n in fw.accel_param_names(0)["ofs"][:2])
     out["offsets_mgauss"] = float(np.max(np.abs(np.array(cal_c.ofs_mgauss) - errors.mag_ofs_mgauss)))
     out["orient"] = int(cal_c.orient)
     return out
@@ -126,7 +129,8 @@ def mavcal_run(sitl: SitlVehicle, errors: InjectedErrors, seed: int, args: list[
     after = sitl.get_params(CALIBRATION_NAMES)
     s = score_params(after, errors, sitl.field_ned_mgauss)
     sensors = {x["sensor"]: x for x in rep.get("sensors", [])}
-    kept = [n for n in ACCEL_NAMES if n in before]
+    fitted = set(fw.accel_param_names(0)["ofs"]) | set(fw.accel_param_names(0)["scale"][:2])  # may be written
+    kept = [n for n in ACCEL_NAMES if n in before and n not in fitted]
     unchanged = all(np.float32(after.get(n, np.nan)) == np.float32(before[n]) for n in kept)
     c0 = sensors.get("compass0", {})
     refusal = "" if rep else (g.status.text().strip().splitlines() or ["(no output)"])[-1]
@@ -136,6 +140,9 @@ def mavcal_run(sitl: SitlVehicle, errors: InjectedErrors, seed: int, args: list[
                 intervals=len(rep.get("intervals", [])) or None,
                 compass_accepted=bool(c0.get("accepted")), reasons=c0.get("reasons", [refusal] if refusal else []),
                 bound_deg=rep.get("quality", {}).get("heading_95_deg"), kept_unchanged=unchanged,
+                bound_steep_deg=rep.get("quality", {}).get("heading_95_steep_deg"),
+                accel_xy_offset_error_before_mps2=score_params(before, errors, sitl.field_ned_mgauss)[
+                    "accel_xy_offset_error_mps2"],
                 would={k: v for k, v in would.items()}, **s)
 
 
@@ -234,7 +241,8 @@ def honesty_capture(seed: int, state: str, max_tilt: float = 15.0) -> dict:
     verdict = {x.sensor: x for x in run.verdicts}.get("compass0")
     ct = truth.compasses[0]
     M = fw.soft_iron_matrix(ct.dia, ct.odi)
-    written = fw.compass_cal_from_params({**v.params, **run.params_to_write(force=True)}, 0)
+    after = {**v.params, **run.params_to_write(force=True)}
+    written, now = fw.compass_cal_from_params(after, 0), fw.accel_cal_from_params(after, 0)
 
     def raw_a(f):
         return f / k + b
@@ -244,11 +252,14 @@ def honesty_capture(seed: int, state: str, max_tilt: float = 15.0) -> dict:
 
     e = attitude_errors(raw_a, raw_m, now, written, B, attitude_grid(max_tilt_deg=REACH_FLOWN_TILT_DEG))
     level = attitude_errors(raw_a, raw_m, now, written, B, attitude_grid(max_tilt_deg=0.0))
+    e30 = attitude_errors(raw_a, raw_m, now, written, B, attitude_grid(max_tilt_deg=30.0))
     accepted = verdict is not None and verdict.accepted
     return dict(seed=seed, state=state, outcome="accepted" if accepted else "rejected", intervals=st.n_intervals,
                 reason="" if accepted else "; ".join(verdict.reasons if verdict else ["no verdict"]),
                 bound_deg=run.quality.heading_95_deg, heading_deg=e.max_heading_deg,
-                heading_level_deg=level.max_heading_deg, within=bool(e.max_heading_deg <= run.quality.heading_95_deg))
+                bound_steep_deg=run.quality.heading_95_steep_deg,
+                heading_level_deg=level.max_heading_deg, compass15_deg=e.max_heading_compass_only_deg,
+                compass30_deg=e30.max_heading_compass_only_deg, static30_deg=e30.max_heading_deg, within=bool(e.max_heading_deg <= run.quality.heading_95_deg))
 
 
 # ------------------------------------------------------------------------------- tables
@@ -271,9 +282,10 @@ def _poses(x: dict) -> str:
 
 def sitl_table(rows: list[dict]) -> str:
     head = ("| seed | accelerometer | site (dip) | SIM orient | offsets from in force (mGauss) | method | compass "
-            "accepted | poses held (intervals) | time (s) | heading level (deg) | heading <=30 deg tilt (deg) | tilt (deg) | offsets "
-            "(mGauss) | COMPASS_ORIENT read back | 95 % bound (deg) | would-be <=15 deg (deg) | accel kept |\n|"
-            + "---|" * 17)
+            "accepted | poses held (intervals) | time (s) | heading level (deg) | heading <=30 deg tilt (deg) "
+            "| heading <=30 deg, attitude known (deg) | tilt (deg) | offsets (mGauss) | COMPASS_ORIENT read back "
+            "| 95 % bound (deg) | would-be <=15 deg (deg) | 95 % bound <=30 deg, either way (deg) "
+            "| accel X/Y offset error (m/s^2) | accel Z scale and IMU 2 kept |\n|" + "---|" * 20)
     lines = [head]
     for r in rows:
         for m in ("reach15", "reach5", "full", "fixed_yaw"):
@@ -287,10 +299,17 @@ def sitl_table(rows: list[dict]) -> str:
                 f"| {r['offsets_from_in_force_mgauss']:.0f} | {LABELS[m]} "
                 f"| {('yes' if x['compass_accepted'] else 'no') if mav else '-'} | {_poses(x)} "
                 f"| {_f(x.get('seconds'), '.0f')} | {_f(x['heading_level_deg'])} | {_f(x['heading_tilt30_deg'])} "
+                f"| {_f(x.get('heading_tilt30_attitude_known_deg'))} "
                 f"| {_f(x['tilt_deg'])} | {_f(x['offsets_mgauss'], '.1f')} | {x['orient']} | {_f(x.get('bound_deg'))} "
-                f"| {_f(w.get('heading_tilt15_deg')) if mav else '-'} "
+                f"| {_f(w.get('heading_tilt15_deg')) if mav else '-'} | {_f(x.get('bound_steep_deg')) if mav else '-'} "
+                f"| {_ofs_change(x) if mav else _f(x.get('accel_xy_offset_error_mps2'))} "
                 f"| {('yes' if x['kept_unchanged'] else 'NO') if mav else '-'} |")
     return "\n".join(lines)
+
+
+def _ofs_change(x: dict) -> str:
+    """The accelerometer's largest X/Y offset error in force before the capture -> read back after it."""
+    return f"{_f(x.get('accel_xy_offset_error_before_mps2'))} -> {_f(x.get('accel_xy_offset_error_mps2'))}"
 
 
 def verdict_lines(rows: list[dict]) -> str:
@@ -302,13 +321,28 @@ def verdict_lines(rows: list[dict]) -> str:
     return "\n".join(out) or "(every compass accepted)"
 
 
+def _worse(r: dict) -> float | None:
+    """The larger of the two heading errors over tilts up to 30 deg (through the accelerometer, attitude known)."""
+    xs = [r[k] for k in ("static30_deg", "compass30_deg") if r.get(k) is not None]
+    return max(xs) if xs else None
+
+
+def _within(measured, bound) -> str:
+    if measured is None or bound is None or not np.isfinite(bound):
+        return "-"
+    return "yes" if measured <= bound else "NO"
+
+
 def honesty_table(rows: list[dict]) -> str:
     head = ("| seed | accelerometer | outcome | intervals | measured max heading <=15 deg tilt (deg) | level (deg) "
-            "| 95 % bound (deg) | within | reason |\n|" + "---|" * 9)
+            "| <=30 deg tilt (deg) | <=30 deg, attitude known (deg) | 95 % bound (deg) | within | 95 % bound <=30 deg, "
+            "either way (deg) | within | reason |\n|" + "---|" * 13)
     return "\n".join([head] + [f"| {r['seed']} | {r['state']} | {r['outcome']} | {r['intervals']} "
                                f"| {_f(r.get('heading_deg'))} | {_f(r.get('heading_level_deg'))} "
+                               f"| {_f(r.get('static30_deg'))} | {_f(r.get('compass30_deg'))} "
                                f"| {_f(r.get('bound_deg'))} "
                                f"| {'-' if 'within' not in r else ('yes' if r['within'] else 'NO')} "
+                               f"| {_f(r.get('bound_steep_deg'))} | {_within(_worse(r), r.get('bound_steep_deg'))} "
                                f"| {r.get('reason', '')[:140]} |" for r in rows])
 
 

@@ -276,9 +276,10 @@ class ReachCoverage:
         uncertainty of the accelerometer calibration kept, which no pose within reach lowers (issue 37);
         ``accel``: the state of that calibration (:func:`accel_state`), named as the limit."""
         said = ACCEL_STATE_WORDS.get(accel)
-        what = {"never": "calibrate the accelerometer (its full 6-side calibration, or at least ArduPilot's simple "
-                         "or level calibration with the vehicle level on level ground)",
-                "level": "calibrate the accelerometer fully (its 6-side calibration: the scales)"}.get(
+        what = {"never": "calibrate the accelerometer (its full 6-side calibration: the scales; the offsets are fitted "
+                         "here when the poses identify them)",
+                "level": "calibrate the accelerometer fully (its 6-side calibration: the scales)",
+                "inconsistent": "calibrate the accelerometer again (its full 6-side calibration)"}.get(
             accel, "calibrate the accelerometer (its full calibration, or at least a level calibration on level "
                    "ground)")
         return ("the limit is the accelerometer" + (f", {said}" if said else "") + ": within reach the bound counts "
@@ -315,10 +316,8 @@ def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
     g_xy = 9.80665 * np.sin(np.radians(tilt))
     return [
         KeptParameter(sensor, "Z scale", f"{t} cannot separate it from the Z offset (gravity stays within "
-                      f"{100 * (1 - np.cos(np.radians(tilt))):.1f} % of its level value along Z)", _BEYOND),
-        KeptParameter(sensor, "Z offset", f"{t} cannot separate it from the Z scale", _BEYOND),
-        KeptParameter(sensor, "X and Y offsets", f"at {t} an X/Y offset cannot be told from a tilt of the whole "
-                      "frame (a level trim)", _BEYOND),
+                      f"{100 * (1 - np.cos(np.radians(tilt))):.1f} % of its level value along Z; the Z offset is "
+                      "fitted with the scale kept, so that the level reading is right)", _BEYOND),
         KeptParameter(sensor, "X and Y scales", f"{t} move X/Y by at most {g_xy:.2f} m/s^2, which a tilt of the "
                       "frame explains as well", _BEYOND),
     ]
@@ -541,7 +540,10 @@ def within_reach(cov: SensorCoverage, reach: ReachCoverage) -> SensorCoverage:
 HELD_ACCEL_SD_CALIBRATED = (0.05, 0.005)
 HELD_ACCEL_SD_LEVEL = (0.05, 0.03)
 HELD_ACCEL_SD_DEFAULT = (0.3, 0.03)
-HELD_ACCEL_SD = {"calibrated": HELD_ACCEL_SD_CALIBRATED, "level": HELD_ACCEL_SD_LEVEL, "never": HELD_ACCEL_SD_DEFAULT}
+#: "inconsistent": calibrated, but its X/Y scales contradicted by the poses (mavcal.fits): a level calibration's
+#: prior at least
+HELD_ACCEL_SD = {"calibrated": HELD_ACCEL_SD_CALIBRATED, "level": HELD_ACCEL_SD_LEVEL, "never": HELD_ACCEL_SD_DEFAULT,
+                 "inconsistent": HELD_ACCEL_SD_LEVEL}
 #: the state of an accelerometer's calibration in force, in words (the verdict's)
 ACCEL_STATE_WORDS = {
     "calibrated": "calibrated (offsets and scales set)",
@@ -549,6 +551,8 @@ ACCEL_STATE_WORDS = {
              "+-5 %, remains)",
     "never": "never calibrated (offsets 0, scales 1: factory biases up to 0.5 m/s^2 and scales up to +-5 % "
              "remain)",
+    "inconsistent": "calibrated, but its X/Y scales in force do not fit these poses (a calibration from another "
+                    "board or vehicle, or a poor one)",
 }
 
 
@@ -566,13 +570,16 @@ def accel_state(ofs_mps2: Sequence[float], scale: Sequence[float]) -> str:
     return "level" if np.all(k == 1.0) else "calibrated"
 
 
-def held_priors(K_a: np.ndarray, calibrated: bool | str, inclination_deg: float | None) -> dict[str, float]:
+def held_priors(K_a: np.ndarray, calibrated: bool | str, inclination_deg: float | None,
+                scale_sd: float | None = None) -> dict[str, float]:
     """The prior standard deviations of the held parameters (engine names, :mod:`mavcal.core.held`):
     the accelerometer's diagonal gain ``K_a`` and offsets (``calibrated``: the state of its calibration
     in force, :func:`accel_state`; True / False: "calibrated" / "never") and the field dip
-    h_z = tan(inclination) when held at the World Magnetic Model's ``inclination_deg``."""
+    h_z = tan(inclination) when held at the World Magnetic Model's ``inclination_deg``; ``scale_sd``: the
+    scales' relative prior instead of the state's."""
     state = calibrated if isinstance(calibrated, str) else ("calibrated" if calibrated else "never")
     ofs, rel = HELD_ACCEL_SD[state]
+    rel = rel if scale_sd is None else scale_sd
     out = {f"K_a[{j}{j}]": rel * abs(float(K_a[j - 1, j - 1])) for j in (1, 2, 3)}
     out.update({f"b_a[{c}]": ofs for c in "xyz"})
     if inclination_deg is not None:

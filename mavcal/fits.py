@@ -16,6 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 import numpy.random  # noqa: F401  (loaded here, before the fit workers fork, not once in each of them)
+from scipy.stats import chi2
 
 from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
@@ -66,8 +67,9 @@ log = logging.getLogger(__name__)
 __all__ = ["fit_recording", "refusal_verdicts", "reach_of"]
 
 
-_REACH_NOTE = ("poses within reach (tilts up to {:.1f} deg): the accelerometers keep their current calibration, "
-               "the compasses are fitted with it held; no held-out check")
+_REACH_NOTE = ("poses within reach (tilts up to {:.1f} deg): the accelerometers keep their current scales, the "
+               "compasses are fitted with them held and with the primary accelerometer's offsets (written with an "
+               "accepted compass when the poses identify them); no held-out check")
 
 
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:
@@ -144,22 +146,43 @@ def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None
     accels, fits, accel_gates = judge_accels(prep, opts, [primary] + others,
                                               [(a, got["accel", j]) for j, a in enumerate(insts)], warnings)
     report(progress, STAGE_FIT, n, n)
-    accels, kept = _within_reach_parts(reach, primary, compass_runs, accels)
+    accels, kept, reach_gates = _within_reach_parts(prep, opts, reach, primary, compass_runs, accels)
     notes = list(primary.mapping.notes) + [f"compass {c.instance}: {c.orientation_note}" for c in compasses[1:]]
     mapping = combine(accels, compasses, primary.params_before, notes)
-    return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + gates)),
+    return replace(primary, mapping=mapping, gates=gates_mod.GateReport(tuple(accel_gates + reach_gates + gates)),
                    others=tuple(others), warnings=tuple(dict.fromkeys(warnings)), accel_fits=tuple(fits), kept=kept)
 
 
-def _within_reach_parts(reach: ReachCoverage | None, primary: CalibrationRun, compass_runs: list[CalibrationRun],
-                        accels: list[AccelMapping]):
-    """(accelerometer mappings, kept parameters) of a run: for poses within reach, the kept
-    accelerometer (no parameter to write) and every compass's and accelerometer's kept parameters."""
+def _within_reach_parts(prep: Prepared, opts: Options, reach: ReachCoverage | None, primary: CalibrationRun,
+                        compass_runs: list[CalibrationRun], accels: list[AccelMapping]):
+    """(accelerometer mappings, kept parameters, accelerometer gates) of a run: for poses within
+    reach, the primary accelerometer with its scales kept and its offsets fitted, and every compass's
+    and accelerometer's kept parameters. The offsets and the compass are one fit: the offsets are
+    rejected with their compass (and written with it under --force, the compass being right only
+    with them)."""
     if reach is None:
-        return accels, ()
+        return accels, (), []
     kept = tuple(k for r in compass_runs for k in r.kept if k.sensor.startswith("compass")) \
         + tuple(k for k in primary.kept if k.sensor.startswith("accel"))
-    return [primary.mapping.accel[0]], kept
+    am = primary.mapping.accel[0]
+    if am.kept:
+        return [am], kept, []
+    cal = primary.calibration
+    assert cal is not None
+    state = accel_state(am.old.ofs_mps2, am.old.scale)
+    level_95 = _level_tilt_95_deg(offsets_sd_mps2(cal))
+    gates = gates_mod.reach_accel_gates(am, level_tilt_95_deg=level_95,
+                                        limit_deg=_level_tilt_95_deg(HELD_ACCEL_SD[state][0] / REACH_OFFSETS_GAIN),
+                                        partner=f"compass{opts.mag_instance}",
+                                        partner_ok=all(g.ok for g in primary.gates.gates),
+                                        config=model_for(prep.log).gate_config(opts.gates))
+    return [am], kept, gates
+
+
+def _level_tilt_95_deg(sd_mps2: float) -> float:
+    """The 95 % bound of the level tilt error (deg) an X/Y offset error of ``sd_mps2`` (1 sigma, any
+    horizontal direction) leaves: chi2 with 2 degrees of freedom."""
+    return float(np.degrees(np.sqrt(CHI2_2_95) * sd_mps2 / GRAVITY_MPS2))
 
 
 def _holdout_slices(workers: int) -> int:
@@ -223,8 +246,14 @@ def _job(shared: _Shared, item: tuple[str, int, tuple]):
                                    stats_of(prep, stats, "mag", mi, f.used)))
     o, f = arg
     am, cm = f.mapping.accel[0], f.mapping.compass[0]
-    return quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")),
-                      **({} if f.reach is None else {"max_tilt_deg": REACH_FLOWN_TILT_DEG}))
+    q = quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")),
+                   **({} if f.reach is None else {"max_tilt_deg": REACH_FLOWN_TILT_DEG}))
+    if f.reach is None or f.accel_state == "calibrated":
+        return q
+    # the Z scale kept at the factory's (3 %): what it leaves beyond the poses' tilts, for the verdict to say
+    steep = quality_of(f.cal, am, cm, am.old.board_matrix, o.uncertainty_draws, o.seed, (float("nan"), float("nan")),
+                       max_tilt_deg=REACH_STEEP_TILT_DEG, attitude_known=True)
+    return replace(q, heading_95_steep_deg=steep.heading_95_deg)
 
 
 def _other_pairs(prep: Prepared, opts: Options) -> list[tuple[int, int]]:
@@ -334,12 +363,6 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
     # poses within reach hold the accelerometer: its state in force sets its prior and the advice
     state = "calibrated" if reach is None else _accel_state_of(model, params_now, ai)
     turn = None if reach is None else reach_turn(model, reach, params_now, ai, mi)
-    if reach is not None and state != "calibrated":
-        sd = HELD_ACCEL_SD[state]
-        reach = replace(reach, kept=reach.kept + (KeptParameter(
-            f"accel{ai}", "calibration in force", f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry "
-            f"that uncertainty (1 sigma: offsets {sd[0]:g} m/s^2, scales {100 * sd[1]:g} %)",
-            "its full calibration: " + _BEYOND_WORDS),))
     if reach is not None and reach.mounting_turn_deg and turn is None and reach.compass_identified:
         reach = replace(reach, kept=reach.kept + (KeptParameter(
             f"compass{mi}", "orientation", f"{reach.mounting_text()} (its orientation cannot be written here: an "
@@ -349,11 +372,24 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
         if reach is None:
             cal = calibrate(sa, sm, method=opts.method, tol=opts.tol, seed=opts.seed, model=opts.model)
         elif turn is None:
-            cal = _fit_within_reach(prep, opts, reach, sa, sm, params_now)
+            cal, state = _fit_within_reach(prep, opts, reach, sa, sm, params_now)
         else:  # the compass turned as the tilts say (issue 37): fitted so, its orientation then written
-            cal = turn_compass(_fit_within_reach(prep, opts, reach, sa, turned_stats(sm, turn), params_now), turn)
+            cal, state = _fit_within_reach(prep, opts, reach, sa, turned_stats(sm, turn), params_now)
+            cal = turn_compass(cal, turn)
     except (InsufficientDataError, EstimationError) as exc:
         raise with_blind_cal(prep, exc) from None
+    if reach is not None and state != "calibrated":
+        sd = HELD_ACCEL_SD[state]
+        if "K_a[11]" not in cal.held:  # its X/Y scales fitted from the poses, its Z scale kept
+            what = (f"{ACCEL_STATE_WORDS[state]}: its X/Y scales and offsets are fitted from the poses (X/Y scales to "
+                    f"{100 * scales_sd(cal):.1f} %, 1 sigma), its Z scale kept; the heading and tilt bounds carry "
+                    f"the Z scale's uncertainty ({100 * sd[1]:g} %, 1 sigma)")
+        else:
+            what = (f"{ACCEL_STATE_WORDS[state]}; the heading and tilt bounds carry that uncertainty (1 sigma: "
+                    f"offsets {sd[0]:g} m/s^2, scales {100 * sd[1]:g} %"
+                    + (" or the discrepancy, if larger)" if state == "inconsistent" else ")"))
+        reach = replace(reach, kept=reach.kept + (KeptParameter(
+            f"accel{ai}", "calibration in force", what, "its full calibration: " + _BEYOND_WORDS),))
     if not params_now:
         warnings.append("the log has no parameters: readings were taken as raw and the old values are unknown")
     if reach is not None:  # the segmentation's "too few orientations" is what the reduced fit answers
@@ -363,11 +399,22 @@ def _fit_pair(prep: Prepared, opts: Options, stats: StatsCache) -> PairFit:
         location=opts.location or log_.position, location_source="" if opts.location else log_.position_source,
         field_mgauss=opts.field_mgauss, orient_tol_deg=opts.orient_tol_deg, allow_custom=opts.allow_custom,
         force_external=opts.force_external)
-    if reach is not None:  # the accelerometer keeps its values, exactly (the fit held them)
+    if reach is not None:  # the accelerometer keeps its scales, exactly; its offsets are the fit's (if identified)
         am = mapping.accel[0]
-        am = replace(am, new=am.old, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
-                     dropped_magnitude_mps2=0.0, kept=True)
+        fitted = "b_a[x]" not in cal.held
+        new = replace(am.old, ofs_mps2=tuple(float(x) for x in cal.accel.bias)) if fitted else am.old
+        if "K_a[11]" not in cal.held:  # the X/Y scales fitted (K_a = diag(g / scale)), the Z scale kept
+            K = np.diag(cal.accel.gain)
+            new = replace(new, scale=(GRAVITY_MPS2 / float(K[0]), GRAVITY_MPS2 / float(K[1]), new.scale[2]))
+            reach = replace(reach, kept=tuple(k for k in reach.kept if not (k.sensor == f"accel{ai}"
+                                                                            and k.what == "X and Y scales")))
+        am = replace(am, new=new, frame_rotation=np.eye(3), cross_axis=np.zeros((3, 3)), dropped_tilt_deg=0.0,
+                     dropped_magnitude_mps2=0.0, kept=not fitted)
         mapping = combine([am], mapping.compass, params_now, mapping.notes)
+        if not fitted:
+            reach = replace(reach, kept=reach.kept + (KeptParameter(
+                f"accel{ai}", "offsets", f"these poses do not identify them {REACH_OFFSETS_GAIN:g} times better than "
+                "the calibration in force is known (the model's reason says how well)", _OFFSETS_POSE),))
     return PairFit(used, cal, mapping, params_now, warnings, reach, state)
 
 
@@ -384,6 +431,11 @@ def reach_of(prep: Prepared, opts: Options) -> ReachCoverage | None:
 
 
 _BEYOND_WORDS = "the vehicle on each side and upside down (the full capture without --max-tilt)"
+_OFFSETS_POSE = "tilts in more directions at several headings, each held still longer; or " + _BEYOND_WORDS
+CHI2_2_95 = 5.991464547107979  # the 95 % point of chi2 with 2 degrees of freedom
+#: within reach with a factory Z scale, the heading bound is also given over tilts up to this (deg): what a vehicle
+#: flown steeper than its poses were held meets (REACH_FLOWN_TILT_DEG is the bound the gate judges)
+REACH_STEEP_TILT_DEG = 30.0
 
 
 def _accel_state_of(model: AutopilotModel, params: dict[str, float], instance: int) -> str:
@@ -408,12 +460,24 @@ def reach_turn(model: AutopilotModel, reach: ReachCoverage, params_now: dict[str
     return Q if nearest_rotation(Q @ old.mount_matrix)[1] <= 1.0 else None
 
 
+#: poses within reach fit the accelerometer's offsets (issue 37: the tilts at several headings tell a body-fixed
+#: offset from the tilt of each pose, through gravity's constant magnitude and the compass's view of the tilt);
+#: they are written when the fit knows them at least this many times better than the calibration in force is
+#: assumed to be known (:data:`mavcal.coverage.HELD_ACCEL_SD` by its state), else held as before
+REACH_OFFSETS_GAIN = 2.0
+
+
 def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: IntervalStats, sm: IntervalStats,
-                      params_now: dict[str, float]) -> Calibration:
-    """The compass fitted with the accelerometer held at its current calibration
-    (:func:`mavcal.core.held.calibrate_held`). The field dip is fitted; when the position is
-    known and the tilts determine the dip less well than the World Magnetic Model knows it
-    (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead."""
+                      params_now: dict[str, float]) -> tuple[Calibration, str]:
+    """The compass fitted with the accelerometer's offsets (:func:`mavcal.core.held.calibrate_held`): its
+    scales held at its current calibration when it is calibrated (and the poses do not contradict them),
+    else its X/Y scales fitted too when the poses identify them (:func:`_fit_free_scales`); the offsets
+    held too when the poses do not identify them to :data:`REACH_OFFSETS_GAIN` times the prior of the
+    calibration in force (or the fit with them free fails). The field dip is fitted; when the position
+    is known and the tilts determine the dip less well than the World Magnetic Model knows it
+    (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead.
+    Returns the fit and the state of the calibration in force (:func:`mavcal.coverage.accel_state`, or
+    "inconsistent": calibrated, but its X/Y scales contradicted by the poses, :func:`_checked_scales`)."""
     if not reach.compass_identified:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach (tilts up to {reach.max_tilt_deg:.1f} "
                                     f"deg): {'; '.join(reach.missing)}; {reach.add}")
@@ -424,13 +488,140 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
                                     "the accelerometer in the board frame); capture the six sides instead")
     scale = np.asarray(old.scale, float)
     K_a, b_a = np.diag(GRAVITY_MPS2 / scale), np.asarray(old.ofs_mps2, float)
-    calibrated = accel_state(b_a, scale)  # the held values' prior: full, level-only or no calibration
-    # b_a[z] is fitted, not held: only K_a[33] + b_a[z] (the level reading) is identified, and a held pair that
-    # misses it by more than the noise would be a misfit of the whole cost; it is kept all the same (not written)
-    held = [f"K_a[{j}{j}]" for j in (1, 2, 3)] + ["b_a[x]", "b_a[y]"]
+    state = accel_state(b_a, scale)  # the held values' prior: full, level-only or no calibration
+    if state != "calibrated":  # a level calibration's or the factory's scales: the poses know them better
+        free = _fit_free_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach)
+        if free is not None:
+            return free, state
+    cal = _fit_held_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach)
+    cal, state, note = _checked_scales(sa, sm, K_a, b_a, cal, state)
+    if state == "inconsistent":  # the scales in force contradicted: the poses' own, when they know them
+        free = _fit_free_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach, note + "; ")
+        if free is not None:
+            return free, state
+    return cal, state
+
+
+def _fit_held_scales(prep: Prepared, opts: Options, sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray,
+                     b_a: np.ndarray, state: str, params_now: dict[str, float], reach: ReachCoverage) -> Calibration:
+    """The fit with every scale held, the offsets fitted (held too when not identified, :data:`REACH_OFFSETS_GAIN`)."""
+    # only K_a[33] + b_a[z] (the level reading) is identified along Z: b_a[z] is fitted with K_a[33] held
+    scales = [f"K_a[{j}{j}]" for j in (1, 2, 3)]
     why = (f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} distinct "
-           "headings): the accelerometer held at its current calibration, ")
-    cal = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, calibrated, None),
+           "headings): the accelerometer's scales held at its current calibration, ")
+    limit = HELD_ACCEL_SD[state][0] / REACH_OFFSETS_GAIN
+    try:
+        cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales, state, params_now, why + "its offsets fitted, ")
+        sd = offsets_sd_mps2(cal)
+        if sd <= limit:
+            return cal
+        note = (f"its X/Y offsets held too: the poses determine them to {sd:.3f} m/s^2 (1 sigma), not within "
+                f"{limit:g} m/s^2, ")
+    except (InsufficientDataError, EstimationError) as exc:
+        note = f"its X/Y offsets held too: the fit with them free failed ({exc}), "
+    return _held_dip_fit(prep, opts, sa, sm, K_a, b_a, scales + ["b_a[x]", "b_a[y]"], state, params_now, why + note)
+
+
+#: poses within reach fit the X/Y scales of an accelerometer whose scales in force are a level calibration's or
+#: the factory's (1), or contradicted by the poses, when the fit knows them at least this many times better than
+#: those are assumed to be known (3 %, :data:`mavcal.coverage.HELD_ACCEL_SD`); else they are held
+REACH_SCALES_GAIN = 1.5
+
+
+def _fit_free_scales(prep: Prepared, opts: Options, sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray,
+                     b_a: np.ndarray, state: str, params_now: dict[str, float], reach: ReachCoverage,
+                     before: str = "") -> Calibration | None:
+    """The fit with the X/Y scales and the offsets free, the Z scale held with its prior (issue 37): the
+    X/Y-to-Z ratios the tilts see, which a wrong Z scale shifts by half its error (carried). None when
+    it fails, is not certified with positive gains, or does not identify the scales to
+    :data:`REACH_SCALES_GAIN` times their prior or the offsets to :data:`REACH_OFFSETS_GAIN` times theirs."""
+    why = (before + f"poses within reach (tilts up to {reach.max_tilt_deg:.1f} deg, {reach.n_field_directions} "
+           "distinct headings): the accelerometer's Z scale held at its current calibration, its X/Y scales and "
+           "offsets fitted, ")
+    try:
+        cal = _held_dip_fit(prep, opts, sa, sm, K_a, b_a, ["K_a[33]"], state, params_now, why)
+    except (InsufficientDataError, EstimationError):
+        return None
+    gains = np.diag(cal.accel.gain)[:2]
+    ofs_ok = offsets_sd_mps2(cal) <= HELD_ACCEL_SD[state][0] / REACH_OFFSETS_GAIN
+    if not cal.converged or np.any(gains <= 0.0) or not ofs_ok:
+        return None
+    return cal if scales_sd(cal) <= HELD_ACCEL_SD[state][1] / REACH_SCALES_GAIN else None
+
+
+def scales_sd(cal: Calibration) -> float:
+    """The largest relative standard deviation of a held fit's accelerometer X/Y scales (inf when held or
+    their covariance is unknown)."""
+    names = cal.param_names
+    if cal.param_cov is None or "K_a[11]" in cal.held:
+        return float("inf")
+    out = 0.0
+    for j in (1, 2):
+        k = names.index(f"K_a[{j}{j}]")
+        out = max(out, float(np.sqrt(max(cal.param_cov[k, k], 0.0))) / abs(float(cal.accel.gain[j - 1, j - 1])))
+    return out
+
+
+#: the false-alarm rate of calling an accelerometer's X/Y scales in force inconsistent with poses within reach
+SCALES_FALSE_ALARM = 1e-3
+
+
+def _checked_scales(sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray, b_a: np.ndarray, cal: Calibration,
+                    state: str) -> tuple[Calibration, str, str]:
+    """A calibrated accelerometer's held X/Y scales tested against the poses (issue 37): the same fit with
+    K_a[11], K_a[22] free (K_a[33] and the rest held as in ``cal``, their priors counted), and the
+    difference d of the free values from the held ones weighed by its covariance C (the free fit's plus
+    the held values' prior): d^T C^-1 d is chi2 with 2 degrees of freedom when the calibration in force is
+    within its prior. Beyond the chi2 point of :data:`SCALES_FALSE_ALARM`, the held values keep their place
+    (the fit's point is unchanged) but their prior becomes a level calibration's, or the discrepancy when
+    larger, and the state "inconsistent": the bounds then carry it and the verdict names it. Returns the
+    fit, the state and the finding in words ("" when none)."""
+    if state != "calibrated":
+        return cal, state, ""
+    held = [h for h in cal.held if h not in ("K_a[11]", "K_a[22]")]
+    incl = float(np.degrees(np.arctan(cal.h_z))) if "h_z" in held else None
+    h_z = cal.h_z if "h_z" in held else None
+    try:
+        free = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, incl), h_z=h_z)
+    except (InsufficientDataError, EstimationError):
+        return cal, state, ""
+    if free.param_cov is None or not free.converged or np.any(np.diag(free.accel.gain)[:2] <= 0.0):
+        return cal, state, ""  # no certified optimum of the proper sign (tiny tilts): the poses cannot test them
+    k = [free.param_names.index(n) for n in ("K_a[11]", "K_a[22]")]
+    K = np.diag(K_a)[:2]
+    d = np.diag(free.accel.gain)[:2] - K
+    C = free.param_cov[np.ix_(k, k)] + np.diag((HELD_ACCEL_SD[state][1] * K) ** 2)
+    z2 = float(d @ np.linalg.solve(C, d))
+    if z2 <= float(chi2.isf(SCALES_FALSE_ALARM, 2)):
+        return cal, state, ""
+    off = float(np.abs(d / K).max())
+    sd = max(HELD_ACCEL_SD["inconsistent"][1], off)
+    pct = ", ".join(f"{c} {100 * x:+.1f} %" for c, x in zip("XY", np.diag(free.accel.gain)[:2] / K - 1.0))
+    note = (f"its X/Y scales in force do not fit these poses (K_a[11], K_a[22] fitted {pct} off them, chi2 "
+            f"{z2:.1f} on 2 dof, false-alarm rate {SCALES_FALSE_ALARM:g})")
+    reason = cal.model_reason + f"; {note}: their prior widened to {100 * sd:.1f} %"
+    refit = calibrate_held(sa, sm, K_a, b_a, held=list(cal.held), prior_sd=held_priors(K_a, "inconsistent", incl,
+                                                                                       scale_sd=sd), h_z=h_z,
+                           reason=reason)
+    return refit, "inconsistent", note
+
+
+def offsets_sd_mps2(cal: Calibration) -> float:
+    """The largest standard deviation of a held fit's accelerometer X/Y offsets (any direction in the
+    horizontal plane, m/s^2): inf when they were held or their covariance is unknown."""
+    names = cal.param_names
+    if cal.param_cov is None or "b_a[x]" in cal.held or "b_a[x]" not in names:
+        return float("inf")
+    k = [names.index("b_a[x]"), names.index("b_a[y]")]
+    return float(np.sqrt(max(np.linalg.eigvalsh(cal.param_cov[np.ix_(k, k)]).max(), 0.0)))
+
+
+def _held_dip_fit(prep: Prepared, opts: Options, sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray,
+                  b_a: np.ndarray, held: list[str], state: str, params_now: dict[str, float], why: str) -> Calibration:
+    """:func:`mavcal.core.held.calibrate_held` with ``held`` fixed, the field dip fitted, or held at the World
+    Magnetic Model's inclination when the tilts determine it less well than the model knows it."""
+    model = model_for(prep.log)
+    cal = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, None),
                          reason=why + "the field dip estimated from the tilts")
     loc = opts.location or prep.log.position
     if loc is None:
@@ -441,7 +632,7 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     if incl is None or sd_incl <= WMM_INCLINATION_SD_DEG:
         return replace(cal, model_reason=cal.model_reason + f" (to {sd_incl:.2f} deg, closer than the World "
                        f"Magnetic Model's {WMM_INCLINATION_SD_DEG:g} deg)")
-    return calibrate_held(sa, sm, K_a, b_a, held=held + ["h_z"], prior_sd=held_priors(K_a, calibrated, incl),
+    return calibrate_held(sa, sm, K_a, b_a, held=held + ["h_z"], prior_sd=held_priors(K_a, state, incl),
                           h_z=float(np.tan(np.radians(incl))),
                           reason=why + f"the field dip at the World Magnetic Model's inclination {incl:.2f} deg (the "
                           f"tilts determine it only to {sd_incl:.2f} deg)")

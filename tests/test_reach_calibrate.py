@@ -1,6 +1,6 @@
 """A vehicle that cannot be turned over: a log of poses within reach (any heading, small tilts)
-calibrates the compass with the accelerometer held, writes only what the poses identify and
-says per sensor what was kept, why, and what pose would identify it (issue 27)."""
+calibrates the compass with the accelerometer's scales held and its offsets fitted, writes only what
+the poses identify and says per sensor what was kept, why, and what pose would identify it (issues 27, 37)."""
 import json
 
 import numpy as np
@@ -36,9 +36,9 @@ def _log(path, tilt_deg: float, headings: int | None = None, seed: int = 3):
     return path
 
 
-def _errors(cm, max_tilt_deg: float):
+def _errors(cm, max_tilt_deg: float, accel: fw.AccelCal = ACCEL_CAL):
     K = np.array(SOFT)
-    return attitude_errors(lambda f: f * np.array(GAIN) + BIAS, lambda B: B @ K.T + HARD, ACCEL_CAL, cm.new,
+    return attitude_errors(lambda f: f * np.array(GAIN) + BIAS, lambda B: B @ K.T + HARD, accel, cm.new,
                            np.array(FIELD), attitude_grid(max_tilt_deg=max_tilt_deg))
 
 
@@ -53,14 +53,19 @@ def run(small):
 
 
 def test_small_tilts_calibrate_the_compass_and_keep_the_accelerometer(run):
-    assert run.exit_code == 0 and [v.sensor for v in run.verdicts] == ["compass0"]
+    assert run.exit_code == 0 and [v.sensor for v in run.verdicts] == ["accel0", "compass0"]
+    assert all(v.accepted for v in run.verdicts)
     cal = run.calibration
     assert cal.converged and cal.certificate.certified
     # the 12 deg tilts determine the dip better than the World Magnetic Model knows it: fitted
-    assert set(cal.held) == {"K_a[11]", "K_a[22]", "K_a[33]", "b_a[x]", "b_a[y]"}
+    assert set(cal.held) == {"K_a[11]", "K_a[22]", "K_a[33]"}
     assert "closer than the World Magnetic Model's" in cal.model_reason
     write = run.params_to_write()
-    assert not any(n.startswith("INS_") for n in write)
+    # the offsets fitted and written (the truth 0.15, -0.1, 0.25; in force 0.02 m/s^2 off), the scales kept
+    ofs = np.array([write[f"INS_ACCOFFS_{c}"] for c in "XYZ"])
+    assert np.abs(ofs[:2] - BIAS[:2]).max() <= 0.01, ofs
+    assert not any(n.startswith("INS_ACCSCAL") and write[n] != pytest.approx(ACCEL_CAL.scale["XYZ".index(n[-1])],
+                                                                              rel=1e-6) for n in write)
     assert {"COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z", "COMPASS_DIA_Z", "COMPASS_ODI_Y"} <= set(write)
     # what is kept, why, and what would identify it
     kept = {(k.sensor, k.what): k for k in run.kept}
@@ -70,9 +75,9 @@ def test_small_tilts_calibrate_the_compass_and_keep_the_accelerometer(run):
 
 
 def test_heading_error_small_and_within_the_bound(run):
-    cm = run.mapping.compass[0]
-    level = _errors(cm, 0.0)
-    flown = _errors(cm, REACH_FLOWN_TILT_DEG)
+    cm, am = run.mapping.compass[0], run.mapping.accel[0].new  # as written: the offsets fitted, the scales kept
+    level = _errors(cm, 0.0, am)
+    flown = _errors(cm, REACH_FLOWN_TILT_DEG, am)
     assert level.max_heading_deg <= 0.5
     assert flown.max_heading_deg <= run.quality.heading_95_deg
     assert run.quality.heading_95_deg <= 2.0
@@ -80,13 +85,13 @@ def test_heading_error_small_and_within_the_bound(run):
 
 def test_summary_json_and_html_say_what_was_kept(run, tmp_path):
     text = summary_text(run)
-    assert "accel0: kept at its current calibration, nothing written" in text
+    assert "accel0: written: INS_ACCOFFS_X" in text and "accel0: kept:" in text
     assert "Z scale kept: tilts up to 12 deg cannot separate it from the Z offset" in text
     assert "compass0: written: COMPASS_DIA_X" in text
     assert "tilts up to 15 deg; the kept values' uncertainty counted" in text
     doc = run.to_json()
     assert {"sensor": "accel0", "parameter": "Z scale"}.items() <= doc["kept"][1].items()
-    assert not any(v["written"] for n, v in doc["parameters"].items() if n.startswith("INS_"))
+    assert doc["parameters"]["INS_ACCOFFS_X"]["written"]
     pytest.importorskip("matplotlib")
     from mavcal.report.html import write_html
 
@@ -148,7 +153,7 @@ def test_segments_says_per_parameter_what_the_poses_identify(small, capsys):
     reach = d["reach"]
     assert reach["compass_identified"] and reach["max_tilt_deg"] <= 12.0
     assert {k["parameter"] for k in reach["kept"] if k["sensor"] == "accel0"} == {
-        "Z scale", "Z offset", "X and Y offsets", "X and Y scales"}
+        "Z scale", "X and Y scales"}
     assert [s["identifiable"] for s in d["sensors"]] == [False, True]  # accel0 not, compass0 within reach
 
 

@@ -55,11 +55,18 @@ def _capture(v: TestVehicle, max_poses: int = 40):
     return sess, st, shown
 
 
-def test_the_issue_vehicle_ends_within_25_poses_and_never_repeats_a_pose():
-    sess, st, _ = _capture(_vehicle())
+def test_the_issue_vehicle_ends_within_25_poses_and_never_repeats_a_pose_without_saying_why():
+    """The issue's accelerometer in force looks calibrated but its X/Y scales are 2-4 % off its truth: the
+    poses say so, the bound carries it, and the capture ends with a verdict naming the accelerometer."""
+    sess, st, shown = _capture(_vehicle())
     advised = [(p.roll_deg, p.pitch_deg, p.yaw_deg) for p in sess.poses_advised]
     assert st.done and not st.aborted and st.n_intervals <= 25, st.reason
-    assert len(set(advised)) == len(advised), advised
+    for k in range(1, len(advised)):  # a pose advised again only with the status saying why, when it is advised
+        if advised[k] in advised[:k]:
+            assert any("advised again" in m for m in shown[k - 1][1]), (k, advised[k], shown[k - 1])
+    run = sess.result()
+    (v,) = [v for v in run.verdicts if v.sensor == "compass0"]
+    assert v.accepted or "the limit is the accelerometer, calibrated, but its X/Y scales" in " ".join(v.reasons)
 
 
 def test_with_no_fit_ever_the_plan_never_cycles_and_the_cap_ends_with_what_was_measured(monkeypatch):
@@ -120,15 +127,16 @@ def test_a_compass_mounted_rotated_and_configured_so_is_calibrated():
 
 def test_a_heading_bound_above_its_gate_names_the_kept_accelerometer():
     """Issue 37, item 4: the accelerometer in force 0.5 m/s^2 off (SITL's reproduction): a compass
-    rejected for its heading bound is told that the bound counts the kept accelerometer's calibration
-    and what to do, not "more poses at different headings, or steel and magnets"."""
+    rejected for its heading bound (a gate of 0.2 deg here: its bound is about 0.5) is told that the
+    bound counts the kept accelerometer's calibration and what to do, not "more poses at different
+    headings, or steel and magnets"."""
     from dataclasses import replace
 
     from mavcal.autopilot.gates import GateConfig
 
     sess, st, _ = _capture(_vehicle())
     assert st.done and not st.aborted, st.reason
-    opts = replace(sess.options, holdout=True, gates=GateConfig(heading_95_max_deg=0.5))
+    opts = replace(sess.options, holdout=True, gates=GateConfig(heading_95_max_deg=0.2))
     run = sess.result(opts)
     verdict = {v.sensor: v for v in run.verdicts}["compass0"]
     assert not verdict.accepted

@@ -118,7 +118,8 @@ class GridErrors:
     def __init__(self, accel_cal: fw.AccelCal, compass_cal: fw.CompassCal, field_ned_mgauss, grid: np.ndarray):
         self.accel_cal, self.compass_cal = accel_cal, compass_cal
         self.f_body, self.B_body = body_vectors(grid, field_ned_mgauss)
-        self.h_true = _heading((_level_from_accel(self.f_body) @ self.B_body[..., None])[..., 0])
+        self.L_true = _level_from_accel(self.f_body)
+        self.h_true = _heading((self.L_true @ self.B_body[..., None])[..., 0])
         f_unique, index = np.unique(self.f_body, axis=0, return_inverse=True)
         self.f_unique, self.unique_index = f_unique, np.asarray(index).reshape(-1)
 
@@ -131,6 +132,16 @@ class GridErrors:
         """As ``__call__`` with the accelerometer readings (D, len(f_unique), 3) at the distinct
         specific forces ``f_unique`` only (the compass's still at every attitude)."""
         return self._errors(raw_accel, self.f_unique, self.unique_index, raw_mag_sensor)
+
+    def compass_only(self, raw_mag_sensor: np.ndarray) -> np.ndarray:
+        """Max heading error over the grid (deg, (D,)) of the D truths whose raw compass readings are
+        ``raw_mag_sensor`` (D, M, 3), the attitude known (the compass's own error, as
+        :func:`attitude_errors`' ``max_heading_compass_only_deg``)."""
+        D, M = raw_mag_sensor.shape[:2]
+        m = fw.apply_compass(self.compass_cal, raw_mag_sensor.reshape(-1, 3), sensor_frame=True).reshape(D, M, 3)
+        dc = _wrap_deg(_heading((self.L_true[None] @ m[..., None])[..., 0].reshape(-1, 3)).reshape(D, M)
+                       - self.h_true)
+        return np.abs(dc).max(axis=1)
 
     def _errors(self, raw_accel: np.ndarray, f: np.ndarray, index: np.ndarray | None,
                 raw_mag_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

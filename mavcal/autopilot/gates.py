@@ -118,16 +118,8 @@ def accel_gates(am, *, n_intervals: int = 0, n_orientations: int = 0, tilt_95_de
     gates: list[Gate] = []
     add, c = _adder(gates), config
     s = f"accel{am.instance}"
-    ofs = float(np.abs(np.asarray(am.new.ofs_mps2)).max())
-    add(s, "offsets", ofs <= c.accel_offset_max_mps2, ofs, f"<= {c.accel_offset_max_mps2} m/s^2",
-        f"accelerometer offset {ofs:.2f} m/s^2 is beyond {c.limits_of} limit: a damaged IMU, "
-        "or readings that are not in m/s^2")
-    sc = np.asarray(am.new.scale)
-    lo, hi = c.accel_scale_range
-    worst = float(sc[np.argmax(np.abs(sc - 1))])
-    add(s, "scales", np.all((sc >= lo) & (sc <= hi)), worst, f"{lo}-{hi}",
-        f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside {c.limits_of} {lo}-{hi}: check the IMU "
-        "and that the vehicle was still")
+    _offsets_gate(add, s, am, c)
+    _scales_gate(add, s, am, c)
     enough = _data_gates(add, s, n_intervals, n_orientations, c, coverage)
     if enough and tilt_95_deg >= UNIDENTIFIED_TILT_DEG:
         add(s, "tilt uncertainty", False, tilt_95_deg, f"<= {c.tilt_95_max_deg} deg (95 %)",
@@ -141,6 +133,43 @@ def accel_gates(am, *, n_intervals: int = 0, n_orientations: int = 0, tilt_95_de
         f"<= {c.holdout_accel_max_mps2} m/s^2",
         f"a pose left out of the accelerometer's own fit is predicted {holdout_mps2:.3f} m/s^2 off: the vehicle "
         "moved during the intervals; hold each pose still and record again")
+    return gates
+
+
+def _offsets_gate(add, s: str, am, c: GateConfig) -> None:
+    ofs = float(np.abs(np.asarray(am.new.ofs_mps2)).max())
+    add(s, "offsets", ofs <= c.accel_offset_max_mps2, ofs, f"<= {c.accel_offset_max_mps2} m/s^2",
+        f"accelerometer offset {ofs:.2f} m/s^2 is beyond {c.limits_of} limit: a damaged IMU, "
+        "or readings that are not in m/s^2")
+
+
+def _scales_gate(add, s: str, am, c: GateConfig) -> None:
+    sc = np.asarray(am.new.scale)
+    lo, hi = c.accel_scale_range
+    worst = float(sc[np.argmax(np.abs(sc - 1))])
+    add(s, "scales", np.all((sc >= lo) & (sc <= hi)), worst, f"{lo}-{hi}",
+        f"accelerometer scale {sc.min():.3f}..{sc.max():.3f} is outside {c.limits_of} {lo}-{hi}: check the IMU "
+        "and that the vehicle was still")
+
+
+def reach_accel_gates(am, *, level_tilt_95_deg: float, limit_deg: float, partner: str, partner_ok: bool,
+                      config: GateConfig = GateConfig()) -> list[Gate]:
+    """The gates of an accelerometer whose offsets (and X/Y scales) poses within reach fitted (its Z
+    scale kept, :mod:`mavcal.fits`) jointly with the compass ``partner``: that compass accepted (the two
+    are one fit), the offset and scale limits, and the 95 % bound of the level tilt error its fitted
+    offsets leave against ``limit_deg`` (what the calibration in force is assumed to leave, made smaller
+    by the fit's required gain)."""
+    gates: list[Gate] = []
+    add, s = _adder(gates), f"accel{am.instance}"
+    add(s, "joint compass", partner_ok, float(partner_ok), f"{partner} accepted",
+        f"its offsets were fitted with {partner}, which was rejected: they are written only with it (its values "
+        "are right only with them)", "data")
+    _offsets_gate(add, s, am, config)
+    _scales_gate(add, s, am, config)
+    add(s, "level tilt uncertainty", level_tilt_95_deg <= limit_deg, level_tilt_95_deg,
+        f"<= {limit_deg:.2f} deg (95 %)",
+        f"the level tilt error of its fitted offsets {_could_reach('tilt', level_tilt_95_deg)}: not better than the "
+        "calibration in force; hold each pose still longer", "data")
     return gates
 
 

@@ -6,13 +6,14 @@ with its autopilot's limits): :func:`judge_compass`. The accelerometers' judging
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 from mavcal.autopilot import gates as gates_mod
 from mavcal.autopilot import model_for
 from mavcal.autopilot.mapping import ParamMapping
 from mavcal.core.types import Calibration
-from mavcal.coverage import ReachCoverage, sensor_coverages, within_reach
+from mavcal.coverage import ACCEL_STATE_WORDS, REACH_FLOWN_TILT_DEG, ReachCoverage, sensor_coverages, within_reach
 from mavcal.errors import MavcalError
 from mavcal.fit_inputs import coverage_rule
 from mavcal.judging.quality import holdout_rms
@@ -57,7 +58,15 @@ def judge_compass(prep: Prepared, opts: Options, f: PairFit, holdout: list[Outco
         fit_message=cal.certificate.reason if cal.certificate is not None and cal.certificate.reason else cal.message,
         fit_advice=gates_mod.FIT_ADVICE if f.reach is None else f.reach.refit_advice(),
         heading_advice=gates_mod.HEADING_ADVICE if f.reach is None else f.reach.heading_advice(f.accel_state))))
+    warnings = list(f.warnings)
+    steep = quality.heading_95_steep_deg
+    if math.isfinite(steep) and steep > quality.heading_95_deg:  # within reach, the Z scale the factory's
+        warnings.append(
+            f"compass {opts.mag_instance}: the heading bound is over tilts up to {REACH_FLOWN_TILT_DEG:g} deg (the "
+            f"poses'); flown steeper, the accelerometer's Z scale (kept: {ACCEL_STATE_WORDS[f.accel_state]}) "
+            f"limits it: at 30 deg of tilt the heading error could reach {steep:.2f} deg (95 %); calibrate the "
+            "accelerometer fully (its 6-side calibration) before flying steeper")
     return CalibrationRun(source=prep.log.source, log=prep.log, raw=prep.raw, segmentation=seg,
                           intervals_used=tuple(f.used), calibration=cal, mapping=f.mapping, quality=quality,
-                          gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(f.warnings)),
+                          gates=report, params_before=f.params_now, warnings=tuple(dict.fromkeys(warnings)),
                           kept=f.reach.kept if f.reach is not None else ())

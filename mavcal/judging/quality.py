@@ -52,6 +52,10 @@ class Quality:
     holdout_accel_mps2: float  # RMS held-out reconstruction error (holdout_errors)
     holdout_mag_mgauss: float
     chi2_dof: float
+    #: within reach with an accelerometer whose Z scale is the factory's (level-calibrated, never calibrated or
+    #: contradicted): the 95 % heading bound over tilts up to 30 deg, beyond the poses', through the
+    #: accelerometer's tilt or with the attitude known, whichever is worse (NaN: not computed)
+    heading_95_steep_deg: float = float("nan")
 
 
 def truth_functions(K_a: np.ndarray, b_a: np.ndarray, K_m: np.ndarray, b_m: np.ndarray, h: np.ndarray,
@@ -113,11 +117,14 @@ def accel_tilt_bounds(fit: AccelFit, am: AccelMapping, draws: int, seed: int) ->
 
 
 def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
-               draws: int, seed: int, holdout: tuple[float, float], max_tilt_deg: float = 45.0) -> Quality:
+               draws: int, seed: int, holdout: tuple[float, float], max_tilt_deg: float = 45.0,
+               attitude_known: bool = False) -> Quality:
     """Heading/tilt error bounds of the written parameters ``am``/``cm`` against ``cal``
     and ``draws`` samples of its parameter distribution, over the attitudes flown (roll and
     pitch up to ``max_tilt_deg``, every heading); ``holdout`` is :func:`holdout_errors`'
-    (accel m/s^2, compass mGauss)."""
+    (accel m/s^2, compass mGauss). ``attitude_known``: each draw's heading error is the larger of
+    the one through the accelerometer's tilt and the compass's own (the attitude known, as an
+    autopilot flying has it from its filter)."""
     grid = attitude_grid(max_tilt_deg=max_tilt_deg)
     incl = np.radians(cm.inclination_deg)
     B_ned = cm.field_mgauss * np.array([np.cos(incl), 0.0, np.sin(incl)])
@@ -129,7 +136,8 @@ def quality_of(cal: Calibration, am: AccelMapping, cm: CompassMapping, board_rot
 
     nominal = errs({"K_a": cal.accel.gain, "b_a": cal.accel.bias, "K_m": cal.mag.gain, "b_m": cal.mag.bias,
                     "h": cal.field})
-    hs, ts = _draw_maxima(sample_parameters(cal, draws, np.random.default_rng(seed)), am, cm, board_rot, B_ned, grid)
+    hs, ts = _draw_maxima(sample_parameters(cal, draws, np.random.default_rng(seed)), am, cm, board_rot, B_ned, grid,
+                          attitude_known)
     chi2 = cal.cost / cal.dof if cal.dof > 0 else float("nan")
     return Quality(heading_95_deg=float(np.percentile(hs, 95)) if hs else nominal.max_heading_deg,
                    tilt_95_deg=float(np.percentile(ts, 95)) if ts else nominal.max_tilt_deg,
@@ -141,7 +149,7 @@ DRAW_CHUNK = 16  # draws evaluated together: fewer calls, arrays still small eno
 
 
 def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_rot: np.ndarray,
-                 B_ned: np.ndarray, grid: np.ndarray) -> tuple[list[float], list[float]]:
+                 B_ned: np.ndarray, grid: np.ndarray, attitude_known: bool = False) -> tuple[list[float], list[float]]:
     """Max heading and max tilt error over ``grid`` for every draw: what
     :func:`mavcal.autopilot.evaluate.attitude_errors` gives draw by draw (to the last bit),
     ``DRAW_CHUNK`` draws at a time by :class:`mavcal.autopilot.evaluate.GridErrors` (the grid's
@@ -159,6 +167,8 @@ def _draw_maxima(draws: list[dict], am: AccelMapping, cm: CompassMapping, board_
                                      cm.old.mount_matrix, cm.field_mgauss)
             raw_a[k], raw_m[k] = ra(f_unique), rm(B_body)
         h, t = max_errors.at_unique(raw_a, raw_m)
+        if attitude_known:
+            h = np.maximum(h, max_errors.compass_only(raw_m))
         hs += [float(x) for x in h]
         ts += [float(x) for x in t]
     return hs, ts

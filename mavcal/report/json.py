@@ -328,7 +328,7 @@ def from_json(doc: Mapping[str, Any]) -> SavedCalibration:
                                old={n: None if p["old"] is None else float(p["old"]) for n, p in params.items()},
                                notes=tuple(doc.get("notes", ())), reboot_required=bool(doc["reboot_required"]))
         q = doc["quality"]
-        quality = Quality(**{f.name: _num(q[f.name]) for f in fields(Quality)})
+        quality = Quality(**{f.name: _num(q[f.name]) for f in fields(Quality) if f.name in q})
         gates = GateReport(tuple(Gate(g["sensor"], g["name"], bool(g["ok"]), _num(g["value"]), g["limit"],
                                       g.get("reason", ""), bool(g.get("ran", True)), g.get("cause", ""))
                                  for g in doc["gates"]))
