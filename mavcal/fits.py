@@ -67,9 +67,10 @@ log = logging.getLogger(__name__)
 __all__ = ["fit_recording", "refusal_verdicts", "reach_of"]
 
 
-_REACH_NOTE = ("poses within reach (tilts up to {:.1f} deg): the accelerometers keep their current scales, the "
-               "compasses are fitted with them held and with the primary accelerometer's offsets (written with an "
-               "accepted compass when the poses identify them); no held-out check")
+_REACH_NOTE = ("poses within reach (tilts up to {:.1f} deg): the compasses are fitted with the primary "
+               "accelerometer's offsets, and its X/Y scales unless it was calibrated (written with an accepted "
+               "compass when the poses identify them); its Z scale and the other accelerometers are kept; no "
+               "held-out check")
 
 
 def fit_recording(prep: Prepared, options: Options = Options(), *, progress=None) -> CalibrationRun:

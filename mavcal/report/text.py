@@ -263,8 +263,10 @@ def summary_text(run, *, hints: dict[str, str] | None = None, param_table: bool 
     overall = {0: "ACCEPTED", 7: "PARTLY ACCEPTED"}.get(run.exit_code, "REJECTED")
     L = [f"{overall}: {run.source}: {n_ok} of {len(run.verdicts)} sensors accepted", *verdict_lines(run),
          *kept_lines(run), next_step(run, **(hints or {}))]
+    within = ("poses within reach: enough for what is written, not for a full calibration"
+              if cal is not None and cal.held else f"coverage {seg.coverage.status}")
     L += [f"{len(run.intervals_used)} of {len(seg.intervals)} still intervals used, "
-          f"{seg.coverage.n_orientations} distinct orientations (coverage {seg.coverage.status})"]
+          f"{seg.coverage.n_orientations} distinct orientations ({within})"]
     L += in_force_lines(run)
     why_a, why_m = joint_unidentified(run)  # numbers of a sensor the poses do not identify: not printed
     why = why_a or why_m
