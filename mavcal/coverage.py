@@ -301,7 +301,7 @@ class ReachCoverage:
                 "heading(s): ")
         if self.compass_identified:
             out = [head + "the compass's offsets and soft-iron terms are identified (fitted with the "
-                   "accelerometer held)"]
+                   "accelerometer's offsets, and its X/Y scales unless it was calibrated; its Z scale held)"]
             if self.mounting_turn_deg:
                 out.append(f"the compass's yaw mounting is identified by the tilts: turned "
                            f"{self.mounting_turn_deg:.0f} deg about the vertical from its configured orientation "
@@ -318,8 +318,9 @@ def _accel_kept(sensor: str, tilt: float) -> list[KeptParameter]:
         KeptParameter(sensor, "Z scale", f"{t} cannot separate it from the Z offset (gravity stays within "
                       f"{100 * (1 - np.cos(np.radians(tilt))):.1f} % of its level value along Z; the Z offset is "
                       "fitted with the scale kept, so that the level reading is right)", _BEYOND),
-        KeptParameter(sensor, "X and Y scales", f"{t} move X/Y by at most {g_xy:.2f} m/s^2, which a tilt of the "
-                      "frame explains as well", _BEYOND),
+        KeptParameter(sensor, "X and Y scales", f"{t} move X/Y by at most {g_xy:.2f} m/s^2 and give the scales only "
+                      "as ratios to the Z scale, to about 1.5 %: kept when the accelerometer was calibrated (fitted "
+                      "and written when it was only level-calibrated or never calibrated)", _BEYOND),
     ]
 
 

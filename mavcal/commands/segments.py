@@ -260,7 +260,7 @@ def run(args) -> int:
                                 + (f": {'; '.join(why)}" if why else " (the vehicle never stayed still "
                                    "long enough, or the thresholds are too strict)") + csv_rate_hint(log_))
     if within is not None and within.compass_identified:
-        return 0  # calibrate fits the compass with the accelerometer held
+        return 0  # calibrate fits the compass with the accelerometer's Z scale held
     if seg.coverage.status == "insufficient":
         raise SegmentationError(f"{args.source}: the still intervals cannot calibrate: "
                                 + "; ".join(seg.coverage.messages) + csv_rate_hint(log_))

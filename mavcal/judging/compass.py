@@ -32,7 +32,7 @@ class PairFit:
     mapping: ParamMapping
     params_now: dict[str, float]
     warnings: list[str]
-    reach: ReachCoverage | None = None  # poses within reach: what they identify (the accelerometer held)
+    reach: ReachCoverage | None = None  # poses within reach: what they identify (the accelerometer's Z scale held)
     accel_state: str = "calibrated"  # the primary accelerometer's calibration in force (coverage.accel_state)
 
 
