@@ -279,6 +279,7 @@ class ReachCoverage:
         what = {"never": "calibrate the accelerometer (its full 6-side calibration: the scales; the offsets are fitted "
                          "here when the poses identify them)",
                 "level": "calibrate the accelerometer fully (its 6-side calibration: the scales)",
+                "reach": "calibrate the accelerometer fully (its 6-side calibration: the Z scale)",
                 "inconsistent": "calibrate the accelerometer again (its full 6-side calibration)"}.get(
             accel, "calibrate the accelerometer (its full calibration, or at least a level calibration on level "
                    "ground)")
@@ -543,8 +544,10 @@ HELD_ACCEL_SD_LEVEL = (0.05, 0.03)
 HELD_ACCEL_SD_DEFAULT = (0.3, 0.03)
 #: "inconsistent": calibrated, but its X/Y scales contradicted by the poses (mavcal.fits): a level calibration's
 #: prior at least
+#: "reach": offsets and X/Y scales set by a fit of poses within reach, the Z scale the factory's: a level
+#: calibration's prior (its X/Y scales known to about 1.5 % only, its Z scale not at all)
 HELD_ACCEL_SD = {"calibrated": HELD_ACCEL_SD_CALIBRATED, "level": HELD_ACCEL_SD_LEVEL, "never": HELD_ACCEL_SD_DEFAULT,
-                 "inconsistent": HELD_ACCEL_SD_LEVEL}
+                 "inconsistent": HELD_ACCEL_SD_LEVEL, "reach": HELD_ACCEL_SD_LEVEL}
 #: the state of an accelerometer's calibration in force, in words (the verdict's)
 ACCEL_STATE_WORDS = {
     "calibrated": "calibrated (offsets and scales set)",
@@ -554,6 +557,8 @@ ACCEL_STATE_WORDS = {
              "remain)",
     "inconsistent": "calibrated, but its X/Y scales in force do not fit these poses (a calibration from another "
                     "board or vehicle, or a poor one)",
+    "reach": "calibrated within reach only (offsets and X/Y scales from tilted poses, Z scale at 1: its factory "
+             "error, up to +-5 %, remains)",
 }
 
 
@@ -563,12 +568,16 @@ WMM_INCLINATION_SD_DEG = 0.5
 
 
 def accel_state(ofs_mps2: Sequence[float], scale: Sequence[float]) -> str:
-    """"calibrated", "level" or "never": the state of an accelerometer's calibration in force from its
-    offsets and scales (ArduPilot's simple/level calibration sets the offsets and leaves every scale 1)."""
+    """"calibrated", "level", "reach" or "never": the state of an accelerometer's calibration in force from
+    its offsets and scales (ArduPilot's simple/level calibration sets the offsets and leaves every scale 1;
+    a fit of poses within reach sets the X/Y scales and leaves the Z scale exactly 1, which a 6-side
+    calibration, a fit of floats, does not)."""
     o, k = np.asarray(ofs_mps2, float), np.asarray(scale, float)
     if np.all(o == 0.0) and np.all(k == 1.0):
         return "never"
-    return "level" if np.all(k == 1.0) else "calibrated"
+    if np.all(k == 1.0):
+        return "level"
+    return "reach" if k[2] == 1.0 else "calibrated"
 
 
 def held_priors(K_a: np.ndarray, calibrated: bool | str, inclination_deg: float | None,

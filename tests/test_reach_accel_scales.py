@@ -132,3 +132,23 @@ def test_a_level_calibrated_accelerometer_gets_the_bound_beyond_the_poses_tilts(
                         fw.accel_cal_from_params(after, 0), fw.compass_cal_from_params(after, 0),
                         np.array(truth.earth_field_ned_mgauss), attitude_grid(max_tilt_deg=30.0))
     assert max(e.max_heading_deg, e.max_heading_compass_only_deg) <= steep, e
+
+
+def test_a_second_capture_within_reach_does_not_take_the_first_ones_scales_for_a_full_calibration():
+    """What a capture within reach writes (X/Y scales set, the Z scale exactly 1) is read back as
+    "calibrated within reach only": the next capture fits the X/Y scales again and carries the Z
+    scale's factory error, rather than trusting them as a 6-side calibration's (0.5 %)."""
+    truth = VehicleTruth.random(5)
+    v = TestVehicle(truth=truth, seed=5)
+    for name, value in fw.accel_param_values(fw.AccelCal(), 0).items():  # never calibrated
+        v.set_param_local(name, value)
+    first = _session(v).result()
+    assert first.accepted
+    for name, value in first.params_to_write().items():
+        v.set_param_local(name, value)
+    assert fw.accel_cal_from_params(v.params, 0).scale[2] == 1.0
+    second = _session(v).result()
+    kept = {(k.sensor, k.what): k.why for k in second.kept}
+    assert kept["accel0", "calibration in force"].startswith("calibrated within reach only"), kept
+    assert "K_a[11]" not in second.calibration.held
+    assert np.isfinite(second.quality.heading_95_steep_deg)

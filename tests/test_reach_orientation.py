@@ -84,7 +84,9 @@ def test_a_field_some_turn_explains_is_no_disturbance():
 def test_the_state_of_the_accelerometer_and_its_prior():
     assert accel_state((0, 0, 0), (1, 1, 1)) == "never"
     assert accel_state((0.1, -0.05, 0.3), (1, 1, 1)) == "level"
-    assert accel_state((0.1, -0.05, 0.3), (0.99, 1.01, 1.0)) == "calibrated"
+    assert accel_state((0.1, -0.05, 0.3), (0.99, 1.01, 1.002)) == "calibrated"
+    # X/Y scales set, the Z scale exactly 1: what a fit of poses within reach writes (its Z scale the factory's)
+    assert accel_state((0.1, -0.05, 0.3), (0.99, 1.01, 1.0)) == "reach"
     K = np.diag([9.8, 9.8, 9.8])
     for state in ("calibrated", "level", "never"):
         p = held_priors(K, state, None)
