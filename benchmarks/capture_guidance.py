@@ -86,6 +86,24 @@ class Hand:
         return out
 
 
+    def follow(self, sess, max_poses: int = 30, on_status=None):
+        """Hold each pose the capture ``sess`` advises (its heading from magnetic north: the declination of
+        the vehicle's field added) until the capture is done, ``on_status(status)`` returns True, or
+        ``max_poses`` poses were held; returns the last status."""
+        B = np.array(self.v.truth.earth_field_ned_mgauss)
+        decl = np.degrees(np.arctan2(B[1], B[0]))
+        st = sess.update()
+        for _ in range(max_poses):
+            if st.done:
+                break
+            a = st.next_pose
+            sess.add(self.go(euler_matrix(a.roll_deg, a.pitch_deg, a.yaw_deg + decl)))
+            st = sess.update()
+            if on_status is not None and on_status(st):
+                break
+        return st
+
+
 def _bounds(run) -> dict[str, float]:
     """Every sensor's 95 % bound from its gates: tilt (accelerometers), heading (compasses)."""
     return {g.sensor: g.value for g in run.gates.gates if g.name in ("tilt uncertainty", "heading uncertainty")}

@@ -198,7 +198,7 @@ def honesty_capture(seed: int, state: str, max_tilt: float = 15.0) -> dict:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from capture_guidance import Hand
 
-    from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix
+    from mavcal.capture import CaptureConfig, CaptureSession
     from mavcal.sources.wmm import field_at
     from mavcal.testing.vehicle import TestVehicle, VehicleTruth
     from mavcal.testing.vehicle_sensors import AccelCalTruth
@@ -223,17 +223,9 @@ def honesty_capture(seed: int, state: str, max_tilt: float = 15.0) -> dict:
            "never": fw.AccelCal(ofs_mps2=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0))}[state]
     for name, value in fw.accel_param_values(now, 0).items():
         v.set_param_local(name, value)
-    hand = Hand(v)
     sess = CaptureSession(v.params, CaptureConfig(max_tilt_deg=max_tilt), position=site)
+    st = Hand(v).follow(sess)
     B = np.array(v.truth.earth_field_ned_mgauss)
-    decl = np.degrees(np.arctan2(B[1], B[0]))
-    st = sess.update()
-    for _ in range(30):
-        if st.done:
-            break
-        p = st.next_pose
-        sess.add(hand.go(euler_matrix(p.roll_deg, p.pitch_deg, p.yaw_deg + decl)))
-        st = sess.update()
     try:
         run = sess.result()
     except MavcalError as exc:

@@ -43,14 +43,7 @@ def test_following_the_advice_reaches_the_target():
     v, hand, sess = _session(VehicleTruth.random(3))
     st = sess.update()
     assert st.next_pose is not None and st.n_intervals == 0
-    B = np.array(v.truth.earth_field_ned_mgauss)
-    decl = np.degrees(np.arctan2(B[1], B[0]))
-    for _ in range(20):
-        a = st.next_pose
-        sess.add(hand.go(euler_matrix(a.roll_deg, a.pitch_deg, a.yaw_deg + decl)))
-        st = sess.update()
-        if st.done:
-            break
+    st = hand.follow(sess, 20)
     assert st.done and not st.aborted, st.reason
     assert st.heading_95_deg <= 0.5 and st.n_intervals >= 8
     assert "target" in st.reason

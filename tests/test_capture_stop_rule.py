@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix, status_line, status_screen
+from mavcal.capture import CaptureConfig, CaptureSession, status_line, status_screen
 from mavcal.capture.progress import SensorProgress, stop_reason
 from mavcal.capture.worker import CaptureWorker
 from mavcal.sources.types import SensorSeries
@@ -42,19 +42,8 @@ class DisturbedHand(Hand):
                 for s in out]
 
 
-def _capture(hand, sess, v, poses=30, on_status=None):
-    B = np.array(v.truth.earth_field_ned_mgauss)
-    decl = np.degrees(np.arctan2(B[1], B[0]))
-    st = sess.update()
-    for _ in range(poses):
-        a = st.next_pose
-        sess.add(hand.go(euler_matrix(a.roll_deg, a.pitch_deg, a.yaw_deg + decl)))
-        st = sess.update()
-        if on_status is not None and on_status(st):
-            break
-        if st.done:
-            break
-    return st
+def _capture(hand, sess, poses=30, on_status=None):
+    return hand.follow(sess, poses, on_status)
 
 
 def test_every_sensor_reaches_its_target_and_is_accepted_with_the_default_settings():
@@ -70,7 +59,7 @@ def test_every_sensor_reaches_its_target_and_is_accepted_with_the_default_settin
             advised_for.append(st.advice_for)
         return False
 
-    st = _capture(Hand(v, instances=(0, 1, 2)), sess, v, on_status=check)
+    st = _capture(Hand(v, instances=(0, 1, 2)), sess, on_status=check)
     assert st.done and not st.aborted, st.reason
     assert tuple(p.sensor for p in st.sensors) == ALL
     assert all(p.met for p in st.sensors), st.sensors
@@ -99,7 +88,7 @@ def test_a_disturbed_compass_is_named_with_the_reason_and_the_capture_can_finish
             return True
         return False
 
-    st = _capture(DisturbedHand(v, instances=(0, 1, 2)), sess, v, on_status=until_offered)
+    st = _capture(DisturbedHand(v, instances=(0, 1, 2)), sess, on_status=until_offered)
     assert offered, [p for p in st.sensors]
     st = offered[-1]
     assert st.offer_finish_without == ("compass1",) and not st.done
@@ -196,7 +185,7 @@ def test_the_advice_goes_to_an_accelerometer_when_it_is_the_furthest_from_its_ta
     # a tilt target no 8-pose capture meets, a heading target every one does: the accelerometers lead
     sess = CaptureSession(v.params, CaptureConfig(target_tilt_deg=0.02, target_heading_deg=5.0, max_intervals=10))
     seen = []
-    st = _capture(Hand(v, instances=(0, 1, 2)), sess, v, poses=10, on_status=lambda s: seen.append(s) and False)
+    st = _capture(Hand(v, instances=(0, 1, 2)), sess, poses=10, on_status=lambda s: seen.append(s) and False)
     assert all(s.advice_for is None for s in seen if s.n_intervals < 6)  # the fixed plan before a fit
     after_fit = [s for s in seen if s.sensors and s.sensors[0].bound_deg is not None and not s.done]
     to_accel = [s for s in after_fit if s.advice_for.startswith("accel")]

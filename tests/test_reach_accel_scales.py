@@ -10,7 +10,7 @@ import pytest
 
 from mavcal.ardupilot import firmware as fw
 from mavcal.autopilot.evaluate import attitude_errors, attitude_grid
-from mavcal.capture import CaptureConfig, CaptureSession, euler_matrix
+from mavcal.capture import CaptureConfig, CaptureSession
 from mavcal.coverage import REACH_FLOWN_TILT_DEG
 from mavcal.testing.vehicle import TestVehicle, VehicleTruth
 
@@ -20,17 +20,8 @@ from capture_guidance import Hand  # noqa: E402  (the simulated hand of the benc
 
 def _session(v: TestVehicle) -> CaptureSession:
     """A --max-tilt 15 capture of ``v`` followed to its end."""
-    hand = Hand(v)
     sess = CaptureSession(v.params, CaptureConfig(max_tilt_deg=15.0))
-    B = np.array(v.truth.earth_field_ned_mgauss)
-    decl = np.degrees(np.arctan2(B[1], B[0]))
-    st = sess.update()
-    for _ in range(30):
-        if st.done:
-            break
-        p = st.next_pose
-        sess.add(hand.go(euler_matrix(p.roll_deg, p.pitch_deg, p.yaw_deg + decl)))
-        st = sess.update()
+    st = Hand(v).follow(sess)
     assert st.done and st.n_intervals <= 25, st.reason
     return sess
 

@@ -39,19 +39,9 @@ def _vehicle(orientation: int = 0, configured: int = 0) -> TestVehicle:
 
 
 def _capture(v: TestVehicle, max_poses: int = 40):
-    hand = Hand(v)
     sess = CaptureSession(v.params, CaptureConfig(max_tilt_deg=15.0, max_intervals=40), position=CMAC)
-    B = np.array(v.truth.earth_field_ned_mgauss)
-    decl = np.degrees(np.arctan2(B[1], B[0]))
-    st = sess.update()
     shown: list[tuple[int, tuple[str, ...]]] = []
-    for _ in range(max_poses):
-        if st.done:
-            break
-        a = st.next_pose
-        sess.add(hand.go(euler_matrix(a.roll_deg, a.pitch_deg, a.yaw_deg + decl)))
-        st = sess.update()
-        shown.append((st.n_intervals, st.messages))
+    st = Hand(v).follow(sess, max_poses, lambda s: shown.append((s.n_intervals, s.messages)))
     return sess, st, shown
 
 
