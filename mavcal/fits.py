@@ -478,7 +478,7 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
     is known and the tilts determine the dip less well than the World Magnetic Model knows it
     (:data:`mavcal.coverage.WMM_INCLINATION_SD_DEG`), it is held at the model's inclination instead.
     Returns the fit and the state of the calibration in force (:func:`mavcal.coverage.accel_state`, or
-    "inconsistent": calibrated, but its X/Y scales contradicted by the poses, :func:`_checked_scales`)."""
+    "inconsistent": calibrated, but its X/Y scales contradicted by the poses, :func:`_scales_contradicted`)."""
     if not reach.compass_identified:
         raise InsufficientDataError(f"{prep.log.source}: poses within reach (tilts up to {reach.max_tilt_deg:.1f} "
                                     f"deg): {'; '.join(reach.missing)}; {reach.add}")
@@ -495,12 +495,18 @@ def _fit_within_reach(prep: Prepared, opts: Options, reach: ReachCoverage, sa: I
         if free is not None:
             return free, state
     cal = _fit_held_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach)
-    cal, state, note = _checked_scales(sa, sm, K_a, b_a, cal, state)
-    if state == "inconsistent":  # the scales in force contradicted: the poses' own, when they know them
-        free = _fit_free_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach, note + "; ")
-        if free is not None:
-            return free, state
-    return cal, state
+    note, sd = _scales_contradicted(sa, sm, K_a, b_a, cal, state)
+    if not note:
+        return cal, state
+    # the scales in force contradicted: the poses' own, when they know them, else held with a wider prior
+    state = "inconsistent"
+    free = _fit_free_scales(prep, opts, sa, sm, K_a, b_a, state, params_now, reach, note + "; ")
+    if free is not None:
+        return free, state
+    incl = float(np.degrees(np.arctan(cal.h_z))) if "h_z" in cal.held else None
+    return calibrate_held(sa, sm, K_a, b_a, held=list(cal.held), prior_sd=held_priors(K_a, state, incl, scale_sd=sd),
+                          h_z=cal.h_z if "h_z" in cal.held else None,
+                          reason=cal.model_reason + f"; {note}: their prior widened to {100 * sd:.1f} %"), state
 
 
 def _fit_held_scales(prep: Prepared, opts: Options, sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray,
@@ -567,44 +573,37 @@ def scales_sd(cal: Calibration) -> float:
 SCALES_FALSE_ALARM = 1e-3
 
 
-def _checked_scales(sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray, b_a: np.ndarray, cal: Calibration,
-                    state: str) -> tuple[Calibration, str, str]:
+def _scales_contradicted(sa: IntervalStats, sm: IntervalStats, K_a: np.ndarray, b_a: np.ndarray, cal: Calibration,
+                         state: str) -> tuple[str, float]:
     """A calibrated accelerometer's held X/Y scales tested against the poses (issue 37): the same fit with
     K_a[11], K_a[22] free (K_a[33] and the rest held as in ``cal``, their priors counted), and the
     difference d of the free values from the held ones weighed by its covariance C (the free fit's plus
     the held values' prior): d^T C^-1 d is chi2 with 2 degrees of freedom when the calibration in force is
-    within its prior. Beyond the chi2 point of :data:`SCALES_FALSE_ALARM`, the held values keep their place
-    (the fit's point is unchanged) but their prior becomes a level calibration's, or the discrepancy when
-    larger, and the state "inconsistent": the bounds then carry it and the verdict names it. Returns the
-    fit, the state and the finding in words ("" when none)."""
+    within its prior. Returns ("", 0) when it is not beyond the chi2 point of :data:`SCALES_FALSE_ALARM`
+    (or the poses cannot test it), else the finding in words and the relative prior the held scales
+    deserve instead: a level calibration's, or the discrepancy when larger."""
     if state != "calibrated":
-        return cal, state, ""
+        return "", 0.0
     held = [h for h in cal.held if h not in ("K_a[11]", "K_a[22]")]
     incl = float(np.degrees(np.arctan(cal.h_z))) if "h_z" in held else None
-    h_z = cal.h_z if "h_z" in held else None
     try:
-        free = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, incl), h_z=h_z)
+        free = calibrate_held(sa, sm, K_a, b_a, held=held, prior_sd=held_priors(K_a, state, incl),
+                              h_z=cal.h_z if "h_z" in held else None)
     except (InsufficientDataError, EstimationError):
-        return cal, state, ""
+        return "", 0.0
     if free.param_cov is None or not free.converged or np.any(np.diag(free.accel.gain)[:2] <= 0.0):
-        return cal, state, ""  # no certified optimum of the proper sign (tiny tilts): the poses cannot test them
+        return "", 0.0  # no certified optimum of the proper sign (tiny tilts): the poses cannot test them
     k = [free.param_names.index(n) for n in ("K_a[11]", "K_a[22]")]
     K = np.diag(K_a)[:2]
     d = np.diag(free.accel.gain)[:2] - K
     C = free.param_cov[np.ix_(k, k)] + np.diag((HELD_ACCEL_SD[state][1] * K) ** 2)
     z2 = float(d @ np.linalg.solve(C, d))
     if z2 <= float(chi2.isf(SCALES_FALSE_ALARM, 2)):
-        return cal, state, ""
-    off = float(np.abs(d / K).max())
-    sd = max(HELD_ACCEL_SD["inconsistent"][1], off)
+        return "", 0.0
     pct = ", ".join(f"{c} {100 * x:+.1f} %" for c, x in zip("XY", np.diag(free.accel.gain)[:2] / K - 1.0))
     note = (f"its X/Y scales in force do not fit these poses (K_a[11], K_a[22] fitted {pct} off them, chi2 "
             f"{z2:.1f} on 2 dof, false-alarm rate {SCALES_FALSE_ALARM:g})")
-    reason = cal.model_reason + f"; {note}: their prior widened to {100 * sd:.1f} %"
-    refit = calibrate_held(sa, sm, K_a, b_a, held=list(cal.held), prior_sd=held_priors(K_a, "inconsistent", incl,
-                                                                                       scale_sd=sd), h_z=h_z,
-                           reason=reason)
-    return refit, "inconsistent", note
+    return note, max(HELD_ACCEL_SD["inconsistent"][1], float(np.abs(d / K).max()))
 
 
 def offsets_sd_mps2(cal: Calibration) -> float:
